@@ -1,0 +1,48 @@
+"""Detector nonlinearity and its validity limits.
+
+The paper's model (its Eq. 1) is the quadratic S(Q) = Q - beta Q^2 with beta > 0 (charge Q in
+electrons, S what the detector reports). GalSim and romanisim write the same thing as
+S = Q + beta' Q^2 with beta' = -6e-7 for Roman; ``to_paper_beta`` converts, and every result says
+which convention its beta is in.
+
+Validity: the quadratic stops being monotonic where dS/dQ = 1 - 2 beta Q <= 0, and a pixel that
+holds more than the full well is saturated; either, in pixels that carry weight in the moments,
+makes a result meaningless, so the experiment flags it in plain words.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .checks import InputError, check_number
+
+BETA_CONVENTIONS = ("paper", "galsim")
+#: Beta values a request may give, in either convention, in 1/e-.
+MAX_ABS_BETA = 1e-3
+
+
+def to_paper_beta(beta: float, convention: str = "paper") -> float:
+    """The paper's beta (S = Q - beta Q^2) for a value given in ``convention``."""
+    if convention not in BETA_CONVENTIONS:
+        raise InputError("beta_convention", f"must be one of {', '.join(BETA_CONVENTIONS)}, got {convention!r}")
+    value = check_number(beta, "beta", -MAX_ABS_BETA, MAX_ABS_BETA)
+    return value if convention == "paper" else -value
+
+
+def describe(convention: str) -> str:
+    return "S = Q - beta Q^2 (paper)" if convention == "paper" else "S = Q + beta Q^2 (GalSim/romanisim)"
+
+
+def nonlinearity_perturbation(charge: np.ndarray, beta) -> np.ndarray:
+    """The change S - Q = -beta Q^2 (``beta`` a scalar or an array of per-pixel values)."""
+    return -np.asarray(beta, dtype=np.float64) * charge * charge
+
+
+def apply_nonlinearity(charge: np.ndarray, beta) -> np.ndarray:
+    """S = Q - beta Q^2 with the paper's sign convention."""
+    return charge + nonlinearity_perturbation(charge, beta)
+
+
+def draw_pixel_betas(rng: np.random.Generator, beta0: float, sigma_beta: float, shape: tuple[int, ...]) -> np.ndarray:
+    """Per-pixel beta ~ N(beta0, sigma_beta^2) (paper section 4.2)."""
+    return beta0 + sigma_beta * rng.standard_normal(shape)

@@ -1,0 +1,220 @@
+"""The Roman WFI effective PSF (optics convolved with the native pixel), in Fourier form.
+
+The optical PSF depends only on (SCA, band, wavelengths, position on the SCA), so it is computed
+once and kept as the Fourier coefficients of the *effective* PSF (optics times the native-pixel
+transfer function) on a periodic field of side ``field_arcsec``. Rendering any sub-pixel centroid
+at any oversampling is then a matrix Fourier transform of those coefficients
+(``nlpsf.render``), with no interpolation of a sampled image.
+
+How it is computed, for each wavelength:
+
+1. the pupil function W = T exp(2 pi i Phi) on the binned pupil grid, Phi the Zernike wavefront in
+   waves at that wavelength;
+2. the amplitude E(theta) = sum W exp(-2 pi i (u theta_x + v theta_y) / lambda) by matrix Fourier
+   transforms on a grid that samples the intensity above Nyquist (spacing < lambda / (2 D));
+3. the intensity |E|^2, normalised by Parseval so that it integrates to one over the whole sky;
+4. its Fourier coefficients on the frequencies m / field_arcsec inside the optical cut-off
+   (the OTF vanishes beyond the pupil's extent / lambda, so nothing is lost by the crop);
+5. times the native pixel's transfer function sinc(p f_x) sinc(p f_y).
+
+The PSF beyond half the field is dropped (it falls outside any stamp the field is made for), so the
+zero-frequency coefficient is the fraction of the flux inside the field.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from . import roman
+from .checks import InputError, check_integer, check_number
+
+ARCSEC_PER_RADIAN = 180.0 * 3600.0 / math.pi
+
+
+def noll_to_nm(j: int) -> tuple[int, int]:
+    """Radial order n and signed azimuthal order m of Noll index j (m > 0: cos, m < 0: sin)."""
+    if j < 1:
+        raise ValueError(f"Noll index starts at 1, got {j}")
+    n, remaining = 0, j - 1
+    while remaining > n:
+        n += 1
+        remaining -= n
+    m_abs = (n % 2) + 2 * ((remaining + ((n + 1) % 2)) // 2)
+    m = m_abs if j % 2 == 0 else -m_abs
+    return n, m if m_abs else 0
+
+
+def zernike(j: int, rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Noll-normalised Zernike polynomial Z_j (unit RMS over the unit disc)."""
+    n, m = noll_to_nm(j)
+    m_abs = abs(m)
+    radial = np.zeros_like(rho)
+    for k in range((n - m_abs) // 2 + 1):
+        coefficient = (
+            (-1) ** k
+            * math.factorial(n - k)
+            / (math.factorial(k) * math.factorial((n + m_abs) // 2 - k) * math.factorial((n - m_abs) // 2 - k))
+        )
+        radial = radial + coefficient * rho ** (n - 2 * k)
+    if m == 0:
+        return math.sqrt(n + 1) * radial
+    angular = np.cos(m_abs * theta) if m > 0 else np.sin(m_abs * theta)
+    return math.sqrt(2 * (n + 1)) * radial * angular
+
+
+def wavefront_waves(coefficients: np.ndarray, u_m: np.ndarray, v_m: np.ndarray, radius_m: float) -> np.ndarray:
+    """Wavefront (in waves) of Noll ``coefficients`` (index 0 unused) at pupil points (u, v)."""
+    rho = np.hypot(u_m, v_m) / radius_m
+    theta = np.arctan2(v_m, u_m)
+    total = np.zeros_like(rho)
+    for j in range(1, len(coefficients)):
+        if coefficients[j] != 0.0:
+            total += coefficients[j] * zernike(j, rho, theta)
+    return total
+
+
+@dataclass(frozen=True)
+class OpticsConfig:
+    """What the optical PSF depends on. ``wavelength_nm=None`` means the band's effective wavelength.
+
+    ``n_wavelengths`` = 1 is the achromatic PSF (the paper's choice); more integrates the band for
+    a flat-f_nu source (photon weights proportional to A_eff(lambda) / lambda).
+    """
+
+    band: str = "H158"
+    sca: int = 18
+    wavelength_nm: float | None = None
+    n_wavelengths: int = 1
+    pupil_bin: int = 4
+    pupil_scale: str = "galsim"
+    position_pixels: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "band", roman.check_band(self.band))
+        object.__setattr__(self, "sca", roman.check_sca(self.sca))
+        check_integer(self.n_wavelengths, "n_wavelengths", 1, 64)
+        if self.wavelength_nm is not None:
+            check_number(self.wavelength_nm, "wavelength_nm", 300.0, 3000.0)
+            if self.n_wavelengths != 1:
+                raise InputError("wavelength_nm", "give a single wavelength or n_wavelengths > 1, not both")
+        if self.position_pixels is not None:
+            object.__setattr__(self, "position_pixels", tuple(float(v) for v in self.position_pixels))
+
+    def wavelengths_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Wavelengths [nm] and their normalised photon weights."""
+        curve = roman.throughput(self.band)
+        if self.n_wavelengths == 1:
+            wavelength = self.wavelength_nm if self.wavelength_nm is not None else curve.effective_wavelength_nm
+            return np.array([float(wavelength)]), np.array([1.0])
+        # Equal-width bins over the band; each bin is represented by its photon-weighted mean
+        # wavelength and carries its share of the photons.
+        fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * self.n_wavelengths + 1)
+        photons = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2) / fine
+        edges = np.linspace(0, fine.size - 1, self.n_wavelengths + 1).astype(int)
+        wavelengths, weights = [], []
+        for lo, hi in itertools.pairwise(edges):
+            w = np.trapezoid(photons[lo : hi + 1], fine[lo : hi + 1])
+            wavelengths.append(np.trapezoid(photons[lo : hi + 1] * fine[lo : hi + 1], fine[lo : hi + 1]) / w)
+            weights.append(w)
+        weights_array = np.asarray(weights)
+        return np.asarray(wavelengths), weights_array / weights_array.sum()
+
+
+@dataclass(frozen=True, eq=False)
+class EffectivePSF:
+    """Fourier coefficients of the effective PSF on a periodic field.
+
+    ``coefficients[a, b]`` is the Fourier transform (flux-normalised) of the effective PSF at
+    spatial frequency (f_y, f_x) = (frequencies[a], frequencies[b]) in cycles per arcsec, where the
+    PSF was kept within ``field_arcsec`` (side of the square) around its centre.
+    """
+
+    optics: OpticsConfig
+    field_arcsec: float
+    frequencies: np.ndarray
+    coefficients: np.ndarray
+    wavelengths_nm: np.ndarray
+    weights: np.ndarray
+    flux_in_field: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        centre = self.frequencies.size // 2
+        object.__setattr__(self, "flux_in_field", float(self.coefficients[centre, centre].real))
+
+
+def _intensity_coefficients(
+    pupil: roman.Pupil,
+    coefficients_waves: np.ndarray,
+    wavelength_nm: float,
+    frequencies: np.ndarray,
+    field_arcsec: float,
+) -> np.ndarray:
+    """Fourier coefficients (at ``frequencies``, cycles/arcsec) of the normalised optical PSF."""
+    transmission = pupil.transmission
+    rows = np.flatnonzero(transmission.any(axis=1))
+    cols = np.flatnonzero(transmission.any(axis=0))
+    coords = pupil.coordinates_m
+    u = coords[cols[0] : cols[-1] + 1]
+    v = coords[rows[0] : rows[-1] + 1]
+    t = transmission[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    uu, vv = np.meshgrid(u, v)
+    phase = wavefront_waves(coefficients_waves, uu, vv, roman.DIAMETER_M / 2)
+    pupil_function = t * np.exp(2j * np.pi * phase)
+
+    wavelength_m = wavelength_nm * 1e-9
+    extent_m = max(u[-1] - u[0], v[-1] - v[0]) + pupil.scale_m
+    cutoff = extent_m / wavelength_m / ARCSEC_PER_RADIAN  # cycles / arcsec
+    # Sample the intensity above Nyquist for its band limit (the OTF support).
+    n_theta = 2 * math.ceil(field_arcsec * cutoff * 1.05) + 2
+    spacing = field_arcsec / n_theta
+    theta_arcsec = (np.arange(n_theta) - n_theta // 2) * spacing
+    theta_rad = theta_arcsec / ARCSEC_PER_RADIAN
+    kernel_u = np.exp(2j * np.pi * np.outer(theta_rad, u) / wavelength_m)
+    kernel_v = np.exp(2j * np.pi * np.outer(theta_rad, v) / wavelength_m)
+    amplitude = kernel_v @ pupil_function @ kernel_u.T
+    # Parseval over one period (lambda / pupil pixel) of the sampled pupil's far field.
+    period_arcsec = wavelength_m / pupil.scale_m * ARCSEC_PER_RADIAN
+    intensity = np.abs(amplitude) ** 2 / (period_arcsec**2 * np.sum(np.abs(pupil_function) ** 2))
+    dft = np.exp(-2j * np.pi * np.outer(frequencies, theta_arcsec))
+    return spacing**2 * (dft @ intensity @ dft.T)
+
+
+def frequency_grid(field_arcsec: float, cutoff_per_arcsec: float) -> np.ndarray:
+    """Frequencies m / field (cycles/arcsec) covering [-cutoff, cutoff], symmetric about zero."""
+    m_max = math.ceil(cutoff_per_arcsec * field_arcsec)
+    return np.arange(-m_max, m_max + 1) / field_arcsec
+
+
+def _optical_cutoff(pupil: roman.Pupil, wavelength_nm: float) -> float:
+    transmission = pupil.transmission
+    rows = np.flatnonzero(transmission.any(axis=1))
+    cols = np.flatnonzero(transmission.any(axis=0))
+    extent_m = (max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1) * pupil.scale_m
+    return extent_m / (wavelength_nm * 1e-9) / ARCSEC_PER_RADIAN
+
+
+@lru_cache(maxsize=64)
+def effective_psf(optics: OpticsConfig, field_arcsec: float) -> EffectivePSF:
+    """Effective PSF (optics convolved with the 0.11" pixel) of ``optics`` on a field of this side.
+
+    Cached per (optics, field): the only expensive step of a simulation, done once.
+    """
+    field_arcsec = check_number(field_arcsec, "field_arcsec", 0.5, 60.0)
+    pupil = roman.pupil(optics.sca, optics.band, optics.pupil_bin, optics.pupil_scale)
+    coefficients_1293 = roman.aberrations(optics.sca, optics.position_pixels)
+    wavelengths, weights = optics.wavelengths_and_weights()
+    frequencies = frequency_grid(field_arcsec, _optical_cutoff(pupil, float(wavelengths.min())))
+    total = np.zeros((frequencies.size, frequencies.size), dtype=np.complex128)
+    for wavelength, weight in zip(wavelengths, weights, strict=True):
+        scaled = coefficients_1293 * roman.ZERNIKE_REFERENCE_WAVELENGTH_NM / wavelength
+        total += weight * _intensity_coefficients(pupil, scaled, float(wavelength), frequencies, field_arcsec)
+    pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * frequencies)
+    total *= pixel[:, None] * pixel[None, :]
+    total.setflags(write=False)
+    frequencies.setflags(write=False)
+    return EffectivePSF(optics, field_arcsec, frequencies, total, wavelengths, weights)

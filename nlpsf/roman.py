@@ -1,0 +1,208 @@
+"""Roman Wide Field Instrument: constants, bands, SCAs and the shipped optical data.
+
+Numbers that come from the instrument are the ones GalSim 2.8 uses (``galsim.roman``), because
+GalSim's Roman module is the reference optical model this project is checked against. Data files
+live in ``nlpsf/data/roman`` (see ``nlpsf/data/SOURCES.md`` for their provenance).
+"""
+
+from __future__ import annotations
+
+import gzip
+from dataclasses import dataclass
+from functools import cache
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+
+from .checks import InputError, check_integer
+
+#: Native WFI pixel scale [arcsec / pixel].
+PIXEL_SCALE_ARCSEC = 0.11
+#: Nominal telescope diameter [m]; also the radius scale of the Zernike disc.
+DIAMETER_M = 2.36
+#: Linear central obscuration (only used by GalSim as a sampling hint; the masks carry the truth).
+OBSCURATION = 0.32
+#: Nominal collecting area [cm^2] (Cycle 7); throughput = effective area / this.
+COLLECTING_AREA_CM2 = 3.757e4
+#: Detector pixel pitch [mm], used to place the Zernike field points on an SCA.
+PIXEL_PITCH_MM = 0.01
+#: Active pixels per SCA side.
+SCA_PIXELS = 4088
+#: Number of SCAs in the focal plane.
+N_SCA = 18
+#: Wavelength at which the Zernike coefficients are given [nm].
+ZERNIKE_REFERENCE_WAVELENGTH_NM = 1293.0
+
+#: The paper's exposure time [s] (High Latitude Survey).
+DEFAULT_EXPTIME_S = 168.1
+#: Full-well depth [e-] quoted by the paper.
+DEFAULT_FULL_WELL_E = 1.1e5
+
+#: Imaging bands, bluest first. F184 and K213 use the long-wavelength (cold) pupil mask.
+BANDS: tuple[str, ...] = ("R062", "Z087", "Y106", "J129", "H158", "F184", "W146", "K213")
+LONG_WAVELENGTH_BANDS: frozenset[str] = frozenset({"F184", "K213"})
+#: The four High Latitude Survey bands the paper studies.
+PAPER_BANDS: tuple[str, ...] = ("Y106", "J129", "H158", "F184")
+
+DATA_VERSION = "GalSim 2.8.5 share/roman: Cycle-9 Zernikes (082623), RST_WIM pupil masks, effarea 20210614"
+
+
+def check_band(band: str) -> str:
+    if not isinstance(band, str) or band.upper() not in BANDS:
+        raise InputError("band", f"unknown band {band!r}; choose one of {', '.join(BANDS)}")
+    return band.upper()
+
+
+def check_sca(sca: int) -> int:
+    return check_integer(sca, "sca", 1, N_SCA)
+
+
+def _data_dir() -> Path:
+    return Path(str(resources.files("nlpsf") / "data" / "roman"))
+
+
+@dataclass(frozen=True)
+class Throughput:
+    """Effective-area curve of one band: wavelength [nm] and effective area [m^2]."""
+
+    band: str
+    wavelength_nm: np.ndarray
+    effective_area_m2: np.ndarray
+
+    @property
+    def throughput(self) -> np.ndarray:
+        """Dimensionless throughput relative to the nominal collecting area (GalSim's convention)."""
+        return self.effective_area_m2 * 1e4 / COLLECTING_AREA_CM2
+
+    @property
+    def effective_wavelength_nm(self) -> float:
+        """Throughput-weighted mean wavelength, GalSim's ``Bandpass.effective_wavelength``."""
+        t = self.effective_area_m2
+        return float(np.trapezoid(self.wavelength_nm * t, self.wavelength_nm) / np.trapezoid(t, self.wavelength_nm))
+
+    @property
+    def blue_limit_nm(self) -> float:
+        return float(self.wavelength_nm[0])
+
+    @property
+    def red_limit_nm(self) -> float:
+        return float(self.wavelength_nm[-1])
+
+
+@cache
+def throughput(band: str) -> Throughput:
+    """Effective-area curve of ``band``, trimmed to the range where it is non-zero."""
+    band = check_band(band)
+    table = np.genfromtxt(_data_dir() / "Roman_effarea_20210614.txt", names=True)
+    wave_nm = 1000.0 * np.asarray(table["Wave"], dtype=np.float64)
+    area = np.asarray(table[band], dtype=np.float64)
+    nonzero = np.flatnonzero(area > 0)
+    # Keep one zero on each side so the curve starts and ends at zero, as GalSim's trim does.
+    lo, hi = max(nonzero[0] - 1, 0), min(nonzero[-1] + 1, area.size - 1)
+    wave_nm, area = wave_nm[lo : hi + 1], area[lo : hi + 1]
+    wave_nm.setflags(write=False)
+    area.setflags(write=False)
+    return Throughput(band, wave_nm, area)
+
+
+@dataclass(frozen=True)
+class Pupil:
+    """Binned pupil transmission on a square grid (rows = v, columns = u) at ``scale_m`` per pixel.
+
+    Coordinates follow GalSim's Aperture: pixel index ``i`` sits at ``(i - n/2) * scale_m``.
+    """
+
+    sca: int
+    mask_kind: str  # "short" or "long"
+    transmission: np.ndarray
+    scale_m: float
+
+    @property
+    def coordinates_m(self) -> np.ndarray:
+        n = self.transmission.shape[0]
+        return (np.arange(n) - n // 2) * self.scale_m
+
+
+#: How the pupil mask's pixel scale is set. "galsim": the farthest open pixel of the binned mask
+#: lies on the 2.36 m disc, which is what GalSim 2.8.5's ``roman.getPSF`` ends up doing (its
+#: ``Image.flip_ud`` drops the scale read from the FITS header, and ``Aperture`` then falls back
+#: to this rule). "header": the header's entrance-pupil scale (``CDELT`` x ``PUPIL SCALE FACTOR``),
+#: which puts the pupil edge of SCA 1 at 2.37 m but lets the short-wavelength mask of SCA 18 reach
+#: 2.49 m. The two differ by 0.5-5.4 % in pupil size depending on the SCA and mask.
+PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header")
+
+
+@cache
+def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -> Pupil:
+    """Pupil mask of ``sca`` for ``band`` (short- or long-wavelength mask), binned by ``pupil_bin``."""
+    sca = check_sca(sca)
+    band = check_band(band)
+    if check_integer(pupil_bin, "pupil_bin", 1, 16) and 2048 % int(pupil_bin):
+        raise InputError("pupil_bin", f"must divide 2048, got {pupil_bin!r}")
+    if scale_rule not in PUPIL_SCALE_RULES:
+        raise InputError("pupil_scale", f"must be one of {', '.join(PUPIL_SCALE_RULES)}, got {scale_rule!r}")
+    kind = "long" if band in LONG_WAVELENGTH_BANDS else "short"
+    name = f"RST_WIM_Filter_{'F184' if kind == 'long' else 'skinny'}_SCA_{sca}.fits.gz"
+    with gzip.open(_data_dir() / name, "rb") as handle, fits.open(handle) as hdul:
+        header = hdul[0].header
+        data = np.asarray(hdul[0].data, dtype=np.float64)
+        # The file's pixel scale is for the exit pupil in microns; the header gives the
+        # factor to the entrance pupil (GalSim does the same).
+        scale_m = float(header["CDELT"]) * float(header["HIERARCH PUPIL SCALE FACTOR"]) * 1e-6
+    n = data.shape[0] // pupil_bin
+    binned = data.reshape(n, pupil_bin, n, pupil_bin).sum(axis=(1, 3))
+    # GalSim keeps a binned pixel if any sub-pixel is open; we keep that rule so the optical
+    # model is the same one the reference pipeline uses.
+    transmission = (binned > 0).astype(np.float64)[::-1, :].copy()
+    transmission.setflags(write=False)
+    if scale_rule == "galsim":
+        offsets = np.arange(n) - n // 2
+        radius = np.hypot(offsets[None, :], offsets[:, None])
+        binned_scale_m = DIAMETER_M / (2.0 * radius[transmission > 0].max())
+    else:
+        binned_scale_m = scale_m * pupil_bin
+    return Pupil(sca, kind, transmission, binned_scale_m)
+
+
+@cache
+def _zernike_table(sca: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    data = np.loadtxt(_data_dir() / f"Roman_Cycle-9_WFI_zim_zernikes_082623_{sca:02d}.txt")
+    aberrations = np.zeros((5, 23))
+    aberrations[:, 1:] = data[:, 5:]
+    x = data[:, 1] / PIXEL_PITCH_MM
+    y = data[:, 2] / PIXEL_PITCH_MM
+    if sca % 3 != 0:
+        # These SCAs are mounted rotated by 180 degrees relative to the field coordinates.
+        x, y = -x, -y
+    return aberrations, x + SCA_PIXELS / 2, y + SCA_PIXELS / 2
+
+
+def aberrations(sca: int, position_pixels: tuple[float, float] | None = None) -> np.ndarray:
+    """Noll Zernike coefficients (index 0 unused, 1..22) in waves at 1293 nm.
+
+    Bilinear interpolation between the four corner field points, as GalSim does; piston, tip and
+    tilt are zeroed because they only move the PSF.
+    """
+    sca = check_sca(sca)
+    table, x, y = _zernike_table(sca)
+    if position_pixels is None:
+        position_pixels = (SCA_PIXELS / 2, SCA_PIXELS / 2)
+    px, py = (float(v) for v in position_pixels)
+    if not (np.isfinite(px) and np.isfinite(py)) or not (0 <= px <= SCA_PIXELS and 0 <= py <= SCA_PIXELS):
+        raise InputError("position", f"position on the SCA must lie in [0, {SCA_PIXELS}] pixels, got {position_pixels!r}")
+    corners = {}
+    for i in range(1, 5):
+        key = ("l" if x[i] < x[0] else "r") + ("l" if y[i] < y[0] else "u")
+        corners[key] = table[i]
+    fx = (px - x.min()) / (x.max() - x.min())
+    fy = (py - y.min()) / (y.max() - y.min())
+    result = (
+        (1 - fx) * (1 - fy) * corners["ll"]
+        + (1 - fx) * fy * corners["lu"]
+        + fx * (1 - fy) * corners["rl"]
+        + fx * fy * corners["ru"]
+    )
+    result[:4] = 0.0
+    return result
