@@ -296,21 +296,13 @@ def _failure_flag(status: np.ndarray) -> list[str]:
     ]
 
 
-def _metrics(
-    fit: moments.Moments, reference: moments.Moments, ref_index=None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    ref_sigma = reference.sigma if ref_index is None else reference.sigma[ref_index]
-    ref_e1 = reference.e1 if ref_index is None else reference.e1[ref_index]
-    ref_e2 = reference.e2 if ref_index is None else reference.e2[ref_index]
-    ok = fit.ok & (reference.ok if ref_index is None else bool(reference.ok[ref_index]))
-    d_r = np.where(ok, fit.sigma / ref_sigma - 1.0, np.nan)
-    d_e1 = np.where(ok, fit.e1 - ref_e1, np.nan)
-    d_e2 = np.where(ok, fit.e2 - ref_e2, np.nan)
-    status = np.where(
-        ok,
-        moments.MomentStatus.OK,
-        np.where(fit.ok, reference.status if ref_index is None else reference.status[ref_index], fit.status),
-    )
+def _metrics(fit: moments.Moments, reference: moments.Moments, ref_index=None):
+    """Delta R / R, Delta e1, Delta e2 per realization (NaN where a fit failed) and the status."""
+    if ref_index is not None:
+        reference = _one(reference, np.full(len(fit), ref_index))
+    ok = fit.ok & reference.ok
+    d_r, d_e1, d_e2 = (np.where(ok, v, np.nan) for v in moments.differences(fit, reference))
+    status = np.where(reference.ok, fit.status, reference.status)
     return d_r, d_e1, d_e2, status
 
 
@@ -454,7 +446,7 @@ def _simulate_scatter(
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
 
 
-def _one(fit: moments.Moments, index: int | slice) -> moments.Moments:
+def _one(fit: moments.Moments, index) -> moments.Moments:
     return moments.Moments(
         *(
             np.atleast_1d(getattr(fit, name)[index])

@@ -46,6 +46,7 @@ class MomentStatus(IntEnum):
     NO_FLUX = 3
     CENTROID_LOST = 4
     NONFINITE_IMAGE = 5
+    COLLAPSED = 6
 
 
 STATUS_REASONS = {
@@ -55,7 +56,12 @@ STATUS_REASONS = {
     MomentStatus.NO_FLUX: "the weighted flux is not positive",
     MomentStatus.CENTROID_LOST: "the centroid wandered off the stamp",
     MomentStatus.NONFINITE_IMAGE: "the image holds NaN or infinite values",
+    MomentStatus.COLLAPSED: "the weight collapsed onto a single pixel (the image is undersampled; raise the oversampling)",
 }
+
+#: Below this weight variance (fine pixels^2) the fit has shrunk onto one pixel, as HSM does on
+#: undersampled images ("HSM collapsed to singular moment matrix").
+_COLLAPSE_VARIANCE = 0.01
 
 
 @dataclass(frozen=True)
@@ -102,6 +108,10 @@ class Moments:
     last_step: np.ndarray
     status: np.ndarray
     _jacobian: np.ndarray | None = field(default=None, repr=False)
+    #: For fits made by :func:`fit_perturbed`: the change of (x0, y0, Mxx, Mxy, Myy) from the
+    #: reference fit, held separately so that changes far below the float64 resolution of the
+    #: parameters themselves are not rounded away.
+    delta: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def e1(self) -> np.ndarray:
@@ -266,6 +276,7 @@ def _evaluate(images: np.ndarray, params: np.ndarray, cut: float, order: int):
     return S, inverse
 
 
+@np.errstate(all="ignore")
 def fit(
     images: np.ndarray,
     settings: MomentSettings | None = None,
@@ -294,12 +305,14 @@ def _concatenate(parts: list[Moments]) -> Moments:
     if len(parts) == 1:
         return parts[0]
     jac = None if any(p._jacobian is None for p in parts) else np.concatenate([p._jacobian for p in parts])
+    delta = None if any(p.delta is None for p in parts) else np.concatenate([p.delta for p in parts])
     return Moments(
         *(
             np.concatenate([getattr(p, name) for p in parts])
             for name in ("x0", "y0", "mxx", "mxy", "myy", "amplitude", "iterations", "last_step", "status")
         ),
         _jacobian=jac,
+        delta=delta,
     )
 
 
@@ -334,12 +347,15 @@ def _fit_chunk(
             break
         p = params[idx]
         bad = ~_positive_definite(p)
+        collapsed = ~bad & (np.minimum(p[:, 2], p[:, 4]) < _COLLAPSE_VARIANCE)
+        status[idx[collapsed]] = MomentStatus.COLLAPSED
+        bad |= collapsed
         lost = (np.abs(p[:, 0]) > limit) | (np.abs(p[:, 1]) > limit)
         S, inverse = _evaluate(images[idx], np.where((bad | lost)[:, None], start[idx], p), cut, 4)
         amp = S[:, 0, 0]
         no_flux = ~(amp > 0)
         failed = bad | lost | no_flux
-        status[idx[bad]] = MomentStatus.NOT_POSITIVE_DEFINITE
+        status[idx[bad & ~collapsed]] = MomentStatus.NOT_POSITIVE_DEFINITE
         status[idx[lost & ~bad]] = MomentStatus.CENTROID_LOST
         status[idx[no_flux & ~bad & ~lost]] = MomentStatus.NO_FLUX
         keep = ~failed
@@ -405,6 +421,7 @@ def _newton_step(jac: np.ndarray, residual: np.ndarray) -> np.ndarray:
         return out
 
 
+@np.errstate(all="ignore")
 def fit_perturbed(
     images: np.ndarray,
     perturbations: np.ndarray,
@@ -436,6 +453,7 @@ def fit_perturbed(
         # Below 1e-8 the second-order term is under 1e-16: the precise first step is the answer,
         # and further iterations would only add the float64 noise of the full image.
         exact = small & (reference.status[sl] == MomentStatus.OK) & np.all(np.isfinite(base + delta), axis=(1, 2))
+        delta = fitted.parameters() - p
         if np.any(exact):
             values = p[exact] + first[exact]
             for k, name in enumerate(("x0", "y0", "mxx", "mxy", "myy")):
@@ -443,8 +461,26 @@ def fit_perturbed(
             fitted.status[exact] = MomentStatus.OK
             fitted.iterations[exact] = 1
             fitted.last_step[exact] = _step_size(first[exact], p[exact])
-        parts.append(fitted)
+            delta[exact] = first[exact]
+        parts.append(replace(fitted, delta=delta))
     return _concatenate(parts)
+
+
+def differences(fit: Moments, reference: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Delta R / R, Delta e1, Delta e2) of ``fit`` relative to ``reference``, computed from the
+    parameter changes so that they keep full relative precision however small they are."""
+    ref = reference.parameters()
+    delta = fit.delta if fit.delta is not None else fit.parameters() - ref
+    mxx, mxy, myy = ref[:, 2], ref[:, 3], ref[:, 4]
+    dxx, dxy, dyy = delta[:, 2], delta[:, 3], delta[:, 4]
+    det = mxx * myy - mxy**2
+    # det(M + dM) / det(M) - 1, expanded so no large terms cancel.
+    ratio_minus_one = (myy * dxx + mxx * dyy - 2 * mxy * dxy + dxx * dyy - dxy**2) / det
+    d_r = np.expm1(0.25 * np.log1p(ratio_minus_one))
+    trace, d_trace = mxx + myy, dxx + dyy
+    d_e1 = ((dxx - dyy) * trace - (mxx - myy) * d_trace) / (trace * (trace + d_trace))
+    d_e2 = 2 * (dxy * trace - mxy * d_trace) / (trace * (trace + d_trace))
+    return d_r, d_e1, d_e2
 
 
 def _perturbation_step(base: np.ndarray, delta: np.ndarray, params: np.ndarray, status: np.ndarray, cut: float) -> np.ndarray:
@@ -490,6 +526,7 @@ def metric_gradients(moments: Moments) -> np.ndarray:
     return out
 
 
+@np.errstate(all="ignore")
 def pixel_response(images: np.ndarray, moments: Moments, settings: MomentSettings | None = None) -> np.ndarray:
     """Gradient of (dR/R, e1, e2) with respect to every pixel value, shape (B, 3, n, n).
 

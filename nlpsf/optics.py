@@ -134,7 +134,7 @@ class EffectivePSF:
     PSF was kept within ``field_arcsec`` (side of the square) around its centre.
     """
 
-    optics: OpticsConfig
+    optics: OpticsConfig | None
     field_arcsec: float
     frequencies: np.ndarray
     coefficients: np.ndarray
@@ -147,6 +147,42 @@ class EffectivePSF:
         object.__setattr__(self, "flux_in_field", float(self.coefficients[centre, centre].real))
 
 
+def _clear_aperture(pupil: roman.Pupil) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pupil cropped to its open part: transmission and its u, v coordinates [m]."""
+    transmission = pupil.transmission
+    rows = np.flatnonzero(transmission.any(axis=1))
+    cols = np.flatnonzero(transmission.any(axis=0))
+    coords = pupil.coordinates_m
+    return (
+        transmission[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1],
+        coords[cols[0] : cols[-1] + 1],
+        coords[rows[0] : rows[-1] + 1],
+    )
+
+
+def psf_intensity(
+    pupil: roman.Pupil, coefficients_waves: np.ndarray, wavelength_nm: float, theta_arcsec: np.ndarray
+) -> np.ndarray:
+    """Optical PSF [fraction of the flux per arcsec^2] on the square grid theta x theta.
+
+    Normalised by Parseval over one period (lambda / pupil pixel) of the sampled pupil's far field,
+    i.e. to unit total flux. Rows are theta_y, columns theta_x.
+    """
+    t, u, v = _clear_aperture(pupil)
+    uu, vv = np.meshgrid(u, v)
+    phase = wavefront_waves(coefficients_waves, uu, vv, roman.DIAMETER_M / 2)
+    pupil_function = t * np.exp(2j * np.pi * phase)
+    wavelength_m = wavelength_nm * 1e-9
+    theta_rad = np.asarray(theta_arcsec, dtype=np.float64) / ARCSEC_PER_RADIAN
+    # GalSim's sign convention (an inverse FFT of the pupil); it only turns the PSF by 180
+    # degrees, which moments do not see, but keeps images identical to the reference's.
+    kernel_u = np.exp(2j * np.pi * np.outer(theta_rad, u) / wavelength_m)
+    kernel_v = np.exp(2j * np.pi * np.outer(theta_rad, v) / wavelength_m)
+    amplitude = kernel_v @ pupil_function @ kernel_u.T
+    period_arcsec = wavelength_m / pupil.scale_m * ARCSEC_PER_RADIAN
+    return np.abs(amplitude) ** 2 / (period_arcsec**2 * np.sum(np.abs(pupil_function) ** 2))
+
+
 def _intensity_coefficients(
     pupil: roman.Pupil,
     coefficients_waves: np.ndarray,
@@ -154,32 +190,13 @@ def _intensity_coefficients(
     frequencies: np.ndarray,
     field_arcsec: float,
 ) -> np.ndarray:
-    """Fourier coefficients (at ``frequencies``, cycles/arcsec) of the normalised optical PSF."""
-    transmission = pupil.transmission
-    rows = np.flatnonzero(transmission.any(axis=1))
-    cols = np.flatnonzero(transmission.any(axis=0))
-    coords = pupil.coordinates_m
-    u = coords[cols[0] : cols[-1] + 1]
-    v = coords[rows[0] : rows[-1] + 1]
-    t = transmission[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
-    uu, vv = np.meshgrid(u, v)
-    phase = wavefront_waves(coefficients_waves, uu, vv, roman.DIAMETER_M / 2)
-    pupil_function = t * np.exp(2j * np.pi * phase)
-
-    wavelength_m = wavelength_nm * 1e-9
-    extent_m = max(u[-1] - u[0], v[-1] - v[0]) + pupil.scale_m
-    cutoff = extent_m / wavelength_m / ARCSEC_PER_RADIAN  # cycles / arcsec
+    """Fourier coefficients (at ``frequencies``, cycles/arcsec) of the optical PSF kept in the field."""
+    cutoff = _optical_cutoff(pupil, wavelength_nm)
     # Sample the intensity above Nyquist for its band limit (the OTF support).
     n_theta = 2 * math.ceil(field_arcsec * cutoff * 1.05) + 2
     spacing = field_arcsec / n_theta
     theta_arcsec = (np.arange(n_theta) - n_theta // 2) * spacing
-    theta_rad = theta_arcsec / ARCSEC_PER_RADIAN
-    kernel_u = np.exp(2j * np.pi * np.outer(theta_rad, u) / wavelength_m)
-    kernel_v = np.exp(2j * np.pi * np.outer(theta_rad, v) / wavelength_m)
-    amplitude = kernel_v @ pupil_function @ kernel_u.T
-    # Parseval over one period (lambda / pupil pixel) of the sampled pupil's far field.
-    period_arcsec = wavelength_m / pupil.scale_m * ARCSEC_PER_RADIAN
-    intensity = np.abs(amplitude) ** 2 / (period_arcsec**2 * np.sum(np.abs(pupil_function) ** 2))
+    intensity = psf_intensity(pupil, coefficients_waves, wavelength_nm, theta_arcsec)
     dft = np.exp(-2j * np.pi * np.outer(frequencies, theta_arcsec))
     return spacing**2 * (dft @ intensity @ dft.T)
 
@@ -191,10 +208,9 @@ def frequency_grid(field_arcsec: float, cutoff_per_arcsec: float) -> np.ndarray:
 
 
 def _optical_cutoff(pupil: roman.Pupil, wavelength_nm: float) -> float:
-    transmission = pupil.transmission
-    rows = np.flatnonzero(transmission.any(axis=1))
-    cols = np.flatnonzero(transmission.any(axis=0))
-    extent_m = (max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1) * pupil.scale_m
+    """Highest spatial frequency (cycles/arcsec) of the OTF: the open pupil's extent / lambda."""
+    _t, u, v = _clear_aperture(pupil)
+    extent_m = max(u[-1] - u[0], v[-1] - v[0]) + pupil.scale_m
     return extent_m / (wavelength_nm * 1e-9) / ARCSEC_PER_RADIAN
 
 
@@ -206,15 +222,32 @@ def effective_psf(optics: OpticsConfig, field_arcsec: float) -> EffectivePSF:
     """
     field_arcsec = check_number(field_arcsec, "field_arcsec", 0.5, 60.0)
     pupil = roman.pupil(optics.sca, optics.band, optics.pupil_bin, optics.pupil_scale)
-    coefficients_1293 = roman.aberrations(optics.sca, optics.position_pixels)
     wavelengths, weights = optics.wavelengths_and_weights()
-    frequencies = frequency_grid(field_arcsec, _optical_cutoff(pupil, float(wavelengths.min())))
+    return psf_from_pupil(
+        pupil, roman.aberrations(optics.sca, optics.position_pixels), wavelengths, weights, field_arcsec, optics
+    )
+
+
+def psf_from_pupil(
+    pupil: roman.Pupil,
+    aberrations_waves: np.ndarray,
+    wavelengths_nm: np.ndarray,
+    weights: np.ndarray,
+    field_arcsec: float,
+    optics: OpticsConfig | None = None,
+    aberration_wavelength_nm: float = roman.ZERNIKE_REFERENCE_WAVELENGTH_NM,
+) -> EffectivePSF:
+    """Effective PSF of any pupil; ``aberrations_waves`` are Noll coefficients in waves at
+    ``aberration_wavelength_nm`` (the optical path difference is the same at every wavelength)."""
+    wavelengths_nm = np.atleast_1d(np.asarray(wavelengths_nm, dtype=np.float64))
+    weights = np.atleast_1d(np.asarray(weights, dtype=np.float64))
+    frequencies = frequency_grid(field_arcsec, _optical_cutoff(pupil, float(wavelengths_nm.min())))
     total = np.zeros((frequencies.size, frequencies.size), dtype=np.complex128)
-    for wavelength, weight in zip(wavelengths, weights, strict=True):
-        scaled = coefficients_1293 * roman.ZERNIKE_REFERENCE_WAVELENGTH_NM / wavelength
+    for wavelength, weight in zip(wavelengths_nm, weights, strict=True):
+        scaled = np.asarray(aberrations_waves, dtype=np.float64) * aberration_wavelength_nm / wavelength
         total += weight * _intensity_coefficients(pupil, scaled, float(wavelength), frequencies, field_arcsec)
     pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * frequencies)
     total *= pixel[:, None] * pixel[None, :]
     total.setflags(write=False)
     frequencies.setflags(write=False)
-    return EffectivePSF(optics, field_arcsec, frequencies, total, wavelengths, weights)
+    return EffectivePSF(optics, field_arcsec, frequencies, total, wavelengths_nm, weights)

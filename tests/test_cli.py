@@ -1,0 +1,134 @@
+"""The ``nlpsf`` command-line contract that other tools call."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from nlpsf import cli
+
+SIMULATE_FIELDS = {
+    "band",
+    "sca",
+    "magnitude",
+    "beta",
+    "sigma_beta",
+    "realizations",
+    "flux_electrons",
+    "peak_electrons",
+    "reference",
+    "dR_over_R",
+    "de1",
+    "de2",
+    "flags",
+    "elapsed_s",
+}
+
+
+def run(capsys, *argv):
+    code = cli.main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_simulate_json_has_the_contract_fields(capsys):
+    code, out, _ = run(
+        capsys,
+        "simulate",
+        "--band",
+        "H158",
+        "--sca",
+        "18",
+        "--magnitude",
+        "18.3",
+        "--beta",
+        "5e-7",
+        "--realizations",
+        "5",
+        "--seed",
+        "1",
+        "--oversampling",
+        "3",
+        "--stamp",
+        "96",
+        "--exptime",
+        "168.1",
+        "--json",
+    )
+    assert code == 0
+    payload = json.loads(out)
+    assert set(payload) >= SIMULATE_FIELDS
+    assert set(payload["reference"]) >= {"e1", "e2", "sigma"}
+    for metric in ("dR_over_R", "de1", "de2"):
+        assert set(payload[metric]) == {"mean", "std", "stderr"}
+    assert payload["band"] == "H158" and payload["realizations"] == 5
+    assert 0.005 < payload["dR_over_R"]["mean"] < 0.05
+
+
+def test_repeated_magnitudes_and_betas_give_a_list(capsys):
+    code, out, _ = run(
+        capsys,
+        "simulate",
+        "--magnitude",
+        "19",
+        "--magnitude",
+        "21",
+        "--beta",
+        "1e-7",
+        "--beta",
+        "5e-7",
+        "--realizations",
+        "3",
+        "--json",
+    )
+    payload = json.loads(out)
+    assert code == 0 and isinstance(payload, list) and len(payload) == 4
+    assert [(p["magnitude"], p["beta"]) for p in payload] == [(19, 1e-7), (19, 5e-7), (21, 1e-7), (21, 5e-7)]
+
+
+def test_sigma_beta_std_is_the_spread_over_beta_maps(capsys):
+    code, out, _ = run(
+        capsys, "simulate", "--magnitude", "19", "--beta", "5e-7", "--sigma-beta", "5e-8", "--realizations", "10", "--json"
+    )
+    payload = json.loads(out)
+    assert code == 0 and payload["sigma_beta"] == 5e-8
+    assert payload["dR_over_R"]["std"] > 0
+    assert payload["dR_over_R"]["stderr"] == pytest.approx(payload["dR_over_R"]["std"] / 10**0.5)
+    assert payload["centroid_offset_fine_pixels"] is not None
+
+
+def test_slopes_command(capsys):
+    code, out, _ = run(capsys, "slopes", "--magnitude", "20", "--realizations", "5", "--method", "linear", "--json")
+    payload = json.loads(out)
+    assert code == 0 and payload[0]["bias_slope"]["dR_over_R"]["mean"] > 0
+
+
+def test_readable_table_without_json(capsys):
+    code, out, _ = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3")
+    assert code == 0 and "dR/R" in out and "saturated" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "name"),
+    [
+        (["--band", "Q999"], "band"),
+        (["--sca", "0"], "sca"),
+        (["--sca", "19"], "sca"),
+        (["--magnitude", "nan"], "magnitude"),
+        (["--exptime", "-3"], "exptime"),
+        (["--beta", "inf"], "beta"),
+        (["--realizations", "0"], "realizations"),
+        (["--stamp", "4"], "stamp"),
+        (["--sigma-beta=-1e-9"], "sigma_beta"),
+    ],
+)
+def test_bad_arguments_exit_2_naming_the_argument(capsys, argv, name):
+    code, out, err = run(capsys, "simulate", *argv, "--json")
+    assert code == 2 and out == ""
+    assert name in err
+
+
+def test_console_script_is_installed():
+    result = subprocess.run([sys.executable, "-m", "nlpsf.cli", "--version"], capture_output=True, text=True, check=True)
+    assert result.stdout.startswith("nlpsf ")
