@@ -25,6 +25,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -125,10 +126,20 @@ class Scene:
     reference: moments.Moments
     elapsed_s: float
 
-    @property
+    @cached_property
     def peak_fraction(self) -> np.ndarray:
         """Largest fine-pixel value of each unit-flux stamp."""
         return self.stamps.max(axis=(1, 2))
+
+    @cached_property
+    def weighted_region(self) -> np.ndarray:
+        """Pixels inside each reference fit's weight cut (where the moments look), (R, n, n)."""
+        return _weighted_region(self.stamps.shape[-1], self.reference.parameters(), self.config.weight_cut_rho2)
+
+    @cached_property
+    def weighted_peak_fraction(self) -> np.ndarray:
+        """Largest unit-flux value among the pixels that carry weight, per realization."""
+        return np.where(self.weighted_region, self.stamps, 0.0).max(axis=(1, 2))
 
 
 def prepare(config: SimulationConfig, progress: Progress | None = None) -> Scene:
@@ -258,12 +269,13 @@ def _validity_flags(scene: Scene, charge_scale: float, beta_map: np.ndarray, pea
             f"of {config.full_well_e:.4g} e-, in {int(over.sum())} of {over.size} realizations; "
             "a real detector would clip this star, so the numbers describe an unphysical case"
         )
-    stamps = scene.stamps if index is None else scene.stamps[index][None]
-    reference = scene.reference
-    params = reference.parameters() if index is None else reference.parameters()[index][None]
-    weighted = _weighted_region(stamps.shape[-1], params, config.weight_cut_rho2)
-    slope = 1.0 - 2.0 * beta_map * charge_scale * stamps
-    worst = np.where(weighted, slope, np.inf).min()
+    if beta_map.size == 1:
+        peak = scene.weighted_peak_fraction if index is None else scene.weighted_peak_fraction[index]
+        worst = float(np.min(1.0 - 2.0 * float(beta_map.ravel()[0]) * charge_scale * peak))
+    else:
+        weighted = scene.weighted_region[index]
+        slope = 1.0 - 2.0 * beta_map * charge_scale * scene.stamps[index]
+        worst = float(np.where(weighted, slope, np.inf).min())
     if worst <= 0:
         flags.append(
             f"nonlinearity not monotonic: 1 - 2 beta Q reaches {worst:.3g} in pixels that carry weight in the moments; "

@@ -268,11 +268,12 @@ def _hsm_update(S: np.ndarray, params: np.ndarray, bound: float = 0.25) -> np.nd
     return new
 
 
-def _evaluate(images: np.ndarray, params: np.ndarray, cut: float, order: int):
+def _evaluate(images: np.ndarray, index: np.ndarray, params: np.ndarray, cut: float, order: int):
+    """Weighted moments of ``images[index]`` at ``params``, touching only the weight's core."""
     window = _window(images.shape[-1], params, cut)
     r0, r1, c0, c1 = window
     weight, dx, dy, inverse = _weights(images.shape[-1], params, cut, window)
-    S = _raw_moments(weight * images[:, r0:r1, c0:c1], dx, dy, order)
+    S = _raw_moments(weight * images[index, r0:r1, c0:c1], dx, dy, order)
     return S, inverse
 
 
@@ -351,7 +352,7 @@ def _fit_chunk(
         status[idx[collapsed]] = MomentStatus.COLLAPSED
         bad |= collapsed
         lost = (np.abs(p[:, 0]) > limit) | (np.abs(p[:, 1]) > limit)
-        S, inverse = _evaluate(images[idx], np.where((bad | lost)[:, None], start[idx], p), cut, 4)
+        S, inverse = _evaluate(images, idx, np.where((bad | lost)[:, None], start[idx], p), cut, 4)
         amp = S[:, 0, 0]
         no_flux = ~(amp > 0)
         failed = bad | lost | no_flux
