@@ -1,0 +1,238 @@
+"""The read-only endpoints: health, metadata, the calculator, tables, curves and the paper's data."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import Response
+
+from nlpsf import __version__, detector, roman, solver, tables
+
+from . import models
+from .errors import SafeJSONResponse, input_error_response, json_safe
+from .simulation import SIMULATION_FIDELITIES
+
+router = APIRouter(prefix="/api/v1")
+
+ERRORS: dict[int | str, dict[str, Any]] = {422: {"model": models.Problem, "description": "invalid input; names the field"}}
+
+Band = Annotated[str, Query(description=f"Roman band: {', '.join(roman.BANDS)}")]
+Sca = Annotated[int, Query(description=f"detector 1-{roman.N_SCA}")]
+Number = Annotated[float, Query(allow_inf_nan=False)]
+
+
+@router.get("/health", summary="Liveness: 200 when the service answers")
+async def health() -> dict[str, str]:
+    return {"status": "ok", "version": __version__}
+
+
+@router.get("/meta", summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
+def meta(request: Request) -> SafeJSONResponse:
+    settings = request.app.state.settings
+    table_set = tables.load_tables()
+    solve_defaults = models.SolveRequest.model_fields
+    return SafeJSONResponse(
+        {
+            "service": "nlpsf",
+            "api_version": "v1",
+            "code_version": __version__,
+            "data_version": roman.DATA_VERSION,
+            "tables": json_safe(table_set.meta),
+            "bands": list(roman.BANDS),
+            "paper_bands": list(roman.PAPER_BANDS),
+            "table_bands": table_set.bands,
+            "scas": list(range(1, roman.N_SCA + 1)),
+            "metrics": list(solver.METRICS),
+            "modes": list(solver.MODES),
+            "fidelities": list(solver.FIDELITIES),
+            "simulation_fidelities": list(SIMULATION_FIDELITIES),
+            "beta_conventions": list(detector.BETA_CONVENTIONS),
+            "defaults": {
+                "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
+                "simulation": models.SimulationRequest().model_dump(),
+            },
+            "limits": {
+                **settings.limits.to_dict(),
+                "max_queue": settings.max_queue,
+                "job_workers": settings.job_workers,
+                "max_wait_s": settings.max_wait_s,
+            },
+        }
+    )
+
+
+@router.post(
+    "/solve",
+    response_model=models.SolveResponse,
+    responses=ERRORS,
+    summary="Two of (precision, tolerance, magnitude) -> the third, with its uncertainty",
+)
+async def solve(body: models.SolveRequest) -> Response:
+    # Runs on the event loop: a table solve takes microseconds, a thread hop would cost more.
+    # Slower fidelities (Monte Carlo) go to a thread so they cannot stall other requests.
+    arguments = body.model_dump()
+    if body.fidelity == "table" and body.accuracy is None:
+        solution = solver.solve(**arguments)
+    else:
+        from starlette.concurrency import run_in_threadpool
+
+        solution = await run_in_threadpool(solver.solve, **arguments)
+    return SafeJSONResponse(solution.to_dict())
+
+
+@router.get("/tables", responses=ERRORS, summary="The shipped slope tables as JSON rows (optionally one band / SCA)")
+def table_json(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResponse:
+    table_set = tables.load_tables()
+    return SafeJSONResponse({"meta": json_safe(table_set.meta), "rows": tables.table_rows(band, sca)})
+
+
+@router.get(
+    "/tables.csv",
+    responses={**ERRORS, 200: {"content": {"text/csv": {}}, "description": "CSV, one row per (band, SCA, magnitude)"}},
+    summary="The shipped slope tables as a CSV download",
+)
+def table_csv(band: Band | None = None, sca: Sca | None = None) -> Response:
+    rows = tables.table_rows(band, sca)
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows({k: _csv_value(v) for k, v in row.items()} for row in rows)
+    name = "nlpsf-slopes" + (f"-{band.upper()}" if band else "") + (f"-sca{sca}" if sca else "") + ".csv"
+    return Response(out.getvalue(), media_type="text/csv", headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+def _csv_value(value: Any) -> Any:
+    return "" if isinstance(value, float) and not math.isfinite(value) else value
+
+
+@router.get("/fits", summary="Power-law fits slope = A 10^(B (m - 20)) per band and SCA (the paper's Table 2 form)")
+def fits(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResponse:
+    bands = [band] if band else None
+    scas = [sca] if sca else None
+    return SafeJSONResponse({"fits": json_safe(tables.powerlaw_fits(bands, scas))})
+
+
+@router.get("/paper", summary="The paper's published figure data (Figs. 2, 3, 5, Table 2; Cycle-5 optics)")
+def paper() -> SafeJSONResponse:
+    return SafeJSONResponse(json_safe(tables.paper_data()))
+
+
+@router.get("/curves/slope", responses=ERRORS, summary="Slope vs magnitude for every band (the paper's Figs. 3 and 5)")
+def slope_curves(
+    metric: models.Metric = "size",
+    mode: models.Mode = "bias",
+    sca: Sca = 18,
+    exptime: Number = roman.DEFAULT_EXPTIME_S,
+    beta0: Number = 5e-7,
+    full_well: Number = roman.DEFAULT_FULL_WELL_E,
+    bands: Annotated[list[str] | None, Query(description="bands to include (default: all with tables)")] = None,
+) -> SafeJSONResponse:
+    chosen = bands or tables.load_tables().bands
+    curves = [tables.curve(b, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well) for b in chosen]
+    return SafeJSONResponse(
+        {
+            "source": "table: the shipped slope tables, interpolated in magnitude and scaled to these conditions",
+            "metric": metric,
+            "mode": mode,
+            "curves": json_safe(curves),
+        }
+    )
+
+
+def _linear_curve(
+    band: str, sca: int, metric: str, mode: str, magnitude: float, exptime: float, beta0: float, full_well: float, xs: list[float]
+) -> dict[str, Any]:
+    # The solver at precision 1 returns tolerance = c(m) beta0; the curve is that line through 0.
+    solution = solver.solve(
+        band,
+        sca=sca,
+        metric=metric,
+        mode=mode,
+        beta0=beta0,
+        exptime=exptime,
+        precision=1.0,
+        magnitude=magnitude,
+        full_well=full_well,
+    ).to_dict()
+    at_beta0, error = solution["tolerance"], solution["uncertainty"] or 0.0
+    relative = abs(error / at_beta0) if at_beta0 else 0.0
+    values = [at_beta0 * x / beta0 for x in xs]
+    return {
+        "values": values,
+        "uncertainty": [abs(v) * relative for v in values],
+        "slope": solution["slope"],
+        "flags": solution["flags"],
+        "saturation_magnitude": solution["saturation_magnitude"],
+        "conditions": solution["conditions"],
+    }
+
+
+def _grid(top: float, points: int) -> list[float]:
+    return [top * k / (points - 1) for k in range(points)]
+
+
+@router.get("/curves/beta", responses=ERRORS, summary="Metric vs beta at one magnitude (the paper's Fig. 2)")
+def beta_curve(
+    band: Band = "H158",
+    sca: Sca = 18,
+    metric: models.Metric = "size",
+    magnitude: Number = 18.3,
+    exptime: Number = roman.DEFAULT_EXPTIME_S,
+    beta0: Number = 5e-7,
+    full_well: Number = roman.DEFAULT_FULL_WELL_E,
+    beta_max: Annotated[float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA)] = 1.25e-6,
+    points: Annotated[int, Query(ge=2, le=1000)] = 26,
+) -> SafeJSONResponse:
+    betas = _grid(beta_max, points)
+    curve = _linear_curve(band, sca, metric, "bias", magnitude, exptime, beta0, full_well, betas)
+    return SafeJSONResponse(
+        json_safe(
+            {
+                "source": "table, first order: metric = c(m) beta with c(m) the table's bias slope at beta0; "
+                "POST /api/v1/simulations with several betas gives the full (nonlinear) response",
+                "band": band.upper(),
+                "sca": sca,
+                "metric": metric,
+                "magnitude": magnitude,
+                "beta": betas,
+                **curve,
+            }
+        )
+    )
+
+
+@router.get("/curves/sigma_beta", responses=ERRORS, summary="Scatter of the metric vs sigma_beta at one magnitude")
+def sigma_beta_curve(
+    band: Band = "H158",
+    sca: Sca = 18,
+    metric: models.Metric = "size",
+    magnitude: Number = 18.3,
+    exptime: Number = roman.DEFAULT_EXPTIME_S,
+    beta0: Number = 5e-7,
+    full_well: Number = roman.DEFAULT_FULL_WELL_E,
+    sigma_beta_max: Annotated[float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA)] = 1e-7,
+    points: Annotated[int, Query(ge=2, le=1000)] = 26,
+) -> SafeJSONResponse:
+    sigmas = _grid(sigma_beta_max, points)
+    curve = _linear_curve(band, sca, metric, "scatter", magnitude, exptime, beta0, full_well, sigmas)
+    return SafeJSONResponse(
+        json_safe(
+            {
+                "source": "table, first order: sigma(metric) = c_sigma(m) sigma_beta with c_sigma(m) the table's scatter slope; "
+                "POST /api/v1/simulations with sigma_betas gives Monte Carlo values",
+                "band": band.upper(),
+                "sca": sca,
+                "metric": metric,
+                "magnitude": magnitude,
+                "sigma_beta": sigmas,
+                **curve,
+            }
+        )
+    )
+
+
+__all__ = ["input_error_response", "router"]

@@ -1,0 +1,104 @@
+"""Errors as one JSON shape (``models.Problem``): a message a person can read, the field at fault.
+
+Bad input is a 422 naming the field, whether pydantic or the library caught it; nothing a client
+sends may produce a 5xx.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from nlpsf.checks import InputError
+
+
+def json_safe(value: Any) -> Any:
+    """Non-finite floats become None (JSON has no NaN); numpy scalars become Python numbers."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "item") and callable(value.item):  # numpy scalar
+        return json_safe(value.item())
+    return value
+
+
+class SafeJSONResponse(JSONResponse):
+    """JSON without NaN/Infinity tokens: tries the fast path, cleans the payload only if it must."""
+
+    def render(self, content: Any) -> bytes:
+        try:
+            return json.dumps(content, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode()
+        except (ValueError, TypeError):
+            return json.dumps(json_safe(content), ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode()
+
+
+def problem(status: int, message: str, field: str | None = None, limit: str | None = None, detail=None, headers=None):
+    body = {"message": message, "field": field, "limit": limit, "detail": detail or []}
+    return SafeJSONResponse(body, status_code=status, headers=headers)
+
+
+def input_error_response(error: InputError, field: str | None = None, location: str = "body") -> JSONResponse:
+    field = field or error.argument
+    limit = getattr(error, "limit", None)
+    message = f"{field}: {error.reason}"
+    detail = [{"loc": [location, field], "field": field, "msg": error.reason, "type": "limit" if limit else "value_error"}]
+    return problem(422, message, field, limit, detail)
+
+
+def _field_of(loc: tuple | list) -> str | None:
+    names = [part for part in loc[1:] if isinstance(part, str)]
+    return names[0] if names else None
+
+
+def _readable(error: dict[str, Any]) -> str:
+    kind = error.get("type", "")
+    if kind == "json_invalid":
+        return "the request body is not valid JSON"
+    if kind == "missing" and tuple(error.get("loc", ())) == ("body",):
+        return "a JSON body is required"
+    if kind == "model_attributes_type" or kind == "dict_type":
+        return "the request body must be a JSON object"
+    if kind == "extra_forbidden":
+        return "unknown field (check its spelling)"
+    if kind == "finite_number":
+        return "must be a finite number (NaN and infinity are not allowed)"
+    return str(error.get("msg", "invalid value"))
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    detail = []
+    for error in exc.errors():
+        loc = [p if isinstance(p, (str, int)) else str(p) for p in error.get("loc", ())]
+        detail.append({"loc": loc, "field": _field_of(loc), "msg": _readable(error), "type": str(error.get("type", ""))})
+    first = detail[0] if detail else {"field": None, "msg": "invalid request"}
+    message = f"{first['field']}: {first['msg']}" if first["field"] else first["msg"]
+    return problem(422, message, first["field"], None, detail)
+
+
+async def _input_error(request: Request, exc: InputError) -> JSONResponse:
+    return input_error_response(exc, location="query" if request.method == "GET" else "body")
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    message = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail)
+    return problem(exc.status_code, message, headers=getattr(exc, "headers", None))
+
+
+async def _server_error(request: Request, exc: Exception) -> JSONResponse:
+    return problem(500, f"internal error ({type(exc).__name__}); please report it with the request that caused it")
+
+
+def install(app: FastAPI) -> None:
+    app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
+    app.add_exception_handler(InputError, _input_error)  # type: ignore[arg-type]
+    app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
+    app.add_exception_handler(Exception, _server_error)

@@ -1,0 +1,149 @@
+"""Request and response models of the REST API (the OpenAPI schema at /docs comes from these).
+
+Requests are strict (no string-to-number coercion, no unknown fields, no NaN or infinity): a wrong
+type or a typo is a 422 naming the field, never a silently different question. Ranges are the
+library's to check, so the service and the CLI refuse the same things with the same words.
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from nlpsf import detector, roman, solver
+
+from .simulation import SIMULATION_FIDELITIES
+
+_STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+_SOLVE_DEFAULTS = {
+    name: parameter.default
+    for name, parameter in inspect.signature(solver.solve).parameters.items()
+    if parameter.default is not inspect.Parameter.empty
+}
+
+Metric = Literal[solver.METRICS]  # type: ignore[valid-type]
+Mode = Literal[solver.MODES]  # type: ignore[valid-type]
+Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]
+SimulationFidelity = Literal[SIMULATION_FIDELITIES]  # type: ignore[valid-type]
+BetaConvention = Literal[detector.BETA_CONVENTIONS]  # type: ignore[valid-type]
+PupilScale = Literal[roman.PUPIL_SCALE_RULES]  # type: ignore[valid-type]
+
+
+class SolveRequest(BaseModel):
+    """The two-of-three calculator: give exactly two of precision, tolerance, magnitude."""
+
+    model_config = ConfigDict(
+        **_STRICT,
+        json_schema_extra={"examples": [{"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}]},
+    )
+
+    band: str = Field(description=f"Roman band: {', '.join(roman.BANDS)}")
+    sca: int = Field(_SOLVE_DEFAULTS["sca"], description=f"detector 1-{roman.N_SCA}")
+    metric: Metric = Field(_SOLVE_DEFAULTS["metric"], description="size (dR/R), e1, e2 or e (|de|)")
+    mode: Mode = Field(_SOLVE_DEFAULTS["mode"], description="bias (calibration error of beta) or scatter (per-pixel sigma_beta)")
+    beta0: float = Field(_SOLVE_DEFAULTS["beta0"], description="NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)")
+    exptime: float = Field(_SOLVE_DEFAULTS["exptime"], description="exposure time in s")
+    precision: float | None = Field(None, description="calibration precision: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)")
+    tolerance: float | None = Field(None, description="tolerated error of the metric (dR/R, de1, de2 or |de|)")
+    magnitude: float | None = Field(None, description="AB magnitude of the brightest star used for the PSF model")
+    full_well: float = Field(_SOLVE_DEFAULTS["full_well"], description="full-well depth in e-")
+    fidelity: Fidelity = Field(_SOLVE_DEFAULTS["fidelity"], description="how the slope is obtained (table is instant)")
+    accuracy: float | None = Field(None, description="relative accuracy target; picks the cheapest fidelity meeting it")
+
+
+class SolveResponse(BaseModel):
+    """The same object as ``nlpsf solve --json`` (``Solution.to_dict()``)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    band: str
+    sca: int
+    metric: str
+    mode: str
+    beta0: float
+    exptime: float
+    precision: float | None
+    tolerance: float | None
+    magnitude: float | None
+    solved_for: str
+    uncertainty: float | None
+    slope: float | None
+    saturation_magnitude: float | None
+    flags: list[str]
+    fidelity: str
+    conditions: dict[str, Any]
+
+
+class FieldError(BaseModel):
+    loc: list[str | int] = Field(description="where in the request: ['body', field] or ['query', name]")
+    field: str | None = Field(description="the request field at fault")
+    msg: str
+    type: str
+
+
+class Problem(BaseModel):
+    """Every error: a readable message, the field at fault (if any) and, for caps, the limit's name."""
+
+    message: str
+    field: str | None = None
+    limit: str | None = None
+    detail: list[FieldError] = Field(default_factory=list)
+
+
+class SimulationRequest(BaseModel):
+    """A fresh simulation on the grid magnitudes x betas x sigma_betas (paper's defaults)."""
+
+    model_config = ConfigDict(
+        **_STRICT,
+        json_schema_extra={"examples": [{"band": "H158", "magnitudes": [18.3, 20.0], "betas": [5e-7], "realizations": 20}]},
+    )
+
+    band: str = Field("H158", description=f"Roman band: {', '.join(roman.BANDS)}")
+    sca: int = Field(18, description=f"detector 1-{roman.N_SCA}")
+    magnitudes: list[float] = Field([18.3], max_length=10_000, description="AB magnitudes")
+    betas: list[float] = Field([5e-7], max_length=10_000, description="NL coefficients beta in 1/e-")
+    sigma_betas: list[float] = Field(
+        [0.0], max_length=10_000, description="per-pixel beta scatter; > 0 draws beta maps at a fixed centroid"
+    )
+    beta_convention: BetaConvention = Field("paper", description="paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2")
+    exptime: float = Field(roman.DEFAULT_EXPTIME_S, description="exposure time in s")
+    full_well: float = Field(roman.DEFAULT_FULL_WELL_E, description="full-well depth in e-")
+    fidelity: SimulationFidelity = Field("monte_carlo", description="linear response, Monte Carlo, or Monte Carlo polychromatic")
+    n_wavelengths: int | None = Field(None, description="wavelengths of the polychromatic PSF (default 8)")
+    realizations: int = Field(100, description="centroid realizations, or beta-map draws when sigma_beta > 0")
+    seed: int = Field(1, description="random seed; the same seed gives the same numbers")
+    oversampling: int = Field(3, description="fine pixels per native pixel, N")
+    stamp: int = Field(96, description="stamp side in fine pixels")
+    weight_cut_rho2: float = Field(25.0, description="adaptive-moment weight cut rho^2 (paper 25, GalSim 32.24)")
+    pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule")
+
+
+JobState = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]
+
+
+class Job(BaseModel):
+    """A simulation job; ``result`` is filled once ``status`` is done."""
+
+    id: str
+    status: JobState
+    progress: float = Field(description="fraction done, 0 to 1")
+    message: str
+    cached: bool = Field(description="answered from stored results of an identical earlier request")
+    cancel_requested: bool
+    queue_position: int | None
+    request: dict[str, Any]
+    request_hash: str
+    created_at: float
+    started_at: float | None
+    finished_at: float | None
+    updated_at: float
+    error: dict[str, Any] | None
+    result: dict[str, Any] | None
+
+
+class JobList(BaseModel):
+    jobs: list[Job]
+    counts: dict[str, int]

@@ -1,0 +1,195 @@
+"""From a simulation request to the library's calls, and back to JSON.
+
+Shared by the web process (which validates a request and prices its work before queueing it) and
+the job worker (which runs it). All physics is in ``nlpsf.experiment``; this module only maps
+field names, applies the service's work limits and reports progress.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+from nlpsf import __version__, detector, experiment, roman
+from nlpsf.checks import InputError
+
+from .settings import Limits
+
+#: Simulation fidelities: the library's method, and whether the PSF integrates the band.
+SIMULATION_FIDELITIES = ("linear", "monte_carlo", "polychromatic")
+DEFAULT_POLYCHROMATIC_WAVELENGTHS = 8
+
+#: Library argument names -> request field names, so a 422 names what the user typed.
+FIELD_FOR_ARGUMENT = {
+    "magnitude": "magnitudes",
+    "beta": "betas",
+    "sigma_beta": "sigma_betas",
+    "exptime": "exptime",
+    "full_well": "full_well",
+    "weight_cut_rho2": "weight_cut_rho2",
+}
+
+
+class LimitError(InputError):
+    """A request asks for more work than the service allows; ``limit`` names the setting."""
+
+    def __init__(self, argument: str, limit: str, message: str):
+        super().__init__(argument, message)
+        self.limit = limit
+
+
+def request_field(argument: str) -> str:
+    return FIELD_FOR_ARGUMENT.get(argument, argument)
+
+
+def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
+    """The library's configuration for a (pydantic-validated) request; raises InputError."""
+    fidelity = request["fidelity"]
+    n_wavelengths = request.get("n_wavelengths")
+    if fidelity == "polychromatic":
+        n_wavelengths = DEFAULT_POLYCHROMATIC_WAVELENGTHS if n_wavelengths is None else n_wavelengths
+        if n_wavelengths < 2:
+            raise InputError("n_wavelengths", f"a polychromatic PSF needs at least 2 wavelengths, got {n_wavelengths}")
+    elif n_wavelengths not in (None, 1):
+        raise InputError("n_wavelengths", f"only the polychromatic fidelity integrates over wavelengths; got {n_wavelengths}")
+    else:
+        n_wavelengths = 1
+    return experiment.SimulationConfig(
+        band=request["band"],
+        sca=request["sca"],
+        realizations=request["realizations"],
+        seed=request["seed"],
+        oversampling=request["oversampling"],
+        stamp=request["stamp"],
+        exptime_s=request["exptime"],
+        full_well_e=request["full_well"],
+        n_wavelengths=n_wavelengths,
+        weight_cut_rho2=request["weight_cut_rho2"],
+        pupil_scale=request["pupil_scale"],
+        method="linear" if fidelity == "linear" else "monte_carlo",
+    )
+
+
+def work_of(config: experiment.SimulationConfig, cells: int) -> int:
+    return config.realizations * config.stamp**2 * (config.n_wavelengths + cells)
+
+
+def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
+    """Check a request against the library and the service's limits.
+
+    Returns the normalised request (band upper-cased, values as the library will use them), whose
+    hash identifies the result. Raises InputError (or LimitError) naming the field.
+    """
+    config = build_config(request)
+    magnitudes = experiment.check_magnitudes(request["magnitudes"])
+    betas = [float(b) for b in request["betas"]]
+    for beta in betas:
+        detector.to_paper_beta(beta, request["beta_convention"])
+    if not betas:
+        raise InputError("betas", "give at least one value")
+    sigma_betas = [experiment.check_sigma_beta(s) for s in request["sigma_betas"]]
+    if not sigma_betas:
+        raise InputError("sigma_betas", "give at least one value (0 for no per-pixel scatter)")
+    cells = len(magnitudes) * len(betas) * len(sigma_betas)
+    checks = [
+        ("realizations", "max_realizations", config.realizations, limits.max_realizations, "realizations"),
+        ("stamp", "max_stamp", config.stamp, limits.max_stamp, "stamp side (fine pixels)"),
+        ("n_wavelengths", "max_wavelengths", config.n_wavelengths, limits.max_wavelengths, "wavelengths"),
+        ("magnitudes", "max_grid", cells, limits.max_grid, "grid cells (magnitudes x betas x sigma_betas)"),
+        (
+            "realizations",
+            "max_stamp_pixels",
+            config.realizations * config.stamp**2,
+            limits.max_stamp_pixels,
+            "stamp pixels held in memory (realizations x stamp^2)",
+        ),
+        (
+            "realizations",
+            "max_work",
+            work_of(config, cells),
+            limits.max_work,
+            "work units (realizations x stamp^2 x (wavelengths + grid cells))",
+        ),
+    ]
+    for field, limit, value, cap, what in checks:
+        if value > cap:
+            raise LimitError(field, limit, f"asks for {value:,} {what}; the limit {limit} is {cap:,}")
+    normalised = dict(request)
+    normalised.update(
+        band=config.band,
+        n_wavelengths=config.n_wavelengths,
+        magnitudes=magnitudes,
+        betas=betas,
+        sigma_betas=sigma_betas,
+    )
+    return normalised
+
+
+def request_hash(normalised: dict[str, Any]) -> str:
+    """Content hash of what determines the result: the request, the code and the optical data."""
+    key = {"request": normalised, "code_version": __version__, "data_version": roman.DATA_VERSION}
+    return hashlib.sha256(json.dumps(key, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def estimate_seconds(normalised: dict[str, Any]) -> float:
+    """Rough duration on one core, for the page's expectations only (not a promise)."""
+    config = build_config(normalised)
+    cells = len(normalised["magnitudes"]) * len(normalised["betas"]) * len(normalised["sigma_betas"])
+    return 1e-7 * work_of(config, cells)
+
+
+Progress = Callable[[float, str], None]
+
+
+def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[str, Any]:
+    """Run a validated request with the library; ``progress(fraction, message)`` along the way."""
+    start = time.perf_counter()
+    config = build_config(normalised)
+    magnitudes, betas, sigma_betas = normalised["magnitudes"], normalised["betas"], normalised["sigma_betas"]
+    pairs = len(magnitudes) * len(betas)
+    prepare_steps = 3
+    total = prepare_steps + pairs * len(sigma_betas)
+
+    def stage(offset: int):
+        if progress is None:
+            return None
+        return lambda done, _total, message: progress(min((offset + done) / total, 1.0), message)
+
+    scene = experiment.prepare(config, progress=stage(0))
+    results = []
+    for index, sigma_beta in enumerate(sigma_betas):
+        results += experiment.simulate(
+            config,
+            magnitudes,
+            betas,
+            sigma_beta=sigma_beta,
+            beta_convention=normalised["beta_convention"],
+            scene=scene,
+            progress=stage(prepare_steps + index * pairs),
+        )
+    if progress:
+        progress(1.0, "done")
+    rows = [_json_safe(r.to_dict()) for r in results]
+    return {
+        "source": f"fresh simulation ({config.fidelity}, {config.realizations} realizations, seed {config.seed})",
+        "fidelity": normalised["fidelity"],
+        "conditions": _json_safe(config.conditions()),
+        "grid": {"magnitudes": magnitudes, "betas": betas, "sigma_betas": sigma_betas, "order": "sigma_beta, magnitude, beta"},
+        "results": rows,
+        "elapsed_s": time.perf_counter() - start,
+    }
+
+
+def _json_safe(value: Any) -> Any:
+    """Non-finite floats become None: JSON has no NaN, and a silent 'Infinity' breaks clients."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
