@@ -50,7 +50,10 @@ class SolveRequest(BaseModel):
     tolerance: float | None = Field(None, description="tolerated error of the metric (dR/R, de1, de2 or |de|)")
     magnitude: float | None = Field(None, description="AB magnitude of the brightest star used for the PSF model")
     full_well: float = Field(_SOLVE_DEFAULTS["full_well"], description="full-well depth in e-")
-    fidelity: Fidelity = Field(_SOLVE_DEFAULTS["fidelity"], description="how the slope is obtained (table is instant)")
+    fidelity: Fidelity | None = Field(
+        _SOLVE_DEFAULTS["fidelity"],
+        description="how the slope is obtained: table (instant, the default), linear, monte_carlo, polychromatic",
+    )
     accuracy: float | None = Field(None, description="relative accuracy target; picks the cheapest fidelity meeting it")
 
 

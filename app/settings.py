@@ -70,7 +70,7 @@ class Settings:
     web_workers: int = 1
     #: simulation processes running at once, across all web workers
     job_workers: int = 1
-    #: simulations waiting for a worker; beyond this a POST gets 503
+    #: simulations waiting for a worker; beyond this a POST gets 429
     max_queue: int = 16
     #: niceness of simulation processes, so the calculator keeps the CPU when both want it
     job_nice: int = 10

@@ -36,7 +36,7 @@ def _job_response(job: dict[str, Any], status: int) -> SafeJSONResponse:
         200: {"model": models.Job, "description": "finished: answered from stored results, or within `wait`"},
         202: {"model": models.Job, "description": "accepted: queued or running; poll the Location"},
         422: {**_PROBLEM, "description": "invalid input or over a work limit (the limit is named)"},
-        503: {**_PROBLEM, "description": "the queue is full; retry later"},
+        429: {**_PROBLEM, "description": "the queue is full; retry later (Retry-After)"},
     },
     summary="Start a fresh simulation; returns a job id at once (or the result, if known or quick)",
 )
@@ -54,7 +54,7 @@ async def submit(
     try:
         job, _how = await asyncio.to_thread(app.state.store.submit, normalised, key, app.state.settings.max_queue)
     except QueueFull as full:
-        return problem(503, f"the simulation queue is full: {full}", limit="max_queue", headers={"Retry-After": "10"})
+        return problem(429, f"the simulation queue is full: {full}", limit="max_queue", headers={"Retry-After": "10"})
     app.state.dispatcher.wake()
     deadline = time.monotonic() + min(wait, app.state.settings.max_wait_s)
     while job["status"] not in FINISHED and time.monotonic() < deadline:

@@ -1,0 +1,373 @@
+"""The REST API against the real library: contract, curves, tables, simulations, and bad input."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.main import create_app
+from app.settings import Limits, Settings
+from nlpsf import cli, experiment, roman, solver, tables
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    settings = Settings(
+        db_path=str(tmp_path_factory.mktemp("db") / "jobs.sqlite3"),
+        job_workers=1,
+        max_queue=8,
+        limits=Limits(max_realizations=500, max_stamp=128, max_grid=50),
+    )
+    with TestClient(create_app(settings)) as test_client:
+        yield test_client
+
+
+def post_raw(client: TestClient, path: str, text: str):
+    return client.post(path, content=text.encode(), headers={"Content-Type": "application/json"})
+
+
+# --- contract ----------------------------------------------------------------------------------
+
+
+def test_health(client):
+    response = client.get("/api/v1/health")
+    assert response.status_code == 200
+    assert response.json()["status"] == "ok"
+
+
+def test_meta_lists_what_the_library_offers(client):
+    meta = client.get("/api/v1/meta").json()
+    assert meta["bands"] == list(roman.BANDS)
+    assert meta["scas"] == list(range(1, 19))
+    assert meta["metrics"] == list(solver.METRICS)
+    assert meta["modes"] == list(solver.MODES)
+    assert meta["fidelities"] == list(solver.FIDELITIES)
+    assert meta["data_version"] == roman.DATA_VERSION
+    assert meta["tables"]["fingerprint"] == tables.load_tables().meta["fingerprint"]
+    assert meta["defaults"]["solve"]["beta0"] == 5e-7
+    assert meta["defaults"]["solve"]["exptime"] == roman.DEFAULT_EXPTIME_S
+    assert meta["limits"]["max_realizations"] == 500
+    assert meta["limits"]["max_queue"] == 8
+
+
+def cli_solve_json(capsys, arguments: list[str]) -> dict:
+    assert cli.main(["solve", *arguments, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize(
+    ("body", "arguments"),
+    [
+        (
+            {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4},
+            ["--band", "H158", "--magnitude", "18.3", "--tolerance", "1e-4"],
+        ),
+        (
+            {"band": "J129", "sca": 3, "metric": "e2", "mode": "scatter", "precision": 0.05, "magnitude": 20.0},
+            ["--band", "J129", "--sca", "3", "--metric", "e2", "--mode", "scatter", "--precision", "0.05", "--magnitude", "20"],
+        ),
+        (
+            {"band": "Y106", "metric": "size", "precision": 0.01, "tolerance": 1e-4, "beta0": 1e-6, "exptime": 300.0},
+            ["--band", "Y106", "--precision", "0.01", "--tolerance", "1e-4", "--beta0", "1e-6", "--exptime", "300"],
+        ),
+    ],
+)
+def test_solve_returns_what_the_cli_prints(client, capsys, body, arguments):
+    response = client.post("/api/v1/solve", json=body)
+    assert response.status_code == 200, response.text
+    served = response.json()
+    printed = cli_solve_json(capsys, arguments)
+    for volatile in ("elapsed_s",):
+        served.pop(volatile, None)
+        printed.pop(volatile, None)
+    assert served == printed
+
+
+@pytest.mark.parametrize("metric", solver.METRICS)
+@pytest.mark.parametrize("mode", solver.MODES)
+def test_solve_each_unknown_round_trips(client, metric, mode):
+    """Solve for each member from the other two; feeding the answer back returns the third member."""
+    given = {"band": "H158", "metric": metric, "mode": mode}
+    start = client.post("/api/v1/solve", json={**given, "magnitude": 20.0, "precision": 0.02})
+    assert start.status_code == 200, start.text
+    first = start.json()
+    assert first["solved_for"] == "tolerance"
+    assert all(first[k] is not None for k in ("precision", "tolerance", "magnitude", "slope", "saturation_magnitude"))
+    assert first["conditions"]["band"] == "H158" and first["fidelity"] == "table"
+    back = client.post(
+        "/api/v1/solve", json={"band": "H158", "metric": metric, "mode": mode, "magnitude": 20.0, "tolerance": first["tolerance"]}
+    ).json()
+    assert back["solved_for"] == "precision"
+    assert back["precision"] == pytest.approx(0.02, rel=1e-9)
+    magnitude = client.post(
+        "/api/v1/solve", json={"band": "H158", "metric": metric, "mode": mode, "precision": 0.02, "tolerance": first["tolerance"]}
+    ).json()
+    assert magnitude["solved_for"] == "magnitude"
+    assert isinstance(magnitude["flags"], list)
+    if magnitude["magnitude"] is not None and not magnitude["flags"]:
+        assert magnitude["magnitude"] == pytest.approx(20.0, abs=max(3 * (magnitude["uncertainty"] or 0), 0.02))
+
+
+# --- bad input never yields a 5xx --------------------------------------------------------------
+
+GOOD = '"band": "H158", "magnitude": 18.3'
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ("{" + GOOD + ', "tolerance": NaN}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": Infinity}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": -Infinity}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": 1e400}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": -1e-4}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": 0}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": 1e300}', "tolerance"),
+        ('{"band": "H158", "magnitude": 1e300, "tolerance": 1e-4}', "magnitude"),
+        ('{"band": "H158", "magnitude": -1e300, "tolerance": 1e-4}', "magnitude"),
+        ("{" + GOOD + ', "tolerance": "1e-4"}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": "abc"}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": true}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": [1e-4]}', "tolerance"),
+        ("{" + GOOD + ', "tolerance": {"v": 1}}', "tolerance"),
+        ('{"band": "H999", "magnitude": 18.3, "tolerance": 1e-4}', "band"),
+        ('{"band": 158, "magnitude": 18.3, "tolerance": 1e-4}', "band"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "sca": 0}', "sca"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "sca": 19}', "sca"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "sca": 100000000000000000000000000000}', "sca"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "sca": 18.5}', "sca"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "sca": "18"}', "sca"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "metric": "size2"}', "metric"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "mode": "both"}', "mode"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "beta0": -5e-7}', "beta0"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "beta0": 0}', "beta0"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "exptime": -1}', "exptime"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "exptime": NaN}', "exptime"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "full_well": 0}', "full_well"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "fidelity": "exact"}', "fidelity"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "accuracy": -0.1}', "accuracy"),
+        ("{" + GOOD + ', "tolerance": 1e-4, "magnitdue": 18}', "magnitdue"),
+        ('{"magnitude": 18.3, "tolerance": 1e-4}', "band"),
+    ],
+)
+def test_bad_solve_input_is_a_422_naming_the_field(client, text, field):
+    response = post_raw(client, "/api/v1/solve", text)
+    assert response.status_code == 422, response.text
+    problem = response.json()
+    assert problem["field"] == field
+    assert field in problem["message"]
+
+
+@pytest.mark.parametrize(
+    "members",
+    [
+        {"magnitude": 18.3},
+        {"precision": 0.01},
+        {"tolerance": 1e-4},
+        {},
+        {"magnitude": 18.3, "precision": 0.01, "tolerance": 1e-4},
+    ],
+)
+def test_solve_needs_exactly_two_members(client, members):
+    response = client.post("/api/v1/solve", json={"band": "H158", **members})
+    assert response.status_code == 422
+    problem = response.json()
+    assert problem["field"] in ("precision", "tolerance", "magnitude")
+    assert "exactly two" in problem["message"]
+
+
+@pytest.mark.parametrize("text", ["", "not json", "[1, 2]", "null", "18.3", '{"band": "H158",'])
+def test_malformed_bodies_are_422(client, text):
+    response = post_raw(client, "/api/v1/solve", text)
+    assert response.status_code == 422
+    assert response.json()["message"]
+
+
+@pytest.mark.parametrize(
+    "query",
+    [
+        "curves/beta?band=H999",
+        "curves/beta?magnitude=nan",
+        "curves/beta?magnitude=inf",
+        "curves/beta?beta_max=-1",
+        "curves/sigma_beta?sca=99",
+        "curves/slope?exptime=-5",
+        "curves/slope?metric=x",
+        "tables?band=Q",
+        "tables.csv?sca=0",
+        "tables?sca=abc",
+    ],
+)
+def test_bad_queries_are_422(client, query):
+    response = client.get(f"/api/v1/{query}")
+    assert response.status_code == 422, response.text
+    assert response.json()["field"]
+
+
+# --- tables, curves, paper ----------------------------------------------------------------------
+
+
+def test_tables_json_and_csv_agree(client):
+    rows = client.get("/api/v1/tables", params={"band": "H158", "sca": 18}).json()["rows"]
+    download = client.get("/api/v1/tables.csv", params={"band": "H158", "sca": 18})
+    assert download.status_code == 200
+    assert download.headers["content-type"].startswith("text/csv")
+    assert "attachment" in download.headers["content-disposition"]
+    parsed = list(csv.DictReader(io.StringIO(download.text)))
+    assert len(parsed) == len(rows) == len(tables.table_rows("H158", 18))
+    assert {r["band"] for r in parsed} == {"H158"}
+    assert float(parsed[3]["magnitude"]) == rows[3]["magnitude"]
+
+
+def test_slope_curves_cover_every_band_at_the_requested_conditions(client):
+    data = client.get("/api/v1/curves/slope", params={"metric": "size", "mode": "bias", "exptime": 300.0}).json()
+    assert "table" in data["source"]
+    assert [c["band"] for c in data["curves"]] == tables.load_tables().bands
+    for curve in data["curves"]:
+        assert curve["conditions"]["exptime_s"] == 300.0
+        assert len(curve["magnitude"]) == len(curve["slope"]) == len(curve["uncertainty"]) > 10
+    direct = tables.curve("J129", 18, "size", "bias", exptime=300.0)
+    served = next(c for c in data["curves"] if c["band"] == "J129")
+    assert served["slope"] == pytest.approx(direct["slope"])
+
+
+@pytest.mark.parametrize(("path", "mode", "axis"), [("beta", "bias", "beta"), ("sigma_beta", "scatter", "sigma_beta")])
+def test_beta_curves_are_the_table_slope_times_the_axis(client, path, mode, axis):
+    data = client.get(f"/api/v1/curves/{path}", params={"band": "F184", "metric": "size", "magnitude": 20.0}).json()
+    assert "first order" in data["source"]
+    solution = solver.solve("F184", metric="size", mode=mode, magnitude=20.0, precision=1.0).to_dict()
+    for x, y, error in zip(data[axis], data["values"], data["uncertainty"], strict=True):
+        assert y == pytest.approx(abs(solution["slope"]) * x, rel=1e-9, abs=1e-300)
+        assert error >= 0
+    assert data["conditions"]["band"] == "F184"
+
+
+def test_paper_data_is_served_unchanged(client):
+    assert client.get("/api/v1/paper").json() == tables.paper_data()
+
+
+def test_fits_endpoint(client):
+    fits = client.get("/api/v1/fits", params={"band": "H158", "sca": 18}).json()["fits"]
+    assert {f["mode"] for f in fits} == {"bias", "scatter"}
+    assert all(f["A"] > 0 for f in fits)
+
+
+# --- simulations --------------------------------------------------------------------------------
+
+
+def test_small_simulation_answered_synchronously_matches_the_library(client):
+    body = {"band": "J129", "sca": 7, "magnitudes": [19.0, 21.0], "betas": [5e-7, 1e-6], "realizations": 12, "seed": 4}
+    response = client.post("/api/v1/simulations", params={"wait": 120}, json=body)
+    assert response.status_code == 200, response.text
+    job = response.json()
+    assert job["status"] == "done" and job["progress"] == 1.0
+    served = job["result"]["results"]
+    config = experiment.SimulationConfig(band="J129", sca=7, realizations=12, seed=4)
+    expected = [r.to_dict() for r in experiment.simulate(config, [19.0, 21.0], [5e-7, 1e-6])]
+    assert len(served) == 4
+    for got, want in zip(served, expected, strict=True):
+        assert (got["magnitude"], got["beta"]) == (want["magnitude"], want["beta"])
+        for metric in ("dR_over_R", "de1", "de2"):
+            assert got[metric]["mean"] == pytest.approx(want[metric]["mean"], rel=1e-12)
+            assert got[metric]["stderr"] == pytest.approx(want[metric]["stderr"], rel=1e-12)
+    assert job["result"]["conditions"]["sca"] == 7
+
+
+def test_sigma_beta_simulation_gives_the_scatter(client):
+    body = {"magnitudes": [20.0], "betas": [5e-7], "sigma_betas": [5e-8, 1e-7], "realizations": 16, "fidelity": "linear"}
+    job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
+    assert job["status"] == "done", job
+    small, large = job["result"]["results"]
+    assert (small["sigma_beta"], large["sigma_beta"]) == (5e-8, 1e-7)
+    # In the linear response the scatter is proportional to sigma_beta.
+    assert large["dR_over_R"]["std"] == pytest.approx(2 * small["dR_over_R"]["std"], rel=0.05)
+
+
+@pytest.mark.parametrize(
+    ("body", "field", "limit"),
+    [
+        ({"realizations": 501}, "realizations", "max_realizations"),
+        ({"stamp": 160}, "stamp", "max_stamp"),
+        ({"magnitudes": [18.0 + 0.1 * k for k in range(51)]}, "magnitudes", "max_grid"),
+        ({"magnitudes": [20.0] * 8, "betas": [5e-7] * 7}, "magnitudes", "max_grid"),
+        ({"fidelity": "polychromatic", "n_wavelengths": 64}, "n_wavelengths", "max_wavelengths"),
+    ],
+)
+def test_oversized_simulations_are_422_naming_the_limit(client, body, field, limit):
+    response = client.post("/api/v1/simulations", json=body)
+    assert response.status_code == 422, response.text
+    problem = response.json()
+    assert (problem["field"], problem["limit"]) == (field, limit)
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ('{"magnitudes": [NaN]}', "magnitudes"),
+        ('{"magnitudes": [18, Infinity]}', "magnitudes"),
+        ('{"magnitudes": []}', "magnitudes"),
+        ('{"magnitudes": [1e300]}', "magnitudes"),
+        ('{"betas": [1]}', "betas"),
+        ('{"betas": []}', "betas"),
+        ('{"sigma_betas": [-1e-7]}', "sigma_betas"),
+        ('{"band": "X"}', "band"),
+        ('{"sca": 0}', "sca"),
+        ('{"realizations": 0}', "realizations"),
+        ('{"realizations": 2.5}', "realizations"),
+        ('{"stamp": 8}', "stamp"),
+        ('{"oversampling": 99}', "oversampling"),
+        ('{"exptime": 0}', "exptime"),
+        ('{"seed": -1}', "seed"),
+        ('{"fidelity": "exact"}', "fidelity"),
+        ('{"n_wavelengths": 4}', "n_wavelengths"),
+        ('{"weight_cut_rho2": 1}', "weight_cut_rho2"),
+        ('{"beta_convention": "mine"}', "beta_convention"),
+        ('{"realisations": 10}', "realisations"),
+    ],
+)
+def test_bad_simulation_input_is_422(client, text, field):
+    response = post_raw(client, "/api/v1/simulations", text)
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == field
+
+
+def test_unknown_jobs(client):
+    assert client.get("/api/v1/simulations/" + "0" * 32).status_code == 404
+    assert client.delete("/api/v1/simulations/" + "0" * 32).status_code == 404
+    assert client.get("/api/v1/simulations/not-a-job").status_code == 422
+
+
+# --- the page and the docs ------------------------------------------------------------------
+
+
+def test_page_and_docs_are_served(client):
+    page = client.get("/")
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    assert 'src="vendor/uPlot.iife.min.js"' in page.text
+    for asset in ("/app.js", "/app.css", "/vendor/uPlot.iife.min.js", "/vendor/uPlot.min.css"):
+        assert client.get(asset).status_code == 200, asset
+    assert "http" not in page.text.split("<body>")[0].replace("http-equiv", ""), "the page must not load anything remote"
+    assert client.get("/docs").status_code == 200
+    spec = client.get("/openapi.json").json()
+    assert {"/api/v1/solve", "/api/v1/simulations", "/api/v1/simulations/{job_id}", "/api/v1/meta"} <= set(spec["paths"])
+
+
+def test_responses_never_contain_non_finite_numbers(client):
+    # A slope consistent with zero makes the precision infinite; JSON must carry null, not Infinity.
+    def refuse(token):
+        raise AssertionError(f"non-finite number {token} in a response")
+
+    for metric in ("e1", "e2"):
+        for magnitude in (16.0, 22.0, 27.5):
+            body = {"band": "W146", "metric": metric, "magnitude": magnitude, "tolerance": 1e-3}
+            response = client.post("/api/v1/solve", json=body)
+            assert response.status_code in (200, 422)
+            json.loads(response.text, parse_constant=refuse)
+            if response.status_code == 200:
+                value = response.json()["precision"]
+                assert value is None or math.isfinite(value)
