@@ -1,0 +1,245 @@
+"""The simulation job system: worker pool bound, queue bound, cancel, the content-hash cache, and
+what a restart does to finished and running jobs. Real simulations throughout."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+
+from app.main import create_app
+from app.settings import Limits, Settings
+from app.store import Store
+
+ROOT = Path(__file__).resolve().parent.parent
+#: Minutes of work on one core: it is always cancelled or interrupted, never waited for.
+LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0, 19.0, 20.0], "seed": 11}
+SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
+
+
+def settings_for(tmp_path: Path, **overrides) -> Settings:
+    values = {
+        "db_path": str(tmp_path / "jobs.sqlite3"),
+        "job_workers": 1,
+        "max_queue": 4,
+        "limits": Limits(max_realizations=5000, max_stamp_pixels=10**9, max_work=10**12),
+    }
+    values.update(overrides)
+    return Settings(**values)
+
+
+def wait_for(predicate, timeout: float = 60.0, interval: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {predicate}")
+
+
+def job_status(client, job_id: str) -> dict:
+    response = client.get(f"/api/v1/simulations/{job_id}")
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def until_status(client, job_id: str, *states: str, timeout: float = 120.0) -> dict:
+    return wait_for(lambda: (job := job_status(client, job_id))["status"] in states and job, timeout)
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie has exited; only its exit status is left to collect.
+    try:
+        with open(f"/proc/{pid}/stat") as handle:
+            return handle.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
+    with TestClient(create_app(settings_for(tmp_path, max_queue=1))) as client:
+        first = client.post("/api/v1/simulations", json=LONG)
+        assert first.status_code == 202
+        long_job = first.json()
+        assert first.headers["location"].endswith(long_job["id"])
+        running = until_status(client, long_job["id"], "running")
+        assert running["progress"] < 1
+
+        # The same request in flight is joined, not run twice.
+        again = client.post("/api/v1/simulations", json=LONG)
+        assert again.status_code == 202 and again.json()["id"] == long_job["id"]
+
+        # One worker: the next job waits in the queue...
+        second = client.post("/api/v1/simulations", json=SMALL).json()
+        assert second["status"] == "queued" and second["queue_position"] == 1
+        time.sleep(0.5)
+        assert job_status(client, second["id"])["status"] == "queued"
+
+        # ...and the queue holds one: a third is refused with the limit named.
+        third = client.post("/api/v1/simulations", json={**SMALL, "seed": 99})
+        assert third.status_code == 429
+        assert third.json()["limit"] == "max_queue"
+        assert "Retry-After" in third.headers
+
+        # Cancelling the running job stops its process and frees the worker for the queued one.
+        pid = Store(client.app.state.settings.db_path).get(long_job["id"])["pid"]
+        assert pid and pid_alive(pid)
+        cancelled = client.delete(f"/api/v1/simulations/{long_job['id']}")
+        assert cancelled.status_code == 200
+        assert cancelled.json()["status"] == "cancelled"
+        wait_for(lambda: not pid_alive(pid), timeout=10)
+        done = until_status(client, second["id"], "done")
+        assert done["result"]["results"][0]["band"] == "Y106"
+
+        # A finished job cannot be cancelled.
+        assert client.delete(f"/api/v1/simulations/{second['id']}").status_code == 409
+        listing = client.get("/api/v1/simulations").json()
+        assert listing["counts"]["cancelled"] == 1 and listing["counts"]["done"] == 1
+
+
+def test_cancel_a_queued_job(tmp_path):
+    with TestClient(create_app(settings_for(tmp_path))) as client:
+        long_job = client.post("/api/v1/simulations", json=LONG).json()
+        queued = client.post("/api/v1/simulations", json=SMALL).json()
+        assert queued["status"] == "queued"
+        response = client.delete(f"/api/v1/simulations/{queued['id']}")
+        assert response.json()["status"] == "cancelled"
+        assert response.json()["started_at"] is None
+        client.delete(f"/api/v1/simulations/{long_job['id']}")
+
+
+def test_repeated_request_is_answered_from_stored_results(tmp_path):
+    with TestClient(create_app(settings_for(tmp_path))) as client:
+        first = client.post("/api/v1/simulations", params={"wait": 120}, json=SMALL)
+        assert first.status_code == 200 and first.json()["status"] == "done"
+        assert first.json()["cached"] is False
+        second = client.post("/api/v1/simulations", json=SMALL)
+        assert second.status_code == 200
+        repeat = second.json()
+        assert repeat["status"] == "done" and repeat["cached"] is True
+        assert repeat["id"] != first.json()["id"]
+        assert repeat["result"] == first.json()["result"]
+        # Spelling a default out, or the band in lower case, is the same request.
+        same = client.post("/api/v1/simulations", json={**SMALL, "band": "y106", "stamp": 96, "exptime": 168.1}).json()
+        assert same["cached"] is True
+        other = client.post("/api/v1/simulations", json={**SMALL, "seed": 4}).json()
+        assert other["cached"] is False
+
+
+def test_progress_rises_to_one(tmp_path):
+    body = {"band": "H158", "magnitudes": [18.0 + 0.05 * k for k in range(60)], "betas": [4e-7, 5e-7, 6e-7], "realizations": 200}
+    with TestClient(create_app(settings_for(tmp_path, limits=Limits(max_grid=500)))) as client:
+        job = client.post("/api/v1/simulations", json=body).json()
+        seen = []
+        while job["status"] in ("queued", "running"):
+            seen.append(job["progress"])
+            time.sleep(0.05)
+            job = job_status(client, job["id"])
+        assert job["status"] == "done", job
+        assert job["progress"] == 1.0
+        assert seen == sorted(seen)
+        assert len(set(seen)) >= 3, "progress should be reported while the job runs"
+        assert len(job["result"]["results"]) == 180
+
+
+def test_a_killed_worker_is_reported_as_failed(tmp_path):
+    with TestClient(create_app(settings_for(tmp_path))) as client:
+        job = client.post("/api/v1/simulations", json=LONG).json()
+        until_status(client, job["id"], "running")
+        pid = wait_for(lambda: Store(client.app.state.settings.db_path).get(job["id"])["pid"])
+        os.kill(pid, signal.SIGKILL)
+        failed = until_status(client, job["id"], "failed", timeout=20)
+        assert "ended unexpectedly" in failed["message"]
+
+
+def test_graceful_shutdown_marks_running_jobs_interrupted(tmp_path):
+    settings = settings_for(tmp_path)
+    with TestClient(create_app(settings)) as client:
+        job = client.post("/api/v1/simulations", json=LONG).json()
+        until_status(client, job["id"], "running")
+    stored = Store(settings.db_path).get(job["id"])
+    assert stored["status"] == "interrupted"
+    assert "submit it again" in stored["message"]
+
+
+# --- a real restart of a real server ----------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(db_path: Path, port: int) -> subprocess.Popen:
+    env = {**os.environ, "NLPSF_DB_PATH": str(db_path), "NLPSF_JOB_WORKERS": "1", "NLPSF_MAX_REALIZATIONS": "5000"}
+    env["NLPSF_MAX_STAMP_PIXELS"] = str(10**9)
+    env["NLPSF_MAX_WORK"] = str(10**12)
+    process = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port)],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+    def healthy():
+        assert process.poll() is None, "the server exited"
+        try:
+            return httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=1).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    wait_for(healthy, timeout=60, interval=0.2)
+    return process
+
+
+@pytest.mark.slow
+def test_restart_keeps_results_and_reports_the_running_job_interrupted(tmp_path):
+    db_path = tmp_path / "jobs.sqlite3"
+    port = free_port()
+    base = f"http://127.0.0.1:{port}/api/v1/simulations"
+    server = start_server(db_path, port)
+    try:
+        finished = httpx.post(base, params={"wait": 120}, json=SMALL, timeout=130).json()
+        assert finished["status"] == "done"
+        running = httpx.post(base, json=LONG, timeout=10).json()
+        wait_for(lambda: httpx.get(f"{base}/{running['id']}").json()["status"] == "running")
+        pid = wait_for(lambda: Store(db_path).get(running["id"])["pid"])
+        server.send_signal(signal.SIGKILL)  # a crash: no chance to clean up
+        server.wait(10)
+        # The orphaned simulation notices its service is gone and stops.
+        wait_for(lambda: not pid_alive(pid), timeout=15)
+        assert Store(db_path).get(running["id"])["status"] == "running", "nobody has looked yet"
+    finally:
+        if server.poll() is None:
+            server.kill()
+    server = start_server(db_path, port)
+    try:
+        after = httpx.get(f"{base}/{running['id']}").json()
+        assert after["status"] == "interrupted"
+        assert "submit it again" in after["message"]
+        kept = httpx.get(f"{base}/{finished['id']}").json()
+        assert kept["status"] == "done" and kept["result"] == finished["result"]
+        repeat = httpx.post(base, json=SMALL).json()
+        assert repeat["cached"] is True and repeat["result"] == finished["result"]
+        # Resubmitting the interrupted request runs it again rather than returning the stale job.
+        rerun = httpx.post(base, json=LONG).json()
+        assert rerun["id"] != running["id"] and rerun["status"] in ("queued", "running")
+        httpx.delete(f"{base}/{rerun['id']}", timeout=10)
+    finally:
+        server.send_signal(signal.SIGTERM)
+        server.wait(20)
