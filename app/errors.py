@@ -89,6 +89,9 @@ async def _input_error(request: Request, exc: InputError) -> JSONResponse:
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    if exc.status_code == 400:
+        # FastAPI's "error parsing the body" (e.g. bytes that are not UTF-8): bad input like any other.
+        return problem(422, "the request body is not valid JSON (UTF-8 text expected)", detail=[])
     message = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail)
     return problem(exc.status_code, message, headers=getattr(exc, "headers", None))
 

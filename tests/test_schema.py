@@ -1,0 +1,52 @@
+"""Schemathesis over the OpenAPI spec: whatever a client sends, no 5xx and no response that breaks
+the documented schema (status codes, content types, bodies)."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import pytest
+import schemathesis
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, settings
+from schemathesis import checks
+
+from app.main import create_app
+from app.settings import Limits, Settings
+
+# Small limits: generated simulations must stay cheap. wait is capped at 0 so nothing blocks.
+_directory = tempfile.mkdtemp(prefix="nlpsf-schema-")
+_settings = Settings(
+    db_path=str(Path(_directory) / "jobs.sqlite3"),
+    job_workers=1,
+    max_queue=3,
+    max_wait_s=0.0,
+    limits=Limits(max_realizations=20, max_stamp=64, max_grid=4, max_wavelengths=2, max_stamp_pixels=50_000, max_work=500_000),
+)
+app = create_app(_settings)
+schema = schemathesis.openapi.from_asgi("/openapi.json", app)
+
+CHECKS = [
+    checks.not_a_server_error,
+    checks.status_code_conformance,
+    checks.content_type_conformance,
+    checks.response_schema_conformance,
+    checks.response_headers_conformance,
+    checks.negative_data_rejection,
+]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def running_app():
+    # The lifespan (database, job dispatcher) runs for the whole module; schemathesis calls the app directly.
+    with TestClient(app):
+        yield
+    shutil.rmtree(_directory, ignore_errors=True)
+
+
+@schema.parametrize()
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+def test_api_conforms_to_its_schema(case):
+    case.call_and_validate(checks=CHECKS)
