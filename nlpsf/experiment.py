@@ -620,12 +620,12 @@ def _linear_slopes(scene: Scene, charge_scale: float, beta: float, settings: mom
     derivative = -charge_scale * stamps**2
     fit = moments.fit_perturbed(stamps, beta * derivative, reference, settings)
     distorted = stamps + beta * derivative
-    gradient = moments.pixel_response(distorted, fit, settings)
+    bias_values, scatter_values = (v.T.copy() for v in moments.response_to(distorted, fit, derivative, settings))
     ok = fit.ok & reference.ok
     # The gradient of R is relative to R(beta0); Delta R / R is relative to the unperturbed R0.
-    gradient[:, 0] *= (fit.sigma / reference.sigma)[:, None, None]
-    bias_values = np.einsum("bkij,bij->kb", gradient, derivative)
-    scatter_values = np.sqrt(np.einsum("bkij,bij->kb", gradient**2, derivative**2))
+    size_scale = fit.sigma / reference.sigma
+    bias_values[0] *= size_scale
+    scatter_values[0] *= size_scale
     bias = {name: Statistic.of(np.where(ok, bias_values[k], np.nan)) for k, name in enumerate(METRICS)}
     scatter = {}
     for k, name in enumerate(METRICS):

@@ -527,6 +527,35 @@ def metric_gradients(moments: Moments) -> np.ndarray:
     return out
 
 
+def _core_response(
+    images: np.ndarray, moments: Moments, settings: MomentSettings
+) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """Gradient of (dR/R, e1, e2) with respect to the pixels of the weight's core window."""
+    params = moments.parameters()
+    n = images.shape[-1]
+    cut = float(settings.weight_cut_rho2)
+    r0, r1, c0, c1 = window = _window(n, params, cut)
+    weight, dx, dy, inverse = _weights(n, params, cut, window)
+    S = _raw_moments(weight * images[:, r0:r1, c0:c1], dx, dy, 4)
+    jac = _jacobian(S, inverse)
+    amplitude = S[:, 0, 0]
+    chain = -metric_gradients(moments) @ np.linalg.inv(jac)  # (B, 3, 5): d metric / dF
+    ddx = dx[:, None, :]
+    ddy = dy[:, :, None]
+    basis = (
+        ddx + 0 * ddy,
+        ddy + 0 * ddx,
+        ddx**2 - 0.5 * params[:, 2, None, None],
+        ddx * ddy - 0.5 * params[:, 3, None, None],
+        ddy**2 - 0.5 * params[:, 4, None, None],
+    )
+    scaled = weight / amplitude[:, None, None]
+    core = np.zeros((images.shape[0], 3, r1 - r0, c1 - c0))
+    for k, g in enumerate(basis):
+        core += chain[:, :, k, None, None] * (scaled * g)[:, None]
+    return core, window
+
+
 @np.errstate(all="ignore")
 def pixel_response(images: np.ndarray, moments: Moments, settings: MomentSettings | None = None) -> np.ndarray:
     """Gradient of (dR/R, e1, e2) with respect to every pixel value, shape (B, 3, n, n).
@@ -539,31 +568,28 @@ def pixel_response(images: np.ndarray, moments: Moments, settings: MomentSetting
     images = np.asarray(images, dtype=np.float64)
     if images.ndim == 2:
         images = images[None]
-    params = moments.parameters()
+    core, (r0, r1, c0, c1) = _core_response(images, moments, settings)
     n = images.shape[-1]
-    cut = float(settings.weight_cut_rho2)
-    r0, r1, c0, c1 = window = _window(n, params, cut)
-    weight, dx, dy, inverse = _weights(n, params, cut, window)
-    S = _raw_moments(weight * images[:, r0:r1, c0:c1], dx, dy, 4)
-    jac = _jacobian(S, inverse)
-    amplitude = S[:, 0, 0]
-    inverse_jac = np.linalg.inv(jac)
-    chain = -metric_gradients(moments) @ inverse_jac  # (B, 3, 5): d metric / dF
-    ddx = dx[:, None, :]
-    ddy = dy[:, :, None]
-    basis = (
-        ddx + 0 * ddy,
-        ddy + 0 * ddx,
-        ddx**2 - 0.5 * params[:, 2, None, None],
-        ddx * ddy - 0.5 * params[:, 3, None, None],
-        ddy**2 - 0.5 * params[:, 4, None, None],
-    )
-    scaled = weight / amplitude[:, None, None]
     out = np.zeros((images.shape[0], 3, n, n))
-    core = out[:, :, r0:r1, c0:c1]
-    for k, g in enumerate(basis):
-        core += chain[:, :, k, None, None] * (scaled * g)[:, None]
+    out[:, :, r0:r1, c0:c1] = core
     return out
+
+
+@np.errstate(all="ignore")
+def response_to(
+    images: np.ndarray, moments: Moments, directions: np.ndarray, settings: MomentSettings | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """First-order response of (dR/R, e1, e2) to perturbing each image along a direction.
+
+    Returns (g . d, ||g (.) d||) per image and metric, each of shape (B, 3): the change per unit
+    step along ``directions`` (B, n, n), and the spread if every pixel were perturbed by an
+    independent unit-variance amount times d (the closed-form scatter). Only the weight's core is
+    touched.
+    """
+    settings = settings or MomentSettings()
+    core, (r0, r1, c0, c1) = _core_response(np.asarray(images, dtype=np.float64), moments, settings)
+    d = np.asarray(directions, dtype=np.float64)[:, None, r0:r1, c0:c1]
+    return np.sum(core * d, axis=(2, 3)), np.sqrt(np.sum((core * d) ** 2, axis=(2, 3)))
 
 
 def with_status(moments: Moments, mask: np.ndarray, status: MomentStatus) -> Moments:

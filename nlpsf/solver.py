@@ -1,0 +1,508 @@
+"""The two-of-three requirement calculator (paper, Eq. ``calib`` and section 4).
+
+For a metric (size ΔR/R, e1, e2, or the modulus |Δe| = hypot(Δe1, Δe2)) and a mode (``bias``: a
+calibration error Δβ = p β0 in the mean NL coefficient; ``scatter``: a per-pixel spread
+σβ = p β0), the PSF error is
+
+    T = |c(m)| p β0,
+
+with c(m) the slope d(metric)/dβ (bias) or σ(metric)/σβ (scatter) at magnitude m, exposure t and
+β0. Given any two of (precision p, tolerance T, magnitude m) the third follows. Solving for m
+returns the magnitude at which the NL error reaches the tolerance, and the brightest usable star:
+the fainter of that and the saturation magnitude, with which limit binds.
+
+Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from fresh simulations
+(``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
+measured error (``nlpsf tradeoff``) meets it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import brentq
+
+from . import __version__, experiment, roman, tables
+from .checks import InputError, check_number
+
+METRICS = tables.METRICS
+MODES = tables.MODES
+FIDELITIES = ("table", "linear", "monte_carlo", "polychromatic")
+#: Polychromatic level: wavelengths across the band.
+POLYCHROMATIC_WAVELENGTHS = 8
+#: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
+LINEAR_REGIME_LIMIT = 0.05
+_TABLE_METRIC_NAMES = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
+
+
+@dataclass(frozen=True)
+class Solution:
+    """The answer, with the two given values, its uncertainty and the conditions it holds for."""
+
+    band: str
+    sca: int
+    metric: str
+    mode: str
+    beta0: float
+    exptime: float
+    full_well: float
+    precision: float | None
+    tolerance: float | None
+    magnitude: float | None
+    solved_for: str
+    uncertainty: float | None
+    uncertainty_statistical: float | None
+    uncertainty_fidelity: float | None
+    slope: float | None
+    slope_uncertainty: float | None
+    saturation_magnitude: float
+    brightest_usable_magnitude: float | None
+    binding_limit: str | None
+    nonlinearity_magnitude: float | None
+    flags: list[str]
+    fidelity: str
+    conditions: dict
+    elapsed_s: float = field(default=0.0, compare=False)
+
+    def to_dict(self) -> dict:
+        return {
+            "band": self.band,
+            "sca": self.sca,
+            "metric": self.metric,
+            "mode": self.mode,
+            "beta0": self.beta0,
+            "exptime": self.exptime,
+            "full_well": self.full_well,
+            "precision": _json_number(self.precision),
+            "tolerance": _json_number(self.tolerance),
+            "magnitude": _json_number(self.magnitude),
+            "solved_for": self.solved_for,
+            "uncertainty": _json_number(self.uncertainty),
+            "uncertainty_statistical": _json_number(self.uncertainty_statistical),
+            "uncertainty_fidelity": _json_number(self.uncertainty_fidelity),
+            "slope": _json_number(self.slope),
+            "slope_uncertainty": _json_number(self.slope_uncertainty),
+            "saturation_magnitude": _json_number(self.saturation_magnitude),
+            "brightest_usable_magnitude": _json_number(self.brightest_usable_magnitude),
+            "binding_limit": self.binding_limit,
+            "nonlinearity_magnitude": _json_number(self.nonlinearity_magnitude),
+            "flags": list(self.flags),
+            "fidelity": self.fidelity,
+            "conditions": self.conditions,
+            "elapsed_s": self.elapsed_s,
+        }
+
+
+def _json_number(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+class _Slopes:
+    """c(m) at the request's conditions, from the tables or from fresh simulations."""
+
+    def __init__(self, band: str, sca: int, metric: str, mode: str, beta0: float, exptime: float, fidelity: str, tableset):
+        self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
+        self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
+        self.table = tableset.get(band, sca)
+        self._cache: dict[float, tuple[float, float]] = {}
+
+    def range(self) -> tuple[float, float]:
+        return self.table.grid_range(self.exptime, self.beta0)
+
+    def from_table(self, magnitude: float) -> tuple[float, float, int]:
+        value, error, region = self.table.slope(self.metric, self.mode, magnitude, self.exptime, self.beta0)
+        return float(value[0]), float(error[0]), int(region[0])
+
+    def at(self, magnitude: float) -> tuple[float, float, int]:
+        """(slope, uncertainty, region): region -1 brighter than the grid, 0 in it, +1 fainter."""
+        value, error, region = self.from_table(magnitude)
+        if self.fidelity == "table" or region < 0:
+            return value, error, region
+        key = round(magnitude, 9)
+        if key not in self._cache:
+            self._cache[key] = self._simulate(magnitude)
+        return (*self._cache[key], region)
+
+    def _simulate(self, magnitude: float) -> tuple[float, float]:
+        method = "linear" if self.fidelity == "linear" else "monte_carlo"
+        settings = self.table.settings
+        config = experiment.SimulationConfig(
+            band=self.band,
+            sca=self.sca,
+            realizations=int(settings["realizations"]),
+            seed=int(settings["seed"]),
+            oversampling=int(settings["oversampling"]),
+            stamp=int(settings["stamp"]),
+            exptime_s=self.exptime,
+            weight_cut_rho2=float(settings["weight_cut_rho2"]),
+            pupil_scale=str(settings["pupil_scale"]),
+            method=method,
+            n_wavelengths=POLYCHROMATIC_WAVELENGTHS if self.fidelity == "polychromatic" else 1,
+        )
+        result = experiment.slopes(config, [magnitude], beta0=self.beta0)[0]
+        names = ("de1", "de2") if self.metric == "e" else (_TABLE_METRIC_NAMES[self.metric],)
+        values, errors = [], []
+        for name in names:
+            if self.mode == "bias":
+                stat = result.bias[name]
+                values.append(stat.mean)
+                errors.append(stat.stderr)
+            else:
+                values.append(result.scatter[name]["value"])
+                errors.append(result.scatter[name]["uncertainty"])
+        if any(v is None for v in values):
+            raise InputError("magnitude", f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
+        if len(values) == 1:
+            return float(values[0]), float(errors[0])
+        value = math.hypot(*values)
+        error = math.hypot(values[0] * errors[0], values[1] * errors[1]) / value if value > 0 else math.hypot(*errors)
+        return value, error
+
+
+def _choose_fidelity(fidelity: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+    if accuracy is None:
+        fidelity = fidelity or "table"
+        if fidelity not in FIDELITIES:
+            raise InputError("fidelity", f"must be one of {', '.join(FIDELITIES)}, got {fidelity!r}")
+        return fidelity, []
+    accuracy = check_number(accuracy, "accuracy", 0.0, 10.0, open_low=True)
+    from . import fidelity as fidelity_module
+
+    chosen, note = fidelity_module.cheapest_meeting(accuracy, band, metric, mode)
+    return chosen, [note]
+
+
+def solve(
+    band: str,
+    sca: int = 18,
+    metric: str = "size",
+    mode: str = "bias",
+    beta0: float = 5e-7,
+    exptime: float = roman.DEFAULT_EXPTIME_S,
+    precision: float | None = None,
+    tolerance: float | None = None,
+    magnitude: float | None = None,
+    full_well: float = roman.DEFAULT_FULL_WELL_E,
+    fidelity: str | None = None,
+    accuracy: float | None = None,
+    tables_set: tables.TableSet | None = None,
+) -> Solution:
+    """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
+    error allowed) and ``magnitude`` (AB); get the third. See the module docstring."""
+    start = time.perf_counter()
+    band = roman.check_band(band)
+    sca = roman.check_sca(sca)
+    tables.check_metric_mode(metric, mode)
+    beta0 = check_number(beta0, "beta0", 1e-12, 1e-3, open_low=False)
+    if beta0 <= 0:
+        raise InputError("beta0", f"must be positive, got {beta0!r}")
+    exptime = check_number(exptime, "exptime", 0.0, 1e6, open_low=True)
+    full_well = check_number(full_well, "full_well", 0.0, 1e9, open_low=True)
+    given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
+    if len(given) != 2:
+        missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
+        raise InputError(
+            "precision" if "precision" not in given else ("tolerance" if "tolerance" not in given else "magnitude"),
+            f"give exactly two of precision, tolerance, magnitude (got {len(given)}; missing: {missing})",
+        )
+    if precision is not None:
+        precision = check_number(precision, "precision", 0.0, 1e3, open_low=True)
+    if tolerance is not None:
+        tolerance = check_number(tolerance, "tolerance", 0.0, 1e3, open_low=True)
+    if magnitude is not None:
+        magnitude = check_number(magnitude, "magnitude", -5.0, 40.0)
+    chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
+    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables())
+    table = slopes.table
+    m_sat = table.saturation(exptime, full_well)
+    solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
+    brightest, binding, m_nl = None, None, None
+
+    systematic, systematic_note = _fidelity_error(chosen, band, metric, mode)
+    if systematic_note:
+        flags.append(systematic_note)
+    if solved_for == "magnitude":
+        m_nl, slope, slope_err, log_derivative, extra = _solve_magnitude(slopes, precision * beta0, tolerance, m_sat)
+        flags += extra
+        magnitude, binding = _binding(m_nl, m_sat, flags)
+        brightest = magnitude
+        if binding == "nonlinearity" and log_derivative:
+            statistical = (slope_err / abs(slope)) / abs(log_derivative)
+            fidelity_part = None if systematic is None else systematic / abs(log_derivative)
+        else:
+            # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
+            statistical, fidelity_part = 0.0, 0.0
+            slope, slope_err, _ = slopes.at(m_sat)
+            flags.append(
+                f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0:.3g} "
+                f"(tolerance {tolerance:g})"
+            )
+    else:
+        slope, slope_err, region = slopes.at(magnitude)
+        flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
+        c, c_err = abs(slope), slope_err
+        if solved_for == "tolerance":
+            tolerance = c * precision * beta0
+            statistical = c_err * precision * beta0
+            fidelity_part = None if systematic is None else tolerance * systematic
+        elif c <= max(c_err, 1e-300):
+            flags.append(
+                f"the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {c_err:.2g}): "
+                "this metric is insensitive to beta here, so no calibration precision is needed for it"
+            )
+            precision, statistical, fidelity_part = math.inf, None, None
+        else:
+            precision = tolerance / (c * beta0)
+            statistical = precision * c_err / c
+            fidelity_part = None if systematic is None else precision * systematic
+    uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0)
+    flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
+    conditions = tables._conditions(table, exptime, beta0, full_well)
+    conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
+    if chosen != "table":
+        conditions["realizations"] = int(table.settings["realizations"])
+        if chosen == "polychromatic":
+            conditions["n_wavelengths"] = POLYCHROMATIC_WAVELENGTHS
+    return Solution(
+        band=band,
+        sca=sca,
+        metric=metric,
+        mode=mode,
+        beta0=beta0,
+        exptime=exptime,
+        full_well=full_well,
+        precision=precision,
+        tolerance=tolerance,
+        magnitude=magnitude,
+        solved_for=solved_for,
+        uncertainty=uncertainty,
+        uncertainty_statistical=statistical,
+        uncertainty_fidelity=fidelity_part,
+        slope=slope,
+        slope_uncertainty=slope_err,
+        saturation_magnitude=m_sat,
+        brightest_usable_magnitude=brightest,
+        binding_limit=binding,
+        nonlinearity_magnitude=m_nl,
+        flags=flags,
+        fidelity=chosen,
+        conditions=conditions,
+        elapsed_s=time.perf_counter() - start,
+    )
+
+
+def _fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:
+    """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown."""
+    from . import fidelity
+
+    try:
+        return fidelity.level_error(band, metric, mode, level), None
+    except (InputError, KeyError):
+        return None, "no measured fidelity error for this band is shipped, so the uncertainty is statistical only"
+
+
+def _peak_electrons(slopes: _Slopes, magnitude: float) -> float:
+    table = slopes.table
+    flux = float(table.flux_at(magnitude - 2.5 * math.log10(slopes.exptime / table.exptime_s)))
+    return flux * table.peak_fraction * int(table.settings["oversampling"]) ** 2
+
+
+def _magnitude_flags(slopes: _Slopes, magnitude: float, region: int, m_sat: float, beta0: float) -> list[str]:
+    lo, hi = slopes.range()
+    if region < 0:
+        peak = _peak_electrons(slopes, magnitude)
+        if 2 * beta0 * peak >= 1:
+            raise InputError(
+                "magnitude",
+                f"an m={magnitude:g} star is too bright for beta0={beta0:g}: the quadratic nonlinearity is not monotonic "
+                f"there (2 beta0 Q_peak = {2 * beta0 * peak:.2f} >= 1), so S = Q - beta Q^2 does not describe the detector",
+            )
+        raise InputError(
+            "magnitude",
+            f"m={magnitude:g} is brighter than the tables reach at these conditions (m >= {lo:.2f}: the tables stop "
+            f"{tables.BRIGHT_MARGIN_MAG} mag past saturation, in beta0 x flux); such a star saturates the detector several "
+            "times over and has no meaningful NL answer",
+        )
+    flags = []
+    if region > 0:
+        flags.append(
+            f"extrapolated: m={magnitude:g} is fainter than the table (m <= {hi:.2f}); the slope is scaled in proportion "
+            "to the flux, which is exact in the linear regime these faint stars are in"
+        )
+    if magnitude < m_sat:
+        flags.append(
+            f"saturated: at m={magnitude:g} the brightest pixel exceeds the full well (saturation at m={m_sat:.2f}); "
+            "such a star cannot be used for the PSF model at all"
+        )
+    return flags
+
+
+def _validity_flags(
+    slopes: _Slopes, magnitude: float | None, precision: float | None, beta0: float, full_well: float
+) -> list[str]:
+    if magnitude is None or not math.isfinite(magnitude):
+        return []
+    peak = _peak_electrons(slopes, magnitude)
+    flags = []
+    if 2 * beta0 * peak >= 1:
+        flags.append(
+            f"nonlinearity not monotonic: 2 beta0 Q_peak = {2 * beta0 * peak:.2f} >= 1 at m={magnitude:g}; the quadratic model "
+            "is invalid for this star, so the slope is not physical"
+        )
+    if precision is not None and math.isfinite(precision) and precision * beta0 * peak > LINEAR_REGIME_LIMIT:
+        flags.append(
+            f"outside the linear regime: delta_beta * Q_peak = {precision * beta0 * peak:.2g} > {LINEAR_REGIME_LIMIT}; "
+            "T = c p beta0 assumes the PSF error grows linearly with delta_beta, so expect corrections of that order"
+        )
+    return flags
+
+
+def _solve_magnitude(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat: float):
+    """Magnitude where |c(m)| delta_beta = tolerance, scanning from faint to bright so that every
+    fainter star also meets the tolerance (|c| need not be monotonic when e1 or e2 changes sign).
+
+    Returns (m, slope, slope uncertainty, d ln|c| / dm, flags); m is None when even the brightest
+    tabulated star stays within the tolerance.
+    """
+    flags: list[str] = []
+    required = tolerance / delta_beta
+    lo, hi = slopes.range()
+    grid = np.arange(hi, lo - 1e-9, -0.02)  # faint to bright
+    value, _, _ = slopes.table.slope(slopes.metric, slopes.mode, grid, slopes.exptime, slopes.beta0)
+    above = np.abs(value) > required
+    if above[0]:
+        # Even the faintest tabulated star exceeds the tolerance: go fainter along the linear
+        # regime, where |c| is proportional to the flux.
+        m_nl = float(hi + 2.5 * math.log10(abs(value[0]) / required))
+        flags.append(
+            f"extrapolated: the tolerance is only met fainter than the table (m > {hi:.2f}); m={m_nl:.2f} follows from the slope "
+            "scaling with flux, exact in the linear regime"
+        )
+        if m_nl > 40:
+            flags.append("the answer is fainter than m = 40: no usable PSF star can meet this tolerance at this precision")
+        slope, slope_err = slopes.at(m_nl)[:2]
+        return m_nl, slope, slope_err, -0.4 * math.log(10), flags
+    if not above.any():
+        flags.append(
+            f"the NL error stays below the tolerance over the whole table, down to m={lo:.2f} "
+            f"({tables.BRIGHT_MARGIN_MAG} mag brighter than saturation, in beta0 x flux)"
+        )
+        return None, None, None, None, flags
+    k = int(np.argmax(above))  # first magnitude (from the faint side) where the tolerance is exceeded
+    bright, faint = float(grid[k]), float(grid[k - 1])
+
+    def excess(m: float) -> float:
+        return math.log(abs(slopes.at(m)[0]) / required)
+
+    if slopes.fidelity == "table":
+        m_nl = brentq(excess, bright, faint, xtol=1e-10)
+    else:
+        # Fresh simulations: few evaluations, starting from the table's bracket widened a little.
+        m_nl = _secant_root(excess, bright - 0.1, faint + 0.1)
+    slope, slope_err, _ = slopes.at(m_nl)
+    h = 0.01
+    log_derivative = (math.log(abs(slopes.at(m_nl + h)[0])) - math.log(abs(slopes.at(m_nl - h)[0]))) / (2 * h)
+    if any(np.diff(np.sign(value[np.isfinite(value)])) != 0):
+        flags.append(
+            f"the {slopes.metric} slope changes sign within the table; the answer uses |c| and is the brightest magnitude "
+            "whose error stays within the tolerance for every fainter star"
+        )
+    return m_nl, slope, slope_err, log_derivative, flags
+
+
+def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iterations: int = 12) -> float:
+    fa, fb = function(a), function(b)
+    if fa * fb > 0:
+        return brentq(function, a - 1.0, b + 1.0, xtol=tolerance)
+    c = b
+    for _ in range(iterations):
+        c = b - fb * (b - a) / (fb - fa)
+        fc = function(c)
+        if abs(fc) < 1e-6 or abs(c - b) < tolerance:
+            return c
+        if fa * fc < 0:
+            b, fb = c, fc
+        else:
+            a, fa = c, fc
+    return c
+
+
+def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float, str]:
+    """The brightest usable star: the fainter of the NL limit and saturation, and which binds."""
+    if m_nl is None or m_nl < m_sat:
+        where = "" if m_nl is None else f" (the NL error would reach the tolerance only at m={m_nl:.2f})"
+        flags.append(
+            f"saturation binds: stars brighter than m={m_sat:.2f} saturate before the nonlinearity matters{where}; "
+            "at the saturation magnitude the NL error is below the tolerance"
+        )
+        return m_sat, "saturation"
+    return m_nl, "nonlinearity"
+
+
+def _register_cli() -> None:
+    from . import cli
+
+    def configure(parser) -> None:
+        parser.add_argument("--band", default="H158")
+        parser.add_argument("--sca", type=int, default=18)
+        parser.add_argument("--metric", choices=METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
+        parser.add_argument(
+            "--mode", choices=MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
+        )
+        parser.add_argument("--beta0", type=float, default=5e-7, help="nominal NL coefficient (paper convention, default 5e-7)")
+        parser.add_argument("--exptime", type=float, default=roman.DEFAULT_EXPTIME_S)
+        parser.add_argument("--full-well", type=float, default=roman.DEFAULT_FULL_WELL_E)
+        parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
+        parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
+        parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
+        parser.add_argument(
+            "--fidelity", choices=FIDELITIES, default=None, help="table (default), linear, monte_carlo, polychromatic"
+        )
+        parser.add_argument(
+            "--accuracy", type=float, default=None, help="pick the cheapest fidelity whose measured error is below this"
+        )
+        parser.add_argument("--json", action="store_true")
+
+    @cli.register("solve", configure, "given two of precision, tolerance, magnitude, get the third")
+    def run(args) -> int:
+        import json
+
+        solution = solve(
+            args.band,
+            args.sca,
+            args.metric,
+            args.mode,
+            args.beta0,
+            args.exptime,
+            args.precision,
+            args.tolerance,
+            args.magnitude,
+            args.full_well,
+            args.fidelity,
+            args.accuracy,
+        )
+        payload = solution.to_dict()
+        if args.json:
+            print(json.dumps(payload, indent=2, allow_nan=False))
+            return 0
+        print(
+            f"{solution.band} SCA {solution.sca}, {solution.metric} {solution.mode}, beta0={solution.beta0:g}, "
+            f"{solution.exptime:g} s, fidelity {solution.fidelity}"
+        )
+        for name in ("precision", "tolerance", "magnitude"):
+            value = payload[name]
+            mark = "  <- solved" if name == solution.solved_for else ""
+            err = f" ± {payload['uncertainty']:.2g}" if mark and payload["uncertainty"] is not None else ""
+            print(f"  {name:<10} {'n/a' if value is None else format(value, '.6g')}{err}{mark}")
+        print(f"  slope c(m) {payload['slope']}  saturation at m={solution.saturation_magnitude:.2f}")
+        if solution.binding_limit:
+            print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} ({solution.binding_limit} binds)")
+        for flag in solution.flags:
+            print(f"  ! {flag}")
+        return 0
+
+
+_register_cli()

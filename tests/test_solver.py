@@ -1,0 +1,245 @@
+"""The two-of-three calculator: the paper's example, round trips, extremes, refusals, fidelity."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from nlpsf import cli, roman, solver, tables
+from nlpsf.checks import InputError
+
+TABLES = tables.load_tables()
+
+
+def test_the_papers_worked_example():
+    # H158, m = 18.3, Delta R / R = 1e-4, beta0 = 5e-7: "beta must be calibrated to ~1 %".
+    s = solver.solve("H158", magnitude=18.3, tolerance=1e-4)
+    assert s.solved_for == "precision"
+    assert 0.005 < s.precision < 0.015
+    slope = TABLES.get("H158", 18).lookup("size", "bias", 18.3)[0][0]
+    assert s.precision == pytest.approx(1e-4 / (slope * 5e-7), rel=1e-12)
+    assert s.slope == pytest.approx(slope)
+    # And its ellipticity example: |De| = 4.7e-5 -> a few per cent (paper: ~2.4 % with Cycle-5 optics).
+    e = solver.solve("H158", metric="e", magnitude=18.3, tolerance=4.7e-5)
+    assert 0.01 < e.precision < 0.2
+
+
+bands = st.sampled_from(roman.BANDS)
+scas = st.integers(1, 18)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    band=bands,
+    sca=scas,
+    metric=st.sampled_from(tables.METRICS),
+    mode=st.sampled_from(tables.MODES),
+    offset=st.floats(0.05, 7.0),
+    log_precision=st.floats(-4, -0.5),
+)
+def test_solving_each_member_returns_the_others(band, sca, metric, mode, offset, log_precision):
+    table = TABLES.get(band, sca)
+    magnitude = table.saturation() + offset
+    precision = 10**log_precision
+    forward = solver.solve(band, sca, metric, mode, precision=precision, magnitude=magnitude)
+    tolerance = forward.tolerance
+    assert forward.uncertainty is not None and forward.uncertainty >= 0
+    back = solver.solve(band, sca, metric, mode, tolerance=tolerance, magnitude=magnitude)
+    assert abs(back.precision - precision) <= max(back.uncertainty, 1e-12 * precision)
+    slopes = table.lookup(metric, mode, np.arange(magnitude, 28.0, 0.02))[0]
+    if metric in ("size", "e") or np.all(np.abs(slopes) <= abs(forward.slope) * (1 + 1e-9)):
+        # The magnitude comes back where every fainter star also meets the tolerance, which for a
+        # monotonic |c| is the magnitude we started from.
+        m = solver.solve(band, sca, metric, mode, precision=precision, tolerance=tolerance)
+        if m.binding_limit == "nonlinearity":
+            assert abs(m.magnitude - magnitude) <= max(m.uncertainty, 1e-6)
+
+
+def test_solving_magnitude_says_which_limit_binds():
+    nl = solver.solve("H158", precision=0.01, tolerance=1e-4)
+    assert nl.binding_limit == "nonlinearity" and nl.magnitude > nl.saturation_magnitude
+    assert nl.brightest_usable_magnitude == nl.magnitude
+    loose = solver.solve("H158", precision=0.01, tolerance=0.05)
+    assert loose.binding_limit == "saturation"
+    assert loose.magnitude == pytest.approx(loose.saturation_magnitude)
+    assert any("saturation binds" in f for f in loose.flags)
+
+
+@pytest.mark.parametrize("tolerance", [1e-9, 1e-6, 1e-3, 1.0])
+def test_extreme_tolerances(tolerance):
+    s = solver.solve("J129", 4, precision=0.01, tolerance=tolerance)
+    assert s.magnitude is not None and math.isfinite(s.magnitude)
+    if tolerance == 1e-9:
+        assert s.magnitude > 28 and any("extrapolated" in f for f in s.flags)
+    if tolerance == 1.0:
+        assert s.binding_limit == "saturation"
+
+
+@pytest.mark.parametrize("precision", [1e-6, 1e-3, 1.0, 10.0])
+def test_extreme_precisions(precision):
+    s = solver.solve("F184", 2, precision=precision, magnitude=19.0)
+    assert s.tolerance > 0 and math.isfinite(s.tolerance)
+    assert s.tolerance == pytest.approx(abs(s.slope) * precision * 5e-7)
+    table = TABLES.get("F184", 2)
+    peak = float(table.flux_at(19.0)) * table.peak_fraction * 9
+    # Past delta_beta * Q_peak = 5 % the error is no longer linear in delta_beta: flagged.
+    assert any("linear regime" in f for f in s.flags) == (precision * 5e-7 * peak > solver.LINEAR_REGIME_LIMIT)
+
+
+def test_magnitudes_brighter_than_saturation_and_fainter_than_30():
+    table = TABLES.get("Y106", 9)
+    saturated = solver.solve("Y106", 9, precision=0.01, magnitude=table.saturation() - 0.5)
+    assert any("saturated" in f for f in saturated.flags)
+    faint = solver.solve("Y106", 9, precision=0.01, magnitude=31.0)
+    assert any("extrapolated" in f for f in faint.flags)
+    inside = solver.solve("Y106", 9, precision=0.01, magnitude=27.0)
+    assert faint.tolerance == pytest.approx(inside.tolerance * 10 ** (-0.4 * 4), rel=2e-3)
+    with pytest.raises(InputError, match="magnitude") as error:
+        solver.solve("Y106", 9, precision=0.01, magnitude=table.magnitudes[0] - 1)
+    assert "too bright" in str(error.value) or "brighter than the tables reach" in str(error.value)
+
+
+@pytest.mark.parametrize("beta0", [1e-9, 1e-8, 5e-7, 2e-6, 1e-5])
+def test_beta0_range(beta0):
+    s = solver.solve("H158", precision=0.01, magnitude=21.0, beta0=beta0)
+    assert math.isfinite(s.tolerance) and s.conditions["beta0"] == beta0
+    m = solver.solve("H158", precision=0.01, tolerance=1e-5, beta0=beta0)
+    assert math.isfinite(m.magnitude)
+    # More nonlinearity: the same tolerance needs fainter stars.
+    if beta0 > 5e-7:
+        assert m.magnitude > solver.solve("H158", precision=0.01, tolerance=1e-5).magnitude
+
+
+def test_a_non_monotonic_detector_is_refused_with_the_reason():
+    with pytest.raises(InputError, match="magnitude") as error:
+        solver.solve("H158", precision=0.01, magnitude=18.3, beta0=1e-5)
+    assert "not monotonic" in str(error.value) and "beta0=1e-05" in str(error.value)
+
+
+def test_exposure_and_full_well_change_the_answer_as_flux_does():
+    base = solver.solve("H158", precision=0.01, tolerance=1e-4)
+    longer = solver.solve("H158", precision=0.01, tolerance=1e-4, exptime=2 * 168.1)
+    assert longer.magnitude == pytest.approx(base.magnitude + 2.5 * math.log10(2), abs=1e-6)
+    deeper = solver.solve("H158", precision=0.01, tolerance=1e-4, full_well=2.2e5)
+    assert deeper.magnitude == pytest.approx(base.magnitude)
+    assert deeper.saturation_magnitude == pytest.approx(base.saturation_magnitude - 2.5 * math.log10(2))
+
+
+def test_a_slope_through_zero_is_handled_not_divided_by():
+    # K213 SCA 1: the e2 bias slope changes sign near m = 17.8.
+    table = TABLES.get("K213", 1)
+    magnitudes = np.linspace(table.magnitudes[0], 19.0, 2000)
+    values = table.lookup("e2", "bias", magnitudes)[0]
+    zero = magnitudes[np.argmin(np.abs(values))]
+    s = solver.solve("K213", 1, metric="e2", tolerance=1e-6, magnitude=float(zero), full_well=1e7)
+    assert s.precision is None or s.precision > 1e3
+    if s.precision is None:
+        assert any("consistent with zero" in f for f in s.flags)
+    # A tolerance met only fainter than the crossing: the answer must not stop at the zero, where
+    # |c| is small, but at the faint-side magnitude where every fainter star meets the tolerance.
+    c19 = abs(table.lookup("e2", "bias", 19.0)[0][0])
+    m = solver.solve("K213", 1, metric="e2", precision=0.01, tolerance=0.9 * c19 * 0.01 * 5e-7, full_well=1e7)
+    assert m.magnitude > 19.0 > zero
+    fainter = np.abs(table.lookup("e2", "bias", np.arange(m.magnitude + 0.001, 28, 0.01))[0])
+    assert np.all(fainter * 0.01 * 5e-7 <= 0.9 * c19 * 0.01 * 5e-7 * (1 + 1e-9))
+    assert any("changes sign" in f for f in m.flags)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"precision": 0.01}, "tolerance"),
+        ({"precision": 0.01, "tolerance": 1e-4, "magnitude": 20.0}, "magnitude"),
+        ({"precision": -0.01, "magnitude": 20.0}, "precision"),
+        ({"precision": float("nan"), "magnitude": 20.0}, "precision"),
+        ({"tolerance": float("inf"), "magnitude": 20.0}, "tolerance"),
+        ({"tolerance": 0.0, "magnitude": 20.0}, "tolerance"),
+        ({"precision": 0.01, "magnitude": 99.0}, "magnitude"),
+        ({"precision": 0.01, "magnitude": 20.0, "beta0": 0.0}, "beta0"),
+        ({"precision": 0.01, "magnitude": 20.0, "exptime": -5.0}, "exptime"),
+        ({"precision": 0.01, "magnitude": 20.0, "metric": "size2"}, "metric"),
+        ({"precision": 0.01, "magnitude": 20.0, "mode": "mean"}, "mode"),
+        ({"precision": 0.01, "magnitude": 20.0, "sca": 19}, "sca"),
+        ({"precision": 0.01, "magnitude": 20.0, "fidelity": "best"}, "fidelity"),
+        ({"precision": 0.01, "magnitude": 20.0, "accuracy": -1.0}, "accuracy"),
+    ],
+)
+def test_bad_requests_are_refused_naming_the_argument(kwargs, name):
+    with pytest.raises(InputError) as error:
+        solver.solve(kwargs.pop("band", "H158"), **kwargs)
+    assert error.value.argument == name
+
+
+def test_unknown_band_is_refused():
+    with pytest.raises(InputError, match="band"):
+        solver.solve("X123", precision=0.01, magnitude=20)
+
+
+def test_answers_carry_conditions_and_uncertainty():
+    d = solver.solve("J129", 11, "e1", "scatter", beta0=4e-7, exptime=100.0, precision=0.1, magnitude=20.0).to_dict()
+    for key in ("precision", "tolerance", "magnitude", "solved_for", "uncertainty", "slope", "saturation_magnitude", "flags"):
+        assert key in d
+    c = d["conditions"]
+    assert (c["band"], c["sca"], c["exptime_s"], c["beta0"], c["fidelity"]) == ("J129", 11, 100.0, 4e-7, "table")
+    assert d["uncertainty"] >= d["uncertainty_statistical"] > 0
+    assert d["uncertainty_fidelity"] > 0  # the table level's measured error against the polychromatic reference
+    json.dumps(d, allow_nan=False)
+
+
+def test_fresh_simulation_fidelity_agrees_with_the_table():
+    table = solver.solve("H158", precision=0.01, magnitude=19.3)
+    linear = solver.solve("H158", precision=0.01, magnitude=19.3, fidelity="linear")
+    assert linear.fidelity == "linear"
+    assert abs(linear.tolerance - table.tolerance) <= table.uncertainty_statistical + linear.uncertainty_statistical
+    mc = solver.solve("H158", precision=0.01, tolerance=1e-4, fidelity="monte_carlo")
+    assert mc.magnitude == pytest.approx(solver.solve("H158", precision=0.01, tolerance=1e-4).magnitude, abs=0.01)
+
+
+def test_accuracy_picks_the_cheapest_level_that_meets_it():
+    from nlpsf import fidelity
+
+    errors = fidelity.measured()["errors"]["H158"]["bias"]["size"]
+    loose = solver.solve("H158", precision=0.01, magnitude=20.0, accuracy=2 * errors["table"])
+    assert loose.fidelity == "table"
+    tight = solver.solve("H158", precision=0.01, magnitude=20.0, accuracy=0.5 * errors["table"])
+    assert tight.fidelity == "polychromatic"
+    assert tight.uncertainty_fidelity / tight.tolerance <= 0.5 * errors["table"]
+
+
+def test_cli_solve_json_contract(capsys):
+    code = cli.main(
+        [
+            "solve",
+            "--band",
+            "H158",
+            "--sca",
+            "18",
+            "--metric",
+            "size",
+            "--mode",
+            "bias",
+            "--beta0",
+            "5e-7",
+            "--exptime",
+            "168.1",
+            "--tolerance",
+            "1e-4",
+            "--magnitude",
+            "18.3",
+            "--json",
+        ]
+    )
+    payload = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert {"precision", "tolerance", "magnitude", "solved_for", "uncertainty", "slope", "saturation_magnitude", "flags"} <= set(
+        payload
+    )
+    assert payload["solved_for"] == "precision"
+
+
+def test_cli_solve_refuses_one_member(capsys):
+    assert cli.main(["solve", "--band", "H158", "--magnitude", "18.3", "--json"]) == 2
+    assert "exactly two" in capsys.readouterr().err

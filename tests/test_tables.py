@@ -1,0 +1,193 @@
+"""The shipped slope tables: coverage, provenance, interpolation, the exact exposure/beta0 scaling."""
+
+import math
+
+import numpy as np
+import pytest
+
+from nlpsf import experiment, roman, tables
+
+
+@pytest.fixture(scope="module")
+def tableset():
+    return tables.load_tables()
+
+
+def fresh(table: tables.SlopeTable, magnitude: float, exptime: float | None = None, beta0: float | None = None):
+    """A fresh simulation with the table's own settings (same centroids) at one magnitude."""
+    s = table.settings
+    config = experiment.SimulationConfig(
+        band=table.band,
+        sca=table.sca,
+        realizations=s["realizations"],
+        seed=s["seed"],
+        oversampling=s["oversampling"],
+        stamp=s["stamp"],
+        exptime_s=exptime or s["exptime_s"],
+        weight_cut_rho2=s["weight_cut_rho2"],
+        method="linear",
+    )
+    return experiment.slopes(config, [magnitude], beta0=beta0 or s["beta0"])[0]
+
+
+def test_every_band_and_sca_is_tabulated_from_saturation_to_beyond_26(tableset):
+    assert tableset.bands == list(roman.BANDS)
+    assert tableset.scas == list(range(1, 19))
+    for table in tableset.tables.values():
+        assert table.magnitudes[0] < table.saturation_magnitude - 1.0
+        assert table.magnitudes[-1] >= 26.0
+        assert np.all(np.diff(table.magnitudes) > 0)
+        assert np.all(np.isfinite(table.columns["bias_size"]))
+        assert np.all(table.columns["bias_size"] > 0)
+
+
+def test_tables_carry_their_provenance(tableset):
+    meta = tableset.meta
+    assert meta["data_version"] == roman.DATA_VERSION
+    for key in ("exptime_s", "beta0", "oversampling", "stamp", "realizations", "seed", "full_well_e", "weight_cut_rho2"):
+        assert key in meta["settings"]
+    assert meta["settings"]["exptime_s"] == 168.1 and meta["settings"]["beta0"] == 5e-7
+    assert "code_version" in meta and "linear response" in meta["method"]
+
+
+def test_table_entries_are_the_simulation_they_claim(tableset):
+    table = tableset.get("J129", 7)
+    k = int(np.argmin(np.abs(table.magnitudes - 20.0)))
+    result = fresh(table, float(table.magnitudes[k]))
+    assert table.columns["bias_size"][k] == pytest.approx(result.bias["dR_over_R"].mean, rel=1e-9)
+    assert table.columns["scatter_e2"][k] == pytest.approx(result.scatter["de2"]["value"], rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("band", "sca", "magnitude"), [("H158", 18, 18.31), ("Y106", 4, 19.83), ("F184", 11, 22.71), ("W146", 16, 19.66)]
+)
+def test_interpolated_slopes_agree_with_fresh_simulations_within_their_stated_error(tableset, band, sca, magnitude):
+    table = tableset.get(band, sca)
+    result = fresh(table, magnitude)
+    for metric, name in (("size", "dR_over_R"), ("e1", "de1"), ("e2", "de2")):
+        value, error, region = table.lookup(metric, "bias", magnitude)
+        assert region[0] == 0
+        assert abs(value[0] - result.bias[name].mean) <= error[0]
+        value, error, _ = table.lookup(metric, "scatter", magnitude)
+        assert abs(value[0] - result.scatter[name]["value"]) <= error[0]
+
+
+def test_interpolation_error_is_below_the_statistical_error(tableset):
+    # Where the stars are usable (fainter than saturation) the grid is fine enough that the cubic
+    # interpolation adds less than the centroid-sampling error of the slopes themselves.
+    worse = []
+    for table in tableset.tables.values():
+        usable = table.magnitudes >= table.saturation_magnitude
+        for mode in tables.MODES:
+            for metric in ("size", "e1", "e2"):
+                name = f"{mode}_{metric}"
+                interp = table.columns[f"{name}_interp"][usable]
+                stat = table.columns[f"{name}_err"][usable]
+                worse.append(np.mean(interp > stat))
+    assert max(worse) <= 0.05
+
+
+def test_other_exposures_are_an_exact_shift_of_the_magnitude_axis(tableset):
+    table = tableset.get("H158", 18)
+    result = fresh(table, 19.4, exptime=300.0)
+    value, error, _ = table.slope("size", "bias", 19.4, exptime_s=300.0)
+    assert abs(value[0] - result.bias["dR_over_R"].mean) <= error[0]
+    # Doubling the exposure doubles the flux: the same slope 0.75 mag fainter.
+    doubled = table.slope("size", "bias", 20.0 + 2.5 * math.log10(2), exptime_s=2 * 168.1)[0][0]
+    assert doubled == pytest.approx(table.slope("size", "bias", 20.0)[0][0], rel=1e-12)
+
+
+def test_other_beta0_follow_from_the_beta_flux_product(tableset):
+    table = tableset.get("H158", 18)
+    result = fresh(table, 19.7, beta0=2e-6)
+    value, error, _ = table.slope("size", "bias", 19.7, beta0=2e-6)
+    assert abs(value[0] - result.bias["dR_over_R"].mean) <= error[0]
+    scatter, scatter_error, _ = table.slope("e1", "scatter", 19.7, beta0=2e-6)
+    assert abs(scatter[0] - result.scatter["de1"]["value"]) <= scatter_error[0]
+
+
+def test_full_well_moves_only_the_saturation_magnitude(tableset):
+    table = tableset.get("Z087", 2)
+    assert table.saturation(full_well_e=2.2e5) == pytest.approx(table.saturation() - 2.5 * math.log10(2), abs=1e-9)
+    assert table.saturation(exptime_s=2 * 168.1) == pytest.approx(table.saturation() + 2.5 * math.log10(2), abs=1e-9)
+
+
+def test_faint_extrapolation_is_proportional_to_flux(tableset):
+    table = tableset.get("K213", 9)
+    inside = table.lookup("size", "bias", 27.5)[0][0]
+    beyond, _, region = table.lookup("size", "bias", 30.0)
+    assert region[0] == 1
+    assert beyond[0] == pytest.approx(inside * 10 ** (-0.4 * 2.5), rel=1e-3)
+
+
+def test_brighter_than_the_grid_has_no_value(tableset):
+    table = tableset.get("H158", 18)
+    value, error, region = table.lookup("size", "bias", table.magnitudes[0] - 0.5)
+    assert region[0] == -1 and math.isnan(value[0]) and math.isnan(error[0])
+
+
+def test_power_law_fits_describe_the_paper_range(tableset):
+    for fit in tables.powerlaw_fits(bands=["Y106", "J129", "H158", "F184"], scas=[18], tables=tableset):
+        # The nonlinearity bends the curves near saturation: a power law is good to a few per cent.
+        assert fit["max_relative_residual"] < 0.04
+        # Slopes scale with the flux (-0.4) plus a small nonlinear steepening, as in the paper.
+        assert -0.42 < fit["B"] < -0.399
+    # The brightest band bends most.
+    wide = tables.powerlaw_fit(tableset.get("W146", 18))
+    assert wide["max_relative_residual"] > max(
+        f["max_relative_residual"] for f in tables.powerlaw_fits(bands=["F184"], scas=[18])
+    )
+
+
+def test_table2_comparison_splits_the_change_into_throughput_and_optics(tableset):
+    rows = tables.table2_comparison(tables=tableset)
+    assert {(r["band"], r["mode"]) for r in rows} == {(b, m) for b in ("Y106", "J129", "H158", "F184") for m in tables.MODES}
+    for r in rows:
+        assert r["A_ratio"] == pytest.approx(r["throughput_ratio"] * r["optics_ratio"], rel=1e-12)
+        assert abs(r["B_ours"] - r["B_paper"]) < 0.01
+    markdown = tables.table2_markdown()
+    assert markdown.count("\n") == 1 + len(rows)
+
+
+def test_paper_data_is_shipped():
+    data = tables.paper_data()
+    assert data["table2_powerlaw"]["bias"]["H158"] == [4668, -0.4069]
+    assert len(data["magnitudes"]) == 5
+
+
+def test_build_is_resumable_and_merges(tmp_path):
+    settings = tables.TableSettings(realizations=4, faint_limit=19.5)
+    seen = []
+    first = tables.build_tables(tmp_path, bands=["H158"], scas=[3, 4], settings=settings, progress=lambda d, t, m: seen.append(m))
+    assert len(first) == 2 and seen[0] == "starting"
+    # Interrupted half way: one table lost, and a half-written temporary left behind.
+    first[0].unlink()
+    (tmp_path / "slopes_H158_SCA04.tmp").write_text("garbage")
+    seen.clear()
+    second = tables.build_tables(
+        tmp_path, bands=["H158"], scas=[3, 4], settings=settings, progress=lambda d, t, m: seen.append(m)
+    )
+    assert seen[0] == "resumed" and len(seen) == 2  # only the lost table was recomputed
+    merged = tables.merge_tables(second, tmp_path / "merged.ecsv")
+    assert set(merged["sca"]) == {3, 4}
+    loaded = tables.load_tables(str(tmp_path / "merged.ecsv"))
+    assert loaded.get("H158", 3).magnitudes[-1] == pytest.approx(19.5)
+
+
+def test_build_refuses_to_merge_tables_made_with_different_settings(tmp_path):
+    a = tables.build_tables(
+        tmp_path / "a", bands=["Y106"], scas=[1], settings=tables.TableSettings(realizations=3, faint_limit=19)
+    )
+    b = tables.build_tables(
+        tmp_path / "b", bands=["Y106"], scas=[2], settings=tables.TableSettings(realizations=4, faint_limit=19)
+    )
+    with pytest.raises(ValueError, match="different settings"):
+        tables.merge_tables(a + b, tmp_path / "m.ecsv")
+
+
+def test_build_fans_out_over_dask(tmp_path):
+    pytest.importorskip("dask.distributed")
+    settings = tables.TableSettings(realizations=3, faint_limit=19.0)
+    paths = tables.build_tables(tmp_path, bands=["F184"], scas=[5, 6], settings=settings, workers=2, dask_address="local")
+    assert sorted(p.name for p in paths) == ["slopes_F184_SCA05.ecsv", "slopes_F184_SCA06.ecsv"]
+    assert tables.merge_tables(paths, tmp_path / "m.ecsv")["band"][0] == "F184"
