@@ -344,6 +344,15 @@ class SlopeTable:
     def flux_at(self, magnitude) -> np.ndarray:
         return self.flux_electrons[0] * 10 ** (-0.4 * (np.asarray(magnitude, dtype=float) - self.magnitudes[0]))
 
+    def values(self, metric: str, mode: str, magnitude: np.ndarray) -> np.ndarray:
+        """Slopes only (no uncertainties), NaN brighter than the grid: for scans."""
+        if metric == "e":
+            return np.hypot(self.values("e1", mode, magnitude), self.values("e2", mode, magnitude))
+        fluxes, spline, _, _ = self._interpolant(f"{mode}_{metric}")
+        flux = self.flux_at(magnitude)
+        value = spline(np.clip(flux, fluxes[0], fluxes[-1])) * flux
+        return np.where(flux > fluxes[-1] * (1 + 1e-9), np.nan, value)
+
     def lookup(self, metric: str, mode: str, magnitude) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(slope, uncertainty, region) at table conditions; region: -1 brighter than the grid
         (no value), 0 inside, +1 fainter (linear-regime extrapolation: slope / flux constant)."""
@@ -383,9 +392,12 @@ class SlopeTable:
         return 2.5 * math.log10((beta0 * exptime_s) / (self.beta0 * self.exptime_s))
 
     def saturation(self, exptime_s: float | None = None, full_well_e: float | None = None) -> float:
+        """Magnitude at which the brightest pixel reaches the full well, at these conditions."""
         exptime_s = self.exptime_s if exptime_s is None else exptime_s
         full_well_e = float(self.settings["full_well_e"]) if full_well_e is None else full_well_e
-        return saturation_magnitude(self.peak_fraction, self.band, exptime_s, full_well_e, int(self.settings["oversampling"]))
+        # Flux scales with exposure and the limit with the full well: a shift of the table's own.
+        shift = 2.5 * math.log10(exptime_s / self.exptime_s) - 2.5 * math.log10(full_well_e / float(self.settings["full_well_e"]))
+        return self.saturation_magnitude + shift
 
     def grid_range(self, exptime_s: float | None = None, beta0: float | None = None) -> tuple[float, float]:
         """Magnitudes the grid covers at these conditions."""
