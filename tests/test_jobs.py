@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,7 +16,8 @@ from app.main import create_app
 from app.settings import Limits, Settings
 from app.store import Store
 
-ROOT = Path(__file__).resolve().parent.parent
+from .servers import free_port, start_server, wait_for
+
 #: Minutes of work on one core: it is always cancelled or interrupted, never waited for.
 LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0, 19.0, 20.0], "seed": 11}
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
@@ -34,16 +32,6 @@ def settings_for(tmp_path: Path, **overrides) -> Settings:
     }
     values.update(overrides)
     return Settings(**values)
-
-
-def wait_for(predicate, timeout: float = 60.0, interval: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {predicate}")
 
 
 def job_status(client, job_id: str) -> dict:
@@ -177,34 +165,12 @@ def test_graceful_shutdown_marks_running_jobs_interrupted(tmp_path):
 
 # --- a real restart of a real server ----------------------------------------------------------
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(db_path: Path, port: int) -> subprocess.Popen:
-    env = {**os.environ, "NLPSF_DB_PATH": str(db_path), "NLPSF_JOB_WORKERS": "1", "NLPSF_MAX_REALIZATIONS": "5000"}
-    env["NLPSF_MAX_STAMP_PIXELS"] = str(10**9)
-    env["NLPSF_MAX_WORK"] = str(10**12)
-    process = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port)],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-
-    def healthy():
-        assert process.poll() is None, "the server exited"
-        try:
-            return httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=1).status_code == 200
-        except httpx.HTTPError:
-            return False
-
-    wait_for(healthy, timeout=60, interval=0.2)
-    return process
+RESTART_ENV = {
+    "NLPSF_JOB_WORKERS": "1",
+    "NLPSF_MAX_REALIZATIONS": "5000",
+    "NLPSF_MAX_STAMP_PIXELS": str(10**9),
+    "NLPSF_MAX_WORK": str(10**12),
+}
 
 
 @pytest.mark.slow
@@ -212,7 +178,7 @@ def test_restart_keeps_results_and_reports_the_running_job_interrupted(tmp_path)
     db_path = tmp_path / "jobs.sqlite3"
     port = free_port()
     base = f"http://127.0.0.1:{port}/api/v1/simulations"
-    server = start_server(db_path, port)
+    server = start_server(db_path, port, RESTART_ENV)
     try:
         finished = httpx.post(base, params={"wait": 120}, json=SMALL, timeout=130).json()
         assert finished["status"] == "done"
@@ -227,7 +193,7 @@ def test_restart_keeps_results_and_reports_the_running_job_interrupted(tmp_path)
     finally:
         if server.poll() is None:
             server.kill()
-    server = start_server(db_path, port)
+    server = start_server(db_path, port, RESTART_ENV)
     try:
         after = httpx.get(f"{base}/{running['id']}").json()
         assert after["status"] == "interrupted"

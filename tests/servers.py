@@ -1,0 +1,57 @@
+"""Helpers for tests that run the real service as a separate process (jobs, browser, container)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+import httpx
+
+ROOT = Path(__file__).resolve().parent.parent
+T = TypeVar("T")
+
+
+def wait_for(predicate: Callable[[], T], timeout: float = 60.0, interval: float = 0.05) -> T:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {predicate}")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def healthy(port: int, process: subprocess.Popen | None = None) -> bool:
+    if process is not None:
+        assert process.poll() is None, f"the server exited with status {process.returncode}"
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def start_server(db_path: Path, port: int, env: dict[str, str] | None = None, log: Path | None = None) -> subprocess.Popen:
+    """``nlpsf serve`` on 127.0.0.1:port with its own database; returns once /health answers."""
+    environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), **(env or {})}
+    output = open(log, "wb") if log else subprocess.DEVNULL  # noqa: SIM115 - the server outlives this call
+    process = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port)],
+        cwd=ROOT,
+        env=environment,
+        stdout=output,
+        stderr=subprocess.STDOUT,
+    )
+    wait_for(lambda: healthy(port, process), timeout=60, interval=0.2)
+    return process

@@ -1,0 +1,218 @@
+"""The page in a real headless Chromium (Debian's package), driven by Playwright, against a real server.
+
+Loads the page, solves for each of the three unknowns and checks the answer's point is drawn on the
+curve, turns on the paper overlay, exports PNG and CSV, runs a small simulation and watches its
+progress reach 100%, and checks a readable error for bad input. Screenshots go to test-artifacts/.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import shutil
+import signal
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from nlpsf import solver
+
+from .servers import ROOT, free_port, start_server
+
+pytestmark = pytest.mark.e2e
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARTIFACTS = ROOT / "test-artifacts"
+FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def _browser_missing() -> str | None:
+    try:
+        import playwright  # noqa: F401
+    except ImportError:
+        return "the playwright package is not installed (pip install playwright; never `playwright install`)"
+    if not os.path.exists(CHROMIUM):
+        return "Debian's chromium is not installed (apt-get install -y chromium)"
+    return None
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("e2e")
+    port = free_port()
+    process = start_server(directory / "jobs.sqlite3", port, log=directory / "server.log")
+    yield f"http://127.0.0.1:{port}/"
+    process.send_signal(signal.SIGTERM)
+    process.wait(20)
+
+
+@pytest.fixture(scope="module")
+def page(server):
+    missing = _browser_missing()
+    if missing:
+        if os.environ.get("CI"):
+            pytest.fail(f"browser tests must run in CI: {missing}")
+        pytest.skip(missing)
+    from playwright.sync_api import sync_playwright
+
+    ARTIFACTS.mkdir(exist_ok=True)
+    profile = tempfile.mkdtemp(prefix="nlpsf-chromium-")
+    errors: list[str] = []
+    with sync_playwright() as playwright:
+        # A persistent context is how Playwright takes a --user-data-dir: a fresh one per run.
+        context = playwright.chromium.launch_persistent_context(
+            profile,
+            executable_path=CHROMIUM,
+            headless=True,
+            args=FLAGS,
+            viewport={"width": 1280, "height": 1000},
+            accept_downloads=True,
+        )
+        tab = context.new_page()
+        tab.on("pageerror", lambda error: errors.append(str(error)))
+        tab.goto(server)
+        tab.wait_for_selector("body[data-ready='true']", timeout=30_000)
+        yield tab
+        tab.screenshot(path=str(ARTIFACTS / "e2e-page.png"), full_page=True)
+        context.close()
+    shutil.rmtree(profile, ignore_errors=True)
+    assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+def answer_point_is_drawn(page) -> bool:
+    """True when the canvas pixel at the answer's (magnitude, |slope|) is the marker's red."""
+    return page.evaluate(
+        """() => {
+            const u = state.plots.calc;
+            const marker = u.data[2].findIndex((v) => v != null);
+            const x = u.valToPos(u.data[0][marker], "x", true);
+            const y = u.valToPos(u.data[2][marker], "y", true);
+            const [r, g, b] = u.ctx.getImageData(Math.round(x), Math.round(y), 1, 1).data;
+            return r > 150 && g < 80 && b < 80;
+        }"""
+    )
+
+
+def solve_for(page, unknown: str, given: dict[str, str]) -> str:
+    page.check(f"#solve-for-{unknown}")
+    for name, value in given.items():
+        page.fill(f"#solve-{name}", value)
+    with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
+        page.click("#solve-button")
+    assert response.value.status == 200, response.value.text()
+    page.wait_for_function("() => document.getElementById('plot-calc').dataset.point !== undefined")
+    page.wait_for_selector("[data-testid=solve-answer]")
+    return response.value.json()
+
+
+@pytest.mark.parametrize(
+    ("unknown", "given"),
+    [
+        ("precision", {"tolerance": "1e-4", "magnitude": "18.3"}),
+        ("tolerance", {"precision": "0.01", "magnitude": "20"}),
+        ("magnitude", {"precision": "0.01", "tolerance": "1e-4"}),
+    ],
+)
+def test_solve_each_unknown_and_see_the_point(page, unknown, given):
+    page.evaluate("() => { delete document.getElementById('plot-calc').dataset.point; }")
+    solution = solve_for(page, unknown, given)
+    assert solution["solved_for"] == unknown
+    expected = solver.solve("H158", **{k: float(v) for k, v in given.items()}).to_dict()
+    assert solution[unknown] == pytest.approx(expected[unknown], rel=1e-9)
+    answer = page.inner_text("[data-testid=solve-answer]")
+    assert answer.startswith({"precision": "precision p", "tolerance": "tolerance T", "magnitude": "magnitude m"}[unknown])
+    assert "±" in answer or solution["uncertainty"] is None
+    # The solved value is written into its field, and the conditions are shown with it.
+    assert float(page.input_value(f"#solve-{unknown}")) == pytest.approx(solution[unknown], rel=1e-4)
+    conditions = page.inner_text("#solve-result .conditions")
+    assert "H158" in conditions and "SCA 18" in conditions and "168.1 s" in conditions and "fidelity table" in conditions
+    assert answer_point_is_drawn(page)
+    page.locator("#calculator").screenshot(path=str(ARTIFACTS / f"e2e-solve-{unknown}.png"))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "words"),
+    [("magnitude", "abc", "magnitude"), ("tolerance", "-1", "tolerance"), ("magnitude", "", "magnitude")],
+)
+def test_bad_input_shows_a_readable_error(page, field, value, words):
+    page.check("#solve-for-precision")
+    page.fill("#solve-tolerance", "1e-4")
+    page.fill("#solve-magnitude", "18.3")
+    page.fill(f"#solve-{field}", value)
+    page.click("#solve-button")
+    error = page.wait_for_selector("#solve-error:not([hidden])")
+    text = error.inner_text()
+    assert words in text and len(text) > 15
+    assert page.get_attribute(f"#solve-{field}", "aria-invalid") == "true"
+    page.fill("#solve-magnitude", "18.3")
+    page.fill("#solve-tolerance", "1e-4")
+    page.click("#solve-button")
+    page.wait_for_selector("#solve-error", state="hidden")
+
+
+def test_curves_paper_overlay_and_exports(page, tmp_path):
+    page.check("#paper-overlay")
+    page.wait_for_function("() => document.querySelector('#plot-slopes').innerText.includes('(paper)')")
+    legend = page.inner_text("#plot-slopes")
+    assert "H158 (paper)" in legend and "F184" in legend
+    # Hovering shows values in the legend.
+    box = page.locator("#plot-slopes .u-over").bounding_box()
+    page.mouse.move(box["x"] + box["width"] * 0.3, box["y"] + box["height"] * 0.5)
+    assert any(ch.isdigit() for ch in page.inner_text("#plot-slopes .u-legend"))
+    with page.expect_download() as png:
+        page.click("button[data-png=slopes]")
+    path = tmp_path / "slopes.png"
+    png.value.save_as(path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    shutil.copy(path, ARTIFACTS / "e2e-export-slopes.png")
+    with page.expect_download() as table:
+        page.click("button[data-csv=slopes]")
+    rows = list(csv.reader(io.StringIO(Path(table.value.path()).read_text()), delimiter=","))
+    assert rows[1][0] == "series" and len(rows) > 50
+    for name in ("beta", "sigma"):
+        assert page.locator(f"#plot-{name} canvas").count() == 1
+
+
+def test_simulation_progress_reaches_100_percent(page):
+    page.fill("#sim-magnitudes", "18.3, 19")
+    page.fill("#sim-betas", "2.5e-7, 5e-7, 1e-6")
+    page.fill("#sim-realizations", "40")
+    page.fill("#sim-seed", "5")
+    page.click("#sim-button")
+    seen = []
+    for _ in range(1200):
+        text = page.inner_text("[data-testid=sim-progress-text]")
+        if not seen or seen[-1] != text:
+            seen.append(text)
+        if text.startswith("100%") and "done" in text:
+            break
+        page.wait_for_timeout(50)
+    assert seen[-1].startswith("100%"), seen
+    assert len(seen) >= 2, f"the progress bar should move: {seen}"
+    assert page.eval_on_selector("#sim-progress", "p => p.value") == 1
+    rows = page.locator("#sim-table tbody tr")
+    assert rows.count() == 6
+    assert "fresh simulation" in page.inner_text("#sim-conditions")
+    # Fresh points join the metric-vs-beta plot.
+    page.wait_for_function("() => document.querySelector('#plot-beta').innerText.includes('fresh simulation')")
+    page.locator("#simulation").screenshot(path=str(ARTIFACTS / "e2e-simulation.png"))
+
+
+def test_simulation_limits_are_reported(page):
+    page.fill("#sim-realizations", "100000000")
+    page.click("#sim-button")
+    error = page.wait_for_selector("#sim-error:not([hidden])")
+    assert "realizations" in error.inner_text()
+    assert page.get_attribute("#sim-realizations", "aria-invalid") == "true"
+    page.fill("#sim-realizations", "20")
