@@ -13,6 +13,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from multiprocessing.process import BaseProcess
 
@@ -37,6 +38,9 @@ class Dispatcher:
         self.processes: dict[str, BaseProcess] = {}
         self._task: asyncio.Task | None = None
         self._wake = asyncio.Event()
+        # _tick runs in a thread that cancelling the task cannot stop: stopping waits for it.
+        self._lock = threading.Lock()
+        self._stopping = False
 
     async def start(self) -> None:
         await asyncio.to_thread(self.store.interrupt_orphans, self.settings.stale_after_s)
@@ -54,21 +58,21 @@ class Dispatcher:
         await asyncio.to_thread(self._stop_processes)
 
     def _stop_processes(self) -> None:
-        for job_id, process in list(self.processes.items()):
-            process.terminate()
-            process.join(5)
-            if process.is_alive():
-                process.kill()
+        with self._lock:
+            self._stopping = True
+            for process in self.processes.values():
+                process.terminate()
+            for process in self.processes.values():
                 process.join(5)
-            self.store.end(
-                job_id,
-                "interrupted",
-                "the service was stopped while this simulation was running; submit it again to rerun it",
-                owner=self.instance,
-            )
-        self.processes.clear()
-        if self.instance:
-            self.store.unregister_instance(self.instance)
+                if process.is_alive():
+                    process.kill()
+                    process.join(5)
+            self.processes.clear()
+            if self.instance:
+                self.store.interrupt_owned(
+                    self.instance, "the service was stopped while this simulation was running; submit it again to rerun it"
+                )
+                self.store.unregister_instance(self.instance)
 
     async def _loop(self) -> None:
         last_heartbeat = last_sweep = time.monotonic()
@@ -91,6 +95,11 @@ class Dispatcher:
             self._wake.clear()
 
     def _tick(self) -> None:
+        with self._lock:
+            if not self._stopping:
+                self._dispatch()
+
+    def _dispatch(self) -> None:
         for job_id in self.store.cancel_requested(self.instance):
             process = self.processes.pop(job_id, None)
             if process is not None:

@@ -281,6 +281,15 @@ class Store:
         with self.connect() as db:
             return bool(db.execute(sql, args).rowcount)
 
+    def interrupt_owned(self, owner: str, message: str) -> int:
+        now = time.time()
+        with self.connect() as db:
+            return db.execute(
+                "UPDATE jobs SET status = 'interrupted', message = ?, finished_at = ?, updated_at = ?"
+                " WHERE owner = ? AND status = 'running'",
+                (message, now, now, owner),
+            ).rowcount
+
     # --- service instances --------------------------------------------------------------------
 
     def register_instance(self) -> str:
