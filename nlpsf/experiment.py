@@ -281,8 +281,13 @@ def _validity_flags(scene: Scene, charge_scale: float, beta_map: np.ndarray, pea
             f"nonlinearity not monotonic: 1 - 2 beta Q reaches {worst:.3g} in pixels that carry weight in the moments; "
             "the quadratic model S = Q - beta Q^2 is invalid at this charge, so the result is not physical"
         )
-    elif np.any(beta_map < 0):
+    elif beta_map.size == 1 and beta_map.ravel()[0] < 0:
         flags.append("beta < 0 in the paper's convention: the simulated response is super-linear (brightening)")
+    elif np.any(beta_map < 0):
+        flags.append(
+            f"{100 * np.mean(beta_map < 0):.2g} % of the per-pixel beta values are negative (super-linear pixels): "
+            "sigma_beta is comparable to beta"
+        )
     return flags
 
 
@@ -341,7 +346,6 @@ def simulate(
     if scene.config != config:
         raise InputError("scene", "the scene was prepared for a different configuration")
     conditions = config.conditions()
-    grid = config.grid
     settings = config.moment_settings
     results: list[SimulationResult] = []
     total = len(mags) * len(paper_betas)
@@ -374,7 +378,7 @@ def simulate(
                     de1=Statistic.of(d_e1),
                     de2=Statistic.of(d_e2),
                     failed_realizations=int(np.sum(status != moments.MomentStatus.OK)),
-                    flags=flags + _failure_flag(status) + _resolution_flag(d_r, grid),
+                    flags=flags + _failure_flag(status) + _zero_flag(d_r),
                     elapsed_s=time.perf_counter() - start + share,
                     centroid_offset=offset,
                     extras=extras,
@@ -385,7 +389,7 @@ def simulate(
     return results
 
 
-def _resolution_flag(d_r: np.ndarray, grid: render.Grid) -> list[str]:
+def _zero_flag(d_r: np.ndarray) -> list[str]:
     finite = d_r[np.isfinite(d_r)]
     if finite.size and np.all(finite == 0.0):
         return ["no change: the nonlinearity is exactly zero for this beta"]

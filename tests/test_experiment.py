@@ -9,6 +9,7 @@ from nlpsf import experiment, moments, optics, photometry, render
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 
+from .test_cli import SIMULATE_FIELDS
 from .test_optics import circular_pupil
 
 M_FACTOR_2 = 2.5 * math.log10(2)  # magnitude step that doubles the flux
@@ -255,22 +256,7 @@ def test_scene_must_match_its_configuration(paper_scene):
 
 def test_results_carry_their_conditions(paper_config, paper_scene):
     d = one(paper_config, 20.0, 5e-7, paper_scene).to_dict()
-    for key in (
-        "band",
-        "sca",
-        "magnitude",
-        "beta",
-        "sigma_beta",
-        "realizations",
-        "flux_electrons",
-        "peak_electrons",
-        "reference",
-        "dR_over_R",
-        "de1",
-        "de2",
-        "flags",
-        "elapsed_s",
-    ):
+    for key in SIMULATE_FIELDS:
         assert key in d
     conditions = d["conditions"]
     for key in ("exptime_s", "oversampling", "stamp", "seed", "fidelity", "data_version", "code_version", "weight_cut_rho2"):
