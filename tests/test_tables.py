@@ -75,16 +75,15 @@ def test_interpolated_slopes_agree_with_fresh_simulations_within_their_stated_er
 def test_interpolation_error_is_below_the_statistical_error(tableset):
     # Where the stars are usable (fainter than saturation) the grid is fine enough that the cubic
     # interpolation adds less than the centroid-sampling error of the slopes themselves.
-    worse = []
+    # (The estimate itself is checked against fresh simulations between grid points above.)
+    ratios = []
     for table in tableset.tables.values():
         usable = table.magnitudes >= table.saturation_magnitude
         for mode in tables.MODES:
             for metric in ("size", "e1", "e2"):
                 name = f"{mode}_{metric}"
-                interp = table.columns[f"{name}_interp"][usable]
-                stat = table.columns[f"{name}_err"][usable]
-                worse.append(np.mean(interp > stat))
-    assert max(worse) <= 0.05
+                ratios.append(np.max(table.columns[f"{name}_interp"][usable] / table.columns[f"{name}_err"][usable]))
+    assert max(ratios) < 0.5
 
 
 def test_other_exposures_are_an_exact_shift_of_the_magnitude_axis(tableset):
