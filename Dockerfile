@@ -1,0 +1,48 @@
+# The nlpsf service: REST API under /api/v1, docs at /docs, the page at /.
+# Serves the shipped precomputed slope tables; no simulation is needed at start.
+#
+#   ../shared/tools/container build localhost/nlpsf:dev
+#   ../shared/tools/container run localhost/nlpsf:dev            # listens on 0.0.0.0:8000
+#
+# Configuration by environment (see README): NLPSF_WORKERS (HTTP worker processes), NLPSF_JOB_WORKERS
+# (simulation processes), NLPSF_MAX_QUEUE, NLPSF_MAX_* limits, NLPSF_DB_PATH (default /data, a volume).
+ARG BASE_IMAGE=python:3.11-slim
+FROM ${BASE_IMAGE}
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    VIRTUAL_ENV=/opt/venv \
+    PATH=/opt/venv/bin:$PATH
+
+# Debian's system Python refuses pip installs: everything goes into a venv.
+RUN python -m venv /opt/venv
+
+WORKDIR /srv/nlpsf
+# The library first (its layer changes less often than the service's).
+COPY pyproject.toml README.md ./
+COPY nlpsf ./nlpsf
+# uvicorn[standard] brings uvloop and httptools: about twice the requests per second of the pure-Python stack.
+RUN pip install --no-cache-dir . "uvicorn[standard]" && python -c "import nlpsf.tables as t; t.load_tables()"
+COPY app ./app
+COPY static ./static
+
+# A system user without a login; written directly because minimal Debian bases lack useradd.
+RUN echo "nlpsf:x:10001:10001:nlpsf service:/srv/nlpsf:/usr/sbin/nologin" >> /etc/passwd \
+    && echo "nlpsf:x:10001:" >> /etc/group \
+    && mkdir -p /data && chown 10001:10001 /data
+USER 10001:10001
+
+ENV NLPSF_APP_DIR=/srv/nlpsf \
+    NLPSF_STATIC_DIR=/srv/nlpsf/static \
+    NLPSF_DB_PATH=/data/jobs.sqlite3 \
+    NLPSF_WORKERS=1 \
+    NLPSF_JOB_WORKERS=1 \
+    PORT=8000
+VOLUME ["/data"]
+EXPOSE 8000
+
+HEALTHCHECK --interval=30s --timeout=5s --start-period=20s --retries=3 \
+    CMD python -c "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/v1/health' % os.environ.get('PORT', '8000'), timeout=4)"
+
+CMD ["sh", "-c", "exec nlpsf serve --host 0.0.0.0 --port \"$PORT\""]
