@@ -116,7 +116,8 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
   const el = document.getElementById(`plot-${name}`);
   const usable = columns.map((c) => {
     const keep = c.x.map((x, i) => x !== null && c.y[i] !== null && (!logX || x > 0) && (!logY || c.y[i] > 0));
-    return { ...c, x: c.x.filter((_, i) => keep[i]), y: c.y.filter((_, i) => keep[i]) };
+    const err = c.err ? c.err.filter((_, i) => keep[i]) : null;
+    return { ...c, x: c.x.filter((_, i) => keep[i]), y: c.y.filter((_, i) => keep[i]), err };
   }).filter((c) => c.x.length > 0);
   state.exports[name] = { title, xLabel, yLabel, columns: usable };
   if (state.plots[name]) {
@@ -141,8 +142,16 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
       { label: xLabel, values: axisValues },
       { label: yLabel, values: axisValues, size: 70 },
     ],
-    series: [{ label: xLabel, value: (u, v) => (v === null ? "–" : fmt(v)) },
-      ...usable.map((c) => ({ ...c.series, value: (u, v) => (v === null ? "–" : fmt(v)) }))],
+    series: [{ label: xLabel, value: (u, v) => (v == null ? "–" : fmt(v)) },
+      ...usable.map((c) => {
+        // Hover shows each value with its uncertainty, looked up by x (the joined data has gaps).
+        const errors = c.err ? new Map(c.x.map((x, i) => [x, c.err[i]])) : null;
+        return { ...c.series, value: (u, v, si, i) => {
+          if (v == null) return "–";
+          const error = errors && i != null ? errors.get(u.data[0][i]) : undefined;
+          return error == null ? fmt(v) : `${fmt(v)} ± ${fmt(error, 2)}`;
+        } };
+      })],
     legend: { live: true },
     cursor: { points: { size: 8 } },
   };
@@ -152,11 +161,10 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
 function exportCsv(name) {
   const plot = state.exports[name];
   if (!plot) return;
-  const lines = [`# ${plot.title}`, "series,x,y"];
-  lines[0] = `# ${plot.title.replace(/\n/g, " ")}`;
-  lines[1] = `series,${plot.xLabel},${plot.yLabel}`;
+  const lines = [`# ${plot.title.replace(/\n/g, " ")}`, ""];
+  lines[1] = `series,${plot.xLabel},${plot.yLabel},uncertainty`;
   for (const c of plot.columns) {
-    c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]}`));
+    c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]},${c.err && c.err[i] != null ? c.err[i] : ""}`));
   }
   download(`nlpsf-${name}.csv`, "data:text/csv;charset=utf-8," + encodeURIComponent(lines.join("\n") + "\n"));
 }
@@ -289,7 +297,8 @@ async function drawCalculatorPlot(solution) {
     yLabel: `${solution.mode === "bias" ? "d" : "σ"}(${METRIC_LABEL[solution.metric]})/${solution.mode === "bias" ? "dβ" : "σβ"} [e⁻]`,
     logY: true,
     columns: [
-      { label, x: curve.magnitude, y: curve.slope.map(abs), series: lineSeries(label, BAND_COLORS[curve.band] || "#333") },
+      { label, x: curve.magnitude, y: curve.slope.map(abs), err: curve.uncertainty,
+        series: lineSeries(label, BAND_COLORS[curve.band] || "#333") },
       { label: `answer: m = ${fmt(solution.magnitude)}, c = ${fmt(solution.slope)}`, x: [solution.magnitude], y: [abs(solution.slope)],
         series: pointSeries("answer", "#c00000", 12) },
     ],
@@ -313,6 +322,7 @@ async function drawSlopes() {
     label: curve.band,
     x: curve.magnitude,
     y: curve.slope.map((v) => Math.abs(v)),
+    err: curve.uncertainty,
     series: lineSeries(curve.band, BAND_COLORS[curve.band] || "#333"),
   }));
   const paper = paperOn();
@@ -347,8 +357,10 @@ function simulationPoints(kind, band, metric, magnitude) {
   if (rows.length === 0) return [];
   const x = rows.map((r) => (kind === "beta" ? r.beta : r.sigma_beta));
   const y = rows.map((r) => (kind === "beta" ? r[key].mean : r[key].std));
+  // The standard error of a mean; for a spread over n draws, std / sqrt(2(n - 1)).
+  const err = rows.map((r) => (kind === "beta" ? r[key].stderr : r[key].std / Math.sqrt(2 * Math.max(r.realizations - 1, 1))));
   const label = `fresh simulation (${sim.fidelity}, ${rows[0].realizations} realizations)`;
-  return [{ label, x, y, series: pointSeries(label, "#c00000", 9) }];
+  return [{ label, x, y, err, series: pointSeries(label, "#c00000", 9) }];
 }
 
 async function drawBeta() {
@@ -359,7 +371,7 @@ async function drawBeta() {
   const log = document.getElementById("beta-log").checked;
   const data = await api(`/curves/beta?${query({ band, metric, magnitude, ...c })}`);
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
-  const columns = [{ label, x: data.beta, y: data.values, series: lineSeries(label, BAND_COLORS[band] || "#333") }];
+  const columns = [{ label, x: data.beta, y: data.values, err: data.uncertainty, series: lineSeries(label, BAND_COLORS[band] || "#333") }];
   const paper = paperOn();
   if (paper && metric !== "e" && paper["fig2_at_m18.3"][band]) {
     const fig = paper["fig2_at_m18.3"][band];
@@ -382,7 +394,8 @@ async function drawSigma() {
   const log = document.getElementById("sigma-log").checked;
   const data = await api(`/curves/sigma_beta?${query({ band, metric, magnitude, ...c })}`);
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
-  const columns = [{ label, x: data.sigma_beta, y: data.values, series: lineSeries(label, BAND_COLORS[band] || "#333") }];
+  const columns = [{ label, x: data.sigma_beta, y: data.values, err: data.uncertainty,
+    series: lineSeries(label, BAND_COLORS[band] || "#333") }];
   columns.push(...simulationPoints("sigma", band, metric, Number(magnitude)));
   const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
   document.getElementById("sigma-caption").textContent = `${data.source}. ${conditionsText(data.conditions)}. ` +

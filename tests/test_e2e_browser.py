@@ -169,7 +169,8 @@ def test_curves_paper_overlay_and_exports(page, tmp_path):
     # Hovering shows values in the legend.
     box = page.locator("#plot-slopes .u-over").bounding_box()
     page.mouse.move(box["x"] + box["width"] * 0.3, box["y"] + box["height"] * 0.5)
-    assert any(ch.isdigit() for ch in page.inner_text("#plot-slopes .u-legend"))
+    legend = page.inner_text("#plot-slopes .u-legend")
+    assert any(ch.isdigit() for ch in legend) and "±" in legend, "hover shows values with their uncertainty"
     with page.expect_download() as png:
         page.click("button[data-png=slopes]")
     path = tmp_path / "slopes.png"
