@@ -84,6 +84,20 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
     Returns the normalised request (band upper-cased, values as the library will use them), whose
     hash identifies the result. Raises InputError (or LimitError) naming the field.
     """
+    # The service's caps first, so that a request over them names the limit a user can ask about.
+    counts = [
+        ("realizations", "max_realizations", request["realizations"], limits.max_realizations, "realizations"),
+        ("stamp", "max_stamp", request["stamp"], limits.max_stamp, "stamp side (fine pixels)"),
+        ("n_wavelengths", "max_wavelengths", request.get("n_wavelengths") or 1, limits.max_wavelengths, "wavelengths"),
+        (
+            "magnitudes",
+            "max_grid",
+            len(request["magnitudes"]) * len(request["betas"]) * len(request["sigma_betas"]),
+            limits.max_grid,
+            "grid cells (magnitudes x betas x sigma_betas)",
+        ),
+    ]
+    _check_limits(counts)
     config = build_config(request)
     magnitudes = experiment.check_magnitudes(request["magnitudes"])
     betas = [float(b) for b in request["betas"]]
@@ -95,29 +109,25 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
     if not sigma_betas:
         raise InputError("sigma_betas", "give at least one value (0 for no per-pixel scatter)")
     cells = len(magnitudes) * len(betas) * len(sigma_betas)
-    checks = [
-        ("realizations", "max_realizations", config.realizations, limits.max_realizations, "realizations"),
-        ("stamp", "max_stamp", config.stamp, limits.max_stamp, "stamp side (fine pixels)"),
-        ("n_wavelengths", "max_wavelengths", config.n_wavelengths, limits.max_wavelengths, "wavelengths"),
-        ("magnitudes", "max_grid", cells, limits.max_grid, "grid cells (magnitudes x betas x sigma_betas)"),
-        (
-            "realizations",
-            "max_stamp_pixels",
-            config.realizations * config.stamp**2,
-            limits.max_stamp_pixels,
-            "stamp pixels held in memory (realizations x stamp^2)",
-        ),
-        (
-            "realizations",
-            "max_work",
-            work_of(config, cells),
-            limits.max_work,
-            "work units (realizations x stamp^2 x (wavelengths + grid cells))",
-        ),
-    ]
-    for field, limit, value, cap, what in checks:
-        if value > cap:
-            raise LimitError(field, limit, f"asks for {value:,} {what}; the limit {limit} is {cap:,}")
+    _check_limits(
+        [
+            ("n_wavelengths", "max_wavelengths", config.n_wavelengths, limits.max_wavelengths, "wavelengths"),
+            (
+                "realizations",
+                "max_stamp_pixels",
+                config.realizations * config.stamp**2,
+                limits.max_stamp_pixels,
+                "stamp pixels held in memory (realizations x stamp^2)",
+            ),
+            (
+                "realizations",
+                "max_work",
+                work_of(config, cells),
+                limits.max_work,
+                "work units (realizations x stamp^2 x (wavelengths + grid cells))",
+            ),
+        ]
+    )
     normalised = dict(request)
     normalised.update(
         band=config.band,
@@ -127,6 +137,12 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
         sigma_betas=sigma_betas,
     )
     return normalised
+
+
+def _check_limits(checks: list[tuple[str, str, int, int, str]]) -> None:
+    for field, limit, value, cap, what in checks:
+        if value > cap:
+            raise LimitError(field, limit, f"asks for {value:,} {what}; the limit {limit} is {cap:,}")
 
 
 def request_hash(normalised: dict[str, Any]) -> str:

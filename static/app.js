@@ -531,7 +531,9 @@ async function init() {
   const d = meta.defaults.solve;
   const bands = meta.table_bands && meta.table_bands.length ? meta.table_bands : meta.bands;
   document.getElementById("versions").textContent = `code ${meta.code_version} · optical data: ${meta.data_version}`;
-  document.getElementById("table-version").textContent = meta.tables ? JSON.stringify(meta.tables.settings || {}) : "";
+  const settings = (meta.tables && meta.tables.settings) || {};
+  document.getElementById("table-version").textContent =
+    Object.entries(settings).map(([k, v]) => `${k} ${v}`).join(" · ") + (meta.tables ? ` · fingerprint ${meta.tables.fingerprint}` : "");
   fillSelect(document.getElementById("solve-band"), bands, "H158");
   fillSelect(document.getElementById("solve-sca"), meta.scas, d.sca);
   for (const id of ["solve-metric", "slopes-metric", "beta-metric", "sigma-metric"]) {

@@ -214,6 +214,6 @@ def test_simulation_limits_are_reported(page):
     page.fill("#sim-realizations", "100000000")
     page.click("#sim-button")
     error = page.wait_for_selector("#sim-error:not([hidden])")
-    assert "realizations" in error.inner_text()
+    assert "realizations" in error.inner_text() and "max_realizations" in error.inner_text()
     assert page.get_attribute("#sim-realizations", "aria-invalid") == "true"
     page.fill("#sim-realizations", "20")
