@@ -53,5 +53,10 @@ def start_server(db_path: Path, port: int, env: dict[str, str] | None = None, lo
         stdout=output,
         stderr=subprocess.STDOUT,
     )
-    wait_for(lambda: healthy(port, process), timeout=60, interval=0.2)
+    try:
+        wait_for(lambda: healthy(port, process), timeout=60, interval=0.2)
+    except BaseException:
+        process.kill()
+        process.wait(10)
+        raise
     return process
