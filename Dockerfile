@@ -36,7 +36,7 @@ USER 10001:10001
 ENV NLPSF_APP_DIR=/srv/nlpsf \
     NLPSF_STATIC_DIR=/srv/nlpsf/static \
     NLPSF_DB_PATH=/data/jobs.sqlite3 \
-    NLPSF_WORKERS=1 \
+    NLPSF_WORKERS=2 \
     NLPSF_JOB_WORKERS=1 \
     PORT=8000
 VOLUME ["/data"]

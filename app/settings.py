@@ -66,8 +66,6 @@ class Limits:
 @dataclass(frozen=True)
 class Settings:
     db_path: str = field(default_factory=_default_db_path)
-    #: uvicorn worker processes serving HTTP (``nlpsf serve --workers`` overrides)
-    web_workers: int = 1
     #: simulation processes running at once, across all web workers
     job_workers: int = 1
     #: simulations waiting for a worker; beyond this a POST gets 429
@@ -92,7 +90,6 @@ class Settings:
         )
         return cls(
             db_path=os.environ.get("NLPSF_DB_PATH") or _default_db_path(),
-            web_workers=_env_int("NLPSF_WORKERS", 1, 1, 64),
             job_workers=_env_int("NLPSF_JOB_WORKERS", 1, 1, 64),
             max_queue=_env_int("NLPSF_MAX_QUEUE", 16, 0, 100_000),
             job_nice=_env_int("NLPSF_JOB_NICE", 10, 0, 19),

@@ -12,7 +12,7 @@ asyncio client on raw keep-alive sockets in its own process (slower per request,
 are a lower bound on the server's). wrk is a closed-loop generator: each connection sends its next
 request when the previous answer arrives, so the latencies include queueing in the server.
 
-Usage: python benchmarks/bench_service.py [--workers 1] [--connections 16] [--duration 10]
+Usage: python benchmarks/bench_service.py [--workers N] [--connections 8] [--duration 10]
        [--generator wrk|python] [--job-realizations 2000]
 """
 
@@ -189,8 +189,8 @@ def row(name: str, result: dict) -> str:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--workers", type=int, default=1, help="HTTP worker processes of the server (default 1)")
-    parser.add_argument("--connections", type=int, default=16)
+    parser.add_argument("--workers", type=int, default=min(os.cpu_count() or 1, 8), help="HTTP workers (default: one per core)")
+    parser.add_argument("--connections", type=int, default=8, help="keep-alive connections of the load generator (default 8)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per measurement (default 10)")
     parser.add_argument("--generator", choices=("wrk", "python"), default="wrk" if shutil.which("wrk") else "python")
     parser.add_argument("--job-realizations", type=int, default=2000, help="size of the large simulation (default 2000)")

@@ -25,7 +25,7 @@ def _configure(parser: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=None,
-        help="HTTP worker processes (default: $NLPSF_WORKERS or 1); simulations run in $NLPSF_JOB_WORKERS more",
+        help="HTTP worker processes (default: $NLPSF_WORKERS, else one per core up to 8)",
     )
     parser.add_argument("--access-log", action="store_true", help="log every request (off by default: it costs throughput)")
     parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"))
@@ -46,7 +46,8 @@ def _serve(args: argparse.Namespace) -> int:
     from .checks import InputError, check_integer
 
     check_integer(args.port, "port", 0, 65535)
-    raw = args.workers if args.workers is not None else os.environ.get("NLPSF_WORKERS") or 1
+    # One HTTP worker per core: on 2 cores that doubles the calculator's throughput (see benchmarks/bench_service.py).
+    raw = args.workers if args.workers is not None else os.environ.get("NLPSF_WORKERS") or min(os.cpu_count() or 1, 8)
     try:
         number = int(raw)
     except ValueError:

@@ -165,7 +165,9 @@ def test_graceful_shutdown_marks_running_jobs_interrupted(tmp_path):
 
 # --- a real restart of a real server ----------------------------------------------------------
 
+# One HTTP worker: the test kills that process outright, as a crash would.
 RESTART_ENV = {
+    "NLPSF_WORKERS": "1",
     "NLPSF_JOB_WORKERS": "1",
     "NLPSF_MAX_REALIZATIONS": "5000",
     "NLPSF_MAX_STAMP_PIXELS": str(10**9),
