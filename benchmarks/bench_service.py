@@ -13,7 +13,7 @@ are a lower bound on the server's). wrk is a closed-loop generator: each connect
 request when the previous answer arrives, so the latencies include queueing in the server.
 
 Usage: python benchmarks/bench_service.py [--workers N] [--connections 8] [--duration 10]
-       [--generator wrk|python] [--job-realizations 2000]
+       [--generator wrk|python] [--job-realizations 4000]
 """
 
 from __future__ import annotations
@@ -193,7 +193,7 @@ def main() -> int:
     parser.add_argument("--connections", type=int, default=8, help="keep-alive connections of the load generator (default 8)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per measurement (default 10)")
     parser.add_argument("--generator", choices=("wrk", "python"), default="wrk" if shutil.which("wrk") else "python")
-    parser.add_argument("--job-realizations", type=int, default=2000, help="size of the large simulation (default 2000)")
+    parser.add_argument("--job-realizations", type=int, default=4000, help="size of the large simulation (default 4000)")
     args = parser.parse_args()
 
     directory = Path(tempfile.mkdtemp(prefix="nlpsf-bench-"))
@@ -216,7 +216,7 @@ def main() -> int:
         job_body = {
             "band": "H158",
             "realizations": args.job_realizations,
-            "magnitudes": [18.0 + 0.25 * k for k in range(20)],
+            "magnitudes": [18.0 + 0.1 * k for k in range(60)],
             "betas": [5e-7],
             "seed": int(time.time()),  # never answered from stored results
         }

@@ -18,8 +18,8 @@ from app.store import Store
 
 from .servers import free_port, start_server, wait_for
 
-#: Minutes of work on one core: it is always cancelled or interrupted, never waited for.
-LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0, 19.0, 20.0], "seed": 11}
+#: About a minute of work on one core: it is always cancelled or interrupted, never waited for.
+LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0 + 0.1 * k for k in range(60)], "seed": 11}
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
 
 
