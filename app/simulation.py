@@ -167,15 +167,21 @@ def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[st
     config = build_config(normalised)
     magnitudes, betas, sigma_betas = normalised["magnitudes"], normalised["betas"], normalised["sigma_betas"]
     pairs = len(magnitudes) * len(betas)
-    prepare_steps = 3
-    total = prepare_steps + pairs * len(sigma_betas)
+    # Rendering and fitting every centroid costs about as much as half the (magnitude, beta) cells.
+    prepare_weight = max(3.0, 0.5 * pairs * len(sigma_betas))
+    total = prepare_weight + pairs * len(sigma_betas)
 
-    def stage(offset: int):
+    def prepare_stage():
         if progress is None:
             return None
-        return lambda done, _total, message: progress(min((offset + done) / total, 1.0), message)
+        return lambda done, steps, message: progress(min(prepare_weight * done / steps / total, 1.0), message)
 
-    scene = experiment.prepare(config, progress=stage(0))
+    def stage(offset: float):
+        if progress is None:
+            return None
+        return lambda done, _steps, message: progress(min((offset + done) / total, 1.0), message)
+
+    scene = experiment.prepare(config, progress=prepare_stage())
     results = []
     for index, sigma_beta in enumerate(sigma_betas):
         results += experiment.simulate(
@@ -185,7 +191,7 @@ def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[st
             sigma_beta=sigma_beta,
             beta_convention=normalised["beta_convention"],
             scene=scene,
-            progress=stage(prepare_steps + index * pairs),
+            progress=stage(prepare_weight + index * pairs),
         )
     if progress:
         progress(1.0, "done")

@@ -111,7 +111,7 @@ def _progress_printer(enabled: bool):
     def show(done: int, total: int, message: str) -> None:
         width = 30
         filled = int(width * done / max(total, 1))
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total} {message:<30}")
+        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {100 * done / max(total, 1):5.1f} % {message:<30}")
         if done >= total:
             sys.stderr.write("\n")
         sys.stderr.flush()

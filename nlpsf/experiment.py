@@ -39,7 +39,8 @@ MAX_STAMP_BYTES = 1_500_000_000
 #: Fractional beta steps of the paper's finite-difference slopes: beta0 * {0.99, 1, 1.01}.
 PAPER_BETA_STEP = 0.01
 
-Progress = Callable[[int, int, str], None]
+#: progress(done, total, message); ``done`` may be fractional within a long step.
+Progress = Callable[[float, int, str], None]
 
 
 @dataclass(frozen=True)
@@ -106,6 +107,8 @@ class SimulationConfig:
     def conditions(self) -> dict:
         """What every number computed under this configuration holds for."""
         out = asdict(self)
+        if not math.isfinite(self.weight_cut_rho2):
+            out["weight_cut_rho2"] = None  # no cut (JSON has no infinity)
         out.update(
             fidelity=self.fidelity,
             pixel_scale_arcsec=roman.PIXEL_SCALE_ARCSEC,
@@ -151,12 +154,19 @@ def prepare(config: SimulationConfig, progress: Progress | None = None) -> Scene
     psf = optics.effective_psf(config.optics, round(grid.field_arcsec(), 9))
     rng = np.random.default_rng(config.seed)
     offsets = render.draw_offsets(rng, config.realizations, config.oversampling)
-    if progress:
-        progress(1, 3, "rendering")
-    stamps = render.draw(psf, grid, offsets)
-    if progress:
-        progress(2, 3, "reference moments")
-    reference = moments.fit(stamps, config.moment_settings)
+    chunk = 256
+    blocks = range(0, config.realizations, chunk)
+    stamps = np.empty((config.realizations, grid.stamp, grid.stamp))
+    for k, first in enumerate(blocks):
+        if progress:
+            progress(1 + k / len(blocks), 3, "rendering")
+        stamps[first : first + chunk] = render.draw(psf, grid, offsets[first : first + chunk])
+    parts = []
+    for k, first in enumerate(blocks):
+        if progress:
+            progress(2 + k / len(blocks), 3, "reference moments")
+        parts.append(moments.fit(stamps[first : first + chunk], config.moment_settings))
+    reference = moments._concatenate(parts)
     return Scene(config, psf, offsets, stamps, reference, time.perf_counter() - start)
 
 

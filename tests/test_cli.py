@@ -130,5 +130,14 @@ def test_bad_arguments_exit_2_naming_the_argument(capsys, argv, name):
 
 
 def test_console_script_is_installed():
-    result = subprocess.run([sys.executable, "-m", "nlpsf.cli", "--version"], capture_output=True, text=True, check=True)
+    result = subprocess.run([sys.executable, "-m", "nlpsf", "--version"], capture_output=True, text=True, check=True)
     assert result.stdout.startswith("nlpsf ")
+    # Subcommands other modules register are there too.
+    listing = subprocess.run([sys.executable, "-m", "nlpsf", "--help"], capture_output=True, text=True, check=True).stdout
+    for command in ("simulate", "slopes", "solve", "tables", "tradeoff", "serve"):
+        assert command in listing
+
+
+def test_no_weight_cut_is_valid_json(capsys):
+    code, out, _ = run(capsys, "simulate", "--weight-cut", "none", "--realizations", "3", "--json")
+    assert code == 0 and json.loads(out)["conditions"]["weight_cut_rho2"] is None
