@@ -146,7 +146,8 @@ def slope_curves(
 def _linear_curve(
     band: str, sca: int, metric: str, mode: str, magnitude: float, exptime: float, beta0: float, full_well: float, xs: list[float]
 ) -> dict[str, Any]:
-    # The solver at precision 1 returns tolerance = c(m) beta0; the curve is that line through 0.
+    # The solver at precision 1 returns tolerance = |c(m)| beta0 and the signed slope c(m): the curve is
+    # the line c(m) x through 0 (signed, since Delta e1 and Delta e2 can be negative).
     solution = solver.solve(
         band,
         sca=sca,
@@ -160,7 +161,8 @@ def _linear_curve(
     ).to_dict()
     at_beta0, error = solution["tolerance"], solution["uncertainty"] or 0.0
     relative = abs(error / at_beta0) if at_beta0 else 0.0
-    values = [at_beta0 * x / beta0 for x in xs]
+    slope = solution["slope"] or 0.0
+    values = [slope * x for x in xs]
     return {
         "values": values,
         "uncertainty": [abs(v) * relative for v in values],

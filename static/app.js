@@ -379,11 +379,16 @@ async function drawBeta() {
       series: pointSeries(`${band} paper, m = 18.3`, "#555", 7) });
   }
   columns.push(...simulationPoints("beta", band, metric, Number(magnitude)));
+  if (log) {
+    // Δe1 and Δe2 can be negative: a log axis shows their size.
+    for (const column of columns) column.y = column.y.map((v) => (v === null ? null : Math.abs(v)));
+  }
   const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
   document.getElementById("beta-caption").textContent = `${data.source}. ${conditionsText(data.conditions)}. ` +
     `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}).` +
     (data.flags.length ? ` Flags: ${data.flags.join("; ")}` : "");
-  drawPlot("beta", { title, xLabel: "β [1/e⁻]", yLabel: METRIC_LABEL[metric], columns, logX: log, logY: log });
+  const yLabel = log ? `|${METRIC_LABEL[metric]}|` : METRIC_LABEL[metric];
+  drawPlot("beta", { title, xLabel: "β [1/e⁻]", yLabel, columns, logX: log, logY: log });
 }
 
 async function drawSigma() {
