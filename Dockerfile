@@ -20,7 +20,7 @@ RUN python -m venv /opt/venv
 
 WORKDIR /srv/nlpsf
 # The library first (its layer changes less often than the service's).
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE ./
 COPY nlpsf ./nlpsf
 # uvicorn[standard] brings uvloop and httptools: about twice the requests per second of the pure-Python stack.
 RUN pip install --no-cache-dir . "uvicorn[standard]" && python -c "import nlpsf.tables as t; t.load_tables()"
