@@ -166,7 +166,7 @@ def prepare(config: SimulationConfig, progress: Progress | None = None) -> Scene
         if progress:
             progress(2 + k / len(blocks), 3, "reference moments")
         parts.append(moments.fit(stamps[first : first + chunk], config.moment_settings))
-    reference = moments._concatenate(parts)
+    reference = moments.concatenate(parts)
     return Scene(config, psf, offsets, stamps, reference, time.perf_counter() - start)
 
 
@@ -326,7 +326,7 @@ def _failure_flag(status: np.ndarray) -> list[str]:
 def _metrics(fit: moments.Moments, reference: moments.Moments, ref_index=None):
     """Delta R / R, Delta e1, Delta e2 per realization (NaN where a fit failed) and the status."""
     if ref_index is not None:
-        reference = _one(reference, np.full(len(fit), ref_index))
+        reference = moments.select(reference, np.full(len(fit), ref_index))
     ok = fit.ok & reference.ok
     d_r, d_e1, d_e2 = (np.where(ok, v, np.nan) for v in moments.differences(fit, reference))
     status = np.where(reference.ok, fit.status, reference.status)
@@ -455,13 +455,16 @@ def _simulate_scatter(
             base = np.broadcast_to(stamp, block.shape)
             parts.append(
                 moments.fit_perturbed(
-                    base, -(block * charge_scale) * stamp**2, _one(single_reference, slice(s, s + block.shape[0])), settings
+                    base,
+                    -(block * charge_scale) * stamp**2,
+                    moments.select(single_reference, slice(s, s + block.shape[0])),
+                    settings,
                 )
             )
-        fit = moments._concatenate(parts)
+        fit = moments.concatenate(parts)
         d_r, d_e1, d_e2, status = _metrics(fit, scene.reference, ref_index=0)
     else:
-        gradient = moments.pixel_response(stamp[None], _one(scene.reference, 0), settings)[0]
+        gradient = moments.pixel_response(stamp[None], moments.select(scene.reference, 0), settings)[0]
         response = gradient * (-(stamp**2) * charge_scale)  # d metric / d beta_k, shape (3, n, n)
         linear = np.einsum("kij,bij->bk", response, betas)
         ok = bool(scene.reference.ok[0])
@@ -470,15 +473,6 @@ def _simulate_scatter(
         closed = np.sqrt(np.sum(response**2, axis=(1, 2))) * sigma_beta
         extras["linear_scatter_closed_form"] = {"dR_over_R": float(closed[0]), "de1": float(closed[1]), "de2": float(closed[2])}
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
-
-
-def _one(fit: moments.Moments, index) -> moments.Moments:
-    return moments.Moments(
-        *(
-            np.atleast_1d(getattr(fit, name)[index])
-            for name in ("x0", "y0", "mxx", "mxy", "myy", "amplitude", "iterations", "last_step", "status")
-        )
-    )
 
 
 METRICS = ("dR_over_R", "de1", "de2")

@@ -136,6 +136,15 @@ class Moments:
         return self.x0.shape[0]
 
 
+_FIELDS = ("x0", "y0", "mxx", "mxy", "myy", "amplitude", "iterations", "last_step", "status")
+
+
+def select(fit: Moments, index) -> Moments:
+    """The fits at ``index`` (an int, slice or index array) as a batch of their own."""
+    delta = None if fit.delta is None else np.atleast_2d(fit.delta[index])
+    return Moments(*(np.atleast_1d(getattr(fit, name)[index]) for name in _FIELDS), delta=delta)
+
+
 def _coordinates(n: int) -> np.ndarray:
     return np.arange(n) - (n - 1) / 2.0
 
@@ -299,19 +308,17 @@ def fit(
         start = np.asarray(start, dtype=np.float64).reshape(batch, 5)
         cold = False
     results = [_fit_chunk(images[s : s + chunk], start[s : s + chunk], settings, cold) for s in range(0, batch, chunk)]
-    return _concatenate(results)
+    return concatenate(results)
 
 
-def _concatenate(parts: list[Moments]) -> Moments:
+def concatenate(parts: list[Moments]) -> Moments:
+    """One batch from several (in order)."""
     if len(parts) == 1:
         return parts[0]
     jac = None if any(p._jacobian is None for p in parts) else np.concatenate([p._jacobian for p in parts])
     delta = None if any(p.delta is None for p in parts) else np.concatenate([p.delta for p in parts])
     return Moments(
-        *(
-            np.concatenate([getattr(p, name) for p in parts])
-            for name in ("x0", "y0", "mxx", "mxy", "myy", "amplitude", "iterations", "last_step", "status")
-        ),
+        *(np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS),
         _jacobian=jac,
         delta=delta,
     )
@@ -464,7 +471,7 @@ def fit_perturbed(
             fitted.last_step[exact] = _step_size(first[exact], p[exact])
             delta[exact] = first[exact]
         parts.append(replace(fitted, delta=delta))
-    return _concatenate(parts)
+    return concatenate(parts)
 
 
 def differences(fit: Moments, reference: Moments) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -590,9 +597,3 @@ def response_to(
     core, (r0, r1, c0, c1) = _core_response(np.asarray(images, dtype=np.float64), moments, settings)
     d = np.asarray(directions, dtype=np.float64)[:, None, r0:r1, c0:c1]
     return np.sum(core * d, axis=(2, 3)), np.sqrt(np.sum((core * d) ** 2, axis=(2, 3)))
-
-
-def with_status(moments: Moments, mask: np.ndarray, status: MomentStatus) -> Moments:
-    new_status = moments.status.copy()
-    new_status[mask] = status
-    return replace(moments, status=new_status)

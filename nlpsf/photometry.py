@@ -34,11 +34,6 @@ def electrons_per_second_at_zero_magnitude(band: str) -> float:
     return float(rate.to(1 / u.s).value)
 
 
-def zeropoint_magnitude(band: str, exptime_s: float) -> float:
-    """AB magnitude that gives one electron in ``exptime_s``."""
-    return 2.5 * np.log10(electrons_per_second_at_zero_magnitude(band) * _check_exptime(exptime_s))
-
-
 def magnitude_to_electrons(magnitude, band: str, exptime_s: float) -> np.ndarray:
     """Total electrons collected from a star of AB ``magnitude`` in ``exptime_s`` seconds."""
     m = np.asarray(magnitude, dtype=np.float64)

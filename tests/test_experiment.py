@@ -149,7 +149,7 @@ def test_optics_field_margin_does_not_move_results(paper_config, paper_scene):
 
 
 def _first(fit, count):
-    return experiment._one(fit, slice(0, count))
+    return moments.select(fit, slice(0, count))
 
 
 def test_more_realizations_shrink_the_standard_error_only():
@@ -263,3 +263,18 @@ def test_results_carry_their_conditions(paper_config, paper_scene):
         assert key in conditions
     assert set(d["dR_over_R"]) == {"mean", "std", "stderr"}
     assert experiment.Statistic.of(np.array([np.nan])).mean is None
+
+
+def test_scaled_perturbed_fits_equal_fitting_the_nl_image_directly(paper_config, paper_scene):
+    # The experiment works at unit flux with a perturbation step; build the detector's image the
+    # plain way (charge, then S = Q - beta Q^2) and fit it from scratch: the same numbers.
+    from nlpsf import detector
+
+    r = one(paper_config, 19.0, 5e-7, paper_scene)
+    flux = photometry.magnitude_to_electrons(19.0, "H158", 168.1)
+    charge = paper_scene.stamps * flux * 9
+    plain = moments.fit(detector.apply_nonlinearity(charge, 5e-7), paper_config.moment_settings)
+    reference = moments.fit(charge, paper_config.moment_settings)
+    d_r = plain.sigma / reference.sigma - 1
+    assert r.dR_over_R.mean == pytest.approx(d_r.mean(), rel=1e-9)
+    assert r.de2.mean == pytest.approx((plain.e2 - reference.e2).mean(), rel=1e-7)
