@@ -107,7 +107,6 @@ class Moments:
     iterations: np.ndarray
     last_step: np.ndarray
     status: np.ndarray
-    _jacobian: np.ndarray | None = field(default=None, repr=False)
     #: For fits made by :func:`fit_perturbed`: the change of (x0, y0, Mxx, Mxy, Myy) from the
     #: reference fit, held separately so that changes far below the float64 resolution of the
     #: parameters themselves are not rounded away.
@@ -315,11 +314,9 @@ def concatenate(parts: list[Moments]) -> Moments:
     """One batch from several (in order)."""
     if len(parts) == 1:
         return parts[0]
-    jac = None if any(p._jacobian is None for p in parts) else np.concatenate([p._jacobian for p in parts])
     delta = None if any(p.delta is None for p in parts) else np.concatenate([p.delta for p in parts])
     return Moments(
         *(np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS),
-        _jacobian=jac,
         delta=delta,
     )
 
@@ -338,7 +335,6 @@ def _fit_chunk(
     status[~np.all(np.isfinite(images), axis=(1, 2))] = MomentStatus.NONFINITE_IMAGE
     iterations = np.zeros(batch, dtype=np.int32)
     last_step = np.full(batch, np.inf)
-    jacobian = np.full((batch, 5, 5), np.nan)
     amplitude = np.full(batch, np.nan)
     active = status == MomentStatus.NOT_CONVERGED
     if first_step is not None:
@@ -371,7 +367,6 @@ def _fit_chunk(
         if idx.size == 0:
             break
         jac = _jacobian(S, inverse)
-        jacobian[idx] = jac
         amplitude[idx] = S[:, 0, 0]
         residual = _residual(S, p)
         use_newton = newton[idx]
@@ -413,7 +408,6 @@ def _fit_chunk(
         iterations,
         last_step,
         status,
-        _jacobian=jacobian,
     )
 
 
