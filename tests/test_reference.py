@@ -94,3 +94,14 @@ def test_photometry_matches_galsim_bandpasses():
         theirs, ours_e = reference.galsim_electrons(band, 18.3, 168.1)
         # GalSim thins its bandpass table (rel_err 1e-4) before integrating.
         assert ours_e == pytest.approx(theirs, rel=1e-4)
+
+
+@pytest.mark.parametrize(("band", "magnitude"), [("Y106", 22.0), ("J129", 18.3), ("F184", 20.0)])
+def test_whole_pipeline_agrees_with_default_getpsf_on_sca18(band, magnitude):
+    # SCA 18's short- and long-wavelength masks reach far enough out that GalSim pads its pupil
+    # plane more, and its default PSF is accurate there: the shipped pipeline itself agrees.
+    scene, result = ours(band, 18, magnitude, 5e-7, moments.PAPER_WEIGHT_CUT_RHO2)
+    peer = pipeline(band, 18, moments.PAPER_WEIGHT_CUT_RHO2, 1.0).run(magnitude, 5e-7, scene.offsets, 168.1, redraw=False)
+    assert close(result.dR_over_R.mean, peer.dR_over_R.mean(), 0.01, 0)
+    assert close(result.de1.mean, peer.de1.mean(), 0.03, 1e-7)
+    assert close(result.de2.mean, peer.de2.mean(), 0.03, 1e-7)
