@@ -77,6 +77,12 @@ def add_simulation_options(parser: argparse.ArgumentParser) -> None:
         help="pupil mask scale rule (default galsim, see nlpsf/data/SOURCES.md)",
     )
     parser.add_argument(
+        "--throughput",
+        choices=roman.THROUGHPUTS,
+        default=roman.DEFAULT_THROUGHPUT,
+        help=f"effective-area data: {roman.DEFAULT_THROUGHPUT} (official, per SCA; default) or galsim-2021 (GalSim's)",
+    )
+    parser.add_argument(
         "--method", choices=experiment.METHODS, default="monte_carlo", help="monte_carlo (default) or linear response"
     )
     parser.add_argument(
@@ -101,6 +107,7 @@ def config_from(args: argparse.Namespace) -> experiment.SimulationConfig:
         weight_cut_rho2=args.weight_cut,
         pupil_scale=args.pupil_scale,
         method=args.method,
+        throughput=args.throughput,
     )
 
 

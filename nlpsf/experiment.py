@@ -60,10 +60,12 @@ class SimulationConfig:
     pupil_scale: str = "galsim"
     pupil_bin: int = 4
     method: str = "monte_carlo"
+    throughput: str = roman.DEFAULT_THROUGHPUT
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band", roman.check_band(self.band))
         object.__setattr__(self, "sca", roman.check_sca(self.sca))
+        roman.check_throughput(self.throughput)
         check_integer(self.realizations, "realizations", 1, MAX_REALIZATIONS)
         check_integer(self.seed, "seed", 0, 2**63 - 1)
         render.Grid(self.oversampling, self.stamp)
@@ -90,7 +92,12 @@ class SimulationConfig:
             n_wavelengths=self.n_wavelengths,
             pupil_bin=self.pupil_bin,
             pupil_scale=self.pupil_scale,
+            throughput=self.throughput,
         )
+
+    def electrons(self, magnitude) -> np.ndarray:
+        """Electrons of a star of AB ``magnitude`` on this SCA and band over the exposure."""
+        return photometry.magnitude_to_electrons(magnitude, self.band, self.exptime_s, sca=self.sca, throughput=self.throughput)
 
     @property
     def grid(self) -> render.Grid:
@@ -112,6 +119,7 @@ class SimulationConfig:
         out.update(
             fidelity=self.fidelity,
             pixel_scale_arcsec=roman.PIXEL_SCALE_ARCSEC,
+            throughput_version=roman.THROUGHPUT_VERSIONS[self.throughput],
             data_version=roman.DATA_VERSION,
             code_version=__version__,
         )
@@ -361,7 +369,7 @@ def simulate(
     total = len(mags) * len(paper_betas)
     share = scene.elapsed_s / total
     for m_index, magnitude in enumerate(mags):
-        flux = float(photometry.magnitude_to_electrons(magnitude, config.band, config.exptime_s))
+        flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         for b_index, (beta_given, beta) in enumerate(zip(given_betas, paper_betas, strict=True)):
             start = time.perf_counter()
@@ -563,7 +571,7 @@ def slopes(
         start = time.perf_counter()
         if progress:
             progress(index, len(mags), f"m={magnitude:g}")
-        flux = float(photometry.magnitude_to_electrons(magnitude, config.band, config.exptime_s))
+        flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         peak = charge_scale * scene.peak_fraction
         flags = _validity_flags(scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak)

@@ -83,7 +83,8 @@ class OpticsConfig:
     """What the optical PSF depends on. ``wavelength_nm=None`` means the band's effective wavelength.
 
     ``n_wavelengths`` = 1 is the achromatic PSF (the paper's choice); more integrates the band for
-    a flat-f_nu source (photon weights proportional to A_eff(lambda) / lambda).
+    a flat-f_nu source (photon weights proportional to A_eff(lambda) / lambda). Both use the
+    effective-area curve of this SCA from the ``throughput`` data set (``roman.THROUGHPUTS``).
     """
 
     band: str = "H158"
@@ -93,10 +94,12 @@ class OpticsConfig:
     pupil_bin: int = 4
     pupil_scale: str = "galsim"
     position_pixels: tuple[float, float] | None = None
+    throughput: str = roman.DEFAULT_THROUGHPUT
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band", roman.check_band(self.band))
         object.__setattr__(self, "sca", roman.check_sca(self.sca))
+        roman.check_throughput(self.throughput)
         check_integer(self.n_wavelengths, "n_wavelengths", 1, 64)
         if self.wavelength_nm is not None:
             check_number(self.wavelength_nm, "wavelength_nm", 300.0, 3000.0)
@@ -107,7 +110,7 @@ class OpticsConfig:
 
     def wavelengths_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """Wavelengths [nm] and their normalised photon weights."""
-        curve = roman.throughput(self.band)
+        curve = roman.throughput(self.band, sca=self.sca, source=self.throughput)
         if self.n_wavelengths == 1:
             wavelength = self.wavelength_nm if self.wavelength_nm is not None else curve.effective_wavelength_nm
             return np.array([float(wavelength)]), np.array([1.0])

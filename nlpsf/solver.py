@@ -139,6 +139,7 @@ class _Slopes:
             exptime_s=self.exptime,
             weight_cut_rho2=float(settings["weight_cut_rho2"]),
             pupil_scale=str(settings["pupil_scale"]),
+            throughput=self.table.throughput,
             method=method,
             n_wavelengths=POLYCHROMATIC_WAVELENGTHS if self.fidelity == "polychromatic" else 1,
         )

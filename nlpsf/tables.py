@@ -76,6 +76,11 @@ class TableSettings:
     pupil_scale: str = "galsim"
     magnitude_step: float = MAGNITUDE_STEP
     faint_limit: float = FAINT_LIMIT
+    #: Throughput data (``roman.THROUGHPUTS``): the per-SCA official curves by default.
+    throughput: str = roman.DEFAULT_THROUGHPUT
+
+    def __post_init__(self) -> None:
+        roman.check_throughput(self.throughput)
 
     def config(self, band: str, sca: int) -> experiment.SimulationConfig:
         return experiment.SimulationConfig(
@@ -90,6 +95,7 @@ class TableSettings:
             weight_cut_rho2=self.weight_cut_rho2,
             pupil_scale=self.pupil_scale,
             method="linear",
+            throughput=self.throughput,
         )
 
     def fingerprint(self) -> str:
@@ -98,10 +104,14 @@ class TableSettings:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def saturation_magnitude(peak_fraction: float, band: str, exptime_s: float, full_well_e: float, oversampling: int) -> float:
+def saturation_magnitude(peak_fraction: float, config: experiment.SimulationConfig) -> float:
     """Magnitude at which the brightest fine pixel (over centroids) reaches the full well."""
-    electrons_at_full_well = full_well_e / (peak_fraction * oversampling**2)
-    return float(photometry.electrons_to_magnitude(electrons_at_full_well, band, exptime_s))
+    electrons_at_full_well = config.full_well_e / (peak_fraction * config.oversampling**2)
+    return float(
+        photometry.electrons_to_magnitude(
+            electrons_at_full_well, config.band, config.exptime_s, sca=config.sca, throughput=config.throughput
+        )
+    )
 
 
 def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit: float = FAINT_LIMIT) -> np.ndarray:
@@ -120,9 +130,7 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
     start = time.perf_counter()
     config = settings.config(band, sca)
     scene = experiment.prepare(config)
-    m_sat = saturation_magnitude(
-        float(scene.peak_fraction.max()), config.band, settings.exptime_s, settings.full_well_e, settings.oversampling
-    )
+    m_sat = saturation_magnitude(float(scene.peak_fraction.max()), config)
     magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
     results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
@@ -330,6 +338,11 @@ class SlopeTable:
     def beta0(self) -> float:
         return float(self.settings["beta0"])
 
+    @property
+    def throughput(self) -> str:
+        """Throughput data the table was built with (tables from before it was a setting: GalSim 2021)."""
+        return str(self.settings.get("throughput", "galsim-2021"))
+
     def _interpolant(self, name: str):
         """(spline of slope/flux, relative statistical error, interpolation error/flux) vs flux."""
         if name not in self._interpolants:
@@ -516,6 +529,8 @@ def _conditions(table: SlopeTable, exptime: float, beta0: float, full_well: floa
         "seed": s["seed"],
         "weight_cut_rho2": s["weight_cut_rho2"],
         "pupil_scale": s["pupil_scale"],
+        "throughput": table.throughput,
+        "throughput_version": roman.THROUGHPUT_VERSIONS[table.throughput],
         "fidelity": "table",
         "table_conditions": {"exptime_s": s["exptime_s"], "beta0": s["beta0"]},
         "data_version": roman.DATA_VERSION,
@@ -603,7 +618,7 @@ def table2_comparison(tables: TableSet | None = None, sca: int = 18) -> list[dic
     """Our Table 2 beside the paper's, with the ratio of A split into its two causes.
 
     A = slope at m = 20 = flux(20) x (slope per electron). The flux part is the throughput change
-    (effective areas of 2021 vs the paper's Cycle 5); what remains is the optics (Cycle-9 vs Cycle-5
+    (the table's effective areas vs the paper's Cycle 5); what remains is the optics (Cycle-9 vs Cycle-5
     PSF shape), the same 5.7 % drop for every band only if the optics did not change.
     """
     tables = tables or load_tables()
@@ -615,7 +630,8 @@ def table2_comparison(tables: TableSet | None = None, sca: int = 18) -> list[dic
     for band in ("Y106", "J129", "H158", "F184"):
         table = tables.get(band, sca)
         ours = {mode: powerlaw_fit(table, mode) for mode in MODES}
-        flux_ratio = float(photometry.magnitude_to_electrons(18.3, band, 168.1)) / paper_flux_183[band]
+        flux = photometry.magnitude_to_electrons(18.3, band, 168.1, sca=sca, throughput=table.throughput)
+        flux_ratio = float(flux) / paper_flux_183[band]
         for mode in MODES:
             a_paper, b_paper = table2[mode][band]
             ratio = ours[mode]["A"] / a_paper
@@ -659,6 +675,9 @@ def _register_cli() -> None:
             "--dask", default=None, metavar="ADDRESS", help="run on a dask.distributed scheduler ('local' starts one)"
         )
         build.add_argument("--realizations", type=int, default=100)
+        build.add_argument(
+            "--throughput", choices=roman.THROUGHPUTS, default=roman.DEFAULT_THROUGHPUT, help="effective-area data"
+        )
         build.add_argument("--faint-limit", type=float, default=FAINT_LIMIT)
         build.add_argument("--step", type=float, default=MAGNITUDE_STEP)
         build.add_argument("--quiet", action="store_true")
@@ -682,7 +701,9 @@ def _register_cli() -> None:
 
 def _build_command(args, cli) -> int:
     check_integer(args.workers, "workers", 1, 256)
-    settings = TableSettings(realizations=args.realizations, faint_limit=args.faint_limit, magnitude_step=args.step)
+    settings = TableSettings(
+        realizations=args.realizations, faint_limit=args.faint_limit, magnitude_step=args.step, throughput=args.throughput
+    )
     start = time.perf_counter()
     paths = build_tables(
         args.output,

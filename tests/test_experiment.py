@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, moments, optics, photometry, render
+from nlpsf import experiment, moments, optics, render
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 
@@ -182,7 +182,7 @@ def test_galsim_sign_convention_is_the_same_physics(paper_config, paper_scene):
 def test_extreme_beta_and_magnitude_give_finite_numbers_or_flags(beta, magnitude, paper_config, paper_scene):
     r = one(paper_config, magnitude, beta, paper_scene)
     values = [r.dR_over_R.mean, r.de1.mean, r.de2.mean]
-    flux = photometry.magnitude_to_electrons(magnitude, "H158", 168.1)
+    flux = paper_config.electrons(magnitude)
     peak = flux * 9 * paper_scene.peak_fraction.max()
     saturated = peak > 1.1e5
     non_monotonic = 2 * beta * peak >= 1
@@ -271,7 +271,7 @@ def test_scaled_perturbed_fits_equal_fitting_the_nl_image_directly(paper_config,
     from nlpsf import detector
 
     r = one(paper_config, 19.0, 5e-7, paper_scene)
-    flux = photometry.magnitude_to_electrons(19.0, "H158", 168.1)
+    flux = paper_config.electrons(19.0)
     charge = paper_scene.stamps * flux * 9
     plain = moments.fit(detector.apply_nonlinearity(charge, 5e-7), paper_config.moment_settings)
     reference = moments.fit(charge, paper_config.moment_settings)

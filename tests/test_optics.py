@@ -123,7 +123,7 @@ def test_polychromatic_psf_is_a_weighted_sum_of_monochromatic_ones():
     cfg = optics.OpticsConfig("F184", 18, n_wavelengths=3)
     wavelengths, weights = cfg.wavelengths_and_weights()
     assert weights.sum() == pytest.approx(1.0)
-    curve = roman.throughput("F184")
+    curve = roman.throughput("F184", sca=18)
     assert curve.blue_limit_nm < wavelengths[0] < wavelengths[-1] < curve.red_limit_nm
     poly = optics.effective_psf(cfg, 5.0)
     parts = [optics.effective_psf(optics.OpticsConfig("F184", 18, wavelength_nm=w), 5.0) for w in wavelengths]
@@ -176,8 +176,10 @@ def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):
 
     grid = render.Grid(3, 64)
     offsets = np.array([[0.0, 0.0], [0.37, -1.21]])
-    ours = render.draw(optics.effective_psf(optics.OpticsConfig(band, sca), grid.field_arcsec()), grid, offsets)
-    psf = reference._get_psf_oversampled(sca, band, roman.throughput(band).effective_wavelength_nm, 4.0)
+    config = optics.OpticsConfig(band, sca, throughput="galsim-2021")
+    ours = render.draw(optics.effective_psf(config, grid.field_arcsec()), grid, offsets)
+    wavelength = roman.throughput(band, sca=sca, source="galsim-2021").effective_wavelength_nm
+    psf = reference._get_psf_oversampled(sca, band, wavelength, 4.0)
     effective = galsim.Convolve(psf, galsim.Pixel(0.11))
     for k, offset in enumerate(offsets):
         theirs = effective.drawImage(
