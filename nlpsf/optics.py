@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -109,23 +110,37 @@ class OpticsConfig:
             object.__setattr__(self, "position_pixels", tuple(float(v) for v in self.position_pixels))
 
     def wavelengths_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        """Wavelengths [nm] and their normalised photon weights."""
+        """Wavelengths [nm] and their normalised photon weights (flat f_nu source)."""
         curve = roman.throughput(self.band, sca=self.sca, source=self.throughput)
         if self.n_wavelengths == 1:
             wavelength = self.wavelength_nm if self.wavelength_nm is not None else curve.effective_wavelength_nm
             return np.array([float(wavelength)]), np.array([1.0])
-        # Equal-width bins over the band; each bin is represented by its photon-weighted mean
-        # wavelength and carries its share of the photons.
-        fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * self.n_wavelengths + 1)
-        photons = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2) / fine
-        edges = np.linspace(0, fine.size - 1, self.n_wavelengths + 1).astype(int)
-        wavelengths, weights = [], []
-        for lo, hi in itertools.pairwise(edges):
-            w = np.trapezoid(photons[lo : hi + 1], fine[lo : hi + 1])
-            wavelengths.append(np.trapezoid(photons[lo : hi + 1] * fine[lo : hi + 1], fine[lo : hi + 1]) / w)
-            weights.append(w)
-        weights_array = np.asarray(weights)
-        return np.asarray(wavelengths), weights_array / weights_array.sum()
+        return band_wavelengths_and_weights(curve, self.n_wavelengths)
+
+
+def band_wavelengths_and_weights(
+    curve: roman.Throughput, n_wavelengths: int, sed_flambda: Callable[[np.ndarray], np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n_wavelengths`` wavelengths [nm] over the band and their normalised photon weights.
+
+    Photons per unit wavelength are proportional to A_eff(lambda) f_lambda(lambda) lambda; for the
+    default flat-f_nu source (f_lambda proportional to lambda^-2) that is A_eff / lambda.
+    ``sed_flambda`` gives f_lambda (any normalisation) at wavelengths in nm.
+    """
+    # Equal-width bins over the band; each bin is represented by its photon-weighted mean
+    # wavelength and carries its share of the photons.
+    fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * n_wavelengths + 1)
+    photons = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2) / fine
+    if sed_flambda is not None:
+        photons = photons * np.asarray(sed_flambda(fine), dtype=np.float64) * fine**2
+    edges = np.linspace(0, fine.size - 1, n_wavelengths + 1).astype(int)
+    wavelengths, weights = [], []
+    for lo, hi in itertools.pairwise(edges):
+        w = np.trapezoid(photons[lo : hi + 1], fine[lo : hi + 1])
+        wavelengths.append(np.trapezoid(photons[lo : hi + 1] * fine[lo : hi + 1], fine[lo : hi + 1]) / w)
+        weights.append(w)
+    weights_array = np.asarray(weights)
+    return np.asarray(wavelengths), weights_array / weights_array.sum()
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,9 +254,11 @@ def psf_from_pupil(
     field_arcsec: float,
     optics: OpticsConfig | None = None,
     aberration_wavelength_nm: float = roman.ZERNIKE_REFERENCE_WAVELENGTH_NM,
+    pixel_response: bool = True,
 ) -> EffectivePSF:
     """Effective PSF of any pupil; ``aberrations_waves`` are Noll coefficients in waves at
-    ``aberration_wavelength_nm`` (the optical path difference is the same at every wavelength)."""
+    ``aberration_wavelength_nm`` (the optical path difference is the same at every wavelength).
+    ``pixel_response=False`` leaves out the native pixel: the optical PSF alone."""
     wavelengths_nm = np.atleast_1d(np.asarray(wavelengths_nm, dtype=np.float64))
     weights = np.atleast_1d(np.asarray(weights, dtype=np.float64))
     frequencies = frequency_grid(field_arcsec, _optical_cutoff(pupil, float(wavelengths_nm.min())))
@@ -249,8 +266,9 @@ def psf_from_pupil(
     for wavelength, weight in zip(wavelengths_nm, weights, strict=True):
         scaled = np.asarray(aberrations_waves, dtype=np.float64) * aberration_wavelength_nm / wavelength
         total += weight * _intensity_coefficients(pupil, scaled, float(wavelength), frequencies, field_arcsec)
-    pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * frequencies)
-    total *= pixel[:, None] * pixel[None, :]
+    if pixel_response:
+        pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * frequencies)
+        total *= pixel[:, None] * pixel[None, :]
     total.setflags(write=False)
     frequencies.setflags(write=False)
     return EffectivePSF(optics, field_arcsec, frequencies, total, wavelengths_nm, weights)
