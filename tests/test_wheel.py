@@ -39,9 +39,7 @@ def test_wheel_holds_the_web_package_and_the_page_and_no_top_level_app(wheel):
 def test_installed_wheel_serves_page_solve_and_simulation(wheel, tmp_path):
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
-    pip = subprocess.run(
-        [str(venv / "bin" / "pip"), "install", "-q", str(wheel)], capture_output=True, text=True, timeout=900
-    )
+    pip = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", str(wheel)], capture_output=True, text=True, timeout=900)
     assert pip.returncode == 0, pip.stderr[-3000:]
     home = tmp_path / "home"
     home.mkdir()
