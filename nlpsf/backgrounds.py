@@ -37,7 +37,7 @@ import numpy as np
 from astropy.table import Table
 
 from . import roman
-from .checks import InputError, check_number
+from .checks import InputError, check_exptime, check_full_well, check_number
 
 #: Named background presets: zodiacal light as a multiple of its minimum, plus thermal and dark.
 #: "none" is the paper's noiseless scene.
@@ -133,7 +133,7 @@ def background(preset: str, band: str, sca: int, exptime_s: float, zodiacal_fact
     """
     spec = PRESETS[check_preset(preset)]
     band, sca = roman.check_band(band), roman.check_sca(sca)
-    exptime_s = check_number(exptime_s, "exptime", 0.0, 1e6, open_low=True)
+    exptime_s = check_exptime(exptime_s)
     factor = spec["zodiacal_factor"] if zodiacal_factor is None else zodiacal_factor
     return Background(
         preset=preset,
@@ -158,7 +158,7 @@ def saturation_shift_mag(background_e: float, full_well_e: float) -> float:
     The brightest pixel holds star + background; it reaches the full well when the star's share is
     full_well - background, so the saturation magnitude moves by -2.5 log10(1 - background / full_well).
     """
-    full_well_e = check_number(full_well_e, "full_well", 0.0, 1e9, open_low=True)
+    full_well_e = check_full_well(full_well_e)
     background_e = check_number(background_e, "background", 0.0, full_well_e)
     if background_e == full_well_e:
         raise InputError("background", "the background alone fills the full well: every pixel is saturated")

@@ -30,7 +30,7 @@ import numpy as np
 from astropy.constants import h as planck
 
 from . import roman
-from .checks import InputError, check_number
+from .checks import InputError, check_exptime
 
 #: Flat-f_nu flux density of an AB magnitude 0 source, per throughput data set (see above).
 AB_REFERENCE = {
@@ -73,4 +73,4 @@ def electrons_to_magnitude(electrons, band: str, exptime_s: float, *, sca: int, 
 
 
 def _check_exptime(exptime_s: float) -> float:
-    return check_number(exptime_s, "exptime", 0.0, 1e6, open_low=True)
+    return check_exptime(exptime_s)

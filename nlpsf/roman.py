@@ -11,18 +11,19 @@ GalSim 2021 table, one curve for all SCAs, stays available as ``"galsim-2021"``.
 from __future__ import annotations
 
 import gzip
+import json
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from astropy.io import fits
 
-from .checks import InputError, check_integer
+from . import defaults
+from .checks import InputError, check_integer, shown
 
 #: Native WFI pixel scale [arcsec / pixel].
-PIXEL_SCALE_ARCSEC = 0.11
+PIXEL_SCALE_ARCSEC = defaults.PIXEL_SCALE_ARCSEC
 #: Nominal telescope diameter [m]; also the radius scale of the Zernike disc.
 DIAMETER_M = 2.36
 #: Linear central obscuration (only used by GalSim as a sampling hint; the masks carry the truth).
@@ -34,30 +35,24 @@ PIXEL_PITCH_MM = 0.01
 #: Active pixels per SCA side.
 SCA_PIXELS = 4088
 #: Number of SCAs in the focal plane.
-N_SCA = 18
+N_SCA = defaults.N_SCA
 #: Wavelength at which the Zernike coefficients are given [nm].
 ZERNIKE_REFERENCE_WAVELENGTH_NM = 1293.0
 
-#: The paper's exposure time [s] (High Latitude Survey).
-DEFAULT_EXPTIME_S = 168.1
-#: Full-well depth [e-] quoted by the paper.
-DEFAULT_FULL_WELL_E = 1.1e5
-
-#: Imaging bands, bluest first. F184 and K213 use the long-wavelength (cold) pupil mask.
-BANDS: tuple[str, ...] = ("R062", "Z087", "Y106", "J129", "H158", "F184", "W146", "K213")
+BANDS = defaults.BANDS
+PAPER_BANDS = defaults.PAPER_BANDS
+#: F184 and K213 use the long-wavelength (cold) pupil mask.
 LONG_WAVELENGTH_BANDS: frozenset[str] = frozenset({"F184", "K213"})
-#: The four High Latitude Survey bands the paper studies.
-PAPER_BANDS: tuple[str, ...] = ("Y106", "J129", "H158", "F184")
 
 #: Throughput data sets by name, newest first, with the version every answer's conditions quote.
 THROUGHPUT_VERSIONS: dict[str, str] = {
     "roman-2024": "roman-technical-information 1.5.0: WFI effective areas v8 per SCA (2024-03-01)",
     "galsim-2021": "GalSim 2.8.5 share/roman: Roman_effarea_20210614, one curve for every SCA",
 }
-THROUGHPUTS: tuple[str, ...] = tuple(THROUGHPUT_VERSIONS)
+THROUGHPUTS = defaults.THROUGHPUTS
 #: Newest official data by default; "galsim-2021" is what GalSim's Roman module and the
 #: cross-check tests use.
-DEFAULT_THROUGHPUT = "roman-2024"
+DEFAULT_THROUGHPUT = defaults.THROUGHPUT
 #: The official files name the bands by filter (F062, ...); GalSim and nlpsf by band.
 OFFICIAL_FILTER_NAMES: dict[str, str] = {
     "R062": "F062",
@@ -78,7 +73,7 @@ DATA_VERSION = (
 
 def check_band(band: str) -> str:
     if not isinstance(band, str) or band.upper() not in BANDS:
-        raise InputError("band", f"unknown band {band!r}; choose one of {', '.join(BANDS)}")
+        raise InputError("band", f"unknown band {shown(band)}; choose one of {', '.join(BANDS)}")
     return band.upper()
 
 
@@ -88,7 +83,7 @@ def check_sca(sca: int) -> int:
 
 def check_throughput(name: str) -> str:
     if name not in THROUGHPUT_VERSIONS:
-        raise InputError("throughput", f"unknown throughput data {name!r}; choose one of {', '.join(THROUGHPUTS)}")
+        raise InputError("throughput", f"unknown throughput data {shown(name)}; choose one of {', '.join(THROUGHPUTS)}")
     return name
 
 
@@ -99,6 +94,23 @@ def _data_dir() -> Path:
 def official_data_dir() -> Path:
     """The vendored files of ``roman-technical-information`` (see ``nlpsf/data/SOURCES.md``)."""
     return Path(str(resources.files("nlpsf") / "data" / "roman_technical_information"))
+
+
+@cache
+def _optical_model_uncertainty() -> dict:
+    path = Path(str(resources.files("nlpsf") / "data" / "optical_model_uncertainty.json"))
+    return json.loads(path.read_text())
+
+
+def optical_model_uncertainty(band: str, metric: str) -> float:
+    """Relative uncertainty of ``band``'s NL slopes from nlpsf's optical model (Cycle-9 Zernikes)
+    against the official post-CDR PSFs, measured by ``scripts/psf_statistics.py``.
+
+    ``metric`` "size": relative to the size slope. "e1", "e2", "e": the change of the ellipticity
+    slopes relative to their modulus |c_e| (scale it by |c_e| / |c_e1| for one component).
+    """
+    entry = _optical_model_uncertainty()["per_band"][check_band(band)]
+    return float(entry["size" if metric == "size" else "e"])
 
 
 @dataclass(frozen=True)
@@ -209,7 +221,7 @@ class Pupil:
 #: to this rule). "header": the header's entrance-pupil scale (``CDELT`` x ``PUPIL SCALE FACTOR``),
 #: which puts the pupil edge of SCA 1 at 2.37 m but lets the short-wavelength mask of SCA 18 reach
 #: 2.49 m. The two differ by 0.5-5.4 % in pupil size depending on the SCA and mask.
-PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header")
+PUPIL_SCALE_RULES = defaults.PUPIL_SCALE_RULES
 
 
 @cache
@@ -221,6 +233,8 @@ def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -
         raise InputError("pupil_bin", f"must divide 2048, got {pupil_bin!r}")
     if scale_rule not in PUPIL_SCALE_RULES:
         raise InputError("pupil_scale", f"must be one of {', '.join(PUPIL_SCALE_RULES)}, got {scale_rule!r}")
+    from astropy.io import fits  # 0.4 s to import: only reading a pupil needs it
+
     kind = "long" if band in LONG_WAVELENGTH_BANDS else "short"
     name = f"RST_WIM_Filter_{'F184' if kind == 'long' else 'skinny'}_SCA_{sca}.fits.gz"
     with gzip.open(_data_dir() / name, "rb") as handle, fits.open(handle) as hdul:

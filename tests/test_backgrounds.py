@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from nlpsf import backgrounds, roman
+from nlpsf import backgrounds, defaults, roman
 from nlpsf.checks import InputError
 
 
@@ -21,11 +21,11 @@ def test_presets_add_up_and_scale_with_exposure():
 
 
 def test_k213_thermal_background_is_the_issue_s_740_electrons_and_moves_saturation():
-    b = backgrounds.background("roman-typical", "K213", 18, roman.DEFAULT_EXPTIME_S)
+    b = backgrounds.background("roman-typical", "K213", 18, defaults.EXPTIME_S)
     assert b.thermal_e == pytest.approx(740, rel=0.01)  # 4.38 e-/s x 168.1 s
     assert b.thermal_e > 10 * (b.zodiacal_e + b.dark_e)  # thermal dominates K213, unlike every blue band
     assert backgrounds.background("roman-typical", "H158", 18, 168.1).thermal_e < 10
-    shift = backgrounds.saturation_shift_mag(b.total_e, roman.DEFAULT_FULL_WELL_E)
+    shift = backgrounds.saturation_shift_mag(b.total_e, defaults.FULL_WELL_E)
     # A background that fills a fraction f of the well saturates stars -2.5 log10(1 - f) fainter.
     assert shift == pytest.approx(2.5 / math.log(10) * b.total_e / 1.1e5, rel=0.01)
     assert 0.005 < shift < 0.01
