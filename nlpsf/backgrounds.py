@@ -163,3 +163,19 @@ def saturation_shift_mag(background_e: float, full_well_e: float) -> float:
     if background_e == full_well_e:
         raise InputError("background", "the background alone fills the full well: every pixel is saturated")
     return float(-2.5 * np.log10(1.0 - background_e / full_well_e))
+
+
+def resolve(spec: str | float, band: str, sca: int, exptime_s: float) -> float:
+    """A scene's background [e- per native pixel]: a preset's name, or a number of electrons.
+
+    What a ``--background`` option (CLI) or ``background`` field (service) can pass straight through:
+    "roman-typical", "none", or "120" / 120.0 electrons.
+    """
+    if isinstance(spec, str) and spec in PRESETS:
+        return background_electrons(spec, band, sca, exptime_s)
+    if isinstance(spec, str):
+        try:
+            spec = float(spec)
+        except ValueError:
+            raise InputError("background", f"give e- per pixel or one of {', '.join(PRESETS)}, got {spec!r}") from None
+    return check_number(spec, "background", 0.0, 1e9)

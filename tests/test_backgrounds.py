@@ -48,3 +48,13 @@ def test_bad_background_input_names_its_field():
         backgrounds.zodiacal_rate("H158", -1.0)
     with pytest.raises(InputError, match="background"):
         backgrounds.saturation_shift_mag(1.1e5, 1.1e5)
+
+
+def test_a_scene_background_is_a_preset_name_or_electrons():
+    typical = backgrounds.background("roman-typical", "K213", 5, 100.0).total_e
+    assert backgrounds.resolve("roman-typical", "K213", 5, 100.0) == typical
+    assert backgrounds.resolve("120", "K213", 5, 100.0) == 120.0
+    assert backgrounds.resolve(0.0, "K213", 5, 100.0) == 0.0
+    for bad in ("moonlight", -1.0, "nan"):
+        with pytest.raises(InputError, match="background"):
+            backgrounds.resolve(bad, "K213", 5, 100.0)

@@ -187,3 +187,24 @@ def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):
             nx=64, ny=64, scale=grid.scale_arcsec, method="no_pixel", offset=tuple(offset), dtype=float
         ).array
         assert np.abs(ours[k] - theirs).max() < 5e-5 * theirs.max()
+
+
+def test_polychromatic_weights_follow_the_sca_s_own_throughput_and_the_sed():
+    from nlpsf import psfstats
+
+    def mean_wavelength(wavelengths, weights):
+        return float(np.sum(wavelengths * weights))
+
+    # Photon-weighted mean wavelength of a flat-f_nu star: integral A lambda^0 / integral A lambda^-1,
+    # straight from the SCA's effective-area curve.
+    for sca in (1, 18):
+        curve = roman.throughput("W146", sca=sca, source="roman-2024")
+        w, a = curve.wavelength_nm, curve.effective_area_m2
+        expected = np.trapezoid(a, w) / np.trapezoid(a / w, w)
+        got = mean_wavelength(*optics.OpticsConfig("W146", sca, n_wavelengths=8).wavelengths_and_weights())
+        assert got == pytest.approx(expected, rel=1e-4)
+    # A K0V star falls faster than flat f_nu in the near infrared: its photons are bluer.
+    curve = roman.throughput("W146", sca=18, source="roman-2024")
+    flat = mean_wavelength(*optics.band_wavelengths_and_weights(curve, 8))
+    k0v = mean_wavelength(*optics.band_wavelengths_and_weights(curve, 8, psfstats.blackbody_flambda(5270.0)))
+    assert k0v < flat - 20.0
