@@ -331,10 +331,12 @@ def test_linear_scatter_is_taken_at_beta_like_the_linear_slopes(paper_scene):
 def test_finite_differences_across_the_hard_weight_cut_are_flagged():
     """With the paper's hard cut, some realizations cross it between beta0 x 0.99 and x 1.01 and the
     finite-difference e2 slope is off the exact derivative by ~1.7 % (H158, m = 21.5, 50 centroids);
-    without a cut the two agree and nothing is flagged."""
-    hard = slopes(SimulationConfig(realizations=50), [21.5])[0]
-    exact = slopes(SimulationConfig(realizations=50, method="linear"), [21.5])[0]
+    without a cut the two agree and nothing is flagged. Which realizations cross the cut depends on
+    the exact flux, so the configuration is pinned to the one measured (GalSim 2021 throughput)."""
+    g = "galsim-2021"
+    hard = slopes(SimulationConfig(realizations=50, throughput=g), [21.5])[0]
+    exact = slopes(SimulationConfig(realizations=50, method="linear", throughput=g), [21.5])[0]
     assert abs(hard.bias["de2"].mean / exact.bias["de2"].mean - 1) > 3e-3
     assert any(f.startswith("jumpy finite difference") for f in hard.flags)
-    none = slopes(SimulationConfig(realizations=50, weight_cut_rho2=math.inf), [21.5])[0]
+    none = slopes(SimulationConfig(realizations=50, weight_cut_rho2=math.inf, throughput=g), [21.5])[0]
     assert not any(f.startswith("jumpy") for f in none.flags)
