@@ -82,7 +82,7 @@ def check_sca(sca: int) -> int:
 
 
 def check_throughput(name: str) -> str:
-    if name not in THROUGHPUT_VERSIONS:
+    if not isinstance(name, str) or name not in THROUGHPUT_VERSIONS:
         raise InputError("throughput", f"unknown throughput data {shown(name)}; choose one of {', '.join(THROUGHPUTS)}")
     return name
 
