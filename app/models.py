@@ -54,6 +54,9 @@ class SolveRequest(BaseModel):
         description="how the slope is obtained: table (instant, the default), linear, monte_carlo, polychromatic",
     )
     accuracy: float | None = Field(None, description="relative accuracy target; picks the cheapest fidelity meeting it")
+    throughput: Throughput | None = Field(
+        None, description="photometry of the magnitude: null for the tables' own (roman-2024), or galsim-2021"
+    )
 
 
 class SolveResponse(BaseModel):

@@ -112,10 +112,25 @@ def _json_number(value: float | None) -> float | None:
 class _Slopes:
     """c(m) at the request's conditions, from the tables or from fresh simulations."""
 
-    def __init__(self, band: str, sca: int, metric: str, mode: str, beta0: float, exptime: float, fidelity: str, tableset):
+    def __init__(
+        self,
+        band: str,
+        sca: int,
+        metric: str,
+        mode: str,
+        beta0: float,
+        exptime: float,
+        fidelity: str,
+        tableset,
+        throughput: str | None = None,
+    ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
         self.table = tableset.get(band, sca)
+        #: Magnitudes the table was relabelled by for another throughput's photometry (0: none).
+        self.relabel_shift = 0.0
+        if throughput is not None:
+            self.table, self.relabel_shift = tables.with_throughput(self.table, throughput)
         self._cache: dict[float, tuple[float, float]] = {}
 
     def range(self) -> tuple[float, float]:
@@ -196,9 +211,14 @@ def solve(
     fidelity: str | None = None,
     accuracy: float | None = None,
     tables_set: tables.TableSet | None = None,
+    throughput: str | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
-    error allowed) and ``magnitude`` (AB); get the third. See the module docstring."""
+    error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
+
+    ``throughput`` (``defaults.THROUGHPUTS``) is the photometry that turns the magnitude into
+    electrons; None is the tables' own. Another one reads the tables relabelled
+    (``tables.with_throughput``), and fresh simulations use it directly."""
     start = time.perf_counter()
     band = roman.check_band(band)
     sca = roman.check_sca(sca)
@@ -220,8 +240,18 @@ def solve(
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
     chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
-    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables())
+    if throughput is not None:
+        roman.check_throughput(throughput)
+    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), throughput)
     table = slopes.table
+    if "relabelled_from" in table.settings:
+        size_error, e_error = tables.RELABEL_ERROR[band]
+        flags.append(
+            f"the {table.settings['relabelled_from']} tables read with {throughput} photometry (magnitudes "
+            f"{-slopes.relabel_shift:+.3f}); their achromatic PSF keeps the {table.settings['relabelled_from']} curve's "
+            f"wavelength, up to {100 * (size_error if metric == 'size' else e_error):.1f} % on the slope, "
+            "added to the optical-model uncertainty"
+        )
     m_sat = table.saturation(exptime, full_well)
     solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
     brightest, binding, m_nl = None, None, None
@@ -308,6 +338,8 @@ def _optical_model_relative(slopes: _Slopes, magnitude: float | None) -> float:
 
     For one ellipticity component it is stated against |c_e|, so it grows as |c_e| / |c_ei|."""
     relative = roman.optical_model_uncertainty(slopes.band, slopes.metric)
+    if "relabelled_from" in slopes.table.settings:
+        relative = math.hypot(relative, tables.RELABEL_ERROR[slopes.band][0 if slopes.metric == "size" else 1])
     if slopes.metric in ("e1", "e2") and magnitude is not None:
         modulus, _, _ = slopes.table.slope("e", slopes.mode, magnitude, slopes.exptime, slopes.beta0)
         component, _, _ = slopes.table.slope(slopes.metric, slopes.mode, magnitude, slopes.exptime, slopes.beta0)

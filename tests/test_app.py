@@ -283,6 +283,16 @@ def test_small_simulation_answered_synchronously_matches_the_library(client):
     assert job["result"]["conditions"]["sca"] == 7
 
 
+def test_solve_takes_a_throughput_and_names_it(client):
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
+    default = client.post("/api/v1/solve", json=body).json()
+    galsim = client.post("/api/v1/solve", json={**body, "throughput": "galsim-2021"}).json()
+    assert default["conditions"]["throughput"] == "roman-2024" and galsim["conditions"]["throughput"] == "galsim-2021"
+    # GalSim's 2021 H158 curve gives 5 % more electrons: the same star needs a tighter calibration.
+    assert galsim["precision"] < default["precision"]
+    assert client.post("/api/v1/solve", json={**body, "throughput": "cycle-5"}).status_code == 422
+
+
 def test_simulation_throughput_is_a_request_field_named_in_the_conditions(client):
     body = {"band": "H158", "sca": 1, "magnitudes": [20.0], "realizations": 4, "fidelity": "linear"}
     runs = {}

@@ -260,3 +260,22 @@ def test_answers_carry_the_optical_model_uncertainty_in_quadrature():
     e1 = solver.solve("Y106", 18, "e1", magnitude=20.0, tolerance=1e-4)
     assert e.uncertainty_optical_model / e.precision == pytest.approx(roman.optical_model_uncertainty("Y106", "e"))
     assert e1.uncertainty_optical_model / e1.precision >= e.uncertainty_optical_model / e.precision
+
+
+def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulation_under_it():
+    default = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4)
+    galsim = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4, throughput="galsim-2021")
+    assert galsim.conditions["throughput"] == "galsim-2021" and default.conditions["throughput"] == "roman-2024"
+    assert any("read with galsim-2021 photometry" in f for f in galsim.flags)
+    # More electrons per magnitude in GalSim's 2021 curve: stars saturate fainter, by the zero-point gap.
+    from nlpsf import photometry
+
+    gap = photometry.zero_point("J129", sca=11, throughput="galsim-2021") - photometry.zero_point(
+        "J129", sca=11, throughput="roman-2024"
+    )
+    assert galsim.saturation_magnitude - default.saturation_magnitude == pytest.approx(gap, abs=1e-9)
+    # A fresh linear simulation on GalSim's throughput (its own PSF wavelength) agrees within the
+    # relabelling error the flag quotes.
+    fresh = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4, throughput="galsim-2021", fidelity="linear")
+    assert fresh.precision == pytest.approx(galsim.precision, rel=tables.RELABEL_ERROR["J129"][0] + 1e-3)
+    assert galsim.uncertainty_optical_model > default.uncertainty_optical_model * galsim.precision / default.precision

@@ -27,6 +27,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="relative accuracy wanted: picks the cheapest fidelity whose measured error is below it (instead of --fidelity)",
     )
+    parser.add_argument(
+        "--throughput",
+        choices=defaults.THROUGHPUTS,
+        default=None,
+        help=f"photometry of the magnitude: default the tables' own ({defaults.THROUGHPUT}); another relabels them",
+    )
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
 
 
@@ -46,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         args.full_well,
         args.fidelity,
         args.accuracy,
+        throughput=args.throughput,
     )
     payload = solution.to_dict()
     if args.json:
