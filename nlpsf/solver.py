@@ -14,6 +14,14 @@ the fainter of that and the saturation magnitude, with which limit binds.
 Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from fresh simulations
 (``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
 measured error (``nlpsf tradeoff``) meets it.
+
+Up-the-ramp exposures (``ramp``, see ``nlpsf.ramps``): the saturation rule becomes Roman's (a star
+is usable until its brightest pixel saturates in the *first* resultant, 2.5 log10(T / t_1) mag
+brighter than the final-frame rule), and the slopes come from the tables where the mapping is exact
+(quadratic NL, OLS fit, every pixel keeping every resultant: the final frame at beta_eff = c_2 beta0,
+c_2 = 1 + 1/N for N uniform reads, so c(m) = c_2 c_table(m; c_2 beta0)) and from fresh
+linear-response simulations of the ramp otherwise (optimal fit, or a star bright enough that some
+of its pixels drop saturated resultants). ``conditions["ramp_slopes_from"]`` says which.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from . import __version__, experiment, roman, tables
+from . import __version__, experiment, ramps, roman, tables
 from .checks import InputError, check_number
 
 METRICS = tables.METRICS
@@ -66,6 +74,8 @@ class Solution:
     fidelity: str
     conditions: dict
     elapsed_s: float = field(default=0.0, compare=False)
+    #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
+    final_frame_saturation_magnitude: float | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -86,6 +96,7 @@ class Solution:
             "slope": _json_number(self.slope),
             "slope_uncertainty": _json_number(self.slope_uncertainty),
             "saturation_magnitude": _json_number(self.saturation_magnitude),
+            "final_frame_saturation_magnitude": _json_number(self.final_frame_saturation_magnitude),
             "brightest_usable_magnitude": _json_number(self.brightest_usable_magnitude),
             "binding_limit": self.binding_limit,
             "nonlinearity_magnitude": _json_number(self.nonlinearity_magnitude),
@@ -103,31 +114,75 @@ def _json_number(value: float | None) -> float | None:
 class _Slopes:
     """c(m) at the request's conditions, from the tables or from fresh simulations."""
 
-    def __init__(self, band: str, sca: int, metric: str, mode: str, beta0: float, exptime: float, fidelity: str, tableset):
+    def __init__(
+        self,
+        band: str,
+        sca: int,
+        metric: str,
+        mode: str,
+        beta0: float,
+        exptime: float,
+        fidelity: str,
+        tableset,
+        ramp: ramps.Ramp | None = None,
+        full_well: float = roman.DEFAULT_FULL_WELL_E,
+    ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
+        self.ramp, self.full_well = ramp, full_well
         self.table = tableset.get(band, sca)
         self._cache: dict[float, tuple[float, float]] = {}
+        self._scene: experiment.Scene | None = None
+        #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
+        self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
+        #: How the ramp's slopes were obtained in this request ("table", "simulation").
+        self.ramp_bases: set[str] = set()
+
+    @property
+    def table_beta0(self) -> float:
+        """The beta0 the tables are read at: beta_eff for a ramp that maps exactly."""
+        return self.beta0 * (self.ramp_factor or 1.0)
 
     def range(self) -> tuple[float, float]:
-        return self.table.grid_range(self.exptime, self.beta0)
+        return self.table.grid_range(self.exptime, self.table_beta0)
+
+    def exact_from(self) -> float:
+        """Faintest-side limit of the exact ramp mapping: brighter than this, the brightest pixel's
+        last resultant passes the full well and drops out of its fit."""
+        last = self.ramp.table.duration_s / self.exptime
+        return self.table.saturation(self.exptime, self.full_well) - 2.5 * math.log10(1.0 / last)
 
     def from_table(self, magnitude: float) -> tuple[float, float, int]:
-        value, error, region = self.table.slope(self.metric, self.mode, magnitude, self.exptime, self.beta0)
-        return float(value[0]), float(error[0]), int(region[0])
+        value, error, region = self.table.slope(self.metric, self.mode, magnitude, self.exptime, self.table_beta0)
+        scale = self.ramp_factor or 1.0  # d/d beta = c_2 d/d beta_eff
+        return float(value[0]) * scale, float(error[0]) * scale, int(region[0])
 
     def at(self, magnitude: float) -> tuple[float, float, int]:
         """(slope, uncertainty, region): region -1 brighter than the grid, 0 in it, +1 fainter."""
+        if self.ramp is not None:
+            return self._ramp_at(magnitude)
         value, error, region = self.from_table(magnitude)
         if self.fidelity == "table" or region < 0:
             return value, error, region
+        return (*self._simulated(magnitude), region)
+
+    def _ramp_at(self, magnitude: float) -> tuple[float, float, int]:
+        exact = self.fidelity == "table" and self.ramp_factor is not None and magnitude >= self.exact_from()
+        if exact:
+            self.ramp_bases.add("table")
+            return self.from_table(magnitude)
+        self.ramp_bases.add("simulation")
+        hi = self.table.grid_range(self.exptime, self.beta0)[1]
+        return (*self._simulated(magnitude), 1 if magnitude > hi else 0)
+
+    def _simulated(self, magnitude: float) -> tuple[float, float]:
         key = round(magnitude, 9)
         if key not in self._cache:
             self._cache[key] = self._simulate(magnitude)
-        return (*self._cache[key], region)
+        return self._cache[key]
 
     def _simulate(self, magnitude: float) -> tuple[float, float]:
-        method = "linear" if self.fidelity == "linear" else "monte_carlo"
+        method = "monte_carlo" if self.fidelity in ("monte_carlo", "polychromatic") else "linear"
         settings = self.table.settings
         config = experiment.SimulationConfig(
             band=self.band,
@@ -141,8 +196,11 @@ class _Slopes:
             pupil_scale=str(settings["pupil_scale"]),
             method=method,
             n_wavelengths=POLYCHROMATIC_WAVELENGTHS if self.fidelity == "polychromatic" else 1,
+            **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
         )
-        result = experiment.slopes(config, [magnitude], beta0=self.beta0)[0]
+        if self._scene is None or self._scene.config != config:
+            self._scene = experiment.prepare(config)  # magnitude-independent: once per request
+        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene)[0]
         names = ("de1", "de2") if self.metric == "e" else (_TABLE_METRIC_NAMES[self.metric],)
         values, errors = [], []
         for name in names:
@@ -189,9 +247,13 @@ def solve(
     fidelity: str | None = None,
     accuracy: float | None = None,
     tables_set: tables.TableSet | None = None,
+    ramp: ramps.Ramp | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
-    error allowed) and ``magnitude`` (AB); get the third. See the module docstring."""
+    error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
+
+    ``ramp``: an up-the-ramp exposure (``ramps.Ramp``; e.g. ``ramps.Ramp.uniform(N, exptime)``)
+    instead of the paper's single final frame."""
     start = time.perf_counter()
     band = roman.check_band(band)
     sca = roman.check_sca(sca)
@@ -201,6 +263,10 @@ def solve(
         raise InputError("beta0", f"must be positive, got {beta0!r}")
     exptime = check_number(exptime, "exptime", 0.0, 1e6, open_low=True)
     full_well = check_number(full_well, "full_well", 0.0, 1e9, open_low=True)
+    if ramp is not None:
+        if not isinstance(ramp, ramps.Ramp):
+            raise InputError("ramp", f"must be a ramps.Ramp, got {type(ramp).__name__}")
+        ramp.check_exposure(exptime)
     given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
     if len(given) != 2:
         missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
@@ -215,9 +281,12 @@ def solve(
     if magnitude is not None:
         magnitude = check_number(magnitude, "magnitude", -5.0, 40.0)
     chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
-    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables())
+    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), ramp, full_well)
     table = slopes.table
-    m_sat = table.saturation(exptime, full_well)
+    m_sat_final_frame = table.saturation(exptime, full_well)
+    # The rule in use: with a ramp a star is usable until its brightest pixel saturates in the
+    # first resultant, 2.5 log10(T / t_1) brighter than the single final frame's limit.
+    m_sat = m_sat_final_frame if ramp is None else m_sat_final_frame - ramp.saturation_shift_mag(exptime)
     solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
     brightest, binding, m_nl = None, None, None
 
@@ -225,9 +294,12 @@ def solve(
     if systematic_note:
         flags.append(systematic_note)
     if solved_for == "magnitude":
-        m_nl, slope, slope_err, log_derivative, extra = _solve_magnitude(slopes, precision * beta0, tolerance, m_sat)
+        solve_for_m = _solve_magnitude if ramp is None else _solve_magnitude_ramp
+        m_nl, slope, slope_err, log_derivative, extra = solve_for_m(slopes, precision * beta0, tolerance, m_sat)
         flags += extra
         magnitude, binding = _binding(m_nl, m_sat, flags)
+        if ramp is not None and magnitude < m_sat_final_frame:
+            flags.append(_between_limits_flag(magnitude, m_sat, m_sat_final_frame))
         brightest = magnitude
         if binding == "nonlinearity" and log_derivative:
             statistical = (slope_err / abs(slope)) / abs(log_derivative)
@@ -242,7 +314,10 @@ def solve(
             )
     else:
         slope, slope_err, region = slopes.at(magnitude)
-        flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
+        if ramp is None:
+            flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
+        else:
+            flags += _ramp_magnitude_flags(magnitude, m_sat, m_sat_final_frame)
         c, c_err = abs(slope), slope_err
         if solved_for == "tolerance":
             tolerance = c * precision * beta0
@@ -262,6 +337,14 @@ def solve(
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
     conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
+    if ramp is None:
+        conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
+    else:
+        conditions["saturation_rule"] = (
+            "ramp: the brightest pixel's first resultant reaches the full well (later saturated resultants are dropped)"
+        )
+        conditions["ramp"] = ramp.conditions(exptime)
+        conditions["ramp_slopes_from"] = _ramp_basis(slopes)
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
         if chosen == "polychromatic":
@@ -284,6 +367,7 @@ def solve(
         slope=slope,
         slope_uncertainty=slope_err,
         saturation_magnitude=m_sat,
+        final_frame_saturation_magnitude=m_sat_final_frame,
         brightest_usable_magnitude=brightest,
         binding_limit=binding,
         nonlinearity_magnitude=m_nl,
@@ -346,6 +430,9 @@ def _validity_flags(
     if magnitude is None or not math.isfinite(magnitude):
         return []
     peak = _peak_electrons(slopes, magnitude)
+    if slopes.ramp is not None:
+        # The fit only sees reads up to the last unsaturated resultant (or the first one).
+        peak = min(peak, max(full_well, peak * slopes.ramp.first_usable_fraction(slopes.exptime)))
     flags = []
     if 2 * beta0 * peak >= 1:
         flags.append(
@@ -436,6 +523,92 @@ def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iteratio
         else:
             a, fa = c, fc
     return c
+
+
+def _ramp_basis(slopes: _Slopes) -> str:
+    parts = []
+    if "table" in slopes.ramp_bases:
+        parts.append(
+            f"tables at beta_eff = {slopes.ramp_factor:.6g} beta0 "
+            "(exact: quadratic NL, OLS fit, every pixel keeps every resultant)"
+        )
+    if "simulation" in slopes.ramp_bases:
+        level = "linear-response" if slopes.fidelity in ("table", "linear") else slopes.fidelity.replace("_", " ")
+        why = (
+            "the optimally weighted fit has no exact table mapping"
+            if slopes.ramp.fit == "optimal"
+            else f"brighter than m={slopes.exact_from():.2f} pixels drop saturated resultants"
+            if slopes.fidelity == "table"
+            else f"fidelity {slopes.fidelity} asked for"
+        )
+        parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
+    return "; ".join(parts) or "none needed"
+
+
+def _between_limits_flag(magnitude: float, m_sat: float, m_sat_final_frame: float) -> str:
+    return (
+        f"between the saturation limits: at m={magnitude:.2f} a single final frame would saturate (m < {m_sat_final_frame:.2f}) "
+        f"but the ramp keeps its early resultants (usable down to m={m_sat:.2f}); the answer uses the ramp fit with "
+        "saturated resultants dropped"
+    )
+
+
+def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: float) -> list[str]:
+    if magnitude < m_sat - tables.BRIGHT_MARGIN_MAG:
+        raise InputError(
+            "magnitude",
+            f"m={magnitude:g} saturates the brightest pixel in the first resultant of the ramp by more than "
+            f"{tables.BRIGHT_MARGIN_MAG} mag (usable down to m={m_sat:.2f}); such a star has no meaningful NL answer",
+        )
+    if magnitude < m_sat:
+        return [
+            f"saturated: at m={magnitude:g} the brightest pixel passes the full well already in the first resultant "
+            f"(ramp saturation at m={m_sat:.2f}); such a star cannot be used for the PSF model at all"
+        ]
+    if magnitude < m_sat_final_frame:
+        return [_between_limits_flag(magnitude, m_sat, m_sat_final_frame)]
+    return []
+
+
+def _solve_magnitude_ramp(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat: float):
+    """As :func:`_solve_magnitude` for a ramp: |c(m)| on a 0.25 mag grid from the faint end of the
+    table to the ramp's saturation magnitude (table look-ups where exact, simulations elsewhere),
+    then the crossing refined by the secant method on log |c|."""
+    flags: list[str] = []
+    required = tolerance / delta_beta
+    hi = slopes.range()[1]
+    grid = np.arange(hi, m_sat - 1e-9, -0.25)
+    if grid[-1] > m_sat + 1e-9:
+        grid = np.append(grid, m_sat)
+    value = np.array([slopes.at(float(m))[0] for m in grid])
+    above = np.abs(value) > required
+    if above[0]:
+        m_nl = float(hi + 2.5 * math.log10(abs(value[0]) / required))
+        flags.append(
+            f"extrapolated: the tolerance is only met fainter than the table (m > {hi:.2f}); m={m_nl:.2f} follows from the slope "
+            "scaling with flux, exact in the linear regime"
+        )
+        slope, slope_err = slopes.at(m_nl)[:2]
+        return m_nl, slope, slope_err, -0.4 * math.log(10), flags
+    if not above.any():
+        flags.append(f"the NL error stays below the tolerance for every star down to the ramp's saturation limit m={m_sat:.2f}")
+        return None, None, None, None, flags
+    k = int(np.argmax(above))
+    bright, faint = float(grid[k]), float(grid[k - 1])
+
+    def excess(m: float) -> float:
+        return math.log(abs(slopes.at(m)[0]) / required)
+
+    m_nl = brentq(excess, bright, faint, xtol=1e-6) if slopes.ramp_bases == {"table"} else _secant_root(excess, bright, faint)
+    slope, slope_err, _ = slopes.at(m_nl)
+    h = 0.01
+    log_derivative = (math.log(abs(slopes.at(m_nl + h)[0])) - math.log(abs(slopes.at(m_nl - h)[0]))) / (2 * h)
+    if any(np.diff(np.sign(value[np.isfinite(value)])) != 0):
+        flags.append(
+            f"the {slopes.metric} slope changes sign over the scan; the answer uses |c| and is the brightest magnitude "
+            "whose error stays within the tolerance for every fainter star"
+        )
+    return m_nl, slope, slope_err, log_derivative, flags
 
 
 def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float, str]:

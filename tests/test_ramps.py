@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, tables
+from nlpsf import experiment, ramps, solver, tables
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 
@@ -259,3 +259,49 @@ def test_optimal_ramp_runs_through_both_methods_and_names_itself(paper_config, p
         assert "ramp" in results[method].to_dict()
     # The paper's finite differences and the exact derivative agree (the NL is linear in beta here).
     assert results["linear"].bias["dR_over_R"].mean == pytest.approx(results["monte_carlo"].bias["dR_over_R"].mean, rel=2e-3)
+
+
+# --- the solver -------------------------------------------------------------------------------
+
+
+def test_solver_reads_a_uniform_ols_ramp_from_the_tables_at_beta_eff():
+    n = 8
+    ramp = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n))
+    # Same tables at beta_eff = (1 + 1/n) beta0: d/d beta = (1 + 1/n) d/d beta_eff.
+    frame = solver.solve("H158", precision=0.01, magnitude=19.0, beta0=BETA * (1 + 1 / n))
+    assert ramp.slope == pytest.approx((1 + 1 / n) * frame.slope, rel=1e-12)
+    assert ramp.conditions["ramp_slopes_from"].startswith("tables at beta_eff")
+    assert ramp.conditions["ramp"]["ma_table"] == f"uniform-{n}"
+    # Checked against a fresh linear-response simulation of the ramp itself.
+    fresh = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n), fidelity="linear")
+    assert "simulations" in fresh.conditions["ramp_slopes_from"]
+    assert fresh.slope == pytest.approx(ramp.slope, abs=3 * ramp.slope_uncertainty)
+
+
+def test_solver_saturation_rules_and_stars_between_them():
+    n = 8
+    plain = solver.solve("H158", precision=0.01, magnitude=17.0)
+    ramp = solver.solve("H158", precision=0.01, magnitude=17.0, ramp=uniform(n))
+    payload = json.loads(json.dumps(ramp.to_dict()))
+    assert payload["final_frame_saturation_magnitude"] == pytest.approx(plain.saturation_magnitude)
+    # First resultant = first read at T/n: the ramp limit is 2.5 log10(n) brighter.
+    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n), abs=1e-12)
+    assert "ramp" in ramp.conditions["saturation_rule"] and "final frame" in plain.conditions["saturation_rule"]
+    # m = 17 lies between the two limits: an answer from a fresh simulation, flagged as such.
+    assert any(f.startswith("saturated:") for f in plain.flags)
+    assert not any(f.startswith("saturated:") for f in ramp.flags)
+    assert any(f.startswith("between the saturation limits") for f in ramp.flags)
+    assert "simulations" in ramp.conditions["ramp_slopes_from"] and ramp.tolerance > 0
+    # When saturation binds, the brightest usable star is the ramp's limit, not the final frame's.
+    loose = solver.solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
+    assert loose.binding_limit == "saturation"
+    assert loose.brightest_usable_magnitude == pytest.approx(loose.saturation_magnitude)
+    assert loose.brightest_usable_magnitude < loose.final_frame_saturation_magnitude - 2.0
+    with pytest.raises(InputError) as error:
+        solver.solve("H158", precision=0.01, magnitude=10.0, ramp=uniform(n))
+    assert error.value.argument == "magnitude"
+
+
+def test_solver_without_a_ramp_reports_one_saturation_rule():
+    s = solver.solve("H158", precision=0.01, magnitude=19.0)
+    assert s.final_frame_saturation_magnitude == s.saturation_magnitude and "ramp" not in s.conditions
