@@ -68,15 +68,14 @@ from pathlib import Path
 
 import numpy as np
 
+from . import defaults
 from .checks import InputError, check_integer, check_number
 
-#: WFI frame time [s]: one read of the full array (romanisim ``parameters.read_time``).
-ROMAN_FRAME_TIME_S = 3.04
-#: Read noise per read [e-] when none is given: romanisim's default reference data (5 DN at a gain
-#: of 2 e-/DN). It only matters for the ``optimal`` fit.
-DEFAULT_READ_NOISE_E = 10.0
-RAMP_FITS = ("ols", "optimal")
-MAX_READS = 10_000
+ROMAN_FRAME_TIME_S = defaults.ROMAN_FRAME_TIME_S
+#: Read noise per read when none is given; it only matters for the ``optimal`` fit.
+DEFAULT_READ_NOISE_E = defaults.READ_NOISE_E
+RAMP_FITS = defaults.RAMP_FITS
+MAX_READS = defaults.MAX_RAMP_READS
 #: Relative slack when comparing a table's last read time with the exposure time (rounding of
 #: frame_time * n).
 _TIME_SLACK = 1e-9
@@ -136,7 +135,7 @@ class MATable:
     def uniform(cls, n: int, exptime_s: float) -> MATable:
         """``--ramp N``: N reads evenly spaced over the exposure, the last at its end, one per resultant."""
         n = check_integer(n, "ramp", 1, MAX_READS)
-        exptime_s = check_number(exptime_s, "exptime", 0.0, 1e6, open_low=True)
+        exptime_s = check_number(exptime_s, "exptime", *defaults.EXPTIME_RANGE_S)
         return cls(tuple((i,) for i in range(1, n + 1)), exptime_s / n, name=f"uniform-{n}", source="uniform reads")
 
     @classmethod
@@ -235,7 +234,8 @@ class Ramp:
         if self.fit not in RAMP_FITS:
             raise InputError("ramp_fit", f"must be one of {', '.join(RAMP_FITS)}, got {self.fit!r}")
         low_open = self.fit == "optimal"  # the optimal weights need sigma_read > 0 for empty pixels
-        object.__setattr__(self, "read_noise_e", check_number(self.read_noise_e, "read_noise", 0.0, 1e4, open_low=low_open))
+        noise = check_number(self.read_noise_e, "read_noise", *defaults.READ_NOISE_RANGE_E, open_low=low_open)
+        object.__setattr__(self, "read_noise_e", noise)
 
     @classmethod
     def uniform(cls, n: int, exptime_s: float, fit: str = "ols", read_noise_e: float = DEFAULT_READ_NOISE_E) -> Ramp:

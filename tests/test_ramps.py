@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, solver, tables
+from nlpsf import experiment, ramps, solver, tablebuild
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 
@@ -226,7 +226,7 @@ def test_the_ramp_saturation_magnitude_moves_by_the_first_resultant_time(paper_c
     ramp_cfg = uniform(8)
     config, scene = _with(paper_config, paper_scene, ramp=ramp_cfg)
     peak = float(paper_scene.peak_fraction.max())
-    final_frame = tables.saturation_magnitude(peak, config.band, T, FULL_WELL, config.oversampling)
+    final_frame = tablebuild.saturation_magnitude(peak, config.band, T, FULL_WELL, config.oversampling)
     predicted = final_frame - 2.5 * math.log10(T / (T / 8))
     step = 0.05
     grid = np.round(np.arange(final_frame + 0.5, predicted - 0.5, -step), 6)
