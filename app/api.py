@@ -73,8 +73,10 @@ def meta(request: Request) -> SafeJSONResponse:
 async def solve(body: models.SolveRequest) -> Response:
     # Runs on the event loop: a table solve takes microseconds, a thread hop would cost more.
     # Slower fidelities (Monte Carlo) go to a thread so they cannot stall other requests.
-    arguments = body.model_dump()
-    if body.fidelity == "table" and body.accuracy is None:
+    arguments = body.model_dump(exclude={"ramp", "ma_table", "ramp_fit", "read_noise"})
+    arguments["ramp"], arguments["exptime"] = body.ramp_arguments(body.exptime)
+    # A ramp the tables do not map exactly is simulated: off the event loop too.
+    if body.fidelity == "table" and body.accuracy is None and arguments["ramp"] is None:
         solution = solver.solve(**arguments)
     else:
         from starlette.concurrency import run_in_threadpool

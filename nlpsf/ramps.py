@@ -505,3 +505,42 @@ def usage_summary(usable: np.ndarray, n_resultants: int, mask: np.ndarray | None
         "pixels_by_resultants": {str(k): int(c) for k, c in enumerate(counts) if c and k > 0},
         "fewest_resultants": int(values.min()) if values.size else None,
     }
+
+
+def build(
+    reads: int | None = None,
+    ma_table: str | Path | dict | MATable | None = None,
+    fit: str = "ols",
+    read_noise_e: float = DEFAULT_READ_NOISE_E,
+    exptime_s: float | None = None,
+    allow_files: bool = True,
+) -> tuple[Ramp | None, float]:
+    """The ramp a request asks for and the exposure time to use with it (one rule for every entry point).
+
+    ``reads``: N uniform reads over the exposure (``--ramp N``); ``ma_table``: a table file or a
+    shipped table's name (files only with ``allow_files``; the web service takes names or an inline
+    object), an inline ``{"resultants": ..., "frame_time_s": ...}`` or an :class:`MATable`. Without
+    an exposure time, an MA table's exposure is its last read and otherwise the paper's 168.1 s.
+    Neither given: (None, exposure) -- the paper's single final frame.
+    """
+    if reads is not None and ma_table is not None:
+        raise InputError("ma_table", "give either a uniform ramp (ramp = N reads) or an MA table, not both")
+    if ma_table is None:
+        exptime = defaults.EXPTIME_S if exptime_s is None else exptime_s
+        if reads is None:
+            return None, exptime
+        ramp = Ramp.uniform(reads, exptime, fit, read_noise_e)
+        return ramp, exptime
+    if isinstance(ma_table, MATable):
+        table = ma_table
+    elif isinstance(ma_table, dict):
+        table = MATable.from_dict(ma_table)
+    elif not allow_files and (Path(str(ma_table)).suffix or "/" in str(ma_table) or "\\" in str(ma_table)):
+        raise InputError("ma_table", f"give a shipped table's name ({', '.join(shipped_table_names())}) or the table itself")
+    else:
+        table = load_ma_table(ma_table)
+    ramp = Ramp(table, fit, read_noise_e)
+    exptime = table.duration_s if exptime_s is None else exptime_s
+    check_number(exptime, "exptime", *defaults.EXPTIME_RANGE_S)
+    ramp.check_exposure(exptime)
+    return ramp, exptime

@@ -305,3 +305,78 @@ def test_solver_saturation_rules_and_stars_between_them():
 def test_solver_without_a_ramp_reports_one_saturation_rule():
     s = solver.solve("H158", precision=0.01, magnitude=19.0)
     assert s.final_frame_saturation_magnitude == s.saturation_magnitude and "ramp" not in s.conditions
+
+
+# --- the command line and the service -----------------------------------------------------------
+
+
+def _cli_json(capsys, *argv):
+    from nlpsf import cli
+
+    code = cli.main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_cli_solve_with_a_ramp_reports_both_saturation_rules(capsys):
+    code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ramp", "8", "--json")
+    assert code == 0
+    payload = json.loads(out)
+    library = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8))
+    assert payload["tolerance"] == library.tolerance
+    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - 2.5 * math.log10(8))
+    # An MA table's exposure defaults to its last read.
+    code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ma-table", "romanisim-109", "--json")
+    assert code == 0 and json.loads(out)["exptime"] == pytest.approx(ramps.load_ma_table("romanisim-109").duration_s)
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (["--ramp", "0"], "--ramp"),
+        (["--ma-table", "nope"], "--ma-table"),
+        (["--ramp", "4", "--ramp-fit", "optimal", "--read-noise", "-1"], "--read-noise"),
+    ],
+)
+def test_cli_bad_ramps_exit_2_naming_the_option(capsys, argv, option):
+    code, out, err = _cli_json(capsys, "simulate", "--realizations", "2", *argv, "--json")
+    assert code == 2 and out == "" and f"error: {option}:" in err
+
+
+def test_cli_simulate_and_slopes_with_a_ramp_match_the_library(capsys):
+    code, out, _ = _cli_json(capsys, "simulate", "--realizations", "4", "--magnitude", "19", "--ramp", "5", "--json")
+    assert code == 0
+    payload = json.loads(out)
+    config = SimulationConfig(realizations=4, ramp=uniform(5))
+    assert payload["dR_over_R"]["mean"] == pytest.approx(simulate(config, [19.0], [BETA])[0].dR_over_R.mean, rel=1e-12)
+    assert payload["conditions"]["ramp"]["ma_table"] == "uniform-5" and payload["ramp"]["fitted_on_all"] > 0
+    code, out, _ = _cli_json(
+        capsys, "slopes", "--realizations", "4", "--magnitude", "19", "--ma-table", "romanisim-110", "--ramp-fit", "optimal",
+        "--method", "linear", "--json",
+    )  # fmt: skip
+    assert code == 0 and json.loads(out)[0]["conditions"]["ramp"]["fit"] == "optimal"
+
+
+def test_service_takes_a_ramp_in_solve_and_simulations(tmp_path):
+    from fastapi.testclient import TestClient
+    from nlpsf.web.main import create_app
+    from nlpsf.web.settings import Limits, Settings
+
+    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4, limits=Limits(max_realizations=50))
+    with TestClient(create_app(settings)) as client:
+        answer = client.post("/api/v1/solve", json={"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": 8})
+        assert answer.status_code == 200
+        assert answer.json()["slope"] == solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8)).slope
+        question = {"band": "H158", "precision": 0.01, "magnitude": 19.0}
+        bad = client.post("/api/v1/solve", json={**question, "ma_table": {"resultants": [[1], []]}})
+        assert bad.status_code == 422 and bad.json()["field"].startswith("ma_table")
+        files = client.post("/api/v1/solve", json={**question, "ma_table": "/etc/x.json"})
+        assert files.status_code == 422 and files.json()["field"] == "ma_table"  # the service reads no files
+        body = {"band": "H158", "magnitudes": [19.0], "realizations": 4, "fidelity": "linear", "ma_table": "romanisim-110"}
+        job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
+        assert job["status"] == "done", job
+        table = ramps.load_ma_table("romanisim-110")
+        config = SimulationConfig(realizations=4, method="linear", exptime_s=table.duration_s, ramp=ramps.Ramp(table))
+        expected = simulate(config, [19.0], [BETA])[0]
+        assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(expected.dR_over_R.mean, rel=1e-12)
+        assert job["result"]["conditions"]["ramp"]["ma_table"] == "romanisim-110"
