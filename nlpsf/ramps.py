@@ -371,15 +371,26 @@ class _Covariance:
         return np.clip(lam, 0.0, None), U, U @ X
 
 
-def _optimal_weights(total: np.ndarray, k: int, cov: _Covariance, read_variance: float, prefix) -> np.ndarray:
-    lam, U, Xt = prefix
+def _optimal_coefficients(total: np.ndarray, read_variance: float, prefix) -> np.ndarray:
+    """h (P, k): the slope weights in the eigenbasis, w = h @ U."""
+    lam, _U, Xt = prefix
     g = 1.0 / (read_variance + total[:, None] * lam[None, :])  # (P, k)
     a00 = g @ (Xt[:, 0] ** 2)
     a01 = g @ (Xt[:, 0] * Xt[:, 1])
     a11 = g @ (Xt[:, 1] ** 2)
     det = a00 * a11 - a01**2
-    h = g * (a00[:, None] * Xt[None, :, 1] - a01[:, None] * Xt[None, :, 0]) / det[:, None]
-    return h @ U  # (P, k)
+    return g * (a00[:, None] * Xt[None, :, 1] - a01[:, None] * Xt[None, :, 0]) / det[:, None]
+
+
+def _optimal_groups(flat_total: np.ndarray, flat_k: np.ndarray, ramp: Ramp, exptime_s: float):
+    """(pixel indices, k, h, U) blocks of pixels with k >= 2 usable resultants."""
+    cov = _Covariance(ramp.table, exptime_s)
+    for k in np.unique(flat_k[flat_k > 1]):
+        prefix = cov.prefix(int(k))
+        where = np.flatnonzero(flat_k == k)
+        for s in range(0, where.size, _BLOCK):
+            pick = where[s : s + _BLOCK]
+            yield pick, int(k), _optimal_coefficients(flat_total[pick], ramp.read_noise_e**2, prefix), prefix[1]
 
 
 def slope_weights(total_charge: np.ndarray, usable: np.ndarray, ramp: Ramp, exptime_s: float) -> np.ndarray:
@@ -394,15 +405,9 @@ def slope_weights(total_charge: np.ndarray, usable: np.ndarray, ramp: Ramp, expt
     flat_total = np.asarray(total_charge, dtype=np.float64).ravel()
     flat_k = k_eff.ravel()
     out = np.zeros((flat_total.size, K))
-    single = flat_k == 1
-    out[single] = ols[0]
-    cov = _Covariance(ramp.table, exptime_s)
-    for k in np.unique(flat_k[~single]):
-        prefix = cov.prefix(int(k))
-        where = np.flatnonzero(flat_k == k)
-        for s in range(0, where.size, _BLOCK):
-            pick = where[s : s + _BLOCK]
-            out[pick, :k] = _optimal_weights(flat_total[pick], int(k), cov, ramp.read_noise_e**2, prefix)
+    out[flat_k == 1] = ols[0]
+    for pick, k, h, U in _optimal_groups(flat_total, flat_k, ramp, exptime_s):
+        out[pick, :k] = h @ U
     return out.reshape(*np.shape(total_charge), K)
 
 
@@ -465,8 +470,14 @@ def order_factors(
         per_k = _ols_weights(ramp.table, exptime_s) @ powers.T  # (K, orders)
         factors = np.moveaxis(per_k[np.maximum(usable, 1) - 1], -1, 0)
         return factors, usable
-    weights = slope_weights(total, usable, ramp, exptime_s)
-    return np.moveaxis(weights @ powers.T, -1, 0), usable
+    # c_n = w . <tau^n> = h . (U <tau^n>): O(k) per pixel, the weights themselves are never formed.
+    flat_total, flat_k = total.ravel(), np.maximum(usable, 1).ravel()
+    out = np.empty((len(orders), flat_total.size))
+    single = flat_k == 1
+    out[:, single] = (powers[:, 0] / _resultant_fractions(ramp.table, exptime_s)[0])[:, None]
+    for pick, k, h, U in _optimal_groups(flat_total, flat_k, ramp, exptime_s):
+        out[:, pick] = (h @ (U @ powers[:, :k].T)).T
+    return out.reshape(len(orders), *total.shape), usable
 
 
 def nonlinearity_perturbation(
