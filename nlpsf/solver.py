@@ -346,6 +346,8 @@ def solve(
             "ramp: the brightest pixel's first resultant reaches the full well (later saturated resultants are dropped)"
         )
         conditions["ramp"] = ramp.conditions(exptime)
+        # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
+        conditions["ramp_table_exact_from_magnitude"] = slopes.exact_from() if slopes.ramp_factor is not None else None
         conditions["ramp_slopes_from"] = _ramp_basis(slopes)
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])

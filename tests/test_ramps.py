@@ -364,6 +364,9 @@ def test_service_takes_a_ramp_in_solve_and_simulations(tmp_path):
 
     settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4, limits=Limits(max_realizations=50))
     with TestClient(create_app(settings)) as client:
+        meta = client.get("/api/v1/meta").json()
+        assert {t["name"] for t in meta["ma_tables"]} == set(ramps.shipped_table_names())
+        assert meta["ramp_fits"] == list(ramps.RAMP_FITS)
         answer = client.post("/api/v1/solve", json={"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": 8})
         assert answer.status_code == 200
         assert answer.json()["slope"] == solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8)).slope
