@@ -230,6 +230,7 @@ class SimulationResult:
             "magnitude": self.magnitude,
             "beta": self.beta,
             "beta_convention": self.beta_convention,
+            "beta_paper": self.beta_paper,
             "nl_model": detector.describe(self.beta_convention),
             "sigma_beta": self.sigma_beta,
             "realizations": self.realizations,

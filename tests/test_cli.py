@@ -153,3 +153,39 @@ def test_console_script_is_installed():
 def test_no_weight_cut_is_valid_json(capsys):
     code, out, _ = run(capsys, "simulate", "--weight-cut", "none", "--realizations", "3", "--json")
     assert code == 0 and json.loads(out)["conditions"]["weight_cut_rho2"] is None
+
+
+def test_galsim_convention_takes_a_negative_beta(capsys):
+    code, out, _ = run(
+        capsys, "simulate", "--beta-convention", "galsim", "--beta", "-5e-7", "--magnitude", "19", "--realizations", "3", "--json"
+    )
+    galsim = json.loads(out)
+    code_paper, out_paper, _ = run(capsys, "simulate", "--beta", "5e-7", "--magnitude", "19", "--realizations", "3", "--json")
+    paper = json.loads(out_paper)
+    assert code == code_paper == 0 and galsim["beta"] == -5e-7 and galsim["beta_paper"] == 5e-7
+    assert galsim["dR_over_R"]["mean"] == paper["dR_over_R"]["mean"]
+
+
+def test_every_option_has_help_and_shows_its_default():
+    from nlpsf.cli import COMMANDS, build_parser
+
+    for command in COMMANDS:
+        parser, _ = build_parser([command])
+        sub = parser._subparsers._group_actions[0].choices[command]
+        for action in sub._actions:
+            if action.dest in ("help", "tables_command"):
+                continue
+            assert action.help, f"{command} {action.option_strings} has no help"
+        text = sub.format_help()
+        if command in ("simulate", "slopes", "solve"):
+            assert "(default: 168.1)" in text and "(default: H158)" in text
+
+
+def test_a_closed_pipe_is_not_a_traceback():
+    # `nlpsf tables show | head -1`: the reader goes away after one line.
+    script = "import sys; from nlpsf.cli import main; sys.exit(main(['tables', 'show', '--format', 'csv']))"
+    producer = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    producer.stdout.readline()
+    producer.stdout.close()
+    _, err = producer.communicate(timeout=60)
+    assert b"Traceback" not in err and b"BrokenPipeError" not in err

@@ -45,6 +45,7 @@ def running_app():
     shutil.rmtree(_directory, ignore_errors=True)
 
 
+@pytest.mark.slow
 @schema.parametrize()
 @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 def test_api_conforms_to_its_schema(case):
