@@ -33,13 +33,23 @@ def add_band_sca(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18)")
 
 
+class _StoreGiven(argparse.Action):
+    """Store the value and note that the user gave it (an MA table's exposure is otherwise its own)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, self.dest, values)
+        setattr(namespace, f"{self.dest}_given", True)
+
+
 def add_exposure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--exptime",
         type=float,
-        default=None,
-        help=f"exposure time [s] (default {defaults.EXPTIME_S:g}, the paper's; with --ma-table the table's last read)",
+        default=defaults.EXPTIME_S,
+        action=_StoreGiven,
+        help="exposure time [s]; with --ma-table and no --exptime, the table's last read",
     )
+    parser.set_defaults(exptime_given=False)
     parser.add_argument("--full-well", type=float, default=defaults.FULL_WELL_E, help="full-well depth [e-]")
     add_ramp_options(parser)
 
@@ -76,7 +86,7 @@ def ramp_from(args: argparse.Namespace):
     """(ramps.Ramp or None, exposure time [s]) for these options."""
     from ..ramps import build
 
-    return build(args.ramp, args.ma_table, args.ramp_fit, args.read_noise, args.exptime)
+    return build(args.ramp, args.ma_table, args.ramp_fit, args.read_noise, args.exptime if args.exptime_given else None)
 
 
 def add_simulation_options(parser: argparse.ArgumentParser) -> None:
