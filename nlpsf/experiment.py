@@ -371,10 +371,21 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> 
     assert ramp is not None
     stamps = scene.stamps if index is None else scene.stamps[index : index + 1]
     weighted = scene.weighted_region if index is None else scene.weighted_region[index : index + 1]
-    charge = charge_scale * stamps
-    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,))
     K = ramp.table.n_resultants
     last = ramp.table.last_read_fractions(config.exptime_s)
+    peak = charge_scale * float(stamps.max())
+    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e:
+        # Every pixel keeps every resultant and OLS weights do not depend on the charge: one factor
+        # (the same number order_factors gives each pixel), no per-pixel work.
+        factor, _ = ramps.order_factors(np.zeros(1), ramp, config.exptime_s, config.full_well_e, (2,))
+        pixels = int(weighted.sum())
+        summary = {"pixels": pixels, "resultants": K, "fitted_on_all": pixels, "fitted_on_fewer": 0, "unusable": 0}
+        summary.update(pixels_by_resultants={str(K): pixels}, fewest_resultants=K, stamp_unusable=0, description=ramp.describe())
+        weighted_peak = scene.weighted_peak_fraction if index is None else scene.weighted_peak_fraction[index : index + 1]
+        used_peak = charge_scale * float(weighted_peak.max()) * last[-1]
+        return RampEffect(factor.reshape(1, 1, 1), np.full(1, K), used_peak, [], {"ramp": summary})
+    charge = charge_scale * stamps
+    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,))
     used_charge = charge * last[np.maximum(usable, 1) - 1]
     used_peak = float(np.where(weighted, used_charge, 0.0).max())
     summary = ramps.usage_summary(usable, K, weighted)
