@@ -66,6 +66,9 @@ READ_NOISE_E = 10.0
 #: Most reads an MA table (or ``--ramp N``) may have.
 MAX_RAMP_READS = 10_000
 READ_NOISE_RANGE_E = (0.0, 1e4)
+#: The optimal fit diagonalises a resultant covariance per number of usable resultants (O(K^3)
+#: each): at most this many resultants (Roman's imaging tables have 6 to 16).
+MAX_OPTIMAL_RESULTANTS = 100
 
 # --- names (one owner each) -------------------------------------------------------------------------
 

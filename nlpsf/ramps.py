@@ -173,19 +173,16 @@ class MATable:
         """tau of every read (time / exposure), in order."""
         return np.array([i for r in self.resultants for i in r], dtype=np.float64) * self.frame_time_s / exptime_s
 
-    def averaging_matrix(self) -> np.ndarray:
-        """(reads, resultants): resultant = reads @ A (each column averages its reads)."""
-        out = np.zeros((self.n_reads, self.n_resultants))
-        row = 0
-        for j, reads in enumerate(self.resultants):
-            out[row : row + len(reads), j] = 1.0 / len(reads)
-            row += len(reads)
-        return out
+    def resultant_means(self, reads: np.ndarray) -> np.ndarray:
+        """(..., reads) -> (..., resultants): each resultant the mean of its reads (O(reads))."""
+        sizes = np.array([len(r) for r in self.resultants])
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        return np.add.reduceat(reads, starts, axis=-1) / sizes
 
     def mean_powers(self, exptime_s: float, orders: Sequence[int]) -> np.ndarray:
         """<tau^n>_j: (orders, resultants)."""
         tau = self.read_fractions(exptime_s)
-        return np.stack([tau**n for n in orders]) @ self.averaging_matrix()
+        return self.resultant_means(np.stack([tau**n for n in orders]))
 
     def last_read_fractions(self, exptime_s: float) -> np.ndarray:
         return np.array([r[-1] for r in self.resultants], dtype=np.float64) * self.frame_time_s / exptime_s
@@ -233,6 +230,12 @@ class Ramp:
             raise InputError("ma_table", f"must be an MATable, got {type(self.table).__name__}")
         if self.fit not in RAMP_FITS:
             raise InputError("ramp_fit", f"must be one of {', '.join(RAMP_FITS)}, got {self.fit!r}")
+        if self.fit == "optimal" and self.table.n_resultants > defaults.MAX_OPTIMAL_RESULTANTS:
+            raise InputError(
+                "ramp_fit",
+                f"the optimal fit takes at most {defaults.MAX_OPTIMAL_RESULTANTS} resultants, the table has "
+                f"{self.table.n_resultants}; use ols or group the reads into fewer resultants",
+            )
         low_open = self.fit == "optimal"  # the optimal weights need sigma_read > 0 for empty pixels
         noise = check_number(self.read_noise_e, "read_noise", *defaults.READ_NOISE_RANGE_E, open_low=low_open)
         object.__setattr__(self, "read_noise_e", noise)
@@ -252,8 +255,7 @@ class Ramp:
         """c_2 for a pixel that keeps every resultant under OLS: beta_eff / beta (exact; see the module)."""
         if self.fit != "ols":
             raise ValueError("beta_eff is exact only for the OLS fit")
-        weights = _ols_weights(self.table, exptime_s)[-1]
-        return float(weights @ self.table.mean_powers(exptime_s, (2,))[0])
+        return float(_ols_factors(self.table, exptime_s, (2,))[-1, 0])
 
     def first_usable_fraction(self, exptime_s: float) -> float:
         """tau of the last read of the first resultant: the charge there must stay under the full well."""
@@ -323,15 +325,32 @@ def _resultant_fractions(table: MATable, exptime_s: float) -> np.ndarray:
     return table.mean_powers(exptime_s, (1,))[0]
 
 
-def _ols_weights(table: MATable, exptime_s: float) -> np.ndarray:
-    """(K, K): row k-1 holds the slope weights on the first k resultants (zeros after)."""
-    tau = _resultant_fractions(table, exptime_s)
-    K = tau.size
-    out = np.zeros((K, K))
-    out[0, 0] = 1.0 / tau[0]
-    for k in range(2, K + 1):
+def _ols_row(tau: np.ndarray, k: int) -> np.ndarray:
+    """OLS slope weights on the first k resultants (zeros after); k = 1: the reset is the intercept."""
+    out = np.zeros(tau.size)
+    if k == 1:
+        out[0] = 1.0 / tau[0]
+    else:
         centred = tau[:k] - tau[:k].mean()
-        out[k - 1, :k] = centred / np.sum(centred**2)
+        out[:k] = centred / np.sum(centred**2)
+    return out
+
+
+def _ols_factors(table: MATable, exptime_s: float, orders: Sequence[int]) -> np.ndarray:
+    """(K, orders): c_n = w_k . <tau^n> for every number k of usable resultants, in O(K) from running
+    sums (sum_j (tau_j - mean) m_j / sum_j (tau_j - mean)^2), so long tables cost no K x K matrix."""
+    tau = _resultant_fractions(table, exptime_s)
+    powers = table.mean_powers(exptime_s, orders)  # (orders, K)
+    k = np.arange(1, tau.size + 1, dtype=np.float64)
+    # Centre on the full table's mean first: the running sums then carry no large common offset.
+    shift = tau - tau.mean()
+    s_shift = np.cumsum(shift)
+    variance = np.cumsum(shift**2) - s_shift**2 / k
+    covariance = np.cumsum(shift * powers, axis=1) - s_shift * np.cumsum(powers, axis=1) / k
+    out = np.empty((tau.size, len(orders)))
+    out[0] = powers[:, 0] / tau[0]
+    if tau.size > 1:
+        out[1:] = (covariance[:, 1:] / variance[1:]).T
     return out
 
 
@@ -399,13 +418,15 @@ def slope_weights(total_charge: np.ndarray, usable: np.ndarray, ramp: Ramp, expt
     Unusable pixels (k = 0) get the one-resultant weights (their value is flagged, not dropped)."""
     K = ramp.table.n_resultants
     k_eff = np.maximum(usable, 1)
-    ols = _ols_weights(ramp.table, exptime_s)
-    if ramp.fit == "ols":
-        return ols[k_eff - 1]
+    tau = _resultant_fractions(ramp.table, exptime_s)
     flat_total = np.asarray(total_charge, dtype=np.float64).ravel()
     flat_k = k_eff.ravel()
     out = np.zeros((flat_total.size, K))
-    out[flat_k == 1] = ols[0]
+    if ramp.fit == "ols":
+        for k in np.unique(flat_k):
+            out[flat_k == k] = _ols_row(tau, int(k))
+        return out.reshape(*np.shape(total_charge), K)
+    out[flat_k == 1] = _ols_row(tau, 1)
     for pick, k, h, U in _optimal_groups(flat_total, flat_k, ramp, exptime_s):
         out[pick, :k] = h @ U
     return out.reshape(*np.shape(total_charge), K)
@@ -428,7 +449,7 @@ def resultant_means(total_charge: np.ndarray, ramp: Ramp, exptime_s: float, resp
     """(..., K) resultants: every read evaluated through ``response`` and averaged (explicit)."""
     tau = ramp.table.read_fractions(exptime_s)
     reads = response(np.asarray(total_charge, dtype=np.float64)[..., None] * tau)
-    return reads @ ramp.table.averaging_matrix()
+    return ramp.table.resultant_means(reads)
 
 
 def simulate_pixels(
@@ -467,7 +488,7 @@ def order_factors(
     usable = usable_resultants(total, ramp, exptime_s, full_well_e)
     powers = ramp.table.mean_powers(exptime_s, orders)  # (orders, K)
     if ramp.fit == "ols":
-        per_k = _ols_weights(ramp.table, exptime_s) @ powers.T  # (K, orders)
+        per_k = _ols_factors(ramp.table, exptime_s, orders)  # (K, orders)
         factors = np.moveaxis(per_k[np.maximum(usable, 1) - 1], -1, 0)
         return factors, usable
     # c_n = w . <tau^n> = h . (U <tau^n>): O(k) per pixel, the weights themselves are never formed.

@@ -42,6 +42,8 @@ def uniform(n, fit="ols", **kw):
         (lambda: ramps.Ramp(ramps.MATable(((1,),), 3.04), read_noise_e=-1.0), "read_noise"),
         (lambda: ramps.Ramp(ramps.MATable(((1,),), 3.04), fit="optimal", read_noise_e=0.0), "read_noise"),
         (lambda: ramps.load_ma_table("no-such-table"), "ma_table"),
+        (lambda: uniform(500, "optimal"), "ramp_fit"),
+        (lambda: ramps.MATable.uniform(ramps.MAX_READS + 1, T), "ramp"),
         (lambda: SimulationConfig(exptime_s=100.0, ramp=ramps.Ramp(ramps.load_ma_table("romanisim-109"))), "ma_table"),
         (lambda: SimulationConfig(exptime_s=100.0, ramp=uniform(4)), "ramp"),
     ],
@@ -62,6 +64,17 @@ def test_shipped_tables_load_fit_the_paper_exposure_and_are_documented():
         assert table.frame_time_s == ramps.ROMAN_FRAME_TIME_S and table.source
         table.check_exposure(T)
     assert ramps.load_ma_table("ROMANISIM-109").n_reads == 40  # names are case-insensitive
+
+
+def test_the_longest_uniform_ramp_is_cheap_and_exact():
+    # 10^4 reads: O(K) running sums, no K x K matrix; still beta (1 + 1/N) to rounding.
+    ramp = uniform(ramps.MAX_READS)
+    assert ramp.quadratic_factor(T) == pytest.approx(1 + 1 / ramps.MAX_READS, rel=1e-12)
+    factors, usable = ramps.order_factors(np.array([1e3, 2e5]), ramp, T, FULL_WELL)
+    assert usable[0] == ramps.MAX_READS and factors[0, 0] == pytest.approx(1 + 1 / ramps.MAX_READS, rel=1e-12)
+    k = int(usable[1])  # the last read within the full well: tau_k = k / N <= 1.1e5 / 2e5
+    assert k == math.floor(ramps.MAX_READS * FULL_WELL / 2e5)
+    assert factors[0, 1] == pytest.approx((k + 1) / ramps.MAX_READS, rel=1e-9)  # (k + 1)/k x tau_k
 
 
 def test_a_table_file_loads(tmp_path):
