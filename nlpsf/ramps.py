@@ -255,6 +255,10 @@ class Ramp:
         """c_2 for a pixel that keeps every resultant under OLS: beta_eff / beta (exact; see the module)."""
         if self.fit != "ols":
             raise ValueError("beta_eff is exact only for the OLS fit")
+        return self.ols_quadratic_factor(exptime_s)
+
+    def ols_quadratic_factor(self, exptime_s: float) -> float:
+        """c_2 of an OLS fit of this table, whatever the fit in use (an approximation for ``optimal``)."""
         return float(_ols_factors(self.table, exptime_s, (2,))[-1, 0])
 
     def first_usable_fraction(self, exptime_s: float) -> float:

@@ -574,19 +574,33 @@ def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: flo
 
 
 def _solve_magnitude_ramp(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat: float):
-    """As :func:`_solve_magnitude` for a ramp: |c(m)| on a 0.25 mag grid from the faint end of the
-    table to the ramp's saturation magnitude (table look-ups where exact, simulations elsewhere),
-    then the crossing refined by the secant method on log |c|."""
+    """As :func:`_solve_magnitude` for a ramp. Fainter than where the brightest pixel starts dropping
+    resultants, |c(m)| comes at once from the tables at the OLS beta_eff on a 0.05 mag grid (exact for
+    an OLS fit, a bracket for the optimal one); brighter, down to the ramp's saturation magnitude,
+    from the slopes themselves on a 0.25 mag grid (fresh simulations); the crossing is then refined on
+    the exact slopes (secant method on log |c|)."""
     flags: list[str] = []
     required = tolerance / delta_beta
     hi = slopes.range()[1]
-    grid = np.arange(hi, m_sat - 1e-9, -0.25)
-    if grid[-1] > m_sat + 1e-9:
-        grid = np.append(grid, m_sat)
-    value = np.array([slopes.at(float(m))[0] for m in grid])
+    exact = min(slopes.exact_from(), hi)
+    c_ols = slopes.ramp.ols_quadratic_factor(slopes.exptime)
+    table = slopes.table
+    faint_grid = np.arange(hi, exact - 1e-9, -0.05)
+    shift = table.magnitude_shift(slopes.exptime, c_ols * slopes.beta0)
+    faint_values = table.values(slopes.metric, slopes.mode, faint_grid - shift) * (table.beta0 / slopes.beta0)
+    bright_grid = np.arange(exact - 0.25, m_sat - 1e-9, -0.25)
+    if bright_grid.size == 0 or bright_grid[-1] > m_sat + 1e-9:
+        bright_grid = np.append(bright_grid, m_sat)
+    if slopes.fidelity == "table" and slopes.ramp_factor is not None:
+        slopes.ramp_bases.add("table")
+    if np.any(np.abs(faint_values) > required):
+        bright_grid = bright_grid[:0]  # the crossing is in the table part: no simulation needed to find it
+    grid = np.concatenate([faint_grid, bright_grid])
+    value = np.concatenate([faint_values, [slopes.at(float(m))[0] for m in bright_grid]])
     above = np.abs(value) > required
     if above[0]:
-        m_nl = float(hi + 2.5 * math.log10(abs(value[0]) / required))
+        at_hi = slopes.at(hi)[0]  # the fit in use, at the faint end of the table
+        m_nl = float(hi + 2.5 * math.log10(abs(at_hi) / required))
         flags.append(
             f"extrapolated: the tolerance is only met fainter than the table (m > {hi:.2f}); m={m_nl:.2f} follows from the slope "
             "scaling with flux, exact in the linear regime"
@@ -602,7 +616,7 @@ def _solve_magnitude_ramp(slopes: _Slopes, delta_beta: float, tolerance: float, 
     def excess(m: float) -> float:
         return math.log(abs(slopes.at(m)[0]) / required)
 
-    if slopes.ramp_bases == {"table"}:
+    if slopes.fidelity == "table" and slopes.ramp_factor is not None and bright >= slopes.exact_from():
         from scipy.optimize import brentq  # table look-ups are cheap: bracket to 1e-6 mag
 
         m_nl = brentq(excess, bright, faint, xtol=1e-6)

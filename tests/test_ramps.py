@@ -291,6 +291,19 @@ def test_solver_reads_a_uniform_ols_ramp_from_the_tables_at_beta_eff():
     assert fresh.slope == pytest.approx(ramp.slope, abs=3 * ramp.slope_uncertainty)
 
 
+def test_solver_magnitude_for_an_ols_ramp_is_the_final_frames_at_beta_eff():
+    # |c_ramp(m)| p beta0 = T with c_ramp(m) = c c(m; c beta0) is the final frame's equation at
+    # beta0' = c beta0 with the same precision p: the same magnitude.
+    n = 8
+    ramp = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=uniform(n))
+    frame = solver.solve("H158", precision=0.01, tolerance=1e-4, beta0=BETA * (1 + 1 / n))
+    assert ramp.binding_limit == frame.binding_limit == "nonlinearity"
+    assert ramp.magnitude == pytest.approx(frame.magnitude, abs=1e-5)
+    optimal = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=uniform(n, "optimal"))
+    assert "simulations" in optimal.conditions["ramp_slopes_from"]
+    assert optimal.magnitude == pytest.approx(ramp.magnitude, abs=3 * ramp.uncertainty)
+
+
 def test_solver_saturation_rules_and_stars_between_them():
     n = 8
     plain = solver.solve("H158", precision=0.01, magnitude=17.0)
