@@ -171,6 +171,17 @@ def test_optimal_fit_limits_read_noise_gives_ols_and_poisson_gives_the_end_point
     np.testing.assert_allclose(poisson, [-1 / span, 0, 0, 0, 0, 1 / span], atol=1e-6)
 
 
+def test_optimal_uniform_ramp_keeps_beta_times_one_plus_one_over_n():
+    # Read noise plus a random walk, reads evenly spaced: the covariance is symmetric under time
+    # reversal (with the intercept free), so the GLS weights are antisymmetric about the middle,
+    # w . (tau - centre)^2 = 0, and w . tau^2 = 2 centre = (n + 1)/n for every charge.
+    n = 8
+    q = np.geomspace(1.0, 1e5, 25)
+    factors, usable = ramps.order_factors(q, uniform(n, "optimal"), T, FULL_WELL)
+    assert np.all(usable == n)
+    np.testing.assert_allclose(factors[0], 1 + 1 / n, rtol=1e-9)
+
+
 @pytest.mark.parametrize("fit", ["ols", "optimal"])
 def test_ramp_factors_equal_explicit_reads_for_a_cubic_nl_with_background(fit):
     ramp = ramps.Ramp(ramps.load_ma_table("romanisim-110"), fit=fit)
