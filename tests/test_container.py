@@ -19,6 +19,7 @@ from .servers import ROOT, free_port, wait_for
 
 pytestmark = [pytest.mark.container, pytest.mark.slow]
 
+
 def _container_tool() -> Path | None:
     """The podman wrapper: $NLPSF_CONTAINER_TOOL, else a shared/tools/container beside the checkout or
     any folder above it, else one on PATH. Wherever the clone is, CI finds it (and fails, not skips,

@@ -216,6 +216,12 @@ def test_uniform_ols_ramp_metrics_equal_the_final_frame_at_beta_eff(paper_config
             assert getattr(a, metric).mean == pytest.approx(getattr(b, metric).mean, rel=1e-9, abs=1e-15)
         assert a.extras["ramp"]["fitted_on_fewer"] == 0 and a.extras["ramp"]["unusable"] == 0
         assert a.conditions["ramp"]["quadratic_beta_factor"] == pytest.approx(1 + 1 / n)
+    # Per-pixel beta maps: beta_k c is a map drawn at (c beta, c sigma) from the same normal deviates.
+    c = 1 + 1 / n
+    a = simulate(ramp, [19.0], [BETA], sigma_beta=0.1 * BETA, scene=ramp_scene)[0]
+    b = simulate(frame, [19.0], [BETA * c], sigma_beta=0.1 * BETA * c, scene=frame_scene)[0]
+    for metric in ("dR_over_R", "de1", "de2"):
+        assert getattr(a, metric).std == pytest.approx(getattr(b, metric).std, rel=1e-7)
     s_ramp = slopes(ramp, [19.0], scene=ramp_scene)[0]
     s_frame = slopes(frame, [19.0], beta0=BETA * (1 + 1 / n), scene=frame_scene)[0]
     for metric in ("dR_over_R", "de1", "de2"):
