@@ -141,7 +141,8 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
     height: 320,
     scales: {
       x: { time: false, distr: logX ? 3 : 1,
-        range: markers.length ? (u, lo, hi) => [Math.min(lo, ...markers.map((m) => m.x - 0.25)), Math.max(hi, ...markers.map((m) => m.x + 0.25))] : undefined },
+        ...(markers.length ? { range: (u, lo, hi) => [Math.min(lo, ...markers.map((m) => m.x - 0.25)),
+          Math.max(hi, ...markers.map((m) => m.x + 0.25))] } : {}) },
       y: { distr: logY ? 3 : 1 },
     },
     hooks: { draw: [(u) => drawMarkers(u, markers)] },
