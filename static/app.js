@@ -145,7 +145,8 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
           Math.max(hi, ...markers.map((m) => m.x + 0.25))] } : {}) },
       y: { distr: logY ? 3 : 1 },
     },
-    hooks: { draw: [(u) => drawMarkers(u, markers)] },
+    // Before the series, so that a point on a limit stays visible.
+    hooks: { drawClear: [(u) => drawMarkers(u, markers)] },
     axes: [
       { label: xLabel, values: axisValues },
       { label: yLabel, values: axisValues, size: 70 },
