@@ -12,6 +12,12 @@ moments do not see the overall scale. So each (magnitude, beta) costs one pertur
 realization, started from the reference fit, and the metrics depend on beta and flux only through
 their product.
 
+Up the ramp (``SimulationConfig.ramp``, see ``nlpsf.ramps``) the fitted image is s (psi - beta s psi^2
+c_2) with c_2 the per-pixel ramp factor, still linear in beta (the fit's weights do not depend on it),
+so both methods run unchanged on the pattern psi^2 c_2. The beta x flux rule then holds only while
+c_2 is one number for the whole stamp (OLS fit, no resultant saturated); saturated resultants and the
+optimal fit's charge-dependent weights break it.
+
 Methods ("fidelity"):
 - ``monte_carlo``: every realization fitted to convergence (the paper's procedure);
 - ``linear``: the first-order response, metric = beta * s * g . (-psi^2) with g the gradient of the
