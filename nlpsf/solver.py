@@ -257,7 +257,8 @@ def solve(
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
 
     ``ramp``: an up-the-ramp exposure (``ramps.Ramp``; e.g. ``ramps.Ramp.uniform(N, exptime)``)
-    instead of the paper's single final frame."""
+    instead of the paper's single final frame. ``exptime`` stays what is given: for an MA table whose
+    exposure is its last read, ``ramps.build(ma_table=...)`` returns both (as the CLI and the service do)."""
     start = time.perf_counter()
     band = roman.check_band(band)
     sca = roman.check_sca(sca)
