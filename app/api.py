@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
+from nlpsf import __version__, defaults, detector, fidelity, ramps, roman, solver, tables
 
 from . import models
 from .errors import SafeJSONResponse, input_error_response, json_safe
@@ -27,6 +27,19 @@ Number = Annotated[float, Query(allow_inf_nan=False)]
 @router.get("/health", summary="Liveness: 200 when the service answers")
 async def health() -> dict[str, str]:
     return {"status": "ok", "version": __version__}
+
+
+def _ma_table_summary(name: str) -> dict:
+    table = ramps.load_ma_table(name)
+    return {
+        "name": name,
+        "resultants": table.n_resultants,
+        "reads": table.n_reads,
+        "frame_time_s": table.frame_time_s,
+        "last_read_s": table.duration_s,
+        "first_resultant_end_s": table.resultants[0][-1] * table.frame_time_s,
+        "source": table.source,
+    }
 
 
 @router.get("/meta", summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
@@ -52,6 +65,8 @@ def meta(request: Request) -> SafeJSONResponse:
             "fidelities": list(solver.FIDELITIES),
             "simulation_fidelities": list(fidelity.SIMULATION_LEVELS),
             "beta_conventions": list(detector.BETA_CONVENTIONS),
+            "ramp_fits": list(defaults.RAMP_FITS),
+            "ma_tables": [_ma_table_summary(name) for name in ramps.shipped_table_names()],
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
                 "simulation": models.SimulationRequest().model_dump(),
@@ -75,8 +90,10 @@ def meta(request: Request) -> SafeJSONResponse:
 async def solve(body: models.SolveRequest) -> Response:
     # Runs on the event loop: a table solve takes microseconds, a thread hop would cost more.
     # Slower fidelities (Monte Carlo) go to a thread so they cannot stall other requests.
-    arguments = body.model_dump()
-    if body.fidelity == "table" and body.accuracy is None:
+    arguments = body.model_dump(exclude={"ramp", "ma_table", "ramp_fit", "read_noise"})
+    arguments["ramp"], arguments["exptime"] = body.ramp_arguments(body.exptime)
+    # A ramp the tables do not map exactly is simulated: off the event loop too.
+    if body.fidelity == "table" and body.accuracy is None and arguments["ramp"] is None:
         solution = solver.solve(**arguments)
     else:
         from starlette.concurrency import run_in_threadpool

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from nlpsf import __version__, detector, experiment, fidelity, roman
+from nlpsf import __version__, defaults, detector, experiment, fidelity, ramps, roman
 from nlpsf.checks import InputError
 
 from .settings import Limits
@@ -27,7 +27,13 @@ FIELD_FOR_ARGUMENT = {
     "exptime": "exptime",
     "full_well": "full_well",
     "weight_cut_rho2": "weight_cut_rho2",
+    "ma_table.resultants": "ma_table",
+    "ma_table.frame_time_s": "ma_table",
 }
+
+#: Request fields of an up-the-ramp exposure; absent from a final-frame request's normalised form
+#: (so its hash, the result cache's key, is what it was before ramps existed).
+RAMP_FIELDS = ("ramp", "ma_table", "ramp_fit", "read_noise")
 
 
 class LimitError(InputError):
@@ -45,6 +51,14 @@ def request_field(argument: str) -> str:
 def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
+    ramp, exptime = ramps.build(
+        request.get("ramp"),
+        request.get("ma_table"),
+        request.get("ramp_fit", "ols"),
+        request.get("read_noise", defaults.READ_NOISE_E),
+        request.get("exptime"),
+        allow_files=False,
+    )
     return experiment.SimulationConfig(
         band=request["band"],
         sca=request["sca"],
@@ -52,13 +66,14 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         seed=request["seed"],
         oversampling=request["oversampling"],
         stamp=request["stamp"],
-        exptime_s=request["exptime"],
+        exptime_s=exptime,
         full_well_e=request["full_well"],
         n_wavelengths=level.n_wavelengths,
         weight_cut_rho2=request["weight_cut_rho2"],
         pupil_scale=request["pupil_scale"],
         method=level.method,
         throughput=request.get("throughput", roman.DEFAULT_THROUGHPUT),
+        ramp=ramp,
     )
 
 
@@ -117,7 +132,11 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
         ]
     )
     normalised = dict(request)
+    if config.ramp is None:
+        for name in RAMP_FIELDS:
+            normalised.pop(name, None)
     normalised.update(
+        exptime=config.exptime_s,
         band=config.band,
         n_wavelengths=config.n_wavelengths,
         magnitudes=magnitudes,

@@ -47,7 +47,10 @@ async def submit(
 ) -> Response:
     app = request.app
     try:
-        normalised = simulation.validate(body.model_dump(), app.state.settings.limits)
+        payload = body.model_dump()
+        if body.ma_table is not None and "exptime" not in body.model_fields_set:
+            payload["exptime"] = None  # an MA table's exposure is its last read
+        normalised = simulation.validate(payload, app.state.settings.limits)
     except InputError as error:
         return input_error_response(error, simulation.request_field(error.argument))
     key = simulation.request_hash(normalised)
