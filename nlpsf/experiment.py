@@ -73,8 +73,8 @@ class SimulationConfig:
                 f"{self.realizations} realizations of {self.stamp}x{self.stamp} stamps need "
                 f"{self.realizations * self.stamp**2 * 8 / 1e9:.1f} GB; the limit is {MAX_STAMP_BYTES / 1e9:.1f} GB",
             )
-        check_number(self.exptime_s, "exptime", 0.0, 1e6, open_low=True)
-        check_number(self.full_well_e, "full_well", 0.0, 1e9, open_low=True)
+        check_number(self.exptime_s, "exptime", *roman.EXPTIME_RANGE_S)
+        check_number(self.full_well_e, "full_well", *roman.FULL_WELL_RANGE_E)
         if self.method not in METHODS:
             raise InputError("method", f"must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.pupil_scale not in roman.PUPIL_SCALE_RULES:

@@ -39,6 +39,10 @@ ZERNIKE_REFERENCE_WAVELENGTH_NM = 1293.0
 DEFAULT_EXPTIME_S = 168.1
 #: Full-well depth [e-] quoted by the paper.
 DEFAULT_FULL_WELL_E = 1.1e5
+#: Accepted ranges. The lower ends are physical floors, not just > 0: a subnormal exposure or full
+#: well (5e-324) passes a '> 0' check but underflows to 0 in the magnitude shifts (log10 of 0).
+EXPTIME_RANGE_S = (1e-3, 1e6)
+FULL_WELL_RANGE_E = (1.0, 1e9)
 
 #: Imaging bands, bluest first. F184 and K213 use the long-wavelength (cold) pupil mask.
 BANDS: tuple[str, ...] = ("R062", "Z087", "Y106", "J129", "H158", "F184", "W146", "K213")

@@ -19,8 +19,8 @@ from .cli import register
 
 
 def _configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
-    parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    parser.add_argument("--host", default=None, help="address (default $NLPSF_HOST, else 127.0.0.1; 0.0.0.0 for all)")
+    parser.add_argument("--port", type=int, default=None, help="port (default $NLPSF_PORT, else 8000)")
     parser.add_argument(
         "--workers",
         type=int,
@@ -32,9 +32,7 @@ def _configure(parser: argparse.ArgumentParser) -> None:
 
 
 def app_directory() -> str:
-    """The folder holding the ``app`` package: $NLPSF_APP_DIR, else beside this package, else the cwd."""
-    if os.environ.get("NLPSF_APP_DIR"):
-        return os.environ["NLPSF_APP_DIR"]
+    """The folder holding the ``app`` package: beside this package (a checkout), else the cwd."""
     beside = Path(__file__).resolve().parent.parent
     if (beside / "app" / "main.py").is_file():
         return str(beside)
@@ -43,28 +41,33 @@ def app_directory() -> str:
 
 @register("serve", _configure, "start the web service: REST API under /api/v1, docs at /docs, the page at /")
 def _serve(args: argparse.Namespace) -> int:
-    from .checks import InputError, check_integer
+    from .checks import check_integer
 
-    check_integer(args.port, "port", 0, 65535)
-    # One HTTP worker per core: on 2 cores that doubles the calculator's throughput (see benchmarks/bench_service.py).
-    raw = args.workers if args.workers is not None else os.environ.get("NLPSF_WORKERS") or min(os.cpu_count() or 1, 8)
-    try:
-        number = int(raw)
-    except ValueError:
-        raise InputError("workers", f"must be an integer, got {raw!r}") from None
-    workers = check_integer(number, "workers", 1, 64)
     directory = app_directory()
     if directory not in sys.path:
         sys.path.insert(0, directory)
+    from pydantic import ValidationError
+
+    from app.settings import Settings
+
+    try:
+        settings = Settings()  # the environment's NLPSF_* variables, checked once, here
+    except ValidationError as error:
+        problems = "; ".join(f"NLPSF_{'_'.join(map(str, e['loc'])).upper()}: {e['msg']}" for e in error.errors())
+        print(f"nlpsf serve: invalid setting: {problems}", file=sys.stderr)
+        return 2
+    host = args.host if args.host is not None else settings.host
+    port = check_integer(args.port if args.port is not None else settings.port, "port", 0, 65535)
+    workers = check_integer(args.workers if args.workers is not None else settings.http_workers, "workers", 1, 64)
     # Child processes (HTTP workers, the simulation forkserver) must find the app package too.
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (directory, os.environ.get("PYTHONPATH", "")) if p)
     options = {"access_log": args.access_log, "log_level": args.log_level}
     if workers == 1:
         import uvicorn
 
-        uvicorn.run("app.main:app", host=args.host, port=args.port, app_dir=directory, timeout_graceful_shutdown=10, **options)
+        uvicorn.run("app.main:app", host=host, port=port, app_dir=directory, timeout_graceful_shutdown=10, **options)
         return 0
-    return _supervise(workers, args.host, args.port, directory, options)
+    return _supervise(workers, host, port, directory, options)
 
 
 def _listening_socket(host: str, port: int) -> socket.socket:

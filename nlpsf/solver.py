@@ -162,13 +162,25 @@ class _Slopes:
         return value, error
 
 
-def _choose_fidelity(fidelity: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+#: The smallest relative accuracy a request may ask for.
+MIN_ACCURACY = 1e-6
+
+
+def choose_fidelity(fidelity: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+    """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
     if accuracy is None:
         fidelity = fidelity or "table"
         if fidelity not in FIDELITIES:
             raise InputError("fidelity", f"must be one of {', '.join(FIDELITIES)}, got {fidelity!r}")
         return fidelity, []
     accuracy = check_number(accuracy, "accuracy", 0.0, 10.0, open_low=True)
+    if accuracy < MIN_ACCURACY:
+        # Far below any level's measured error (their reference is itself a finite Monte Carlo):
+        # such a target cannot be verified, and silently running the costliest level would hide that.
+        raise InputError(
+            "accuracy",
+            f"must be at least {MIN_ACCURACY:g} (a relative error); no fidelity level can be shown to meet {accuracy:g}",
+        )
     from . import fidelity as fidelity_module
 
     chosen, note = fidelity_module.cheapest_meeting(accuracy, band, metric, mode)
@@ -199,8 +211,8 @@ def solve(
     beta0 = check_number(beta0, "beta0", 1e-12, 1e-3, open_low=False)
     if beta0 <= 0:
         raise InputError("beta0", f"must be positive, got {beta0!r}")
-    exptime = check_number(exptime, "exptime", 0.0, 1e6, open_low=True)
-    full_well = check_number(full_well, "full_well", 0.0, 1e9, open_low=True)
+    exptime = check_number(exptime, "exptime", *roman.EXPTIME_RANGE_S)
+    full_well = check_number(full_well, "full_well", *roman.FULL_WELL_RANGE_E)
     given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
     if len(given) != 2:
         missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
@@ -214,7 +226,7 @@ def solve(
         tolerance = check_number(tolerance, "tolerance", 0.0, 1e3, open_low=True)
     if magnitude is not None:
         magnitude = check_number(magnitude, "magnitude", -5.0, 40.0)
-    chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
+    chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
     slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables())
     table = slopes.table
     m_sat = table.saturation(exptime, full_well)

@@ -481,9 +481,9 @@ def curve(
 ) -> dict:
     """Slope vs magnitude for plotting (the paper's Figs. 3 and 5), at the given conditions."""
     check_metric_mode(metric, mode)
-    exptime = check_number(exptime, "exptime", 0.0, 1e6, open_low=True)
+    exptime = check_number(exptime, "exptime", *roman.EXPTIME_RANGE_S)
     beta0 = check_number(beta0, "beta0", 1e-12, 1e-3)
-    full_well = check_number(full_well, "full_well", 0.0, 1e9, open_low=True)
+    full_well = check_number(full_well, "full_well", *roman.FULL_WELL_RANGE_E)
     table = (tables or load_tables()).get(band, sca)
     lo, hi = table.grid_range(exptime, beta0)
     m = np.round(np.arange(math.ceil(lo / step) * step, hi + step / 2, step), 6)
