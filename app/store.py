@@ -137,6 +137,13 @@ def process_start_time(pid: int) -> str | None:
 def describe_fault(error: BaseException, path: str) -> str:
     """What is wrong with the database, in words a client may read (the path stays in the log)."""
     text = str(error).lower()
+    # SQLite often says only "disk I/O error" or "unable to open": ask the file system first.
+    with contextlib.suppress(OSError):
+        filesystem = os.statvfs(os.path.dirname(os.path.abspath(path)))
+        if filesystem.f_flag & os.ST_RDONLY:
+            return "the job database is read-only (its file system is mounted read-only)"
+        if filesystem.f_bavail * filesystem.f_frsize < 64 * 1024:
+            return "the disk holding the job database is full"
     if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
         return "the disk holding the job database is full"
     if "disk is full" in text or "database or disk is full" in text:

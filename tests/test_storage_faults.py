@@ -89,6 +89,7 @@ def app_for(db: Path):
     return create_app(Settings(db_path=str(db), job_workers=1, max_queue=8))
 
 
+@pytest.mark.slow
 def test_deleted_database(tmp_path, caplog):
     db = tmp_path / "jobs.sqlite3"
     aside = tmp_path / "aside"
@@ -108,6 +109,7 @@ def test_deleted_database(tmp_path, caplog):
         )
 
 
+@pytest.mark.slow
 def test_corrupted_database(tmp_path, caplog):
     db = tmp_path / "jobs.sqlite3"
     backup = tmp_path / "backup.sqlite3"
@@ -121,6 +123,7 @@ def test_corrupted_database(tmp_path, caplog):
         exercise_fault(client, caplog, db, inject=corrupt, restore=lambda: shutil.copy(backup, db), reason="corrupt")
 
 
+@pytest.mark.slow
 def test_read_only_database(tmp_path, caplog):
     with small_filesystem(tmp_path / "fs") as directory:
         db = directory / "jobs.sqlite3"
@@ -130,10 +133,11 @@ def test_read_only_database(tmp_path, caplog):
 
         with TestClient(app_for(db)) as client:
             exercise_fault(
-                client, caplog, db, inject=lambda: remount("ro"), restore=lambda: remount("rw"), reason="read-only", reads_work=True
+                client, caplog, db, inject=lambda: remount("ro"), restore=lambda: remount("rw"), reason="read-only"
             )
 
 
+@pytest.mark.slow
 def test_full_disk(tmp_path, caplog):
     with small_filesystem(tmp_path / "fs", size="1m") as directory:
         db = directory / "jobs.sqlite3"
@@ -141,7 +145,7 @@ def test_full_disk(tmp_path, caplog):
 
         def fill():
             # Every free block taken, then new rows are what cannot be written.
-            with open(filler, "wb") as handle, contextlib.suppress(OSError):
+            with contextlib.suppress(OSError), open(filler, "wb") as handle:
                 while True:
                     handle.write(b"\0" * 4096)
                     handle.flush()
@@ -153,7 +157,7 @@ def test_full_disk(tmp_path, caplog):
                 for seed in range(100, 140):
                     client.post("/api/v1/simulations", json={**SMALL, "seed": seed, "realizations": 1})
 
-            exercise_fault(client, caplog, db, inject=inject, restore=lambda: filler.unlink(), reason="full", reads_work=True)
+            exercise_fault(client, caplog, db, inject=inject, restore=lambda: filler.unlink(), reason="full")
 
 
 def test_corrupt_database_at_start_leaves_the_calculator_running(tmp_path, caplog):
