@@ -131,7 +131,8 @@ def _supervise(workers: int, host: str, port: int, directory: str, options: dict
         time.sleep(0.2)
         for index, process in enumerate(processes):
             if not process.is_alive() and not stopping:
-                if time.monotonic() - started.get(process.pid or 0, 0.0) < 10:
+                # Killed by a signal (kill -9, the OOM killer) is not a configuration error: restart it.
+                if (process.exitcode or 0) > 0 and time.monotonic() - started.get(process.pid or 0, 0.0) < 10:
                     # Dying at start is a configuration error; restarting would only repeat it.
                     print(f"nlpsf serve: worker {process.pid} failed at start ({process.exitcode}); stopping", file=sys.stderr)
                     stopping, status = True, 1

@@ -107,8 +107,8 @@ def test_an_absurd_accuracy_is_refused_clearly(client, accuracy):
 
 
 def test_every_response_carries_the_security_headers(client):
-    for method, path in [("GET", "/"), ("GET", "/api/v1/health"), ("GET", "/docs"), ("GET", "/api/v1/tables?sca=0"), ("GET", "/nope")]:
-        response = client.request(method, path)
+    for path in ["/", "/api/v1/health", "/docs", "/api/v1/tables?sca=0", "/nope"]:
+        response = client.get(path)
         headers = response.headers
         assert "frame-ancestors 'none'" in headers["content-security-policy"], path
         assert "script-src 'self'" in headers["content-security-policy"]
@@ -216,10 +216,10 @@ def test_a_request_over_the_memory_budget_is_refused_naming_it(tmp_path):
 
 
 def test_a_job_over_its_memory_budget_fails_cleanly(tmp_path):
-    from app import worker
-
     # The budget is checked on the request (above); a job that still outgrows it meets RLIMIT_AS.
     import multiprocessing
+
+    from app import worker
 
     def child():
         worker.limit_memory(64)

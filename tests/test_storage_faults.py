@@ -132,9 +132,7 @@ def test_read_only_database(tmp_path, caplog):
             subprocess.run(["mount", "-o", f"remount,{mode}", str(directory)], check=True)
 
         with TestClient(app_for(db)) as client:
-            exercise_fault(
-                client, caplog, db, inject=lambda: remount("ro"), restore=lambda: remount("rw"), reason="read-only"
-            )
+            exercise_fault(client, caplog, db, inject=lambda: remount("ro"), restore=lambda: remount("rw"), reason="read-only")
 
 
 @pytest.mark.slow
