@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from importlib import resources
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -31,7 +32,9 @@ log = logging.getLogger("nlpsf.web")
 
 
 def static_dir(settings: Settings) -> Path:
-    return Path(settings.static_dir) if settings.static_dir else Path(__file__).resolve().parent.parent / "static"
+    """The page's files: the setting static_dir, else the package data ``nlpsf.web.static`` (a
+    folder in a wheel or a checkout alike)."""
+    return Path(settings.static_dir) if settings.static_dir else Path(str(resources.files("nlpsf.web.static")))
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

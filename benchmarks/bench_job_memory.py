@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def _child(request: dict, queue) -> None:
-    from app import simulation
+    from nlpsf.web import simulation
 
     simulation.run(request)
     queue.put(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
@@ -41,7 +41,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--largest", type=int, default=1200, help="realizations of the largest run (default 1200)")
     args = parser.parse_args()
-    from app import models
+    from nlpsf.web import models
 
     base = models.SimulationRequest(magnitudes=[18.3, 20.0], betas=[5e-7]).model_dump()
     print(f"{'fidelity':<14} {'realizations':>12} {'stamp px':>12} {'peak MB':>9}")
@@ -50,8 +50,8 @@ def main() -> int:
         points = []
         for realizations in (args.largest // 6, args.largest):
             request = {**base, **extra, "fidelity": fidelity, "realizations": realizations, "band": "H158"}
-            from app import simulation
-            from app.settings import Limits
+            from nlpsf.web import simulation
+            from nlpsf.web.settings import Limits
 
             normalised = simulation.validate(request, Limits(max_realizations=10**6, max_stamp_pixels=10**12, max_work=10**15))
             pixels = realizations * normalised["stamp"] ** 2

@@ -201,7 +201,17 @@ def start_uvicorn_workers(db_path: Path, port: int, workers: int, env: dict, log
     from tests.servers import healthy
 
     environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), **env}
-    command = [sys.executable, "-m", "uvicorn", "app.main:app", "--workers", str(workers), "--port", str(port), "--no-access-log"]
+    command = [
+        sys.executable,
+        "-m",
+        "uvicorn",
+        "nlpsf.web.main:app",
+        "--workers",
+        str(workers),
+        "--port",
+        str(port),
+        "--no-access-log",
+    ]
     process = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
     wait_for(lambda: healthy(port, process), timeout=90, interval=0.2)
     return process

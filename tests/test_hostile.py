@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
+from nlpsf.web.main import create_app
+from nlpsf.web.settings import Limits, Settings
+from nlpsf.web.store import Store
 
-from app.main import create_app
-from app.settings import Limits, Settings
-from app.store import Store
-from nlpsf import solver
+from nlpsf import defaults, solver
 from nlpsf.checks import InputError
 
 from .servers import ROOT
@@ -100,7 +100,7 @@ def test_an_absurd_accuracy_is_refused_clearly(client, accuracy):
     response = client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": accuracy})
     assert response.status_code == 422
     assert response.json()["field"] == "accuracy"
-    assert f"{solver.MIN_ACCURACY:g}" in response.json()["message"]
+    assert f"{defaults.ACCURACY_RANGE[0]:g}" in response.json()["message"]
 
 
 # --- exposure --------------------------------------------------------------------------------
@@ -219,7 +219,7 @@ def test_a_job_over_its_memory_budget_fails_cleanly(tmp_path):
     # The budget is checked on the request (above); a job that still outgrows it meets RLIMIT_AS.
     import multiprocessing
 
-    from app import worker
+    from nlpsf.web import worker
 
     def child():
         worker.limit_memory(64)

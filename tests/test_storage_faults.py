@@ -19,9 +19,8 @@ from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-
-from app.main import create_app
-from app.settings import Settings
+from nlpsf.web.main import create_app
+from nlpsf.web.settings import Settings
 
 from .servers import wait_for
 
