@@ -1,6 +1,7 @@
 """Load test of the service on loopback: POST /api/v1/solve (table solves) in four conditions.
 
-Phases (issue 10): right after a cold start under 200 connections; idle; while a maximal simulation
+Phases (issue 10): right after a cold start, a burst of 200 new connections (one solve each, sent
+the moment /health first answers); idle; while a maximal simulation
 runs (the largest the default limits allow); while simulating solves (fidelity monte_carlo, which
 are jobs) queue and run. Targets: >= 2000 req/s and p99 < 20 ms idle and with simulating solves,
 every request answered at the cold start. ``--process-models`` also measures uvicorn's own
@@ -225,31 +226,114 @@ def stop(server: subprocess.Popen) -> None:
         server.kill()
 
 
+async def _burst(host: str, port: int, connections: int) -> tuple[list[float], int]:
+    """``connections`` new connections at once, one solve each: every latency, and the failures."""
+    latencies: list[float] = []
+    errors: list[int] = []
+    body = json.dumps(BODIES[0])
+    payload = (
+        f"POST /api/v1/solve HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nConnection: close\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n{body}"
+    ).encode()
+
+    async def one() -> None:
+        start = time.perf_counter()
+        try:
+            reader, writer = await asyncio.open_connection(host, port)
+            writer.write(payload)
+            head = await reader.readuntil(b"\r\n\r\n")
+            writer.close()
+        except (OSError, asyncio.IncompleteReadError):
+            errors.append(1)
+            return
+        latencies.append(time.perf_counter() - start)
+        if not head.startswith(b"HTTP/1.1 200"):
+            errors.append(1)
+
+    await asyncio.gather(*(one() for _ in range(connections)))
+    return sorted(latencies), len(errors)
+
+
 def cold_start(args, directory: Path, env: dict) -> dict:
-    """Start a server and, the moment /health answers, put 200 connections on it."""
+    """Start a server and, the moment /health answers, open 200 connections at once, one solve each."""
     port = free_port()
     server = start_server(directory / "cold.sqlite3", port, env=env, log=directory / "cold.log")
     try:
-        return measure(args.generator, f"http://127.0.0.1:{port}/api/v1/solve", 200, 3.0)
+        start = time.perf_counter()
+        latencies, errors = asyncio.run(_burst("127.0.0.1", port, 200))
+        seconds = time.perf_counter() - start
     finally:
         stop(server)
 
+    def pick(q: float) -> float:
+        return 1000 * latencies[min(len(latencies) - 1, int(q * len(latencies)))] if latencies else float("nan")
 
-def process_models(args, directory: Path, env: dict) -> dict[str, dict]:
-    out = {}
-    for name in ("nlpsf serve (SO_REUSEPORT supervisor)", "uvicorn --workers (shared socket)"):
-        port = free_port()
-        if name.startswith("uvicorn"):
-            server = start_uvicorn_workers(directory / "pm.sqlite3", port, args.workers, env, directory / "pm.log")
-        else:
-            server = start_server(directory / "pm.sqlite3", port, env=env, log=directory / "pm.log")
-        try:
-            url = f"http://127.0.0.1:{port}/api/v1/solve"
-            measure(args.generator, url, args.connections, 2.0)  # warm-up
-            out[name] = measure(args.generator, url, args.connections, args.duration)
-        finally:
-            stop(server)
+    return {
+        "requests": len(latencies),
+        "seconds": seconds,
+        "rps": len(latencies) / seconds,
+        "p50_ms": pick(0.5),
+        "p90_ms": pick(0.9),
+        "p99_ms": pick(0.99),
+        "max_ms": 1000 * latencies[-1] if latencies else float("nan"),
+        "errors": errors,
+    }
+
+
+def process_models(args, directory: Path, env: dict) -> dict[str, list[dict]]:
+    """Both process models, idle, alternating ``args.rounds`` times (the machine's other load drifts)."""
+    out: dict[str, list[dict]] = {"nlpsf serve (SO_REUSEPORT supervisor)": [], "uvicorn --workers (shared socket)": []}
+    for _ in range(args.rounds):
+        for name, runs in out.items():
+            port = free_port()
+            if name.startswith("uvicorn"):
+                server = start_uvicorn_workers(directory / "pm.sqlite3", port, args.workers, env, directory / "pm.log")
+            else:
+                server = start_server(directory / "pm.sqlite3", port, env=env, log=directory / "pm.log")
+            try:
+                url = f"http://127.0.0.1:{port}/api/v1/solve"
+                measure(args.generator, url, args.connections, 2.0)  # warm-up
+                runs.append(measure(args.generator, url, args.connections, args.duration))
+                if shutil.which("ss"):
+                    runs[-1]["spread"] = connection_spread(port, args.connections)
+            finally:
+                stop(server)
     return out
+
+
+def connection_spread(port: int, connections: int, bursts: int = 6) -> list[list[int]]:
+    """How a burst of keep-alive connections lands on the HTTP workers: connections per worker
+    process (from ``ss``), largest first, for each of ``bursts`` bursts."""
+    import collections
+    import socket
+
+    spread = []
+    for _ in range(bursts):
+        sockets = [socket.create_connection(("127.0.0.1", port)) for _ in range(connections)]
+        for sock in sockets:
+            sock.sendall(b"GET /api/v1/health HTTP/1.1\r\nHost: x\r\n\r\n")
+            sock.recv(4096)
+        listing = subprocess.run(
+            ["ss", "-tnpH", "state", "established", f"( sport = :{port} )"], capture_output=True, text=True, check=False
+        ).stdout
+        spread.append(sorted(collections.Counter(re.findall(r"pid=(\d+)", listing)).values(), reverse=True))
+        for sock in sockets:
+            sock.close()
+        time.sleep(0.3)
+    return spread
+
+
+def report_process_models(args, models: dict[str, list[dict]]) -> None:
+    print(f"\nprocess model, idle, {args.workers} workers, same load, {args.rounds} alternating rounds:")
+    for name, runs in models.items():
+        for result in runs:
+            print(row(name, result))
+    first, second = models.values()
+    ratios = [a["rps"] / b["rps"] for a, b in zip(first, second, strict=True)]
+    print(f"  supervisor / uvicorn --workers throughput per round: {', '.join(f'{r:.2f}' for r in ratios)}")
+    for name, runs in models.items():
+        if "spread" in runs[-1]:
+            print(f"  {name}: {args.connections} keep-alive connections per worker, 6 bursts: {runs[-1]['spread']}")
 
 
 def main() -> int:
@@ -261,6 +345,8 @@ def main() -> int:
     parser.add_argument("--job-realizations", type=int, default=2000, help="the maximal simulation (default 2000)")
     parser.add_argument("--simulating-solves", type=int, default=8, help="monte_carlo solves queued at once (default 8)")
     parser.add_argument("--process-models", action="store_true", help="also compare uvicorn --workers, idle")
+    parser.add_argument("--only-process-models", action="store_true", help="only that comparison")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the comparison (default 3)")
     args = parser.parse_args()
 
     directory = Path(tempfile.mkdtemp(prefix="nlpsf-bench-"))
@@ -270,8 +356,14 @@ def main() -> int:
     print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
     print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
     results: dict[str, dict] = {}
+    if args.only_process_models:
+        try:
+            report_process_models(args, process_models(args, directory, env))
+        finally:
+            shutil.rmtree(directory, ignore_errors=True)
+        return 0
     try:
-        results["solve, cold start, 200 connections, 3 s"] = cold_start(args, directory, env)
+        results["solve, cold start, burst of 200 connections"] = cold_start(args, directory, env)
         port = free_port()
         server = start_server(directory / "jobs.sqlite3", port, env=env, log=directory / "server.log")
         base = f"http://127.0.0.1:{port}/api/v1"
@@ -326,14 +418,10 @@ def main() -> int:
     )
     print(f"simulating solves at the end of their phase: {', '.join(f'{states.count(s)} {s}' for s in sorted(set(states)))}")
     if models:
-        print(f"\nprocess model, idle, {args.workers} workers, same load:")
-        for name, result in models.items():
-            print(row(name, result))
-        first, second = models.values()
-        print(f"  supervisor / uvicorn --workers throughput: {first['rps'] / second['rps']:.2f}")
+        report_process_models(args, models)
     idle, busy = results["solve, idle"], results["solve, maximal simulation running"]
     solving = results[f"solve, {args.simulating_solves} simulating solves queued"]
-    cold = results["solve, cold start, 200 connections, 3 s"]
+    cold = results["solve, cold start, burst of 200 connections"]
     checks = [
         (f"idle: >= {TARGET_RPS:.0f} req/s", idle["rps"] >= TARGET_RPS),
         (f"idle: p99 < {TARGET_P99_MS:.0f} ms", idle["p99_ms"] < TARGET_P99_MS),
