@@ -91,6 +91,7 @@ def meta(request: Request) -> SafeJSONResponse:
     responses={
         **ERRORS,
         202: {"model": models.Job, "description": "the solve needs a simulation that is still running: poll the Location"},
+        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
         429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
         503: {"model": models.Problem, "description": "the solve needs a simulation and the job store is unavailable"},
     },

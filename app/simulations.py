@@ -64,6 +64,7 @@ def queue_full_response(full: QueueFull) -> Response:
     responses={
         200: {"model": models.Job, "description": "finished: answered from stored results, or within `wait`"},
         202: {"model": models.Job, "description": "accepted: queued or running; poll the Location"},
+        413: {**_PROBLEM, "description": "the request body is larger than max_body_bytes"},
         422: {**_PROBLEM, "description": "invalid input or over a work limit (the limit is named)"},
         429: {**_PROBLEM, "description": "the queue is full; retry later (Retry-After)"},
         503: {**_PROBLEM, "description": "the job store is unavailable (the reason is given); the calculator still answers"},
