@@ -53,7 +53,7 @@ def main() -> int:
             from nlpsf.web import simulation
             from nlpsf.web.settings import Limits
 
-            normalised = simulation.validate(request, Limits(max_realizations=10**6, max_stamp_pixels=10**12, max_work=10**15))
+            normalised = simulation.validate(request, Limits(max_realizations=100_000, max_stamp_pixels=10**11, max_work=10**15))
             pixels = realizations * normalised["stamp"] ** 2
             peak = peak_bytes(normalised)
             points.append((pixels, peak))
