@@ -128,7 +128,12 @@ def test_read_only_database(tmp_path, caplog):
         db = directory / "jobs.sqlite3"
 
         def remount(mode: str):
-            subprocess.run(["mount", "-o", f"remount,{mode}", str(directory)], check=True)
+            # A remount to read-only fails (busy) while a write is open: the service writes every
+            # few seconds, so try again until it falls between two writes.
+            def done() -> bool:
+                return subprocess.run(["mount", "-o", f"remount,{mode}", str(directory)], capture_output=True).returncode == 0
+
+            wait_for(done, timeout=20, interval=0.05)
 
         with TestClient(app_for(db)) as client:
             exercise_fault(client, caplog, db, inject=lambda: remount("ro"), restore=lambda: remount("rw"), reason="read-only")
