@@ -11,12 +11,12 @@ state, so any web worker can answer for any job, and what is in it survives a re
   needs its ticket (an unguessable 128-bit token, stored only as its SHA-256). Identical requests
   in flight share one run but not a ticket, and a run is cancelled only when every ticket on it is;
 - ``instances``: the live service processes and their heartbeats, so a job whose owner died is
-  reported as interrupted rather than left "running" forever.
+  queued again (or, after ``MAX_ATTEMPTS`` starts, reported interrupted) rather than left "running".
 
 Storage faults (file deleted, corrupt, read-only, disk full) raise :class:`StoreUnavailable` with a
-reason a client may see (never the file's path); :attr:`Store.state` follows them, and the log says
-so once per change of state. Nothing is cached across calls, so a file that comes back is used again
-at once, without a restart.
+reason a client may see (never the file's path); :attr:`Store.state` follows them (any failure sets
+it, only a heartbeat write clears it, so it cannot flicker), and the log says so once per change.
+Nothing is cached across calls, so a file that comes back is used again at once, without a restart.
 """
 
 from __future__ import annotations
@@ -236,19 +236,6 @@ class Store:
             log.warning("job database %s is usable again", self.path)
         else:
             log.error("job database %s unavailable: %s (%s: %s)", self.path, reason, type(error).__name__, error)
-
-    def probe(self) -> bool:
-        """A small write (the caller's heartbeat or an empty transaction): the only way back to "ok"."""
-        try:
-            self._guard(self._probe)
-        except StoreUnavailable:
-            return False
-        self._set_state("ok", None)
-        return True
-
-    def _probe(self) -> None:
-        with self._transaction_raw():
-            pass
 
     def status(self) -> dict[str, Any]:
         return {"state": self.state, "reason": self.reason, "since": self.since}
