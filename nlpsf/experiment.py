@@ -311,6 +311,54 @@ def _weighted_region(n: int, params: np.ndarray, cut: float) -> np.ndarray:
     return rho2 <= limit
 
 
+def _scene_flags(scene: Scene) -> list[str]:
+    """Flags about the configuration itself: a grid too coarse for the PSF, a stamp too small for the weight."""
+    config = scene.config
+    flags = []
+    # Nyquist: the effective PSF is band-limited at D / lambda; a fine pixel coarser than
+    # lambda / (2 D) aliases it. Measured (linear slopes at m = 20, against N = 6): at q = 0.69-0.84
+    # (Z087, Y106 at N = 2) the size slope is off by 0.5-0.7 % and e1 by 9-13 %; R062 at N = 2 (q = 0.49)
+    # by 3.5 % and 10 %; at N = 1 the moments fail. At q >= 1 the error is below 0.02 %, but R062 at
+    # N = 3 (q = 0.74) is 0.14 % and 1.6 % off.
+    wavelength_nm = float(np.min(scene.psf.wavelengths_nm))
+    nyquist_arcsec = wavelength_nm * 1e-9 / (2 * roman.DIAMETER_M) * 206264.80624709636
+    q = nyquist_arcsec / config.grid.scale_arcsec
+    if q < 1.0:
+        needed = math.ceil(config.oversampling / q)
+        flags.append(
+            f"undersampled: fine pixels of {config.grid.scale_arcsec * 1e3:.1f} mas are coarser than the Nyquist sampling "
+            f"lambda/2D = {nyquist_arcsec * 1e3:.1f} mas at {wavelength_nm:.0f} nm (q = {q:.2f}); moments of an aliased PSF are "
+            f"biased (measured: up to 3.5 % in size and 13 % in e at q = 0.5-0.85); use --oversampling {needed} or more"
+        )
+    # The weight window must fit in the stamp: a cut weight is a different estimator.
+    n = config.stamp
+    ok = scene.reference.ok
+    if np.any(ok):
+        params = scene.reference.parameters()[ok]
+        cut = config.weight_cut_rho2 if math.isfinite(config.weight_cut_rho2) else defaults.GALSIM_WEIGHT_CUT_RHO2
+        coords = np.arange(n) - (n - 1) / 2.0
+        border = np.concatenate(
+            [
+                np.stack([coords, np.full(n, coords[0])], 1),
+                np.stack([coords, np.full(n, coords[-1])], 1),
+                np.stack([np.full(n, coords[0]), coords], 1),
+                np.stack([np.full(n, coords[-1]), coords], 1),
+            ]
+        )
+        x0, y0, mxx, mxy, myy = params.T
+        det = mxx * myy - mxy**2
+        dx = border[None, :, 0] - x0[:, None]
+        dy = border[None, :, 1] - y0[:, None]
+        rho2 = (myy[:, None] * dx**2 - 2 * mxy[:, None] * dx * dy + mxx[:, None] * dy**2) / det[:, None]
+        inside = int(np.sum(rho2.min(axis=1) < cut))
+        if inside:
+            flags.append(
+                f"stamp too small: the adaptive-moment weight window (rho^2 <= {cut:.4g}) reaches past the {n}x{n} stamp edge in "
+                f"{inside} of {int(ok.sum())} realizations, so the moments are those of a truncated image; use a larger --stamp"
+            )
+    return flags
+
+
 def _failure_flag(status: np.ndarray) -> list[str]:
     bad = status != moments.MomentStatus.OK
     if not np.any(bad):
@@ -354,6 +402,7 @@ def simulate(
         raise InputError("scene", "the scene was prepared for a different configuration")
     conditions = config.conditions()
     settings = config.moment_settings
+    scene_flags = _scene_flags(scene)
     results: list[SimulationResult] = []
     total = len(mags) * len(paper_betas)
     share = scene.elapsed_s / total
@@ -385,7 +434,7 @@ def simulate(
                     de1=Statistic.of(d_e1),
                     de2=Statistic.of(d_e2),
                     failed_realizations=int(np.sum(status != moments.MomentStatus.OK)),
-                    flags=flags + _failure_flag(status) + _zero_flag(d_r),
+                    flags=scene_flags + flags + _failure_flag(status) + _zero_flag(d_r),
                     elapsed_s=time.perf_counter() - start + share,
                     centroid_offset=offset,
                     extras=extras,
@@ -461,15 +510,53 @@ def _simulate_scatter(
         fit = moments.concatenate(parts)
         d_r, d_e1, d_e2, status = _metrics(fit, scene.reference, ref_index=0)
     else:
-        gradient = moments.pixel_response(stamp[None], moments.select(scene.reference, 0), settings)[0]
+        # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
+        # metric(beta_k) = metric(beta) + g(I_beta) . (-(beta_k - beta) s psi^2), exact at the mean beta.
+        reference0 = moments.select(scene.reference, slice(0, 1))
+        uniform = -(beta * charge_scale) * stamp[None] ** 2
+        fit_beta = moments.fit_perturbed(stamp[None], uniform, reference0, settings)
+        base = np.array(moments.differences(fit_beta, reference0))[:, 0]
+        gradient = moments.pixel_response(stamp[None] + uniform, fit_beta, settings)[0]
+        # The gradient of R is relative to R(beta); Delta R / R is relative to the unperturbed R0.
+        gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
         response = gradient * (-(stamp**2) * charge_scale)  # d metric / d beta_k, shape (3, n, n)
-        linear = np.einsum("kij,bij->bk", response, betas)
-        ok = bool(scene.reference.ok[0])
+        linear = base[None, :] + np.einsum("kij,bij->bk", response, betas - beta)
+        ok = bool(scene.reference.ok[0] and fit_beta.ok[0])
         d_r, d_e1, d_e2 = (np.full(draws, np.nan) if not ok else linear[:, k] for k in range(3))
-        status = np.full(draws, scene.reference.status[0])
+        status = np.full(draws, scene.reference.status[0] if not fit_beta.ok[0] else fit_beta.status[0])
         closed = np.sqrt(np.sum(response**2, axis=(1, 2))) * sigma_beta
         extras["linear_scatter_closed_form"] = {"dR_over_R": float(closed[0]), "de1": float(closed[1]), "de2": float(closed[2])}
+    if config.method == "monte_carlo":
+        spread = np.array([np.nanstd(v) for v in (d_r, d_e1, d_e2)])
+        flags += _noise_floor_flag(scene, charge_scale, beta, sigma_beta, settings, spread)
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
+
+
+#: Smallest spread of a metric (Delta R / R, Delta e) that the Monte Carlo resolves: the differences of
+#: two converged float64 fits carry ~1e-16 of noise, so a spread expected below 1e-13 is at least
+#: 0.1 % noise (measured: at sigma_beta = 1e-20 the Monte Carlo gives 13368 per unit sigma_beta where
+#: the linear response gives 2692).
+MONTE_CARLO_SPREAD_FLOOR = 1e-13
+
+
+def _noise_floor_flag(
+    scene: Scene, charge_scale: float, beta: float, sigma_beta: float, settings: moments.MomentSettings, measured: np.ndarray
+) -> list[str]:
+    """Flag a Monte Carlo scatter whose expected spread is below what float64 fits resolve."""
+    stamp = scene.stamps[0]
+    reference0 = moments.select(scene.reference, slice(0, 1))
+    if not reference0.ok[0]:
+        return []
+    gradient = moments.pixel_response(stamp[None], reference0, settings)[0]
+    expected = np.sqrt(np.sum((gradient * stamp**2) ** 2, axis=(1, 2))) * charge_scale * sigma_beta
+    if np.all(expected >= MONTE_CARLO_SPREAD_FLOOR):
+        return []
+    return [
+        f"below the Monte Carlo's resolution: sigma_beta={sigma_beta:g} should spread the metrics by only "
+        f"{', '.join(f'{n} {v:.2g}' for n, v in zip(METRICS, expected, strict=True))}, under the ~{MONTE_CARLO_SPREAD_FLOOR:g} "
+        f"that differences of converged float64 fits resolve; the measured spread ({', '.join(f'{v:.2g}' for v in measured)}) "
+        "is numerical noise. The linear method is exact here (the response is linear in sigma_beta)."
+    ]
 
 
 METRICS = ("dR_over_R", "de1", "de2")
@@ -554,6 +641,7 @@ def slopes(
         raise InputError("scene", "the scene was prepared for a different configuration")
     conditions = config.conditions()
     settings = config.moment_settings
+    scene_flags = _scene_flags(scene)
     out: list[SlopeResult] = []
     share = scene.elapsed_s / len(mags)
     for index, magnitude in enumerate(mags):
@@ -563,9 +651,10 @@ def slopes(
         flux = float(photometry.magnitude_to_electrons(magnitude, config.band, config.exptime_s))
         charge_scale = flux * config.oversampling**2
         peak = charge_scale * scene.peak_fraction
-        flags = _validity_flags(scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak)
+        flags = scene_flags + _validity_flags(scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak)
         if config.method == "monte_carlo":
             bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings)
+            flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias)
             scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene)[0]
             scatter = {}
             for name in METRICS:
@@ -616,6 +705,39 @@ def _finite_difference_slopes(scene: Scene, charge_scale: float, beta: float, se
     slope = (values[1] - values[0]) / (2 * PAPER_BETA_STEP * beta)
     status = np.where(statuses[0] != moments.MomentStatus.OK, statuses[0], statuses[1])
     return {name: Statistic.of(slope[k]) for k, name in enumerate(METRICS)}, status
+
+
+def _cut_jump_flags(
+    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, bias: dict[str, Statistic]
+) -> list[str]:
+    """Flag finite-difference slopes that a hard weight cut made jumpy.
+
+    With the weight cut at rho^2 = 25, a pixel that crosses the cut between beta0 x 0.99 and x 1.01
+    changes the moments by a step (w = e^-12.5 of its value), which the 2 % beta step turns into a
+    slope error; the symmetric difference itself is otherwise exact to (1 %)^2. The exact derivative
+    at beta0 (the linear method) has no such step, so the two are compared and a difference above
+    0.1 % is reported. Measured (50 centroids, H158/J129/F184, m = 18.5-22.5): the two agree to 1e-8
+    unless a realization crosses the cut, which moves the e slopes by 0.1-1.8 % and, being one
+    outlier, also sets the stated standard error (the difference is then 1.0 standard error).
+    """
+    if not math.isfinite(scene.config.weight_cut_rho2):
+        return []
+    exact, _, _ = _linear_slopes(scene, charge_scale, beta, settings)
+    off = []
+    for name in METRICS:
+        fd, lin = bias[name], exact[name]
+        if fd.mean is None or lin.mean is None or lin.mean == 0:
+            continue
+        difference = abs(fd.mean - lin.mean)
+        if difference > 1e-3 * abs(lin.mean):
+            off.append(f"{name} {100 * difference / abs(lin.mean):.2g} %")
+    if not off:
+        return []
+    return [
+        f"jumpy finite difference: the Monte Carlo slope differs from the exact derivative at beta0 by {', '.join(off)}: "
+        f"pixels cross the hard weight cut at rho^2 = {scene.config.weight_cut_rho2:g} between "
+        "beta0 x 0.99 and x 1.01; the linear method (or --weight-cut none) has no such step"
+    ]
 
 
 def _linear_slopes(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):

@@ -56,6 +56,7 @@ def pid_alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.slow
 def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
     with TestClient(create_app(settings_for(tmp_path, max_queue=1))) as client:
         first = client.post("/api/v1/simulations", json=LONG)
@@ -134,6 +135,7 @@ def test_repeated_request_is_answered_from_stored_results(tmp_path):
         assert other["cached"] is False
 
 
+@pytest.mark.slow
 def test_progress_rises_to_one(tmp_path):
     body = {"band": "H158", "magnitudes": [18.0 + 0.05 * k for k in range(60)], "betas": [4e-7, 5e-7, 6e-7], "realizations": 200}
     with TestClient(create_app(settings_for(tmp_path, limits=Limits(max_grid=500)))) as client:

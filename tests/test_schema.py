@@ -49,6 +49,7 @@ def running_app():
 SEED = 20261126
 
 
+@pytest.mark.slow
 @schema.parametrize()
 @seed(SEED)
 @settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
