@@ -17,7 +17,7 @@ from typing import Any
 from nlpsf import __version__, defaults, detector, experiment, fidelity, ramps, roman
 from nlpsf.checks import InputError
 
-from .settings import Limits
+from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
 #: Library argument names -> request field names, so a 422 names what the user typed.
 FIELD_FOR_ARGUMENT = {
@@ -81,7 +81,7 @@ def work_of(config: experiment.SimulationConfig, cells: int) -> int:
     return config.realizations * config.stamp**2 * (config.n_wavelengths + cells)
 
 
-def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
+def validate(request: dict[str, Any], limits: Limits, memory_mb: int | None = None) -> dict[str, Any]:
     """Check a request against the library and the service's limits.
 
     Returns the normalised request (band upper-cased, values as the library will use them), whose
@@ -131,6 +131,15 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
             ),
         ]
     )
+    if memory_mb is not None:
+        need = config.realizations * config.stamp**2 * JOB_BYTES_PER_STAMP_PIXEL
+        if need > memory_mb * 1024**2:
+            raise LimitError(
+                "realizations",
+                "job_memory_mb",
+                f"needs about {need / 1024**2:,.0f} MB ({JOB_BYTES_PER_STAMP_PIXEL} bytes per stamp pixel, measured); "
+                f"the limit job_memory_mb is {memory_mb:,} MB",
+            )
     normalised = dict(request)
     if config.ramp is None:
         for name in RAMP_FIELDS:
@@ -168,8 +177,40 @@ def estimate_seconds(normalised: dict[str, Any]) -> float:
 Progress = Callable[[float, str], None]
 
 
+#: A job that is a solve at a simulating fidelity (POST /solve), not a simulation grid.
+SOLVE_KIND = "solve"
+
+
+def solve_job(arguments: dict[str, Any]) -> dict[str, Any]:
+    """The job request of a solve that needs a simulation (``arguments`` as ``solver.solve`` takes them)."""
+    return {"kind": SOLVE_KIND, "solve": arguments}
+
+
 def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[str, Any]:
     """Run a validated request with the library; ``progress(fraction, message)`` along the way."""
+    if normalised.get("kind") == SOLVE_KIND:
+        from nlpsf import solver
+
+        if progress:
+            progress(0.0, "simulating the slopes this solve needs")
+        arguments = dict(normalised["solve"])
+        ramp_request = arguments.pop("ramp_request", None)
+        if ramp_request is not None:
+            from nlpsf import ramps
+
+            given = arguments["exptime"] if ramp_request["exptime_given"] else None
+            arguments["ramp"], arguments["exptime"] = ramps.build(
+                ramp_request["ramp"],
+                ramp_request["ma_table"],
+                ramp_request["ramp_fit"],
+                ramp_request["read_noise"],
+                given,
+                allow_files=False,
+            )
+        solution = solver.solve(**arguments).to_dict()
+        if progress:
+            progress(1.0, "done")
+        return _json_safe(solution)
     start = time.perf_counter()
     config = build_config(normalised)
     magnitudes, betas, sigma_betas = normalised["magnitudes"], normalised["betas"], normalised["sigma_betas"]

@@ -238,7 +238,8 @@ class _Slopes:
         return value, error
 
 
-def _choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+    """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
     if accuracy is None:
         return levels.check_level(level or "table"), []
     accuracy = check_number(accuracy, "accuracy", *defaults.ACCURACY_RANGE)
@@ -297,7 +298,7 @@ def solve(
         tolerance = check_number(tolerance, "tolerance", *defaults.TOLERANCE_RANGE)
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
-    chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
+    chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
     if throughput is not None:
         roman.check_throughput(throughput)
     slopes = _Slopes(
