@@ -38,9 +38,10 @@ def add_exposure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--full-well", type=float, default=defaults.FULL_WELL_E, help="full-well depth [e-]")
 
 
-def add_simulation_options(parser: argparse.ArgumentParser) -> None:
-    """Options shared by every command that runs the simulator."""
-    add_band_sca(parser)
+def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = True) -> None:
+    """Options shared by every command that runs the simulator (``band_sca=False``: the caller adds its own)."""
+    if band_sca:
+        add_band_sca(parser)
     parser.add_argument(
         "--realizations",
         type=int,
