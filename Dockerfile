@@ -6,6 +6,8 @@
 #
 # Configuration by environment (see README): NLPSF_WORKERS (HTTP worker processes), NLPSF_JOB_WORKERS
 # (simulation processes), NLPSF_MAX_QUEUE, NLPSF_MAX_* limits, NLPSF_DB_PATH (default /data, a volume).
+# The container listens on all its interfaces (a published port needs it): on a shared network set
+# NLPSF_API_KEYS (comma-separated keys required on /api/v1) and NLPSF_ALLOWED_HOSTS (Host header check).
 ARG BASE_IMAGE=python:3.11-slim
 FROM ${BASE_IMAGE}
 

@@ -12,6 +12,12 @@ moments do not see the overall scale. So each (magnitude, beta) costs one pertur
 realization, started from the reference fit, and the metrics depend on beta and flux only through
 their product.
 
+Up the ramp (``SimulationConfig.ramp``, see ``nlpsf.ramps``) the fitted image is s (psi - beta s psi^2
+c_2) with c_2 the per-pixel ramp factor, still linear in beta (the fit's weights do not depend on it),
+so both methods run unchanged on the pattern psi^2 c_2. The beta x flux rule then holds only while
+c_2 is one number for the whole stamp (OLS fit, no resultant saturated); saturated resultants and the
+optimal fit's charge-dependent weights break it.
+
 Methods ("fidelity"):
 - ``monte_carlo``: every realization fitted to convergence (the paper's procedure);
 - ``linear``: the first-order response, metric = beta * s * g . (-psi^2) with g the gradient of the
@@ -29,7 +35,7 @@ from functools import cached_property
 
 import numpy as np
 
-from . import __version__, defaults, detector, moments, optics, photometry, render, roman
+from . import __version__, defaults, detector, moments, optics, photometry, ramps, render, roman
 from .checks import InputError, check_choice, check_exptime, check_full_well, check_integer, check_number, check_numbers
 from .fidelity import level_name
 
@@ -60,6 +66,8 @@ class SimulationConfig:
     pupil_scale: str = defaults.PUPIL_SCALE
     pupil_bin: int = 4
     method: str = "monte_carlo"
+    #: Up-the-ramp exposure (MA table and slope fit); None: the paper's single final frame.
+    ramp: ramps.Ramp | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band", roman.check_band(self.band))
@@ -79,6 +87,10 @@ class SimulationConfig:
         check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
         moments.MomentSettings(weight_cut_rho2=self.weight_cut_rho2)
         _ = self.optics  # validates n_wavelengths and pupil_bin
+        if self.ramp is not None:
+            if not isinstance(self.ramp, ramps.Ramp):
+                raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
+            self.ramp.check_exposure(self.exptime_s)
 
     @property
     def optics(self) -> optics.OpticsConfig:
@@ -105,6 +117,9 @@ class SimulationConfig:
     def conditions(self) -> dict:
         """What every number computed under this configuration holds for."""
         out = asdict(self)
+        out.pop("ramp")
+        if self.ramp is not None:
+            out["ramp"] = self.ramp.conditions(self.exptime_s)
         if not math.isfinite(self.weight_cut_rho2):
             out["weight_cut_rho2"] = None  # no cut (JSON has no infinity)
         out.update(
@@ -267,18 +282,27 @@ def _reference_summary(scene: Scene, index: slice | int | None = None) -> dict:
     }
 
 
-def _validity_flags(scene: Scene, charge_scale: float, beta_map: np.ndarray, peak_electrons: np.ndarray, index=None) -> list[str]:
-    """Plain-language warnings: saturation and a non-monotonic quadratic where the weight is."""
+def _validity_flags(
+    scene: Scene, charge_scale: float, beta_map: np.ndarray, peak_electrons: np.ndarray, index=None, ramp_effect=None
+) -> list[str]:
+    """Plain-language warnings: saturation and a non-monotonic quadratic where the weight is.
+
+    With a ramp, saturation is judged per resultant (``ramp_effect`` carries those flags) and the
+    quadratic only has to be monotonic up to the charge of the last read each pixel's fit uses."""
     flags: list[str] = []
     config = scene.config
     over = peak_electrons > config.full_well_e
-    if np.any(over):
+    if ramp_effect is not None:
+        flags += ramp_effect.flags
+    elif np.any(over):
         flags.append(
             f"saturated: the brightest pixel holds up to {peak_electrons.max():.4g} e-, above the full well "
             f"of {config.full_well_e:.4g} e-, in {int(over.sum())} of {over.size} realizations; "
             "a real detector would clip this star, so the numbers describe an unphysical case"
         )
-    if beta_map.size == 1:
+    if ramp_effect is not None:
+        worst = float(np.min(1.0 - 2.0 * np.max(beta_map) * ramp_effect.used_peak_e))
+    elif beta_map.size == 1:
         peak = scene.weighted_peak_fraction if index is None else scene.weighted_peak_fraction[index]
         worst = float(np.min(1.0 - 2.0 * float(beta_map.ravel()[0]) * charge_scale * peak))
     else:
@@ -378,6 +402,73 @@ def _metrics(fit: moments.Moments, reference: moments.Moments, ref_index=None):
     return d_r, d_e1, d_e2, status
 
 
+@dataclass(frozen=True)
+class RampEffect:
+    """What the ramp fit does to the quadratic NL at one magnitude.
+
+    ``factor`` is the per-pixel c_2 (``ramps.order_factors``): the fitted image is
+    s (psi - beta s psi^2 c_2), so the final-frame machinery runs unchanged with -psi^2 replaced
+    by -psi^2 c_2 (and d image / d beta = -s^2 psi^2 c_2 exactly: the weights do not depend on beta).
+    """
+
+    factor: np.ndarray
+    usable: np.ndarray
+    used_peak_e: float
+    flags: list[str]
+    extras: dict
+
+
+def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> RampEffect:
+    """Per-pixel ramp factors, resultants used, and the flags, for all realizations (or one)."""
+    config = scene.config
+    ramp = config.ramp
+    assert ramp is not None
+    stamps = scene.stamps if index is None else scene.stamps[index : index + 1]
+    weighted = scene.weighted_region if index is None else scene.weighted_region[index : index + 1]
+    K = ramp.table.n_resultants
+    last = ramp.table.last_read_fractions(config.exptime_s)
+    peak = charge_scale * float(stamps.max())
+    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e:
+        # Every pixel keeps every resultant and OLS weights do not depend on the charge: one factor
+        # (the same number order_factors gives each pixel), no per-pixel work.
+        factor, _ = ramps.order_factors(np.zeros(1), ramp, config.exptime_s, config.full_well_e, (2,))
+        pixels = int(weighted.sum())
+        summary = {"pixels": pixels, "resultants": K, "fitted_on_all": pixels, "fitted_on_fewer": 0, "unusable": 0}
+        summary.update(pixels_by_resultants={str(K): pixels}, fewest_resultants=K, stamp_unusable=0, description=ramp.describe())
+        weighted_peak = scene.weighted_peak_fraction if index is None else scene.weighted_peak_fraction[index : index + 1]
+        used_peak = charge_scale * float(weighted_peak.max()) * last[-1]
+        return RampEffect(factor.reshape(1, 1, 1), np.full(1, K), used_peak, [], {"ramp": summary})
+    charge = charge_scale * stamps
+    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,))
+    used_charge = charge * last[np.maximum(usable, 1) - 1]
+    used_peak = float(np.where(weighted, used_charge, 0.0).max())
+    summary = ramps.usage_summary(usable, K, weighted)
+    summary["stamp_unusable"] = int(np.sum(usable == 0))
+    summary["description"] = ramp.describe()
+    flags = []
+    first_end = ramp.table.resultants[0][-1] * ramp.table.frame_time_s
+    if summary["unusable"]:
+        hit = int(np.sum(np.any(weighted & (usable == 0), axis=(1, 2))))
+        flags.append(
+            f"saturated in the first resultant: {summary['unusable']} pixels that carry weight in the moments (in {hit} of "
+            f"{len(stamps)} realizations) pass the full well of {config.full_well_e:.4g} e- by t = {first_end:.4g} s; they are "
+            "unusable (their value here is the first resultant's), so the numbers describe an unphysical case"
+        )
+    if summary["fitted_on_fewer"]:
+        final_peak = float(charge.max())
+        flags.append(
+            f"ramp: {summary['fitted_on_fewer']} of {summary['pixels']} pixels that carry weight were fitted on fewer than "
+            f"{K} resultants (down to {summary['fewest_resultants']}; saturated resultants dropped, as the ground pipeline "
+            f"does); a single final frame would be saturated (peak {final_peak:.4g} e- > full well {config.full_well_e:.4g} e-)"
+        )
+    return RampEffect(factors[0], usable, used_peak, flags, {"ramp": summary})
+
+
+def _nl_shape(stamps: np.ndarray, effect: RampEffect | None) -> np.ndarray:
+    """psi^2 for the final frame, psi^2 c_2 after a ramp fit: the pattern that -beta s multiplies."""
+    return stamps**2 if effect is None else stamps**2 * effect.factor
+
+
 def simulate(
     config: SimulationConfig,
     magnitudes: Sequence[float] | float,
@@ -457,14 +548,16 @@ def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: mom
     stamps, reference = scene.stamps, scene.reference
     product = beta * charge_scale
     peak = charge_scale * scene.peak_fraction
-    flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak)
-    extras: dict = {}
+    effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
+    flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
+    extras: dict = {} if effect is None else dict(effect.extras)
+    shape = _nl_shape(stamps, effect)
     if config.method == "monte_carlo":
-        fit = moments.fit_perturbed(stamps, -product * stamps**2, reference, settings)
+        fit = moments.fit_perturbed(stamps, -product * shape, reference, settings)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
     else:
         gradient = moments.pixel_response(stamps, reference, settings)
-        linear = np.einsum("bkij,bij->bk", gradient, -(stamps**2)) * product
+        linear = np.einsum("bkij,bij->bk", gradient, -shape) * product
         ok = reference.ok
         d_r, d_e1, d_e2 = (np.where(ok, linear[:, k], np.nan) for k in range(3))
         status = reference.status
@@ -484,9 +577,11 @@ def _simulate_scatter(
     rng = np.random.default_rng([config.seed, 1, stream])
     betas = detector.draw_pixel_betas(rng, beta, sigma_beta, (draws, *stamp.shape))
     peak = np.full(draws, charge_scale * stamp.max())
-    flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0)
+    effect = ramp_effect(scene, charge_scale, index=0) if config.ramp is not None else None
+    flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
-    extras: dict = {}
+    extras: dict = {} if effect is None else dict(effect.extras)
+    shape = stamp**2 if effect is None else stamp**2 * effect.factor[0]
     single_reference = moments.Moments(
         *(np.full(draws, v) for v in ref_params),
         amplitude=np.full(draws, scene.reference.amplitude[0]),
@@ -502,7 +597,7 @@ def _simulate_scatter(
             parts.append(
                 moments.fit_perturbed(
                     base,
-                    -(block * charge_scale) * stamp**2,
+                    -(block * charge_scale) * shape,
                     moments.select(single_reference, slice(s, s + block.shape[0])),
                     settings,
                 )
@@ -511,15 +606,16 @@ def _simulate_scatter(
         d_r, d_e1, d_e2, status = _metrics(fit, scene.reference, ref_index=0)
     else:
         # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
-        # metric(beta_k) = metric(beta) + g(I_beta) . (-(beta_k - beta) s psi^2), exact at the mean beta.
+        # metric(beta_k) = metric(beta) + g(I_beta) . (-(beta_k - beta) s psi^2), exact at the mean beta
+        # (psi^2 c_2 after a ramp fit).
         reference0 = moments.select(scene.reference, slice(0, 1))
-        uniform = -(beta * charge_scale) * stamp[None] ** 2
+        uniform = -(beta * charge_scale) * shape[None]
         fit_beta = moments.fit_perturbed(stamp[None], uniform, reference0, settings)
         base = np.array(moments.differences(fit_beta, reference0))[:, 0]
         gradient = moments.pixel_response(stamp[None] + uniform, fit_beta, settings)[0]
         # The gradient of R is relative to R(beta); Delta R / R is relative to the unperturbed R0.
         gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
-        response = gradient * (-(stamp**2) * charge_scale)  # d metric / d beta_k, shape (3, n, n)
+        response = gradient * (-shape * charge_scale)  # d metric / d beta_k, shape (3, n, n)
         linear = base[None, :] + np.einsum("kij,bij->bk", response, betas - beta)
         ok = bool(scene.reference.ok[0] and fit_beta.ok[0])
         d_r, d_e1, d_e2 = (np.full(draws, np.nan) if not ok else linear[:, k] for k in range(3))
@@ -528,7 +624,7 @@ def _simulate_scatter(
         extras["linear_scatter_closed_form"] = {"dR_over_R": float(closed[0]), "de1": float(closed[1]), "de2": float(closed[2])}
     if config.method == "monte_carlo":
         spread = np.array([np.nanstd(v) for v in (d_r, d_e1, d_e2)])
-        flags += _noise_floor_flag(scene, charge_scale, beta, sigma_beta, settings, spread)
+        flags += _noise_floor_flag(scene, charge_scale, beta, sigma_beta, settings, spread, shape)
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
 
 
@@ -540,15 +636,23 @@ MONTE_CARLO_SPREAD_FLOOR = 1e-13
 
 
 def _noise_floor_flag(
-    scene: Scene, charge_scale: float, beta: float, sigma_beta: float, settings: moments.MomentSettings, measured: np.ndarray
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    sigma_beta: float,
+    settings: moments.MomentSettings,
+    measured: np.ndarray,
+    shape: np.ndarray | None = None,
 ) -> list[str]:
-    """Flag a Monte Carlo scatter whose expected spread is below what float64 fits resolve."""
+    """Flag a Monte Carlo scatter whose expected spread is below what float64 fits resolve.
+    ``shape``: the NL pattern psi^2 (psi^2 c_2 after a ramp fit)."""
     stamp = scene.stamps[0]
+    shape = stamp**2 if shape is None else shape
     reference0 = moments.select(scene.reference, slice(0, 1))
     if not reference0.ok[0]:
         return []
     gradient = moments.pixel_response(stamp[None], reference0, settings)[0]
-    expected = np.sqrt(np.sum((gradient * stamp**2) ** 2, axis=(1, 2))) * charge_scale * sigma_beta
+    expected = np.sqrt(np.sum((gradient * shape) ** 2, axis=(1, 2))) * charge_scale * sigma_beta
     if np.all(expected >= MONTE_CARLO_SPREAD_FLOOR):
         return []
     return [
@@ -583,6 +687,7 @@ class SlopeResult:
     failed_realizations: int
     flags: list[str]
     elapsed_s: float
+    extras: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         c = self.conditions
@@ -603,6 +708,7 @@ class SlopeResult:
             "elapsed_s": self.elapsed_s,
             "fidelity": c["fidelity"],
             "conditions": c,
+            **self.extras,
         }
 
 
@@ -651,10 +757,13 @@ def slopes(
         flux = float(photometry.magnitude_to_electrons(magnitude, config.band, config.exptime_s))
         charge_scale = flux * config.oversampling**2
         peak = charge_scale * scene.peak_fraction
-        flags = scene_flags + _validity_flags(scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak)
+        effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
+        flags = scene_flags + _validity_flags(
+            scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
+        )
         if config.method == "monte_carlo":
-            bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings)
-            flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias)
+            bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect)
+            flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
             scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene)[0]
             scatter = {}
             for name in METRICS:
@@ -670,7 +779,7 @@ def slopes(
             )
             flags += [f for f in scatter_runs.flags if f not in flags]
         else:
-            bias, scatter, status = _linear_slopes(scene, charge_scale, beta, settings)
+            bias, scatter, status = _linear_slopes(scene, charge_scale, beta, settings, effect)
             basis = "linear response at beta0: ||g . dI/dbeta|| averaged over centroid realizations"
         out.append(
             SlopeResult(
@@ -686,6 +795,7 @@ def slopes(
                 failed_realizations=int(np.sum(status != moments.MomentStatus.OK)),
                 flags=flags + _failure_flag(status),
                 elapsed_s=time.perf_counter() - start + share,
+                extras={} if effect is None else dict(effect.extras),
             )
         )
     if progress:
@@ -693,12 +803,15 @@ def slopes(
     return out
 
 
-def _finite_difference_slopes(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
+def _finite_difference_slopes(
+    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, effect: RampEffect | None = None
+):
     stamps, reference = scene.stamps, scene.reference
+    shape = _nl_shape(stamps, effect)
     values = []
     statuses = []
     for factor in (1 - PAPER_BETA_STEP, 1 + PAPER_BETA_STEP):
-        fit = moments.fit_perturbed(stamps, -(beta * factor * charge_scale) * stamps**2, reference, settings)
+        fit = moments.fit_perturbed(stamps, -(beta * factor * charge_scale) * shape, reference, settings)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
         values.append(np.stack([d_r, d_e1, d_e2]))
         statuses.append(status)
@@ -708,7 +821,12 @@ def _finite_difference_slopes(scene: Scene, charge_scale: float, beta: float, se
 
 
 def _cut_jump_flags(
-    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, bias: dict[str, Statistic]
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    settings: moments.MomentSettings,
+    bias: dict[str, Statistic],
+    effect: RampEffect | None = None,
 ) -> list[str]:
     """Flag finite-difference slopes that a hard weight cut made jumpy.
 
@@ -722,7 +840,7 @@ def _cut_jump_flags(
     """
     if not math.isfinite(scene.config.weight_cut_rho2):
         return []
-    exact, _, _ = _linear_slopes(scene, charge_scale, beta, settings)
+    exact, _, _ = _linear_slopes(scene, charge_scale, beta, settings, effect)
     off = []
     for name in METRICS:
         fd, lin = bias[name], exact[name]
@@ -740,11 +858,13 @@ def _cut_jump_flags(
     ]
 
 
-def _linear_slopes(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
+def _linear_slopes(
+    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, effect: RampEffect | None = None
+):
     stamps, reference = scene.stamps, scene.reference
     # Everything at unit flux: the distorted image is psi - beta s psi^2 (moments ignore scale),
-    # and d/d beta of the charge image divided by s is -s psi^2.
-    derivative = -charge_scale * stamps**2
+    # and d/d beta of the charge image divided by s is -s psi^2 (times c_2 after a ramp fit).
+    derivative = -charge_scale * _nl_shape(stamps, effect)
     fit = moments.fit_perturbed(stamps, beta * derivative, reference, settings)
     distorted = stamps + beta * derivative
     bias_values, scatter_values = (v.T.copy() for v in moments.response_to(distorted, fit, derivative, settings))

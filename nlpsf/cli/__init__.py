@@ -37,6 +37,8 @@ OPTION_FOR_ARGUMENT = {
     "pupil_bin": "--pupil-bin",
     "offsets": "--realizations",
     "scene": "--realizations",
+    "ma_table.resultants": "--ma-table",
+    "ma_table.frame_time_s": "--ma-table",
 }
 
 

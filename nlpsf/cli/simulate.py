@@ -62,6 +62,8 @@ def _print_table(config, results, sigma_beta: float) -> None:
         f"fine pixels, {config.realizations} {'beta maps' if sigma_beta > 0 else 'centroids'}, seed {config.seed}, "
         f"fidelity {config.fidelity}; {first.to_dict()['nl_model']}"
     )
+    if config.ramp is not None:
+        print(f"up the ramp: {config.ramp.describe()}")
     scatter = sigma_beta > 0
     head = f"{'mag AB':>6} {'beta 1/e-':>10} {'flux e-':>9} {'peak e-':>9} {'dR/R':>22} {'de1':>22} {'de2':>22}"
     if scatter:

@@ -6,7 +6,7 @@ import argparse
 
 from .. import defaults
 from ..fidelity import LEVELS
-from .options import add_band_sca, add_exposure, print_json, with_error
+from .options import add_band_sca, add_exposure, print_json, ramp_from, with_error
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -54,13 +54,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..solver import solve
 
+    ramp, exptime = ramp_from(args)
     solution = solve(
         args.band,
         args.sca,
         args.metric,
         args.mode,
         args.beta0,
-        args.exptime,
+        exptime,
         args.precision,
         args.tolerance,
         args.magnitude,
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         shear_c=args.shear_c,
         size_ratio=args.size_ratio,
         stars=args.stars,
+        ramp=ramp,
     )
     payload = solution.to_dict()
     if args.json:
@@ -95,7 +97,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"  uncertainty ({parts})")
     slope_unit = "per (1/e-) of " + ("beta" if solution.mode == "bias" else "sigma_beta")
     print(f"  slope c(m) {with_error(payload['slope'], payload['slope_uncertainty'])} {slope_unit}")
-    print(f"  saturation at m={solution.saturation_magnitude:.2f} AB")
+    if ramp is None:
+        print(f"  saturation at m={solution.saturation_magnitude:.2f} AB")
+    else:
+        print(f"  ramp: {ramp.describe()}; slopes from {solution.conditions['ramp_slopes_from']}")
+        print(
+            f"  saturation at m={solution.saturation_magnitude:.2f} AB (ramp rule: first resultant), "
+            f"final frame m={solution.final_frame_saturation_magnitude:.2f} AB"
+        )
     print(f"  applies to {solution.applies_to}")
     if solution.shear:
         _print_shear(solution.shear)
