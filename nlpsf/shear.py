@@ -67,6 +67,8 @@ BUDGET_RANGE = (1e-12, 1.0)
 SIZE_RATIO_RANGE = (1e-3, 1e3)
 #: Ratios in one distribution at most.
 MAX_SIZE_RATIOS = 100_000
+#: Largest weight: sums of up to MAX_SIZE_RATIOS weights / ratio^2 stay far from float overflow.
+MAX_WEIGHT = 1e100
 #: Which budget goes with which metric.
 BUDGET_FOR_METRIC = {"size": "m", "e1": "c", "e2": "c", "e": "c"}
 
@@ -131,7 +133,7 @@ def check_size_ratio(value, name: str = "size_ratio") -> SizeRatio:
     if len(pairs) > MAX_SIZE_RATIOS:
         raise InputError(name, f"at most {MAX_SIZE_RATIOS} ratios, got {len(pairs)}")
     ratios = tuple(check_number(r, name, *SIZE_RATIO_RANGE) for r, _ in pairs)
-    weights = tuple(check_number(w, name, 0.0, 1e300) for _, w in pairs)
+    weights = tuple(check_number(w, name, 0.0, MAX_WEIGHT) for _, w in pairs)
     if math.fsum(weights) <= 0:
         raise InputError(name, "the weights sum to zero")
     return SizeRatio(ratios, weights)

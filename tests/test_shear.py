@@ -134,7 +134,21 @@ def test_size_ratio_forms_agree(tmp_path):
 
 @pytest.mark.parametrize(
     "value",
-    ["", "abc", "1.5:x", "-1", "0", "1:0", "@/no/such/file", [], [(1.0, 2.0, 3.0)], {"ratio": 1}, True, float("nan")],
+    [
+        "",
+        "abc",
+        "1.5:x",
+        "-1",
+        "0",
+        "1:0",
+        "@/no/such/file",
+        [],
+        [(1.0, 2.0, 3.0)],
+        {"ratio": 1},
+        True,
+        float("nan"),
+        [(1.0, 1e300)],
+    ],
 )
 def test_bad_size_ratios_name_the_field(value):
     with pytest.raises(InputError) as info:
