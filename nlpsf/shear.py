@@ -47,7 +47,8 @@ ratio ρ_eff = ⟨ρ⁻²⟩_w^(−1/2) (small galaxies dominate). ``SizeRatio``
 
 The test (tests/test_shear.py) simulates a Gaussian galaxy convolved with a Gaussian PSF, measures
 it with our adaptive moments, corrects with a PSF model with and without a size or ellipticity
-error, and checks m and c against these formulas to their stated order.
+error, and checks m and c against these formulas to their stated order (1 %, for errors of 1e-3
+and |e_psf| <= 0.06); GalSim's HSM PSF corrections (BJ, REGAUSS, KSB) of the same galaxies agree too.
 """
 
 from __future__ import annotations

@@ -172,3 +172,34 @@ def test_budget_goes_with_its_metric():
     with pytest.raises(InputError) as info:
         shear.budget_for("size", shear_m=1e-3)
     assert info.value.argument == "size_ratio"
+
+
+@pytest.mark.parametrize("method", ["BJ", "REGAUSS", "KSB"])
+@pytest.mark.parametrize("ratio", [0.7, 1.5, 3.0])
+def test_galsims_psf_corrections_agree_with_the_formulas(method, ratio):
+    """An independent measurement: GalSim's HSM PSF correction (BJ, REGAUSS: distortions; KSB: a
+    shear) of a sheared Gaussian galaxy with a PSF model that is too large, or too elongated."""
+    galsim = pytest.importorskip("galsim")
+    d_r, d_e, sigma = 1e-3, 1e-3, 2.0
+    n = int(2 * 12 * sigma * (1 + ratio))
+    psf = galsim.Gaussian(sigma=sigma)
+
+    def draw(profile):
+        return profile.drawImage(nx=n, ny=n, scale=1.0, method="no_pixel")
+
+    def shear_of(observed, model) -> np.ndarray:
+        result = galsim.hsm.EstimateShear(observed, draw(model), shear_est=method)
+        if method == "KSB":
+            return np.array([result.corrected_g1, result.corrected_g2])
+        return np.array([result.corrected_e1, result.corrected_e2]) / shear.RESPONSIVITY  # distortion -> shear
+
+    rho = shear.check_size_ratio(ratio)
+    estimates = []
+    for sign in (1, -1):
+        observed = draw(galsim.Convolve(galsim.Gaussian(sigma=ratio * sigma).shear(g1=0.02 * sign), psf))
+        estimates.append((shear_of(observed, psf), shear_of(observed, galsim.Gaussian(sigma=sigma * (1 + d_r)))))
+    m = (estimates[0][1][0] - estimates[1][1][0]) / (estimates[0][0][0] - estimates[1][0][0]) - 1
+    assert m == pytest.approx(shear.multiplicative_bias(d_r, rho), rel=1e-2)
+    round_galaxy = draw(galsim.Convolve(galsim.Gaussian(sigma=ratio * sigma), psf))
+    c = shear_of(round_galaxy, psf.shear(e1=d_e)) - shear_of(round_galaxy, psf)
+    assert c[0] == pytest.approx(shear.additive_bias(d_e, rho), rel=1e-2)
