@@ -278,7 +278,7 @@ def solve(
     accuracy: float | None = None,
     shear_m: float | None = None,
     shear_c: float | None = None,
-    size_ratio=None,
+    size_ratio: float | list | str | shear.SizeRatio | None = None,
     stars: int = 1,
     tables_set: tables.TableSet | None = None,
     ramp: ramps.Ramp | None = None,
