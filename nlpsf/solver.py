@@ -11,6 +11,20 @@ with c(m) the slope d(metric)/dβ (bias) or σ(metric)/σβ (scatter) at magnitu
 returns the magnitude at which the NL error reaches the tolerance, and the brightest usable star:
 the fainter of that and the saturation magnitude, with which limit binds.
 
+Shear budgets. Instead of the tolerance, a shear-bias budget may be given: ``shear_m`` (the
+multiplicative bias, size metric) or ``shear_c`` (the additive bias, e metrics) with the
+galaxy-to-PSF size ratio ``size_ratio`` (a number or a distribution); ``nlpsf.shear`` turns it into
+the tolerance (ΔR/R = |m| ρ²/2, Δe = 2 |c| ρ², derived there). With ``size_ratio`` alone, the answer
+reports the shear bias that its tolerance implies.
+
+Averaging (scatter mode). A per-pixel β spread is fixed in the detector, but each star of a PSF
+model, and each dither of it, falls on other pixels: its NL error is an independent draw as long as
+no two of them share the pixels under the moment weight (a few native pixels around each centroid).
+A PSF model that averages ``stars`` such images with equal weight then has the scatter
+σ(metric)/√stars, and the answer holds for that model; with stars of different brightness, all taken
+at the answer's (brightest) magnitude, it is an upper bound. A bias in the mean β is common to
+every star, so averaging does not reduce it and ``stars`` applies to scatter mode only.
+
 Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from fresh simulations
 (``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
 measured error (``nlpsf tradeoff``) meets it.
@@ -32,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import __version__, defaults, ramps, roman, tables
+from . import __version__, defaults, ramps, roman, shear, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
@@ -40,6 +54,7 @@ from .checks import (
     check_beta0,
     check_exptime,
     check_full_well,
+    check_integer,
     check_magnitude,
     check_number,
 )
@@ -49,6 +64,8 @@ MODES = defaults.MODES
 FIDELITIES = levels.LEVELS
 #: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
 LINEAR_REGIME_LIMIT = 0.05
+#: Stars (and dithers) a scatter-mode PSF model may average.
+MAX_STARS = 10**9
 _TABLE_METRIC_NAMES = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
 
@@ -82,6 +99,11 @@ class Solution:
     #: The optical model's share (Cycle-9 Zernikes against the official post-CDR PSF statistics).
     uncertainty_optical_model: float | None = None
     elapsed_s: float = field(default=0.0, compare=False)
+    #: Stars (and dithers) averaged by the PSF model the scatter-mode answer holds for.
+    stars: int = 1
+    applies_to: str = ""
+    #: The shear budget given (or, with a size ratio alone, implied): ``Budget``-like dict.
+    shear: dict | None = None
     #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
     final_frame_saturation_magnitude: float | None = None
 
@@ -111,6 +133,9 @@ class Solution:
             "nonlinearity_magnitude": _json_number(self.nonlinearity_magnitude),
             "flags": list(self.flags),
             "fidelity": self.fidelity,
+            "stars": self.stars,
+            "applies_to": self.applies_to,
+            "shear": self.shear,
             "conditions": self.conditions,
             "elapsed_s": self.elapsed_s,
         }
@@ -260,12 +285,21 @@ def solve(
     full_well: float = defaults.FULL_WELL_E,
     fidelity: str | None = None,
     accuracy: float | None = None,
+    shear_m: float | None = None,
+    shear_c: float | None = None,
+    size_ratio: float | list | str | shear.SizeRatio | None = None,
+    stars: int = 1,
     tables_set: tables.TableSet | None = None,
     ramp: ramps.Ramp | None = None,
     throughput: str | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
+
+    ``shear_m`` (size metric) or ``shear_c`` (e metrics), with ``size_ratio`` = R_gal/R_psf (a
+    number, (ratio, weight) pairs, or a string ``nlpsf.shear.check_size_ratio`` reads), stands in
+    for ``tolerance``. ``stars`` (scatter mode): the PSF model averages that many independent
+    star images (σ / √stars).
 
     ``ramp``: an up-the-ramp exposure (``ramps.Ramp``; e.g. ``ramps.Ramp.uniform(N, exptime)``)
     instead of the paper's single final frame. ``exptime`` stays what is given: for an MA table whose
@@ -281,6 +315,26 @@ def solve(
     beta0 = check_beta0(beta0)
     exptime = check_exptime(exptime)
     full_well = check_full_well(full_well)
+    stars = check_integer(stars, "stars", 1, MAX_STARS)
+    if stars > 1 and mode != "scatter":
+        raise InputError(
+            "stars",
+            "averaging over stars applies to scatter mode only: a bias in the mean beta is common to every star, "
+            "so a PSF model averaging n stars has the same bias error as one",
+        )
+    budget, ratio = None, None
+    if shear_m is not None or shear_c is not None:
+        if tolerance is not None:
+            raise InputError(
+                "tolerance", "give the tolerance or a shear budget (shear_m / shear_c), not both: the budget sets the tolerance"
+            )
+        budget = shear.budget_for(metric, shear_m, shear_c, size_ratio)
+        ratio = budget.size_ratio
+        tolerance = check_number(
+            budget.tolerance, f"shear_{budget.kind}", *defaults.TOLERANCE_RANGE
+        )  # e.g. a tiny budget on tiny galaxies
+    elif size_ratio is not None:
+        ratio = shear.check_size_ratio(size_ratio)
     if ramp is not None:
         if not isinstance(ramp, ramps.Ramp):
             raise InputError("ramp", f"must be a ramps.Ramp, got {type(ramp).__name__}")
@@ -288,9 +342,12 @@ def solve(
     given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
     if len(given) != 2:
         missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
+        field_at_fault = "precision" if "precision" not in given else ("tolerance" if "tolerance" not in given else "magnitude")
+        if budget is not None and (field_at_fault == "tolerance" or len(given) == 3):
+            field_at_fault = f"shear_{budget.kind}"
         raise InputError(
-            "precision" if "precision" not in given else ("tolerance" if "tolerance" not in given else "magnitude"),
-            f"give exactly two of precision, tolerance, magnitude (got {len(given)}; missing: {missing})",
+            field_at_fault,
+            f"give exactly two of precision, tolerance (or a shear budget), magnitude (got {len(given)}; missing: {missing})",
         )
     if precision is not None:
         precision = check_number(precision, "precision", *defaults.PRECISION_RANGE)
@@ -330,12 +387,14 @@ def solve(
     solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
     brightest, binding, m_nl = None, None, None
 
+    # The PSF model averages `stars` independent draws of the per-pixel beta map (scatter mode).
+    averaging = 1.0 / math.sqrt(stars)
     systematic, systematic_note = _fidelity_error(chosen, band, metric, mode)
     if systematic_note:
         flags.append(systematic_note)
     if solved_for == "magnitude":
         solve_for_m = _solve_magnitude if ramp is None else _solve_magnitude_ramp
-        m_nl, slope, slope_err, log_derivative, extra = solve_for_m(slopes, precision * beta0, tolerance, m_sat)
+        m_nl, slope, slope_err, log_derivative, extra = solve_for_m(slopes, precision * beta0 * averaging, tolerance, m_sat)
         flags += extra
         magnitude, binding = _binding(m_nl, m_sat, flags)
         if ramp is not None and magnitude < m_sat_final_frame:
@@ -350,7 +409,7 @@ def solve(
             statistical, fidelity_part, model_part = 0.0, 0.0, 0.0
             slope, slope_err, _ = slopes.at(m_sat)
             flags.append(
-                f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0:.3g} "
+                f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0 * averaging:.3g} "
                 f"(tolerance {tolerance:g})"
             )
     else:
@@ -359,7 +418,7 @@ def solve(
         slope, slope_err, region = slopes.at(magnitude)
         if ramp is None:
             flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
-        c, c_err = abs(slope), slope_err
+        c, c_err = abs(slope) * averaging, slope_err * averaging
         model = _optical_model_relative(slopes, magnitude) if region >= 0 else None
         if solved_for == "tolerance":
             tolerance = c * precision * beta0
@@ -380,7 +439,9 @@ def solve(
     uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0)
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
-    conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
+    relation = "T = |c(m)| * precision * beta0" + (" / sqrt(stars)" if mode == "scatter" else "")
+    applies_to = _applies_to(mode, stars)
+    conditions.update(fidelity=chosen, code_version=__version__, relation=relation, stars=stars, applies_to=applies_to)
     if ramp is None:
         conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
     else:
@@ -391,6 +452,11 @@ def solve(
         # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
         conditions["ramp_table_exact_from_magnitude"] = slopes.exact_from() if slopes.ramp_factor is not None else None
         conditions["ramp_slopes_from"] = _ramp_basis(slopes)
+    shear_answer = None
+    if ratio is not None and tolerance is not None and math.isfinite(tolerance):
+        shear_answer = _shear_answer(metric, budget, ratio, tolerance, statistical if solved_for == "tolerance" else None)
+        if metric != "size":
+            flags.append(shear.CROSS_TERM_NOTE)
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
         conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
@@ -421,6 +487,9 @@ def solve(
         fidelity=chosen,
         conditions=conditions,
         elapsed_s=time.perf_counter() - start,
+        stars=stars,
+        applies_to=applies_to,
+        shear=shear_answer,
     )
 
 
@@ -437,6 +506,29 @@ def _optical_model_relative(slopes: _Slopes, magnitude: float | None) -> float:
         if np.isfinite(modulus[0]) and abs(component[0]) > 0:
             relative *= float(modulus[0] / abs(component[0]))
     return relative
+
+
+def _applies_to(mode: str, stars: int) -> str:
+    if mode == "bias":
+        return "every star alike: a bias in the mean beta is common to all stars, averaging does not reduce it"
+    if stars == 1:
+        return "one star: the scatter of a single star's metric over per-pixel beta maps"
+    return (
+        f"a PSF model averaging {stars} stars or dithers on independent pixels (scatter / sqrt({stars})), "
+        "each as bright as the answer's magnitude"
+    )
+
+
+def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncertainty: float | None) -> dict:
+    """The shear budget given, or the bias the tolerance implies for galaxies of this size ratio."""
+    if budget is not None:
+        return {**budget.to_dict(), "given": budget.kind}
+    kind = shear.BUDGET_FOR_METRIC[metric]
+    factor = (2.0 if kind == "m" else 1.0 / shear.RESPONSIVITY) / ratio.effective**2
+    implied = shear.Budget(kind, tolerance * factor, ratio, tolerance).to_dict()
+    implied["given"] = "tolerance"
+    implied["uncertainty"] = None if tolerance_uncertainty is None else tolerance_uncertainty * factor
+    return implied
 
 
 def _fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:

@@ -98,9 +98,10 @@ def ramp_from(args: argparse.Namespace):
     return build(args.ramp, args.ma_table, args.ramp_fit, args.read_noise, args.exptime if args.exptime_given else None)
 
 
-def add_simulation_options(parser: argparse.ArgumentParser) -> None:
-    """Options shared by every command that runs the simulator."""
-    add_band_sca(parser)
+def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = True) -> None:
+    """Options shared by every command that runs the simulator (``band_sca=False``: the caller adds its own)."""
+    if band_sca:
+        add_band_sca(parser)
     parser.add_argument(
         "--realizations",
         type=int,

@@ -20,6 +20,27 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
     parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
     parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
+    parser.add_argument(
+        "--shear-m",
+        type=float,
+        help="multiplicative shear-bias budget |m| (size metric); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--shear-c",
+        type=float,
+        help="additive shear-bias budget |c| (e1, e2, e metrics); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--size-ratio",
+        help="R_gal/R_psf, intrinsic galaxy over PSF, R = det(M)^(1/4): a number, 'ratio:weight,...' or @FILE "
+        "(lines 'ratio [weight]'); alone it reports the shear bias the tolerance implies",
+    )
+    parser.add_argument(
+        "--stars",
+        type=int,
+        default=1,
+        help="scatter mode: the PSF model averages this many stars/dithers on independent pixels (sigma / sqrt(n))",
+    )
     parser.add_argument("--fidelity", choices=LEVELS, default=None, help="how the slope is obtained (default table)")
     parser.add_argument(
         "--accuracy",
@@ -54,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
         args.fidelity,
         args.accuracy,
         throughput=args.throughput,
+        shear_m=args.shear_m,
+        shear_c=args.shear_c,
+        size_ratio=args.size_ratio,
+        stars=args.stars,
         ramp=ramp,
     )
     payload = solution.to_dict()
@@ -87,6 +112,9 @@ def run(args: argparse.Namespace) -> int:
             f"  saturation at m={solution.saturation_magnitude:.2f} AB (ramp rule: first resultant), "
             f"final frame m={solution.final_frame_saturation_magnitude:.2f} AB"
         )
+    print(f"  applies to {solution.applies_to}")
+    if solution.shear:
+        _print_shear(solution.shear)
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     for flag in solution.flags:
@@ -96,3 +124,16 @@ def run(args: argparse.Namespace) -> int:
 
 def _tolerance_unit(metric: str) -> str:
     return "(fractional size error dR/R)" if metric == "size" else f"(ellipticity error |d{metric}|)"
+
+
+def _print_shear(budget: dict) -> None:
+    kind = "m" if "m" in budget else "c"
+    ratio = budget["size_ratio"]
+    ratio_text = (
+        f"{ratio:g}" if isinstance(ratio, float) else f"{len(ratio['ratios'])} ratios, effective {ratio['effective']:.4g}"
+    )
+    if budget["given"] == "tolerance":
+        value = with_error(budget[kind], budget.get("uncertainty"))
+        print(f"  implied shear bias |{kind}| {value} for R_gal/R_psf {ratio_text} ({budget['relation']})")
+    else:
+        print(f"  shear budget |{kind}| {budget[kind]:.4g}, R_gal/R_psf {ratio_text} -> tolerance {budget['tolerance']:.4g}")
