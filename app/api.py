@@ -11,8 +11,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from nlpsf.checks import InputError
 from nlpsf import __version__, defaults, detector, fidelity, ramps, roman, solver, tables
+from nlpsf.checks import InputError
 
 from . import models, simulation
 from .errors import SafeJSONResponse, input_error_response, json_safe, problem

@@ -80,10 +80,7 @@ def problem_body(status: int, message: str, field: str | None = None, limit: str
         title = HTTPStatus(status).phrase
     except ValueError:
         title = "Error"
-    if status == 422 and limit:
-        kind = "/problems/limit-exceeded"
-    else:
-        kind = PROBLEM_TYPES.get(status, "about:blank")
+    kind = "/problems/limit-exceeded" if status == 422 and limit else PROBLEM_TYPES.get(status, "about:blank")
     errors = [{**d, "msg": short(d["msg"], 4 * ECHO_CHARS), "field": d["field"] and short(d["field"])} for d in errors or []]
     return {
         "type": kind,

@@ -340,7 +340,7 @@ class SimulationRequest(RampFields):
     pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule (no unit)")
     throughput: Throughput = Field(
         defaults.THROUGHPUT,
-        description="effective-area data (no unit): roman-2024 (official, per SCA) or galsim-2021 (GalSim's, the paper comparison)",
+        description="effective-area data (no unit): roman-2024 (official, per SCA) or galsim-2021 (GalSim's, paper comparison)",
     )
 
 

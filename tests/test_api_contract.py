@@ -8,10 +8,10 @@ import json
 import pytest
 from astropy.table import Table
 from fastapi.testclient import TestClient
-
-from nlpsf import roman, solver
 from nlpsf.web.main import create_app
 from nlpsf.web.settings import Settings
+
+from nlpsf import roman, solver
 
 
 @pytest.fixture(scope="module")
