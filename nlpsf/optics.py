@@ -93,6 +93,8 @@ class OpticsConfig:
     pupil_bin: int = 4
     pupil_scale: str = "galsim"
     position_pixels: tuple[float, float] | None = None
+    #: The star's f_lambda (any units) tabulated as (wavelengths nm, values); None: flat f_nu.
+    spectrum: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band", roman.check_band(self.band))
@@ -108,13 +110,12 @@ class OpticsConfig:
     def wavelengths_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """Wavelengths [nm] and their normalised photon weights."""
         curve = roman.throughput(self.band)
-        if self.n_wavelengths == 1:
+        if self.n_wavelengths == 1 and self.spectrum is None:
             wavelength = self.wavelength_nm if self.wavelength_nm is not None else curve.effective_wavelength_nm
             return np.array([float(wavelength)]), np.array([1.0])
         # Equal-width bins over the band; each bin is represented by its photon-weighted mean
         # wavelength and carries its share of the photons.
-        fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * self.n_wavelengths + 1)
-        photons = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2) / fine
+        fine, photons = photon_weights_fine(self.band, self.spectrum, self.n_wavelengths)
         edges = np.linspace(0, fine.size - 1, self.n_wavelengths + 1).astype(int)
         wavelengths, weights = [], []
         for lo, hi in itertools.pairwise(edges):
@@ -123,6 +124,23 @@ class OpticsConfig:
             weights.append(w)
         weights_array = np.asarray(weights)
         return np.asarray(wavelengths), weights_array / weights_array.sum()
+
+
+def photon_weights_fine(band: str, spectrum, n_wavelengths: int) -> tuple[np.ndarray, np.ndarray]:
+    """Photons per unit wavelength over the band, on a grid fine enough to bin into n_wavelengths.
+
+    Counts per unit wavelength are proportional to A_eff(lambda) f_lambda lambda (photon energy
+    h c / lambda); for a flat f_nu star f_lambda ~ lambda^-2, i.e. A_eff / lambda.
+    """
+    curve = roman.throughput(band)
+    fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * n_wavelengths + 1)
+    area = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2)
+    if spectrum is None:
+        return fine, area / fine
+    wave, flambda = (np.asarray(v, dtype=np.float64) for v in spectrum)
+    if fine[0] < wave[0] or fine[-1] > wave[-1]:
+        raise InputError("sed", f"the SED covers {wave[0]:g}-{wave[-1]:g} nm but {band} spans {fine[0]:g}-{fine[-1]:g} nm")
+    return fine, area * np.interp(fine, wave, flambda) * fine
 
 
 @dataclass(frozen=True, eq=False)
