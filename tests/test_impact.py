@@ -1,0 +1,74 @@
+"""The impact report: its contract, and its linear-response numbers against Monte Carlo."""
+
+import json
+import math
+
+import pytest
+
+from nlpsf import experiment, impact
+from nlpsf import scene as scenes
+from nlpsf.checks import InputError
+
+
+@pytest.fixture(scope="module")
+def paper_report():
+    return impact.impact("H158", 18, 18.3, realizations=20)
+
+
+def test_report_names_every_effect_in_order_with_its_impact(paper_report):
+    json.dumps(paper_report)
+    assert [e["name"] for e in paper_report["effects"]] == list(scenes.EFFECTS)
+    for effect in paper_report["effects"]:
+        assert set(effect["impact"]) == {"size", "e1", "e2", "e"}
+        assert effect["on"] is False
+        assert {"name", "on", "impact", "cost_s"} <= set(effect)
+    bfe = next(e for e in paper_report["effects"] if e["name"] == "brighter_fatter")
+    assert bfe["impact"]["size"] is None and "no default" in bfe["note"]
+    assert paper_report["conditions"]["band"] == "H158" and paper_report["conditions"]["magnitude"] == 18.3
+
+
+def test_an_effect_that_is_on_is_measured_at_the_scene_value():
+    model = scenes.SceneModel(jitter_arcsec=0.03, bfe_coefficient=1e-7)
+    report = impact.impact("H158", 18, 19.0, scene=model, realizations=10)
+    jitter = next(e for e in report["effects"] if e["name"] == "jitter")
+    assert jitter["on"] and jitter["value"] == 0.03
+    bfe = next(e for e in report["effects"] if e["name"] == "brighter_fatter")
+    assert bfe["on"] and bfe["impact"]["size"] is not None
+    assert report["conditions"]["beta_q_scaling_broken_by"] == ["brighter_fatter"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", ["jitter", "ipc", "nl_polynomial"])
+def test_linear_impact_agrees_with_monte_carlo_with_and_without_the_effect(effect):
+    # Monte Carlo (the paper's finite differences) with and without the effect, on the same
+    # centroids; the linear-response impact must fall within the Monte Carlo's error.
+    realizations, magnitude = 100, 18.3
+    report = impact.impact("H158", 18, magnitude, realizations=realizations)
+    linear = next(e for e in report["effects"] if e["name"] == effect)["impact"]
+    with_scene = scenes.SceneModel().with_nominal(effect)
+    runs = {}
+    for label, model in (("with", with_scene), ("without", scenes.SceneModel())):
+        config = experiment.SimulationConfig(realizations=realizations, scene=model)
+        runs[label] = experiment.slopes(config, [magnitude])[0]
+    for metric, name in (("size", "dR_over_R"), ("e1", "de1"), ("e2", "de2")):
+        a, b = runs["with"].bias[name], runs["without"].bias[name]
+        mc = a.mean / b.mean - 1
+        error = abs(a.mean / b.mean) * math.hypot(a.stderr / a.mean, b.stderr / b.mean)
+        assert abs(linear[metric] - mc) <= 3 * error + 2e-3, (metric, linear[metric], mc, error)
+
+
+def test_accuracy_splits_effects_at_the_requested_level(paper_report):
+    for accuracy in (1e-3, 1e-2, 1e-1):
+        include, leave = impact.left_out(paper_report, accuracy)
+        assert all(abs(e["impact"]["size"]) > accuracy for e in include)
+        assert all(e["impact"]["size"] is None or abs(e["impact"]["size"]) <= accuracy for e in leave)
+        assert len(include) + len(leave) == len(scenes.EFFECTS)
+
+
+def test_bad_requests_are_refused_by_name():
+    with pytest.raises(InputError, match="metric"):
+        impact.impact(metric="shear")
+    with pytest.raises(InputError, match="band"):
+        impact.impact(band="X1")
+    with pytest.raises(InputError, match="magnitude"):
+        impact.impact(magnitude=float("nan"))
