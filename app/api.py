@@ -10,11 +10,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from nlpsf import __version__, detector, roman, solver, tables
+from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
 
 from . import models
 from .errors import SafeJSONResponse, input_error_response, json_safe
-from .simulation import SIMULATION_FIDELITIES
 
 router = APIRouter(prefix="/api/v1")
 
@@ -49,7 +48,7 @@ def meta(request: Request) -> SafeJSONResponse:
             "metrics": list(solver.METRICS),
             "modes": list(solver.MODES),
             "fidelities": list(solver.FIDELITIES),
-            "simulation_fidelities": list(SIMULATION_FIDELITIES),
+            "simulation_fidelities": list(fidelity.SIMULATION_LEVELS),
             "beta_conventions": list(detector.BETA_CONVENTIONS),
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
@@ -126,9 +125,9 @@ def slope_curves(
     metric: models.Metric = "size",
     mode: models.Mode = "bias",
     sca: Sca = 18,
-    exptime: Number = roman.DEFAULT_EXPTIME_S,
-    beta0: Number = 5e-7,
-    full_well: Number = roman.DEFAULT_FULL_WELL_E,
+    exptime: Number = defaults.EXPTIME_S,
+    beta0: Number = defaults.BETA0,
+    full_well: Number = defaults.FULL_WELL_E,
     bands: Annotated[list[str] | None, Query(description="bands to include (default: all with tables)")] = None,
 ) -> SafeJSONResponse:
     chosen = bands or tables.load_tables().bands
@@ -183,9 +182,9 @@ def beta_curve(
     sca: Sca = 18,
     metric: models.Metric = "size",
     magnitude: Number = 18.3,
-    exptime: Number = roman.DEFAULT_EXPTIME_S,
-    beta0: Number = 5e-7,
-    full_well: Number = roman.DEFAULT_FULL_WELL_E,
+    exptime: Number = defaults.EXPTIME_S,
+    beta0: Number = defaults.BETA0,
+    full_well: Number = defaults.FULL_WELL_E,
     beta_max: Annotated[float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA)] = 1.25e-6,
     points: Annotated[int, Query(ge=2, le=1000)] = 26,
 ) -> SafeJSONResponse:
@@ -213,9 +212,9 @@ def sigma_beta_curve(
     sca: Sca = 18,
     metric: models.Metric = "size",
     magnitude: Number = 18.3,
-    exptime: Number = roman.DEFAULT_EXPTIME_S,
-    beta0: Number = 5e-7,
-    full_well: Number = roman.DEFAULT_FULL_WELL_E,
+    exptime: Number = defaults.EXPTIME_S,
+    beta0: Number = defaults.BETA0,
+    full_well: Number = defaults.FULL_WELL_E,
     sigma_beta_max: Annotated[float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA)] = 1e-7,
     points: Annotated[int, Query(ge=2, le=1000)] = 26,
 ) -> SafeJSONResponse:

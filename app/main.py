@@ -5,9 +5,9 @@ API under /api/v1 (OpenAPI docs at /docs), the page (``static/``) at /.
 
 from __future__ import annotations
 
-import os
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from importlib import resources
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -22,7 +22,9 @@ from .store import Store
 
 
 def static_dir() -> Path:
-    return Path(os.environ.get("NLPSF_STATIC_DIR") or Path(__file__).resolve().parent.parent / "static")
+    """The page's files, installed as the package data ``nlpsf.web.static`` (a folder in a wheel
+    or a checkout alike)."""
+    return Path(str(resources.files("nlpsf.web.static")))
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

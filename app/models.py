@@ -12,9 +12,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from nlpsf import detector, roman, solver
-
-from .simulation import SIMULATION_FIDELITIES
+from nlpsf import defaults, detector, fidelity, roman, solver
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
@@ -27,7 +25,7 @@ _SOLVE_DEFAULTS = {
 Metric = Literal[solver.METRICS]  # type: ignore[valid-type]
 Mode = Literal[solver.MODES]  # type: ignore[valid-type]
 Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]
-SimulationFidelity = Literal[SIMULATION_FIDELITIES]  # type: ignore[valid-type]
+SimulationFidelity = Literal[fidelity.SIMULATION_LEVELS]  # type: ignore[valid-type]
 BetaConvention = Literal[detector.BETA_CONVENTIONS]  # type: ignore[valid-type]
 PupilScale = Literal[roman.PUPIL_SCALE_RULES]  # type: ignore[valid-type]
 
@@ -104,23 +102,25 @@ class SimulationRequest(BaseModel):
         json_schema_extra={"examples": [{"band": "H158", "magnitudes": [18.3, 20.0], "betas": [5e-7], "realizations": 20}]},
     )
 
-    band: str = Field("H158", description=f"Roman band: {', '.join(roman.BANDS)}")
-    sca: int = Field(18, description=f"detector 1-{roman.N_SCA}")
+    band: str = Field(defaults.BAND, description=f"Roman band: {', '.join(roman.BANDS)}")
+    sca: int = Field(defaults.SCA, description=f"detector 1-{roman.N_SCA}")
     magnitudes: list[float] = Field([18.3], max_length=10_000, description="AB magnitudes")
-    betas: list[float] = Field([5e-7], max_length=10_000, description="NL coefficients beta in 1/e-")
+    betas: list[float] = Field([defaults.BETA0], max_length=10_000, description="NL coefficients beta in 1/e-")
     sigma_betas: list[float] = Field(
         [0.0], max_length=10_000, description="per-pixel beta scatter; > 0 draws beta maps at a fixed centroid"
     )
     beta_convention: BetaConvention = Field("paper", description="paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2")
-    exptime: float = Field(roman.DEFAULT_EXPTIME_S, description="exposure time in s")
-    full_well: float = Field(roman.DEFAULT_FULL_WELL_E, description="full-well depth in e-")
+    exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
+    full_well: float = Field(defaults.FULL_WELL_E, description="full-well depth in e-")
     fidelity: SimulationFidelity = Field("monte_carlo", description="linear response, Monte Carlo, or Monte Carlo polychromatic")
     n_wavelengths: int | None = Field(None, description="wavelengths of the polychromatic PSF (default 8)")
     realizations: int = Field(100, description="centroid realizations, or beta-map draws when sigma_beta > 0")
     seed: int = Field(1, description="random seed; the same seed gives the same numbers")
     oversampling: int = Field(3, description="fine pixels per native pixel, N")
     stamp: int = Field(96, description="stamp side in fine pixels")
-    weight_cut_rho2: float = Field(25.0, description="adaptive-moment weight cut rho^2 (paper 25, GalSim 32.24)")
+    weight_cut_rho2: float = Field(
+        defaults.PAPER_WEIGHT_CUT_RHO2, description="adaptive-moment weight cut rho^2 (paper 25, GalSim 32.24)"
+    )
     pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule")
 
 

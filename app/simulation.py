@@ -14,14 +14,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from nlpsf import __version__, detector, experiment, roman
+from nlpsf import __version__, detector, experiment, fidelity, roman
 from nlpsf.checks import InputError
 
 from .settings import Limits
-
-#: Simulation fidelities: the library's method, and whether the PSF integrates the band.
-SIMULATION_FIDELITIES = ("linear", "monte_carlo", "polychromatic")
-DEFAULT_POLYCHROMATIC_WAVELENGTHS = 8
 
 #: Library argument names -> request field names, so a 422 names what the user typed.
 FIELD_FOR_ARGUMENT = {
@@ -48,16 +44,7 @@ def request_field(argument: str) -> str:
 
 def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
-    fidelity = request["fidelity"]
-    n_wavelengths = request.get("n_wavelengths")
-    if fidelity == "polychromatic":
-        n_wavelengths = DEFAULT_POLYCHROMATIC_WAVELENGTHS if n_wavelengths is None else n_wavelengths
-        if n_wavelengths < 2:
-            raise InputError("n_wavelengths", f"a polychromatic PSF needs at least 2 wavelengths, got {n_wavelengths}")
-    elif n_wavelengths not in (None, 1):
-        raise InputError("n_wavelengths", f"only the polychromatic fidelity integrates over wavelengths; got {n_wavelengths}")
-    else:
-        n_wavelengths = 1
+    level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
     return experiment.SimulationConfig(
         band=request["band"],
         sca=request["sca"],
@@ -67,10 +54,10 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         stamp=request["stamp"],
         exptime_s=request["exptime"],
         full_well_e=request["full_well"],
-        n_wavelengths=n_wavelengths,
+        n_wavelengths=level.n_wavelengths,
         weight_cut_rho2=request["weight_cut_rho2"],
         pupil_scale=request["pupil_scale"],
-        method="linear" if fidelity == "linear" else "monte_carlo",
+        method=level.method,
     )
 
 

@@ -14,17 +14,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from .checks import InputError, check_number
+from . import defaults
+from .checks import InputError, check_number, shown
 
-BETA_CONVENTIONS = ("paper", "galsim")
+BETA_CONVENTIONS = defaults.BETA_CONVENTIONS
 #: Beta values a request may give, in either convention, in 1/e-.
-MAX_ABS_BETA = 1e-3
+MAX_ABS_BETA = defaults.MAX_ABS_BETA
 
 
 def to_paper_beta(beta: float, convention: str = "paper") -> float:
     """The paper's beta (S = Q - beta Q^2) for a value given in ``convention``."""
     if convention not in BETA_CONVENTIONS:
-        raise InputError("beta_convention", f"must be one of {', '.join(BETA_CONVENTIONS)}, got {convention!r}")
+        raise InputError("beta_convention", f"must be one of {', '.join(BETA_CONVENTIONS)}, got {shown(convention)}")
     value = check_number(beta, "beta", -MAX_ABS_BETA, MAX_ABS_BETA)
     return value if convention == "paper" else -value
 

@@ -29,17 +29,17 @@ from functools import cached_property
 
 import numpy as np
 
-from . import __version__, detector, moments, optics, photometry, render, roman
+from . import __version__, defaults, detector, moments, optics, photometry, render, roman
 from . import scene as scenes
-from .checks import InputError, check_integer, check_number, check_numbers
+from .checks import InputError, check_choice, check_exptime, check_full_well, check_integer, check_number, check_numbers
+from .fidelity import level_name
 
-METHODS = ("linear", "monte_carlo")
+METHODS = defaults.METHODS
 PAPER_SCENE = scenes.SceneModel()
-MAX_REALIZATIONS = 100_000
+MAX_REALIZATIONS = defaults.MAX_REALIZATIONS
 #: The rendered stamps of a scene are kept in memory; this bounds them (realizations x stamp^2).
 MAX_STAMP_BYTES = 1_500_000_000
-#: Fractional beta steps of the paper's finite-difference slopes: beta0 * {0.99, 1, 1.01}.
-PAPER_BETA_STEP = 0.01
+PAPER_BETA_STEP = defaults.PAPER_BETA_STEP
 
 #: progress(done, total, message); ``done`` may be fractional within a long step.
 Progress = Callable[[float, int, str], None]
@@ -49,17 +49,17 @@ Progress = Callable[[float, int, str], None]
 class SimulationConfig:
     """Everything a simulation depends on apart from magnitude and beta. Defaults are the paper's."""
 
-    band: str = "H158"
-    sca: int = 18
-    realizations: int = 100
-    seed: int = 1
-    oversampling: int = 3
-    stamp: int = 96
-    exptime_s: float = roman.DEFAULT_EXPTIME_S
-    full_well_e: float = roman.DEFAULT_FULL_WELL_E
+    band: str = defaults.BAND
+    sca: int = defaults.SCA
+    realizations: int = defaults.REALIZATIONS
+    seed: int = defaults.SEED
+    oversampling: int = defaults.OVERSAMPLING
+    stamp: int = defaults.STAMP
+    exptime_s: float = defaults.EXPTIME_S
+    full_well_e: float = defaults.FULL_WELL_E
     n_wavelengths: int = 1
-    weight_cut_rho2: float = moments.PAPER_WEIGHT_CUT_RHO2
-    pupil_scale: str = "galsim"
+    weight_cut_rho2: float = defaults.PAPER_WEIGHT_CUT_RHO2
+    pupil_scale: str = defaults.PUPIL_SCALE
     pupil_bin: int = 4
     method: str = "monte_carlo"
     #: The scene effects (``nlpsf.scene``); the default is the paper's scene.
@@ -81,12 +81,10 @@ class SimulationConfig:
                 f"{self.realizations} realizations of {self.stamp}x{self.stamp} stamps need "
                 f"{self.realizations * self.stamp**2 * 8 / 1e9:.1f} GB; the limit is {MAX_STAMP_BYTES / 1e9:.1f} GB",
             )
-        check_number(self.exptime_s, "exptime", 0.0, 1e6, open_low=True)
-        check_number(self.full_well_e, "full_well", 0.0, 1e9, open_low=True)
-        if self.method not in METHODS:
-            raise InputError("method", f"must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.pupil_scale not in roman.PUPIL_SCALE_RULES:
-            raise InputError("pupil_scale", f"must be one of {', '.join(roman.PUPIL_SCALE_RULES)}, got {self.pupil_scale!r}")
+        check_exptime(self.exptime_s)
+        check_full_well(self.full_well_e)
+        check_choice(self.method, "method", METHODS)
+        check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
         moments.MomentSettings(weight_cut_rho2=self.weight_cut_rho2)
         _ = self.optics  # validates n_wavelengths and pupil_bin
 
@@ -113,7 +111,7 @@ class SimulationConfig:
     @property
     def fidelity(self) -> str:
         polychromatic = self.n_wavelengths > 1 or self.scene.sed is not None
-        return f"{self.method}{'+polychromatic' if polychromatic else ''}{'' if self.scene.is_paper else '+scene'}"
+        return level_name(self.method, 2 if polychromatic else 1) + ("" if self.scene.is_paper else "+scene")
 
     def conditions(self) -> dict:
         """What every number computed under this configuration holds for."""
@@ -249,6 +247,7 @@ class SimulationResult:
             "magnitude": self.magnitude,
             "beta": self.beta,
             "beta_convention": self.beta_convention,
+            "beta_paper": self.beta_paper,
             "nl_model": detector.describe(self.beta_convention),
             "sigma_beta": self.sigma_beta,
             "realizations": self.realizations,
@@ -271,7 +270,7 @@ class SimulationResult:
 
 
 def check_magnitudes(values) -> list[float]:
-    return check_numbers(values, "magnitude", -5.0, 40.0)
+    return check_numbers(values, "magnitude", *defaults.MAGNITUDE_RANGE)
 
 
 def check_sigma_beta(sigma_beta) -> float:
@@ -355,10 +354,8 @@ def _failure_flag(status: np.ndarray) -> list[str]:
     if not np.any(bad):
         return []
     reasons = sorted({moments.STATUS_REASONS[moments.MomentStatus(s)] for s in status[bad]})
-    return [
-        f"adaptive moments failed in {int(bad.sum())} of {bad.size} realizations ({'; '.join(reasons)}); "
-        "the statistics use the others"
-    ]
+    rest = "no statistics are left" if np.all(bad) else "the statistics use the others"
+    return [f"adaptive moments failed in {int(bad.sum())} of {bad.size} realizations ({'; '.join(reasons)}); {rest}"]
 
 
 def _metrics(fit: moments.Moments, reference: moments.Moments, ref_index=None):
@@ -625,7 +622,7 @@ class SlopeResult:
 def slopes(
     config: SimulationConfig,
     magnitudes: Sequence[float] | float,
-    beta0: float = 5e-7,
+    beta0: float = defaults.BETA0,
     sigma_beta: float | None = None,
     beta_convention: str = "paper",
     scene: Scene | None = None,
@@ -648,7 +645,7 @@ def slopes(
     if beta == 0:
         raise InputError("beta0", "slopes are taken at beta0, which must not be zero")
     if sigma_beta is None:
-        sigma_beta = 0.1 * abs(beta)
+        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(beta)
     sigma_beta = check_sigma_beta(sigma_beta)
     if sigma_beta == 0:
         raise InputError("sigma_beta", "the scatter slope needs sigma_beta > 0")

@@ -1,6 +1,6 @@
-"""Speed versus accuracy: the fidelity levels, measured against the most exact one.
+"""Speed versus accuracy: the fidelity levels, what each one simulates, and their measured errors.
 
-Levels, cheapest first:
+The one owner of "fidelity level -> simulation settings". Levels, cheapest first:
 
 - ``table``: the shipped slope tables (achromatic PSF at the band's effective wavelength,
   100 centroids, linear response at beta0, cubic interpolation);
@@ -10,43 +10,61 @@ Levels, cheapest first:
 - ``polychromatic``: the Monte Carlo with the PSF integrated over the band (8 wavelengths,
   flat f_nu star), which the paper did not have.
 
-``nlpsf tradeoff`` measures, on a set of test points spread over bands, SCAs and magnitudes, each
-level's relative error against a reference more exact than any of them -- polychromatic with 16
-wavelengths, 400 centroid realizations and exact derivatives at beta0 -- and its time per answer,
-all in one run on this machine. ``--write`` stores the result in ``nlpsf/data/fidelity.json``;
-the solver's ``accuracy`` option reads it to pick the cheapest level that meets a target.
+Each level's relative error against a more exact reference is measured by ``nlpsf tradeoff``
+(``nlpsf.tradeoff``) and shipped in ``nlpsf/data/fidelity.json``; ``accuracy`` in the solver
+picks the cheapest level whose measured error meets it. This module is light (json only).
 """
 
 from __future__ import annotations
 
 import json
-import math
-import time
+from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
+from .checks import InputError, SimulationError
 
-from . import experiment, roman, solver, tables
-from .checks import InputError
+LEVELS: tuple[str, ...] = ("table", "linear", "monte_carlo", "polychromatic")
+#: Levels that run a simulation (everything but the table look-up).
+SIMULATION_LEVELS: tuple[str, ...] = LEVELS[1:]
+#: Wavelengths across the band of the polychromatic level.
+POLYCHROMATIC_WAVELENGTHS = 8
 
-LEVELS = ("table", "linear", "monte_carlo", "polychromatic")
-#: (band, SCA, magnitude) where the levels are compared: bright to faint, short to long bands.
-TEST_POINTS = (
-    ("H158", 18, 18.5),
-    ("H158", 18, 21.0),
-    ("J129", 9, 19.5),
-    ("Y106", 3, 22.0),
-    ("F184", 14, 19.0),
-    ("W146", 6, 20.5),
-    ("R062", 1, 20.0),
-    ("Z087", 12, 19.0),
-    ("K213", 17, 18.5),
-)
-REFERENCE_WAVELENGTHS = 16
-REFERENCE_REALIZATIONS = 400
-METRIC_NAMES = {"size": ("dR_over_R",), "e1": ("de1",), "e2": ("de2",), "e": ("de1", "de2")}
+
+@dataclass(frozen=True)
+class LevelSettings:
+    """What a simulating level runs: the experiment's method and the wavelengths of the PSF."""
+
+    method: str
+    n_wavelengths: int
+
+
+def check_level(level: str, name: str = "fidelity") -> str:
+    if level not in LEVELS:
+        raise InputError(name, f"must be one of {', '.join(LEVELS)}, got {level!r}")
+    return level
+
+
+def simulation_settings(level: str, n_wavelengths: int | None = None) -> LevelSettings:
+    """The simulation a level runs. ``n_wavelengths`` overrides the polychromatic default and is
+    refused for the achromatic levels (they are defined by one wavelength)."""
+    check_level(level)
+    if level == "table":
+        raise InputError("fidelity", "the table level runs no simulation; choose linear, monte_carlo or polychromatic")
+    if level == "polychromatic":
+        waves = POLYCHROMATIC_WAVELENGTHS if n_wavelengths is None else int(n_wavelengths)
+        if waves < 2:
+            raise InputError("n_wavelengths", f"a polychromatic PSF needs at least 2 wavelengths, got {waves}")
+        return LevelSettings("monte_carlo", waves)
+    if n_wavelengths not in (None, 1):
+        raise InputError("n_wavelengths", f"only the polychromatic fidelity integrates over wavelengths; got {n_wavelengths}")
+    return LevelSettings("linear" if level == "linear" else "monte_carlo", 1)
+
+
+def level_name(method: str, n_wavelengths: int) -> str:
+    """How a simulation's own settings are reported (``monte_carlo+polychromatic``, ...)."""
+    return f"{method}{'+polychromatic' if n_wavelengths > 1 else ''}"
 
 
 def _fidelity_path() -> Path:
@@ -58,7 +76,7 @@ def measured() -> dict:
     """The stored tradeoff measurement (``nlpsf tradeoff --write``)."""
     path = _fidelity_path()
     if not path.exists():
-        raise InputError("accuracy", "no measured fidelity errors are shipped; run `nlpsf tradeoff --write`")
+        raise SimulationError("no measured fidelity errors are shipped; run `nlpsf tradeoff --write`")
     return json.loads(path.read_text())
 
 
@@ -84,171 +102,9 @@ def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str) -> tupl
     )
 
 
-def _combine(values: list[float], errors: list[float]) -> float:
-    return float(values[0]) if len(values) == 1 else float(math.hypot(*values))
-
-
-def reference_slopes(band: str, sca: int, magnitude: float) -> dict:
-    """Most exact slopes: polychromatic (16 wavelengths), 400 centroids, exact derivatives."""
-    config = experiment.SimulationConfig(
-        band=band, sca=sca, realizations=REFERENCE_REALIZATIONS, method="linear", n_wavelengths=REFERENCE_WAVELENGTHS
-    )
-    return _slope_values(experiment.slopes(config, [magnitude])[0])
-
-
-def _slope_values(result: experiment.SlopeResult) -> dict:
-    out = {"bias": {}, "scatter": {}}
-    for metric, names in METRIC_NAMES.items():
-        out["bias"][metric] = _combine([result.bias[n].mean for n in names], [])
-        out["scatter"][metric] = _combine([result.scatter[n]["value"] for n in names], [])
-    return out
-
-
-def level_slopes(level: str, band: str, sca: int, magnitude: float) -> tuple[dict, float]:
-    """Slopes from one fidelity level and the seconds it took."""
-    start = time.perf_counter()
-    out = {"bias": {}, "scatter": {}}
-    if level == "table":
-        table = tables.load_tables().get(band, sca)
-        for mode in out:
-            for metric in METRIC_NAMES:
-                out[mode][metric] = float(table.slope(metric, mode, magnitude)[0][0])
-        # A table answer's cost is one solve; time that rather than this loop.
-        elapsed = _time_table_solve(band, sca, magnitude)
-        return out, elapsed
-    method = "linear" if level == "linear" else "monte_carlo"
-    waves = solver.POLYCHROMATIC_WAVELENGTHS if level == "polychromatic" else 1
-    config = experiment.SimulationConfig(band=band, sca=sca, method=method, n_wavelengths=waves)
-    from . import optics
-
-    optics.effective_psf.cache_clear()  # a fresh request pays for its optics
-    result = experiment.slopes(config, [magnitude])[0]
-    return _slope_values(result), time.perf_counter() - start
-
-
-def _time_table_solve(band: str, sca: int, magnitude: float) -> float:
-    solver.solve(band, sca, precision=0.01, magnitude=magnitude)  # warm the interpolants
-    count = 200
-    start = time.perf_counter()
-    for _ in range(count):
-        solver.solve(band, sca, precision=0.01, magnitude=magnitude)
-    return (time.perf_counter() - start) / count
-
-
-def tradeoff(points=TEST_POINTS, progress=None) -> dict:
-    """Measure every level's error and time against the reference, in one run."""
-    rows = []
-    for index, (band, sca, magnitude) in enumerate(points):
-        if progress:
-            progress(index, len(points), f"{band} SCA {sca} m={magnitude}")
-        reference = reference_slopes(band, sca, magnitude)
-        for level in LEVELS:
-            values, seconds = level_slopes(level, band, sca, magnitude)
-            for mode in ("bias", "scatter"):
-                for metric in METRIC_NAMES:
-                    ref = reference[mode][metric]
-                    rows.append(
-                        {
-                            "band": band,
-                            "sca": sca,
-                            "magnitude": magnitude,
-                            "level": level,
-                            "mode": mode,
-                            "metric": metric,
-                            "value": values[mode][metric],
-                            "reference": ref,
-                            "relative_error": abs(values[mode][metric] - ref) / abs(ref),
-                            "seconds": seconds,
-                        }
-                    )
-    if progress:
-        progress(len(points), len(points), "done")
-    bands = sorted({r["band"] for r in rows}, key=roman.BANDS.index)
-    errors = {
-        band: {
-            mode: {
-                metric: {
-                    level: max(
-                        r["relative_error"]
-                        for r in rows
-                        if (r["band"], r["mode"], r["metric"], r["level"]) == (band, mode, metric, level)
-                    )
-                    for level in LEVELS
-                }
-                for metric in METRIC_NAMES
-            }
-            for mode in ("bias", "scatter")
-        }
-        for band in bands
-    }
-    seconds = {level: float(np.median([r["seconds"] for r in rows if r["level"] == level])) for level in LEVELS}
-    return {
-        "date": time.strftime("%Y-%m-%d"),
-        "machine": f"{__import__('os').cpu_count()} cores",
-        "reference": (
-            f"polychromatic, {REFERENCE_WAVELENGTHS} wavelengths, {REFERENCE_REALIZATIONS} centroids, exact derivatives at beta0"
-        ),
-        "test_points": [list(p) for p in points],
-        "errors": errors,
-        "seconds_per_answer": seconds,
-        "rows": rows,
-        "data_version": roman.DATA_VERSION,
-    }
-
-
-def markdown(result: dict) -> str:
-    lines = [
-        f"Relative error against the reference ({result['reference']}), worst of {len(result['test_points'])} test points "
-        "over all bands, "
-        f"and median time per answer on this machine ({result['machine']}, {result['date']}):",
-        "",
-        "| level | time per answer | "
-        + " | ".join(f"{m} bias" for m in METRIC_NAMES)
-        + " | "
-        + " | ".join(f"{m} scatter" for m in METRIC_NAMES)
-        + " |",
-        "|---|---|" + "---|" * (2 * len(METRIC_NAMES)),
-    ]
-    for level in LEVELS:
-        t = result["seconds_per_answer"][level]
-        time_text = f"{1e6 * t:.0f} µs" if t < 1e-3 else f"{t:.2f} s"
-        worst = {
-            (mode, m): max(result["errors"][band][mode][m][level] for band in result["errors"])
-            for mode in ("bias", "scatter")
-            for m in METRIC_NAMES
-        }
-        cells = [f"{100 * worst[(mode, m)]:.2g} %" for mode in ("bias", "scatter") for m in METRIC_NAMES]
-        lines.append(f"| {level} | {time_text} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "Per band, size bias: "
-        + ", ".join(
-            f"{band} " + "/".join(f"{100 * result['errors'][band]['bias']['size'][level]:.2g}" for level in LEVELS) + " %"
-            for band in result["errors"]
-        )
-        + " (table/linear/monte_carlo/polychromatic).",
-    ]
-    return "\n".join(lines)
-
-
-def _register_cli() -> None:
-    from . import cli
-
-    def configure(parser) -> None:
-        parser.add_argument(
-            "--write", action="store_true", help="store the measurement in nlpsf/data/fidelity.json (read by --accuracy)"
-        )
-        parser.add_argument("--json", action="store_true")
-        parser.add_argument("--quiet", action="store_true")
-
-    @cli.register("tradeoff", configure, "measure each fidelity level's error and time against the most exact one")
-    def run(args) -> int:
-        result = tradeoff(progress=cli._progress_printer(not args.quiet and not args.json))
-        if args.write:
-            _fidelity_path().write_text(json.dumps(result, indent=1) + "\n")
-            measured.cache_clear()
-        print(json.dumps(result, indent=1) if args.json else markdown(result))
-        return 0
-
-
-_register_cli()
+def write_measured(result: dict) -> Path:
+    """Store a tradeoff measurement where ``measured`` reads it."""
+    path = _fidelity_path()
+    path.write_text(json.dumps(result, indent=1) + "\n")
+    measured.cache_clear()
+    return path

@@ -30,13 +30,11 @@ from enum import IntEnum
 
 import numpy as np
 
+from . import defaults
 from .checks import InputError
 
-#: The paper's (GalSim 1.3's) cut of the weight: rho^2 = 25.
-PAPER_WEIGHT_CUT_RHO2 = 25.0
-#: GalSim >= 2.4 cuts where exp(-rho^2/2) falls below a tenth of its default convergence
-#: threshold (1e-6): rho^2 = -2 ln(1e-7).
-GALSIM_WEIGHT_CUT_RHO2 = -2.0 * math.log(1e-7)
+PAPER_WEIGHT_CUT_RHO2 = defaults.PAPER_WEIGHT_CUT_RHO2
+GALSIM_WEIGHT_CUT_RHO2 = defaults.GALSIM_WEIGHT_CUT_RHO2
 
 
 class MomentStatus(IntEnum):

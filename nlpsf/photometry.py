@@ -18,7 +18,7 @@ import astropy.units as u
 import numpy as np
 from astropy.constants import h as planck
 
-from .checks import InputError, check_number
+from .checks import InputError, check_exptime
 from .roman import throughput
 
 _AB_REFERENCE = 3631.0 * u.Jy
@@ -51,4 +51,4 @@ def electrons_to_magnitude(electrons, band: str, exptime_s: float) -> np.ndarray
 
 
 def _check_exptime(exptime_s: float) -> float:
-    return check_number(exptime_s, "exptime", 0.0, 1e6, open_low=True)
+    return check_exptime(exptime_s)

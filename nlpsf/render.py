@@ -16,21 +16,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import defaults
 from .checks import InputError, check_integer
 from .optics import EffectivePSF
 from .roman import PIXEL_SCALE_ARCSEC
 
 #: Limits on the stamp and oversampling a simulation may ask for.
-MIN_STAMP, MAX_STAMP = 16, 512
-MIN_OVERSAMPLING, MAX_OVERSAMPLING = 1, 8
+MIN_STAMP, MAX_STAMP = defaults.STAMP_RANGE
+MIN_OVERSAMPLING, MAX_OVERSAMPLING = defaults.OVERSAMPLING_RANGE
 
 
 @dataclass(frozen=True)
 class Grid:
     """The oversampled stamp: ``stamp`` fine pixels of ``PIXEL_SCALE / oversampling`` a side."""
 
-    oversampling: int = 3
-    stamp: int = 96
+    oversampling: int = defaults.OVERSAMPLING
+    stamp: int = defaults.STAMP
 
     def __post_init__(self) -> None:
         check_integer(self.oversampling, "oversampling", MIN_OVERSAMPLING, MAX_OVERSAMPLING)

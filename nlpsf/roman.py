@@ -14,12 +14,12 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from astropy.io import fits
 
-from .checks import InputError, check_integer
+from . import defaults
+from .checks import InputError, check_integer, shown
 
 #: Native WFI pixel scale [arcsec / pixel].
-PIXEL_SCALE_ARCSEC = 0.11
+PIXEL_SCALE_ARCSEC = defaults.PIXEL_SCALE_ARCSEC
 #: Nominal telescope diameter [m]; also the radius scale of the Zernike disc.
 DIAMETER_M = 2.36
 #: Linear central obscuration (only used by GalSim as a sampling hint; the masks carry the truth).
@@ -31,27 +31,21 @@ PIXEL_PITCH_MM = 0.01
 #: Active pixels per SCA side.
 SCA_PIXELS = 4088
 #: Number of SCAs in the focal plane.
-N_SCA = 18
+N_SCA = defaults.N_SCA
 #: Wavelength at which the Zernike coefficients are given [nm].
 ZERNIKE_REFERENCE_WAVELENGTH_NM = 1293.0
 
-#: The paper's exposure time [s] (High Latitude Survey).
-DEFAULT_EXPTIME_S = 168.1
-#: Full-well depth [e-] quoted by the paper.
-DEFAULT_FULL_WELL_E = 1.1e5
-
-#: Imaging bands, bluest first. F184 and K213 use the long-wavelength (cold) pupil mask.
-BANDS: tuple[str, ...] = ("R062", "Z087", "Y106", "J129", "H158", "F184", "W146", "K213")
+BANDS = defaults.BANDS
+PAPER_BANDS = defaults.PAPER_BANDS
+#: F184 and K213 use the long-wavelength (cold) pupil mask.
 LONG_WAVELENGTH_BANDS: frozenset[str] = frozenset({"F184", "K213"})
-#: The four High Latitude Survey bands the paper studies.
-PAPER_BANDS: tuple[str, ...] = ("Y106", "J129", "H158", "F184")
 
 DATA_VERSION = "GalSim 2.8.5 share/roman: Cycle-9 Zernikes (082623), RST_WIM pupil masks, effarea 20210614"
 
 
 def check_band(band: str) -> str:
     if not isinstance(band, str) or band.upper() not in BANDS:
-        raise InputError("band", f"unknown band {band!r}; choose one of {', '.join(BANDS)}")
+        raise InputError("band", f"unknown band {shown(band)}; choose one of {', '.join(BANDS)}")
     return band.upper()
 
 
@@ -131,7 +125,7 @@ class Pupil:
 #: to this rule). "header": the header's entrance-pupil scale (``CDELT`` x ``PUPIL SCALE FACTOR``),
 #: which puts the pupil edge of SCA 1 at 2.37 m but lets the short-wavelength mask of SCA 18 reach
 #: 2.49 m. The two differ by 0.5-5.4 % in pupil size depending on the SCA and mask.
-PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header")
+PUPIL_SCALE_RULES = defaults.PUPIL_SCALE_RULES
 
 
 @cache
@@ -143,6 +137,8 @@ def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -
         raise InputError("pupil_bin", f"must divide 2048, got {pupil_bin!r}")
     if scale_rule not in PUPIL_SCALE_RULES:
         raise InputError("pupil_scale", f"must be one of {', '.join(PUPIL_SCALE_RULES)}, got {scale_rule!r}")
+    from astropy.io import fits  # 0.4 s to import: only reading a pupil needs it
+
     kind = "long" if band in LONG_WAVELENGTH_BANDS else "short"
     name = f"RST_WIM_Filter_{'F184' if kind == 'long' else 'skinny'}_SCA_{sca}.fits.gz"
     with gzip.open(_data_dir() / name, "rb") as handle, fits.open(handle) as hdul:

@@ -23,16 +23,22 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import brentq
 
-from . import __version__, experiment, roman, tables
-from .checks import InputError, check_number
+from . import __version__, defaults, roman, tables
+from . import fidelity as levels
+from .checks import (
+    InputError,
+    SimulationError,
+    check_beta0,
+    check_exptime,
+    check_full_well,
+    check_magnitude,
+    check_number,
+)
 
-METRICS = tables.METRICS
-MODES = tables.MODES
-FIDELITIES = ("table", "linear", "monte_carlo", "polychromatic")
-#: Polychromatic level: wavelengths across the band.
-POLYCHROMATIC_WAVELENGTHS = 8
+METRICS = defaults.METRICS
+MODES = defaults.MODES
+FIDELITIES = levels.LEVELS
 #: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
 LINEAR_REGIME_LIMIT = 0.05
 _TABLE_METRIC_NAMES = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
@@ -127,7 +133,9 @@ class _Slopes:
         return (*self._cache[key], region)
 
     def _simulate(self, magnitude: float) -> tuple[float, float]:
-        method = "linear" if self.fidelity == "linear" else "monte_carlo"
+        from . import experiment  # the simulator: only fresh-simulation levels need it
+
+        level = levels.simulation_settings(self.fidelity)
         settings = self.table.settings
         config = experiment.SimulationConfig(
             band=self.band,
@@ -139,8 +147,8 @@ class _Slopes:
             exptime_s=self.exptime,
             weight_cut_rho2=float(settings["weight_cut_rho2"]),
             pupil_scale=str(settings["pupil_scale"]),
-            method=method,
-            n_wavelengths=POLYCHROMATIC_WAVELENGTHS if self.fidelity == "polychromatic" else 1,
+            method=level.method,
+            n_wavelengths=level.n_wavelengths,
         )
         result = experiment.slopes(config, [magnitude], beta0=self.beta0)[0]
         names = ("de1", "de2") if self.metric == "e" else (_TABLE_METRIC_NAMES[self.metric],)
@@ -154,7 +162,7 @@ class _Slopes:
                 values.append(result.scatter[name]["value"])
                 errors.append(result.scatter[name]["uncertainty"])
         if any(v is None for v in values):
-            raise InputError("magnitude", f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
+            raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         if len(values) == 1:
             return float(values[0]), float(errors[0])
         value = math.hypot(*values)
@@ -162,16 +170,11 @@ class _Slopes:
         return value, error
 
 
-def _choose_fidelity(fidelity: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+def _choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
     if accuracy is None:
-        fidelity = fidelity or "table"
-        if fidelity not in FIDELITIES:
-            raise InputError("fidelity", f"must be one of {', '.join(FIDELITIES)}, got {fidelity!r}")
-        return fidelity, []
-    accuracy = check_number(accuracy, "accuracy", 0.0, 10.0, open_low=True)
-    from . import fidelity as fidelity_module
-
-    chosen, note = fidelity_module.cheapest_meeting(accuracy, band, metric, mode)
+        return levels.check_level(level or "table"), []
+    accuracy = check_number(accuracy, "accuracy", *defaults.ACCURACY_RANGE)
+    chosen, note = levels.cheapest_meeting(accuracy, band, metric, mode)
     return chosen, [note]
 
 
@@ -180,12 +183,12 @@ def solve(
     sca: int = 18,
     metric: str = "size",
     mode: str = "bias",
-    beta0: float = 5e-7,
-    exptime: float = roman.DEFAULT_EXPTIME_S,
+    beta0: float = defaults.BETA0,
+    exptime: float = defaults.EXPTIME_S,
     precision: float | None = None,
     tolerance: float | None = None,
     magnitude: float | None = None,
-    full_well: float = roman.DEFAULT_FULL_WELL_E,
+    full_well: float = defaults.FULL_WELL_E,
     fidelity: str | None = None,
     accuracy: float | None = None,
     tables_set: tables.TableSet | None = None,
@@ -196,11 +199,9 @@ def solve(
     band = roman.check_band(band)
     sca = roman.check_sca(sca)
     tables.check_metric_mode(metric, mode)
-    beta0 = check_number(beta0, "beta0", 1e-12, 1e-3, open_low=False)
-    if beta0 <= 0:
-        raise InputError("beta0", f"must be positive, got {beta0!r}")
-    exptime = check_number(exptime, "exptime", 0.0, 1e6, open_low=True)
-    full_well = check_number(full_well, "full_well", 0.0, 1e9, open_low=True)
+    beta0 = check_beta0(beta0)
+    exptime = check_exptime(exptime)
+    full_well = check_full_well(full_well)
     given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
     if len(given) != 2:
         missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
@@ -209,11 +210,11 @@ def solve(
             f"give exactly two of precision, tolerance, magnitude (got {len(given)}; missing: {missing})",
         )
     if precision is not None:
-        precision = check_number(precision, "precision", 0.0, 1e3, open_low=True)
+        precision = check_number(precision, "precision", *defaults.PRECISION_RANGE)
     if tolerance is not None:
-        tolerance = check_number(tolerance, "tolerance", 0.0, 1e3, open_low=True)
+        tolerance = check_number(tolerance, "tolerance", *defaults.TOLERANCE_RANGE)
     if magnitude is not None:
-        magnitude = check_number(magnitude, "magnitude", -5.0, 40.0)
+        magnitude = check_magnitude(magnitude)
     chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
     slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables())
     table = slopes.table
@@ -264,8 +265,7 @@ def solve(
     conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
-        if chosen == "polychromatic":
-            conditions["n_wavelengths"] = POLYCHROMATIC_WAVELENGTHS
+        conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
     return Solution(
         band=band,
         sca=sca,
@@ -296,11 +296,9 @@ def solve(
 
 def _fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:
     """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown."""
-    from . import fidelity
-
     try:
-        return fidelity.level_error(band, metric, mode, level), None
-    except (InputError, KeyError):
+        return levels.level_error(band, metric, mode, level), None
+    except (SimulationError, KeyError):
         return None, "no measured fidelity error for this band is shipped, so the uncertainty is statistical only"
 
 
@@ -424,6 +422,8 @@ def _solve_magnitude(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat
 def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iterations: int = 12) -> float:
     fa, fb = function(a), function(b)
     if fa * fb > 0:
+        from scipy.optimize import brentq
+
         return brentq(function, a - 1.0, b + 1.0, xtol=tolerance)
     c = b
     for _ in range(iterations):
@@ -448,69 +448,3 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
         )
         return m_sat, "saturation"
     return m_nl, "nonlinearity"
-
-
-def _register_cli() -> None:
-    from . import cli
-
-    def configure(parser) -> None:
-        parser.add_argument("--band", default="H158")
-        parser.add_argument("--sca", type=int, default=18)
-        parser.add_argument("--metric", choices=METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
-        parser.add_argument(
-            "--mode", choices=MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
-        )
-        parser.add_argument("--beta0", type=float, default=5e-7, help="nominal NL coefficient (paper convention, default 5e-7)")
-        parser.add_argument("--exptime", type=float, default=roman.DEFAULT_EXPTIME_S)
-        parser.add_argument("--full-well", type=float, default=roman.DEFAULT_FULL_WELL_E)
-        parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
-        parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
-        parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
-        parser.add_argument(
-            "--fidelity", choices=FIDELITIES, default=None, help="table (default), linear, monte_carlo, polychromatic"
-        )
-        parser.add_argument(
-            "--accuracy", type=float, default=None, help="pick the cheapest fidelity whose measured error is below this"
-        )
-        parser.add_argument("--json", action="store_true")
-
-    @cli.register("solve", configure, "given two of precision, tolerance, magnitude, get the third")
-    def run(args) -> int:
-        import json
-
-        solution = solve(
-            args.band,
-            args.sca,
-            args.metric,
-            args.mode,
-            args.beta0,
-            args.exptime,
-            args.precision,
-            args.tolerance,
-            args.magnitude,
-            args.full_well,
-            args.fidelity,
-            args.accuracy,
-        )
-        payload = solution.to_dict()
-        if args.json:
-            print(json.dumps(payload, indent=2, allow_nan=False))
-            return 0
-        print(
-            f"{solution.band} SCA {solution.sca}, {solution.metric} {solution.mode}, beta0={solution.beta0:g}, "
-            f"{solution.exptime:g} s, fidelity {solution.fidelity}"
-        )
-        for name in ("precision", "tolerance", "magnitude"):
-            value = payload[name]
-            mark = "  <- solved" if name == solution.solved_for else ""
-            err = f" ± {payload['uncertainty']:.2g}" if mark and payload["uncertainty"] is not None else ""
-            print(f"  {name:<10} {'n/a' if value is None else format(value, '.6g')}{err}{mark}")
-        print(f"  slope c(m) {payload['slope']}  saturation at m={solution.saturation_magnitude:.2f}")
-        if solution.binding_limit:
-            print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} ({solution.binding_limit} binds)")
-        for flag in solution.flags:
-            print(f"  ! {flag}")
-        return 0
-
-
-_register_cli()

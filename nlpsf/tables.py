@@ -26,282 +26,65 @@ linear regime exactly (slope proportional to flux); brighter than the grid there
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-import sys
-import time
-from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
+from threading import Lock
+from typing import Any
 
 import numpy as np
-from astropy.table import Table, vstack
-from scipy.interpolate import CubicSpline
 
-from . import __version__, experiment, photometry, roman
-from .checks import InputError, check_integer, check_number
+from . import __version__, defaults, roman
+from .checks import InputError, check_beta0, check_choice, check_exptime, check_full_well
 
-METRICS = ("size", "e1", "e2", "e")
-MODES = ("bias", "scatter")
+METRICS = defaults.METRICS
+MODES = defaults.MODES
 #: Table columns of the three measured metrics (the modulus "e" is derived from e1 and e2).
-_COLUMN_METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
-FAINT_LIMIT = 28.0
+COLUMN_METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
+#: The grid starts this far brighter than saturation (in beta0 x flux).
 BRIGHT_MARGIN_MAG = 1.5
-MAGNITUDE_STEP = 0.25
-#: Where the nonlinearity is strong (up to a magnitude fainter than saturation) the grid is twice
-#: as fine, so that interpolation stays below the statistical error there too.
-BRIGHT_STEP_FACTOR = 0.5
+#: Columns holding slopes (each has ``_err`` and ``_interp`` companions).
+SLOPE_COLUMNS: tuple[str, ...] = tuple(f"{mode}_{metric}" for metric in COLUMN_METRICS for mode in MODES)
+#: Version of the binary companion's layout.
+COMPANION_FORMAT = 1
 
 
 def shipped_table_path() -> Path:
     return Path(str(resources.files("nlpsf") / "data" / "tables" / "slopes.ecsv"))
 
 
-@dataclass(frozen=True)
-class TableSettings:
-    """How a set of tables is computed. Defaults are the paper's."""
-
-    exptime_s: float = roman.DEFAULT_EXPTIME_S
-    beta0: float = 5e-7
-    full_well_e: float = roman.DEFAULT_FULL_WELL_E
-    oversampling: int = 3
-    stamp: int = 96
-    realizations: int = 100
-    seed: int = 1
-    weight_cut_rho2: float = 25.0
-    pupil_scale: str = "galsim"
-    magnitude_step: float = MAGNITUDE_STEP
-    faint_limit: float = FAINT_LIMIT
-
-    def config(self, band: str, sca: int) -> experiment.SimulationConfig:
-        return experiment.SimulationConfig(
-            band=band,
-            sca=sca,
-            realizations=self.realizations,
-            seed=self.seed,
-            oversampling=self.oversampling,
-            stamp=self.stamp,
-            exptime_s=self.exptime_s,
-            full_well_e=self.full_well_e,
-            weight_cut_rho2=self.weight_cut_rho2,
-            pupil_scale=self.pupil_scale,
-            method="linear",
-        )
-
-    def fingerprint(self) -> str:
-        """Identifies the settings and code a table was made with (resuming skips matching ones)."""
-        text = json.dumps({**asdict(self), "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+def companion_path(path: Path) -> Path:
+    """The binary companion of an ECSV table file: the same numbers, read without astropy/scipy."""
+    return path.with_suffix(".npz")
 
 
-def saturation_magnitude(peak_fraction: float, band: str, exptime_s: float, full_well_e: float, oversampling: int) -> float:
-    """Magnitude at which the brightest fine pixel (over centroids) reaches the full well."""
-    electrons_at_full_well = full_well_e / (peak_fraction * oversampling**2)
-    return float(photometry.electrons_to_magnitude(electrons_at_full_well, band, exptime_s))
+# --- piecewise cubics: stored coefficients, evaluated with numpy alone ----------------------------
+#
+# The slopes are interpolated with scipy's not-a-knot CubicSpline of slope / flux in flux. Building
+# it needs scipy (0.5 s to import); evaluating it is a piecewise cubic. So the coefficients are
+# computed with scipy when a table is written (``write_companion``) and evaluated here, which keeps
+# ``nlpsf solve`` and the service's start free of scipy and astropy. The tests check this evaluation
+# against scipy's on every shipped table.
 
 
-def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit: float = FAINT_LIMIT) -> np.ndarray:
-    """From BRIGHT_MARGIN_MAG brighter than saturation to ``faint_limit``, finer at the bright end."""
-    fine = step * BRIGHT_STEP_FACTOR
-    first = math.floor((saturation - BRIGHT_MARGIN_MAG) / step) * step
-    switch = math.ceil((saturation + 1.0) / step) * step
-    bright = np.arange(first, switch, fine)
-    faint = np.arange(switch, faint_limit + step / 2, step)
-    return np.round(np.concatenate([bright, faint]), 6)
+def _spline_coefficients(flux: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Coefficients (4, n - 1) of scipy's CubicSpline of values / flux in flux (flux ascending)."""
+    from scipy.interpolate import CubicSpline
+
+    return np.asarray(CubicSpline(flux, values / flux).c, dtype=np.float64)
 
 
-def compute_table(band: str, sca: int, settings: TableSettings | None = None, progress=None) -> Table:
-    """The slope table of one (band, SCA)."""
-    settings = settings or TableSettings()
-    start = time.perf_counter()
-    config = settings.config(band, sca)
-    scene = experiment.prepare(config)
-    m_sat = saturation_magnitude(
-        float(scene.peak_fraction.max()), config.band, settings.exptime_s, settings.full_well_e, settings.oversampling
-    )
-    magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
-    results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
-    columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
-    for metric in _COLUMN_METRICS:
-        for mode in MODES:
-            columns[f"{mode}_{metric}"] = []
-            columns[f"{mode}_{metric}_err"] = []
-    columns["failed_realizations"] = []
-    for r in results:
-        columns["flux_electrons"].append(r.flux_electrons)
-        columns["peak_electrons"].append(r.peak_electrons)
-        columns["failed_realizations"].append(r.failed_realizations)
-        for metric, name in _COLUMN_METRICS.items():
-            bias = r.bias[name]
-            columns[f"bias_{metric}"].append(np.nan if bias.mean is None else bias.mean)
-            columns[f"bias_{metric}_err"].append(np.nan if bias.stderr is None else bias.stderr)
-            scatter = r.scatter[name]
-            columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
-            columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
-    flux = np.asarray(columns["flux_electrons"])
-    for metric in _COLUMN_METRICS:
-        for mode in MODES:
-            name = f"{mode}_{metric}"
-            columns[f"{name}_interp"] = list(interpolation_error_estimate(flux, np.asarray(columns[name])))
-    table = Table(columns)
-    table.add_column(band, name="band", index=0)
-    table.add_column(np.int16(sca), name="sca", index=1)
-    table.meta.update(
-        {
-            "band": band,
-            "sca": int(sca),
-            "saturation_magnitude": m_sat,
-            "peak_fraction": float(scene.peak_fraction.max()),
-            "settings": asdict(settings),
-            "fingerprint": settings.fingerprint(),
-            "method": "linear response at beta0, mean over centroid realizations",
-            "data_version": roman.DATA_VERSION,
-            "code_version": __version__,
-            "elapsed_s": time.perf_counter() - start,
-        }
-    )
-    return table
-
-
-def _partial_path(directory: Path, band: str, sca: int) -> Path:
-    return directory / f"slopes_{band}_SCA{sca:02d}.ecsv"
-
-
-def _compute_and_write(band: str, sca: int, settings: TableSettings, directory: str) -> tuple[str, int, float]:
-    table = compute_table(band, sca, settings)
-    path = _partial_path(Path(directory), band, sca)
-    temporary = path.with_suffix(".tmp")
-    table.write(temporary, format="ascii.ecsv", overwrite=True)
-    temporary.replace(path)  # atomic: an interrupted build never leaves half a table behind
-    return band, sca, float(table.meta["elapsed_s"])
-
-
-def build_tables(
-    directory: Path | str,
-    bands: Iterable[str] = roman.BANDS,
-    scas: Iterable[int] = range(1, roman.N_SCA + 1),
-    settings: TableSettings | None = None,
-    workers: int = 1,
-    dask_address: str | None = None,
-    progress: Callable[[int, int, str], None] | None = None,
-) -> list[Path]:
-    """Compute every (band, SCA) table into ``directory``, skipping those already done.
-
-    Work is spread over ``workers`` local processes, or over a dask.distributed cluster when
-    ``dask_address`` is given ("local" starts a LocalCluster with ``workers`` workers).
-    Interrupting and re-running resumes where it stopped.
-    """
-    settings = settings or TableSettings()
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    todo, done = [], []
-    pairs = [(roman.check_band(b), roman.check_sca(s)) for b in bands for s in scas]
-    for band, sca in pairs:
-        path = _partial_path(directory, band, sca)
-        if path.exists() and Table.read(path, format="ascii.ecsv").meta.get("fingerprint") == settings.fingerprint():
-            done.append(path)
-        else:
-            todo.append((band, sca))
-    total = len(pairs)
-    if progress:
-        progress(len(done), total, "resumed" if done else "starting")
-    if dask_address is not None:
-        finished = _run_dask(todo, settings, str(directory), workers, dask_address)
-    elif workers > 1 and len(todo) > 1:
-        finished = _run_processes(todo, settings, str(directory), workers)
-    else:
-        finished = (_compute_and_write(band, sca, settings, str(directory)) for band, sca in todo)
-    for count, (band, sca, elapsed) in enumerate(finished, start=len(done) + 1):
-        done.append(_partial_path(directory, band, sca))
-        if progress:
-            progress(count, total, f"{band} SCA {sca} ({elapsed:.1f} s)")
-    return done
-
-
-def _run_processes(todo, settings, directory, workers):
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(_compute_and_write, band, sca, settings, directory) for band, sca in todo]
-        for future in as_completed(futures):
-            yield future.result()
-
-
-def _run_dask(todo, settings, directory, workers, address):
-    try:
-        from dask.distributed import Client, LocalCluster
-        from dask.distributed import as_completed as dask_completed
-    except ImportError as error:  # pragma: no cover - depends on the optional extra
-        raise InputError("dask", "dask.distributed is not installed: pip install 'nlpsf[dask]'") from error
-    cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, processes=True) if address == "local" else None
-    client = Client(cluster if cluster is not None else address)
-    try:
-        futures = [client.submit(_compute_and_write, band, sca, settings, directory, pure=False) for band, sca in todo]
-        for future in dask_completed(futures):
-            yield future.result()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-
-
-def merge_tables(paths: Iterable[Path], destination: Path | str) -> Table:
-    """Stack per-(band, SCA) tables into one file with their metadata kept per table."""
-    tables = [Table.read(p, format="ascii.ecsv") for p in sorted(paths)]
-    if not tables:
-        raise InputError("tables", "nothing to merge")
-    fingerprints = {t.meta["fingerprint"] for t in tables}
-    if len(fingerprints) != 1:
-        raise InputError("tables", f"the partial tables were made with different settings: {sorted(fingerprints)}")
-    per_table = {
-        f"{t.meta['band']} {t.meta['sca']}": {k: t.meta[k] for k in ("saturation_magnitude", "peak_fraction", "elapsed_s")}
-        for t in tables
-    }
-    merged = vstack([Table(t, meta={}) for t in tables], metadata_conflicts="silent")
-    merged.meta.update(
-        {
-            "description": "nlpsf slope tables: bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta",
-            "settings": tables[0].meta["settings"],
-            "fingerprint": tables[0].meta["fingerprint"],
-            "method": tables[0].meta["method"],
-            "data_version": tables[0].meta["data_version"],
-            "code_version": tables[0].meta["code_version"],
-            "per_table": per_table,
-            "units": {
-                "magnitude": "AB mag",
-                "flux_electrons": "e-",
-                "peak_electrons": "e- per fine pixel x N^2",
-                "bias_*": "per (1/e-) of beta",
-                "scatter_*": "per (1/e-) of sigma_beta",
-            },
-        }
-    )
-    Path(destination).parent.mkdir(parents=True, exist_ok=True)
-    merged.write(destination, format="ascii.ecsv", overwrite=True)
-    return merged
-
-
-def interpolation_error_estimate(flux: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    """Estimated error of interpolating slope / flux with a cubic spline in flux, per grid point.
-
-    Leave each interior point out, interpolate it back from the others (which doubles the local
-    spacing) and divide by 2^4, the factor by which a cubic spline's error grows when the spacing
-    doubles. End points take their neighbour's estimate. The tests check the estimate against
-    fresh simulations between grid points.
-    """
-    order = np.argsort(flux)
-    x, q = flux[order], slope[order] / flux[order]
-    estimate = np.zeros_like(q)
-    for k in range(1, q.size - 1):
-        keep = np.ones(q.size, dtype=bool)
-        keep[k] = False
-        estimate[k] = abs(CubicSpline(x[keep], q[keep])(x[k]) - q[k]) / 16.0
-    estimate[0], estimate[-1] = estimate[1], estimate[-2]
-    out = np.empty_like(estimate)
-    out[order] = estimate * x  # back to slope units
-    return out
+def _evaluate_cubic(breaks: np.ndarray, coefficients: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Evaluate a piecewise cubic (scipy's PPoly layout: highest power first) at ``x``."""
+    index = np.clip(np.searchsorted(breaks, x, side="right") - 1, 0, breaks.size - 2)
+    d = x - breaks[index]
+    c = coefficients[:, index]
+    return ((c[0] * d + c[1]) * d + c[2]) * d + c[3]
 
 
 # --- reading ----------------------------------------------------------------------------------
@@ -320,6 +103,8 @@ class SlopeTable:
     settings: dict
     saturation_magnitude: float
     peak_fraction: float
+    #: (4, n - 1) piecewise-cubic coefficients per slope column, flux ascending (see above).
+    splines: dict[str, np.ndarray]
     _interpolants: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -331,14 +116,19 @@ class SlopeTable:
         return float(self.settings["beta0"])
 
     def _interpolant(self, name: str):
-        """(spline of slope/flux, relative statistical error, interpolation error/flux) vs flux."""
+        """(flux ascending, slope/flux evaluator, relative statistical error, interpolation error/flux)."""
         if name not in self._interpolants:
             order = np.argsort(self.flux_electrons)
             flux = self.flux_electrons[order]
             value = self.columns[name][order]
             relative = np.abs(self.columns[f"{name}_err"][order] / np.where(value != 0, value, np.inf))
             interp = self.columns[f"{name}_interp"][order] / flux
-            self._interpolants[name] = (flux, CubicSpline(flux, value / flux), relative, interp)
+            coefficients = self.splines[name]
+
+            def spline(x, flux=flux, coefficients=coefficients):
+                return _evaluate_cubic(flux, coefficients, np.asarray(x, dtype=np.float64))
+
+            self._interpolants[name] = (flux, spline, relative, interp)
         return self._interpolants[name]
 
     def flux_at(self, magnitude) -> np.ndarray:
@@ -405,67 +195,171 @@ class SlopeTable:
         return float(self.magnitudes[0] + shift), float(self.magnitudes[-1] + shift)
 
 
-@dataclass(frozen=True, eq=False)
 class TableSet:
-    """All shipped tables, keyed by (band, SCA)."""
+    """All tables of one file, keyed by (band, SCA); each is read on first use (``load_all`` reads all)."""
 
-    tables: dict[tuple[str, int], SlopeTable]
-    meta: dict
+    def __init__(self, keys: list[tuple[str, int]], meta: dict, reader):
+        self._keys = sorted(keys, key=lambda k: (defaults.BANDS.index(k[0]), k[1]))
+        self.meta = meta
+        self._reader = reader
+        self._tables: dict[tuple[str, int], SlopeTable] = {}
+        # Threads of one service worker may ask for the same table at once: read it once.
+        self._lock = Lock()
 
     def get(self, band: str, sca: int) -> SlopeTable:
         key = (roman.check_band(band), roman.check_sca(sca))
-        if key not in self.tables:
-            raise InputError("band", f"no table for {key[0]} SCA {key[1]} in this table set")
-        return self.tables[key]
+        table = self._tables.get(key)
+        if table is None:
+            if key not in self._keys:
+                raise InputError("band", f"no table for {key[0]} SCA {key[1]} in this table set")
+            with self._lock:
+                table = self._tables.get(key)
+                if table is None:
+                    table = self._tables[key] = self._reader(key)
+        return table
+
+    def load_all(self) -> TableSet:
+        """Read every table now (a service does this at start, so no request pays for it)."""
+        for key in self._keys:
+            self.get(*key)
+        return self
+
+    @property
+    def tables(self) -> dict[tuple[str, int], SlopeTable]:
+        """Every table, read now if it was not yet."""
+        return {key: self.get(*key) for key in self._keys}
 
     @property
     def bands(self) -> list[str]:
-        return sorted({b for b, _ in self.tables}, key=roman.BANDS.index)
+        return sorted({b for b, _ in self._keys}, key=defaults.BANDS.index)
 
     @property
     def scas(self) -> list[int]:
-        return sorted({s for _, s in self.tables})
+        return sorted({s for _, s in self._keys})
+
+
+_META_KEYS = ("settings", "fingerprint", "method", "data_version", "code_version")
+
+
+def write_companion(table, path: Path) -> Path:
+    """Write the binary companion of a merged astropy table (written as ECSV to ``path``).
+
+    Layout: ``meta`` (JSON text: the ECSV's metadata, column names, spline columns), and per
+    (band, SCA) ``{band}_{sca}`` (rows x columns, magnitude ascending) and ``{band}_{sca}_spline``
+    (slope columns x 4 x rows - 1). The fingerprint ties it to the ECSV it came from.
+    """
+    bands = np.asarray(table["band"]).astype(str)
+    scas = np.asarray(table["sca"], dtype=int)
+    names = [n for n in table.colnames if n not in ("band", "sca")]
+    arrays: dict[str, np.ndarray] = {}
+    keys = []
+    for band, sca in sorted(set(zip(bands.tolist(), scas.tolist(), strict=True))):
+        rows = (bands == band) & (scas == sca)
+        data = np.column_stack([np.asarray(table[n][rows], dtype=np.float64) for n in names])
+        data = data[np.argsort(data[:, names.index("magnitude")])]
+        flux = data[:, names.index("flux_electrons")]
+        order = np.argsort(flux)
+        arrays[f"{band}_{sca}"] = data
+        arrays[f"{band}_{sca}_spline"] = np.stack(
+            [_spline_coefficients(flux[order], data[order, names.index(c)]) for c in SLOPE_COLUMNS]
+        )
+        keys.append([band, int(sca)])
+    meta = {k: table.meta[k] for k in (*_META_KEYS, "per_table") if k in table.meta}
+    meta.update(columns=names, spline_columns=list(SLOPE_COLUMNS), keys=keys, companion_format=COMPANION_FORMAT)
+    destination = companion_path(Path(path))
+    temporary = destination.with_name(destination.name + ".tmp.npz")
+    np.savez_compressed(temporary, meta=np.array(json.dumps(meta)), **arrays)
+    temporary.replace(destination)
+    return destination
+
+
+def _table_from_arrays(key: tuple[str, int], data: np.ndarray, splines: np.ndarray, meta: dict) -> SlopeTable:
+    names = meta["columns"]
+    column = {name: data[:, k].copy() for k, name in enumerate(names)}
+    info = meta["per_table"][f"{key[0]} {key[1]}"]
+    return SlopeTable(
+        band=key[0],
+        sca=key[1],
+        magnitudes=column["magnitude"],
+        flux_electrons=column["flux_electrons"],
+        peak_electrons=column["peak_electrons"],
+        columns={n: v for n, v in column.items() if n.startswith(("bias_", "scatter_"))},
+        settings=dict(meta["settings"]),
+        saturation_magnitude=float(info["saturation_magnitude"]),
+        peak_fraction=float(info["peak_fraction"]),
+        splines=dict(zip(meta["spline_columns"], splines, strict=True)),
+    )
+
+
+def _public_meta(meta: dict, source: Path) -> dict:
+    out = {k: meta[k] for k in _META_KEYS if k in meta}
+    # The file's name only: a server must not disclose where it is installed.
+    out["source"] = source.name
+    return out
 
 
 @lru_cache(maxsize=4)
 def load_tables(path: str | None = None) -> TableSet:
-    """Read a table file (the shipped one by default). Cached: the calculator never re-reads."""
+    """Open a table file (the shipped one by default). Cached: the calculator never re-reads.
+
+    Reads the binary companion (numpy alone, milliseconds) when it is there and matches the ECSV's
+    fingerprint; otherwise parses the ECSV with astropy and builds the splines with scipy.
+    """
     source = Path(path) if path is not None else shipped_table_path()
     if not source.exists():
-        raise InputError("tables", f"no table file at {source}; build one with `nlpsf tables build`")
+        raise InputError("tables", f"no table file named {source.name}; build one with `nlpsf tables build`")
+    companion = companion_path(source)
+    if companion.exists():
+        archive = np.load(companion, allow_pickle=False)
+        meta = json.loads(str(archive["meta"]))
+        if meta.get("companion_format") == COMPANION_FORMAT and _ecsv_fingerprint(source) == meta.get("fingerprint"):
+            keys = [(str(b), int(s)) for b, s in meta["keys"]]
+
+            def read(key: tuple[str, int]) -> SlopeTable:
+                name = f"{key[0]}_{key[1]}"
+                return _table_from_arrays(key, archive[name], archive[f"{name}_spline"], meta)
+
+            return TableSet(keys, _public_meta(meta, source), read)
+    return _load_ecsv(source)
+
+
+def _ecsv_fingerprint(path: Path) -> str | None:
+    """The ``fingerprint`` in an ECSV file's YAML header, read without parsing the file."""
+    pattern = re.compile(r"^#\s*-?\s*\{?\s*fingerprint:\s*['\"]?([0-9a-f]+)")
+    with path.open() as handle:
+        for line in handle:
+            if not line.startswith("#"):
+                break
+            match = pattern.match(line)
+            if match:
+                return match.group(1)
+    return None
+
+
+def _load_ecsv(source: Path) -> TableSet:
+    from astropy.table import Table
+
     table = Table.read(source, format="ascii.ecsv")
-    settings = dict(table.meta["settings"])
     per_table = table.meta["per_table"]
-    out: dict[tuple[str, int], SlopeTable] = {}
     bands = np.asarray(table["band"]).astype(str)
     scas = np.asarray(table["sca"], dtype=int)
-    for key in sorted(set(zip(bands, scas, strict=True))):
-        rows = table[(bands == key[0]) & (scas == key[1])]
-        rows.sort("magnitude")
-        columns = {name: np.asarray(rows[name], dtype=float) for name in rows.colnames if name.startswith(("bias_", "scatter_"))}
-        info = per_table[f"{key[0]} {key[1]}"]
-        out[(str(key[0]), int(key[1]))] = SlopeTable(
-            band=str(key[0]),
-            sca=int(key[1]),
-            magnitudes=np.asarray(rows["magnitude"], dtype=float),
-            flux_electrons=np.asarray(rows["flux_electrons"], dtype=float),
-            peak_electrons=np.asarray(rows["peak_electrons"], dtype=float),
-            columns=columns,
-            settings=settings,
-            saturation_magnitude=float(info["saturation_magnitude"]),
-            peak_fraction=float(info["peak_fraction"]),
-        )
-    meta = {k: table.meta[k] for k in ("settings", "fingerprint", "method", "data_version", "code_version") if k in table.meta}
-    meta["source"] = str(source)
-    return TableSet(out, meta)
+    names = [n for n in table.colnames if n not in ("band", "sca")]
+    meta: dict[str, Any] = {k: table.meta[k] for k in _META_KEYS if k in table.meta}
+    meta.update(columns=names, spline_columns=list(SLOPE_COLUMNS), per_table=per_table)
+    out = {}
+    for key in sorted(set(zip(bands.tolist(), scas.tolist(), strict=True))):
+        rows = (bands == key[0]) & (scas == key[1])
+        data = np.column_stack([np.asarray(table[n][rows], dtype=np.float64) for n in names])
+        data = data[np.argsort(data[:, names.index("magnitude")])]
+        flux = data[:, names.index("flux_electrons")]
+        order = np.argsort(flux)
+        splines = np.stack([_spline_coefficients(flux[order], data[order, names.index(c)]) for c in SLOPE_COLUMNS])
+        out[(str(key[0]), int(key[1]))] = _table_from_arrays((str(key[0]), int(key[1])), data, splines, meta)
+    return TableSet(list(out), _public_meta(meta, source), out.__getitem__)
 
 
 def check_metric_mode(metric: str, mode: str) -> tuple[str, str]:
-    if metric not in METRICS:
-        raise InputError("metric", f"must be one of {', '.join(METRICS)}, got {metric!r}")
-    if mode not in MODES:
-        raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
-    return metric, mode
+    return check_choice(metric, "metric", METRICS), check_choice(mode, "mode", MODES)
 
 
 def curve(
@@ -473,17 +367,17 @@ def curve(
     sca: int = 18,
     metric: str = "size",
     mode: str = "bias",
-    exptime: float = roman.DEFAULT_EXPTIME_S,
-    beta0: float = 5e-7,
-    full_well: float = roman.DEFAULT_FULL_WELL_E,
+    exptime: float = defaults.EXPTIME_S,
+    beta0: float = defaults.BETA0,
+    full_well: float = defaults.FULL_WELL_E,
     step: float = 0.25,
     tables: TableSet | None = None,
 ) -> dict:
     """Slope vs magnitude for plotting (the paper's Figs. 3 and 5), at the given conditions."""
     check_metric_mode(metric, mode)
-    exptime = check_number(exptime, "exptime", 0.0, 1e6, open_low=True)
-    beta0 = check_number(beta0, "beta0", 1e-12, 1e-3)
-    full_well = check_number(full_well, "full_well", 0.0, 1e9, open_low=True)
+    exptime = check_exptime(exptime)
+    beta0 = check_beta0(beta0)
+    full_well = check_full_well(full_well)
     table = (tables or load_tables()).get(band, sca)
     lo, hi = table.grid_range(exptime, beta0)
     m = np.round(np.arange(math.ceil(lo / step) * step, hi + step / 2, step), 6)
@@ -606,6 +500,8 @@ def table2_comparison(tables: TableSet | None = None, sca: int = 18) -> list[dic
     (effective areas of 2021 vs the paper's Cycle 5); what remains is the optics (Cycle-9 vs Cycle-5
     PSF shape), the same 5.7 % drop for every band only if the optics did not change.
     """
+    from . import photometry  # astropy units: only this comparison needs them
+
     tables = tables or load_tables()
     paper = paper_data()
     table2 = paper["table2_powerlaw"]
@@ -615,7 +511,7 @@ def table2_comparison(tables: TableSet | None = None, sca: int = 18) -> list[dic
     for band in ("Y106", "J129", "H158", "F184"):
         table = tables.get(band, sca)
         ours = {mode: powerlaw_fit(table, mode) for mode in MODES}
-        flux_ratio = float(photometry.magnitude_to_electrons(18.3, band, 168.1)) / paper_flux_183[band]
+        flux_ratio = float(photometry.magnitude_to_electrons(18.3, band, defaults.EXPTIME_S)) / paper_flux_183[band]
         for mode in MODES:
             a_paper, b_paper = table2[mode][band]
             ratio = ours[mode]["A"] / a_paper
@@ -639,104 +535,6 @@ def table2_comparison(tables: TableSet | None = None, sca: int = 18) -> list[dic
     return rows
 
 
-# --- command line -----------------------------------------------------------------------------
-
-
-def _register_cli() -> None:
-    from . import cli
-
-    def configure(parser) -> None:
-        sub = parser.add_subparsers(dest="tables_command", required=True)
-        build = sub.add_parser("build", help="compute the slope tables (resumable)")
-        build.add_argument(
-            "--output", default="build/tables", help="folder for the per-(band, SCA) tables (default build/tables)"
-        )
-        build.add_argument("--merge-to", default=None, help="also merge them into this file (e.g. nlpsf/data/tables/slopes.ecsv)")
-        build.add_argument("--band", action="append", help="only these bands (repeat); default all")
-        build.add_argument("--sca", action="append", type=int, help="only these SCAs (repeat); default all")
-        build.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
-        build.add_argument(
-            "--dask", default=None, metavar="ADDRESS", help="run on a dask.distributed scheduler ('local' starts one)"
-        )
-        build.add_argument("--realizations", type=int, default=100)
-        build.add_argument("--faint-limit", type=float, default=FAINT_LIMIT)
-        build.add_argument("--step", type=float, default=MAGNITUDE_STEP)
-        build.add_argument("--quiet", action="store_true")
-        show = sub.add_parser("show", help="print one table")
-        show.add_argument("--band", default="H158")
-        show.add_argument("--sca", type=int, default=18)
-        show.add_argument("--format", choices=("text", "json", "csv"), default="text")
-        fits = sub.add_parser("fits", help="power-law fits, the paper's Table 2 form")
-        fits.add_argument("--sca", type=int, default=18)
-        fits.add_argument("--markdown", action="store_true", help="the side-by-side with the paper's Table 2")
-        fits.add_argument("--json", action="store_true")
-
-    @cli.register("tables", configure, "slope tables: build, show, power-law fits")
-    def run(args) -> int:
-        if args.tables_command == "build":
-            return _build_command(args, cli)
-        if args.tables_command == "show":
-            return _show_command(args)
-        return _fits_command(args)
-
-
-def _build_command(args, cli) -> int:
-    check_integer(args.workers, "workers", 1, 256)
-    settings = TableSettings(realizations=args.realizations, faint_limit=args.faint_limit, magnitude_step=args.step)
-    start = time.perf_counter()
-    paths = build_tables(
-        args.output,
-        bands=args.band or roman.BANDS,
-        scas=args.sca or range(1, roman.N_SCA + 1),
-        settings=settings,
-        workers=args.workers,
-        dask_address=args.dask,
-        progress=cli._progress_printer(not args.quiet),
-    )
-    print(f"{len(paths)} tables in {args.output} ({time.perf_counter() - start:.1f} s)", file=sys.stderr)
-    if args.merge_to:
-        merge_tables(paths, args.merge_to)
-        print(f"merged into {args.merge_to}", file=sys.stderr)
-    return 0
-
-
-def _show_command(args) -> int:
-    rows = table_rows(args.band, args.sca)
-    if args.format == "json":
-        print(json.dumps(rows, indent=1))
-    elif args.format == "csv":
-        Table(rows=[list(r.values()) for r in rows], names=list(rows[0])).write(sys.stdout, format="ascii.csv")
-    else:
-        print(
-            f"{args.band} SCA {args.sca}: bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta "
-            "at beta0=5e-7, 168.1 s"
-        )
-        print(f"{'mag':>6} {'size':>11} {'e1':>10} {'e2':>10} {'size scat':>11} {'e1 scat':>10} {'e2 scat':>10}  saturated")
-        for r in rows:
-            print(
-                f"{r['magnitude']:6.2f} {r['bias_size']:11.5g} {r['bias_e1']:10.4g} {r['bias_e2']:10.4g} "
-                f"{r['scatter_size']:11.5g} {r['scatter_e1']:10.4g} {r['scatter_e2']:10.4g}  {'yes' if r['saturated'] else ''}"
-            )
-    return 0
-
-
-def _fits_command(args) -> int:
-    if args.markdown:
-        print(table2_markdown(sca=args.sca))
-        return 0
-    fits = powerlaw_fits(scas=[args.sca])
-    if args.json:
-        print(json.dumps(fits, indent=1))
-        return 0
-    print(f"SCA {args.sca}: slope = A 10^(B (m - 20)) over m = {PAPER_FIT_RANGE[0]}-{PAPER_FIT_RANGE[1]}")
-    for f in fits:
-        print(
-            f"{f['band']:>5} {f['mode']:>8}  A = {f['A']:9.1f} +- {f['A_err']:.1f}  B = {f['B']:.4f} +- {f['B_err']:.4f}  "
-            f"max residual {100 * f['max_relative_residual']:.2f} %"
-        )
-    return 0
-
-
 def table2_markdown(sca: int = 18) -> str:
     rows = table2_comparison(sca=sca)
     lines = [
@@ -751,6 +549,3 @@ def table2_markdown(sca: int = 18) -> str:
             f"{100 * r['max_relative_residual']:.2f} % |"
         )
     return "\n".join(lines)
-
-
-_register_cli()

@@ -9,10 +9,10 @@ import math
 
 import pytest
 from fastapi.testclient import TestClient
+from nlpsf.web.main import create_app
+from nlpsf.web.settings import Limits, Settings
 
-from app.main import create_app
-from app.settings import Limits, Settings
-from nlpsf import cli, experiment, roman, solver, tables
+from nlpsf import cli, defaults, experiment, roman, solver, tables
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def test_meta_lists_what_the_library_offers(client):
     assert meta["data_version"] == roman.DATA_VERSION
     assert meta["tables"]["fingerprint"] == tables.load_tables().meta["fingerprint"]
     assert meta["defaults"]["solve"]["beta0"] == 5e-7
-    assert meta["defaults"]["solve"]["exptime"] == roman.DEFAULT_EXPTIME_S
+    assert meta["defaults"]["solve"]["exptime"] == defaults.EXPTIME_S
     assert meta["limits"]["max_realizations"] == 500
     assert meta["limits"]["max_queue"] == 8
 

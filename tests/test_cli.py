@@ -105,28 +105,40 @@ def test_slopes_command(capsys):
 
 
 def test_readable_table_without_json(capsys):
-    code, out, _ = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3")
-    assert code == 0 and "dR/R" in out and "saturated" in out
+    # m = 17.5 is just past saturation (m = 18.03): flagged, but the moments still converge.
+    code, out, _ = run(capsys, "simulate", "--magnitude", "17.5", "--realizations", "3")
+    assert code == 0 and "dR/R" in out and "saturated" in out and "±" in out
+
+
+def test_every_realization_failing_exits_1(capsys):
+    # m = 14 drives 1 - 2 beta Q negative at the core: every adaptive-moment fit fails.
+    code, out, err = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3")
+    assert code == 1 and "failed in 3 of 3" in out and "every realization" in err
 
 
 @pytest.mark.parametrize(
     ("argv", "name"),
     [
-        (["--band", "Q999"], "band"),
-        (["--sca", "0"], "sca"),
-        (["--sca", "19"], "sca"),
-        (["--magnitude", "nan"], "magnitude"),
-        (["--exptime", "-3"], "exptime"),
-        (["--beta", "inf"], "beta"),
-        (["--realizations", "0"], "realizations"),
-        (["--stamp", "4"], "stamp"),
-        (["--sigma-beta=-1e-9"], "sigma_beta"),
+        (["--band", "Q999"], "--band"),
+        (["--sca", "0"], "--sca"),
+        (["--sca", "19"], "--sca"),
+        (["--magnitude", "nan"], "--magnitude"),
+        (["--exptime", "-3"], "--exptime"),
+        (["--full-well", "0"], "--full-well"),
+        (["--beta", "inf"], "--beta"),
+        (["--realizations", "0"], "--realizations"),
+        (["--stamp", "4"], "--stamp"),
+        (["--sigma-beta=-1e-9"], "--sigma-beta"),
+        (["--sigma-beta", "-1e-9"], "--sigma-beta"),
+        (["--weight-cut", "-1"], "--weight-cut"),
+        (["--beta-convention", "galsim", "--beta", "-2e-3"], "--beta"),
     ],
 )
-def test_bad_arguments_exit_2_naming_the_argument(capsys, argv, name):
+def test_bad_arguments_exit_2_naming_the_option(capsys, argv, name):
     code, out, err = run(capsys, "simulate", *argv, "--json")
     assert code == 2 and out == ""
-    assert name in err
+    # The option the user typed, never the library's internal name (full_well_e, weight_cut_rho2, ...).
+    assert f"error: {name}:" in err and "_e:" not in err and "rho2" not in err
 
 
 def test_console_script_is_installed():
@@ -141,3 +153,39 @@ def test_console_script_is_installed():
 def test_no_weight_cut_is_valid_json(capsys):
     code, out, _ = run(capsys, "simulate", "--weight-cut", "none", "--realizations", "3", "--json")
     assert code == 0 and json.loads(out)["conditions"]["weight_cut_rho2"] is None
+
+
+def test_galsim_convention_takes_a_negative_beta(capsys):
+    code, out, _ = run(
+        capsys, "simulate", "--beta-convention", "galsim", "--beta", "-5e-7", "--magnitude", "19", "--realizations", "3", "--json"
+    )
+    galsim = json.loads(out)
+    code_paper, out_paper, _ = run(capsys, "simulate", "--beta", "5e-7", "--magnitude", "19", "--realizations", "3", "--json")
+    paper = json.loads(out_paper)
+    assert code == code_paper == 0 and galsim["beta"] == -5e-7 and galsim["beta_paper"] == 5e-7
+    assert galsim["dR_over_R"]["mean"] == paper["dR_over_R"]["mean"]
+
+
+def test_every_option_has_help_and_shows_its_default():
+    from nlpsf.cli import COMMANDS, build_parser
+
+    for command in COMMANDS:
+        parser, _ = build_parser([command])
+        sub = parser._subparsers._group_actions[0].choices[command]
+        for action in sub._actions:
+            if action.dest in ("help", "tables_command"):
+                continue
+            assert action.help, f"{command} {action.option_strings} has no help"
+        text = sub.format_help()
+        if command in ("simulate", "slopes", "solve"):
+            assert "(default: 168.1)" in text and "(default: H158)" in text
+
+
+def test_a_closed_pipe_is_not_a_traceback():
+    # `nlpsf tables show | head -1`: the reader goes away after one line.
+    script = "import sys; from nlpsf.cli import main; sys.exit(main(['tables', 'show', '--format', 'csv']))"
+    producer = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    producer.stdout.readline()
+    producer.stdout.close()
+    _, err = producer.communicate(timeout=60)
+    assert b"Traceback" not in err and b"BrokenPipeError" not in err

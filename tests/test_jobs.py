@@ -11,10 +11,9 @@ from pathlib import Path
 import httpx
 import pytest
 from fastapi.testclient import TestClient
-
-from app.main import create_app
-from app.settings import Limits, Settings
-from app.store import Store
+from nlpsf.web.main import create_app
+from nlpsf.web.settings import Limits, Settings
+from nlpsf.web.store import Store
 
 from .servers import free_port, start_server, wait_for
 

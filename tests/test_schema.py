@@ -11,10 +11,9 @@ import pytest
 import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
+from nlpsf.web.main import create_app
+from nlpsf.web.settings import Limits, Settings
 from schemathesis import checks
-
-from app.main import create_app
-from app.settings import Limits, Settings
 
 # Small limits: generated simulations must stay cheap. wait is capped at 0 so nothing blocks.
 _directory = tempfile.mkdtemp(prefix="nlpsf-schema-")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, roman, tables
+from nlpsf import experiment, roman, tablebuild, tables
 
 
 @pytest.fixture(scope="module")
@@ -155,38 +155,79 @@ def test_paper_data_is_shipped():
 
 
 def test_build_is_resumable_and_merges(tmp_path):
-    settings = tables.TableSettings(realizations=4, faint_limit=19.5)
+    settings = tablebuild.TableSettings(realizations=4, faint_limit=19.5)
     seen = []
-    first = tables.build_tables(tmp_path, bands=["H158"], scas=[3, 4], settings=settings, progress=lambda d, t, m: seen.append(m))
+    first = tablebuild.build_tables(
+        tmp_path, bands=["H158"], scas=[3, 4], settings=settings, progress=lambda d, t, m: seen.append(m)
+    )
     assert len(first) == 2 and seen[0] == "starting"
     # Interrupted half way: one table lost, and a half-written temporary left behind.
     first[0].unlink()
     (tmp_path / "slopes_H158_SCA04.tmp").write_text("garbage")
     seen.clear()
-    second = tables.build_tables(
+    second = tablebuild.build_tables(
         tmp_path, bands=["H158"], scas=[3, 4], settings=settings, progress=lambda d, t, m: seen.append(m)
     )
     assert seen[0] == "resumed" and len(seen) == 2  # only the lost table was recomputed
-    merged = tables.merge_tables(second, tmp_path / "merged.ecsv")
+    merged = tablebuild.merge_tables(second, tmp_path / "merged.ecsv")
     assert set(merged["sca"]) == {3, 4}
     loaded = tables.load_tables(str(tmp_path / "merged.ecsv"))
     assert loaded.get("H158", 3).magnitudes[-1] == pytest.approx(19.5)
 
 
 def test_build_refuses_to_merge_tables_made_with_different_settings(tmp_path):
-    a = tables.build_tables(
-        tmp_path / "a", bands=["Y106"], scas=[1], settings=tables.TableSettings(realizations=3, faint_limit=19)
+    a = tablebuild.build_tables(
+        tmp_path / "a", bands=["Y106"], scas=[1], settings=tablebuild.TableSettings(realizations=3, faint_limit=19)
     )
-    b = tables.build_tables(
-        tmp_path / "b", bands=["Y106"], scas=[2], settings=tables.TableSettings(realizations=4, faint_limit=19)
+    b = tablebuild.build_tables(
+        tmp_path / "b", bands=["Y106"], scas=[2], settings=tablebuild.TableSettings(realizations=4, faint_limit=19)
     )
     with pytest.raises(ValueError, match="different settings"):
-        tables.merge_tables(a + b, tmp_path / "m.ecsv")
+        tablebuild.merge_tables(a + b, tmp_path / "m.ecsv")
 
 
 def test_build_fans_out_over_dask(tmp_path):
     pytest.importorskip("dask.distributed")
-    settings = tables.TableSettings(realizations=3, faint_limit=19.0)
-    paths = tables.build_tables(tmp_path, bands=["F184"], scas=[5, 6], settings=settings, workers=2, dask_address="local")
+    settings = tablebuild.TableSettings(realizations=3, faint_limit=19.0)
+    paths = tablebuild.build_tables(tmp_path, bands=["F184"], scas=[5, 6], settings=settings, workers=2, dask_address="local")
     assert sorted(p.name for p in paths) == ["slopes_F184_SCA05.ecsv", "slopes_F184_SCA06.ecsv"]
-    assert tables.merge_tables(paths, tmp_path / "m.ecsv")["band"][0] == "F184"
+    assert tablebuild.merge_tables(paths, tmp_path / "m.ecsv")["band"][0] == "F184"
+
+
+def test_binary_companion_matches_the_ecsv_and_scipys_spline():
+    """The shipped .npz holds the ECSV's numbers, and evaluating its stored cubics gives scipy's
+    CubicSpline (the interpolant the tables are defined by) on every table and slope column."""
+    from astropy.table import Table
+    from scipy.interpolate import CubicSpline
+
+    path = tables.shipped_table_path()
+    fast = tables.load_tables()
+    assert fast.meta["fingerprint"] == Table.read(path, format="ascii.ecsv").meta["fingerprint"]
+    slow = tables._load_ecsv(path)
+    for band, sca in [("H158", 18), ("R062", 1), ("K213", 17), ("W146", 6)]:
+        a, b = fast.get(band, sca), slow.get(band, sca)
+        np.testing.assert_array_equal(a.magnitudes, b.magnitudes)
+        for name in tables.SLOPE_COLUMNS:
+            np.testing.assert_array_equal(a.columns[name], b.columns[name])
+            order = np.argsort(a.flux_electrons)
+            flux = a.flux_electrons[order]
+            spline = CubicSpline(flux, a.columns[name][order] / flux)
+            probe = np.geomspace(flux[0], flux[-1], 997)
+            _, evaluate, _, _ = a._interpolant(name)
+            np.testing.assert_allclose(evaluate(probe), spline(probe), rtol=1e-12, atol=1e-300)
+
+
+def test_a_stale_companion_is_ignored(tmp_path):
+    """A companion whose fingerprint differs from its ECSV is not trusted: the ECSV is read."""
+    import shutil
+
+    source = tables.shipped_table_path()
+    copy = tmp_path / "slopes.ecsv"
+    shutil.copy(source, copy)
+    shutil.copy(tables.companion_path(source), tables.companion_path(copy))
+    text = copy.read_text()
+    fingerprint = tables._ecsv_fingerprint(copy)
+    copy.write_text(text.replace(fingerprint, "feedfacefeedface", 1))
+    loaded = tables.load_tables(str(copy))
+    assert loaded.meta["fingerprint"] == "feedfacefeedface"
+    assert loaded.get("H158", 18).magnitudes.size > 10

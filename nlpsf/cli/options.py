@@ -1,0 +1,126 @@
+"""Options shared by the subcommands that run the simulator, and the printing helpers.
+
+Built from ``nlpsf.defaults`` alone, so configuring a parser costs nothing; the simulator is
+imported by ``config_from`` when a command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from .. import defaults
+
+
+def weight_cut(text: str) -> float:
+    lowered = text.strip().lower()
+    if lowered == "paper":
+        return defaults.PAPER_WEIGHT_CUT_RHO2
+    if lowered == "galsim":
+        return defaults.GALSIM_WEIGHT_CUT_RHO2
+    if lowered in ("none", "inf"):
+        return math.inf
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected paper, galsim, none or a number, got {text!r}") from None
+
+
+def add_band_sca(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
+    parser.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18)")
+
+
+def add_exposure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--exptime", type=float, default=defaults.EXPTIME_S, help="exposure time [s]")
+    parser.add_argument("--full-well", type=float, default=defaults.FULL_WELL_E, help="full-well depth [e-]")
+
+
+def add_simulation_options(parser: argparse.ArgumentParser) -> None:
+    """Options shared by every command that runs the simulator."""
+    add_band_sca(parser)
+    parser.add_argument(
+        "--realizations",
+        type=int,
+        default=defaults.REALIZATIONS,
+        help="centroid realizations, or beta-map draws with --sigma-beta",
+    )
+    parser.add_argument("--seed", type=int, default=defaults.SEED, help="random seed; the same seed gives the same numbers")
+    parser.add_argument("--oversampling", type=int, default=defaults.OVERSAMPLING, help="fine pixels per native pixel, N")
+    parser.add_argument("--stamp", type=int, default=defaults.STAMP, help="stamp side [fine pixels]")
+    add_exposure(parser)
+    parser.add_argument(
+        "--n-wavelengths",
+        type=int,
+        default=1,
+        help="1: achromatic at the band's effective wavelength (the paper); >1: integrate the band for a flat-f_nu star",
+    )
+    parser.add_argument(
+        "--weight-cut",
+        type=weight_cut,
+        default=defaults.PAPER_WEIGHT_CUT_RHO2,
+        help="adaptive-moment weight cut rho^2: 'paper' (25, the default), 'galsim' (32.24), 'none' or a number",
+    )
+    parser.add_argument(
+        "--pupil-scale",
+        choices=defaults.PUPIL_SCALE_RULES,
+        default=defaults.PUPIL_SCALE,
+        help="pupil mask scale rule (see nlpsf/data/SOURCES.md)",
+    )
+    parser.add_argument(
+        "--method", choices=defaults.METHODS, default="monte_carlo", help="every realization fitted, or the linear response"
+    )
+    parser.add_argument(
+        "--beta-convention",
+        choices=defaults.BETA_CONVENTIONS,
+        default="paper",
+        help="paper: S = Q - beta Q^2 (beta > 0); galsim: S = Q + beta Q^2 (beta < 0, e.g. -6e-7)",
+    )
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar (there is none unless stderr is a terminal)")
+
+
+def config_from(args: argparse.Namespace):
+    """The simulator's configuration for these options (validated by the library)."""
+    from ..experiment import SimulationConfig
+
+    return SimulationConfig(
+        band=args.band,
+        sca=args.sca,
+        realizations=args.realizations,
+        seed=args.seed,
+        oversampling=args.oversampling,
+        stamp=args.stamp,
+        exptime_s=args.exptime,
+        full_well_e=args.full_well,
+        n_wavelengths=args.n_wavelengths,
+        weight_cut_rho2=args.weight_cut,
+        pupil_scale=args.pupil_scale,
+        method=args.method,
+    )
+
+
+def print_json(payload: Any) -> None:
+    print(json.dumps(payload, indent=2, allow_nan=False))
+
+
+def number(value: float | None, digits: int = 4) -> str:
+    """``digits`` significant digits, or n/a."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    return f"{value:.{digits}g}"
+
+
+def with_error(value: float | None, error: float | None, digits: int = 4) -> str:
+    """value ± error, the value to the error's second significant digit (at most ``digits``)."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    if error is None or not math.isfinite(error) or error <= 0:
+        return number(value, digits)
+    if value == 0:
+        return f"0 ± {error:.2g}"
+    # Significant digits of the value that reach the error's second digit.
+    shown = max(2, min(digits + 2, int(math.floor(math.log10(abs(value))) - math.floor(math.log10(error)) + 2)))
+    return f"{value:.{shown}g} ± {error:.2g}"

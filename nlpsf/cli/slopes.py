@@ -1,0 +1,63 @@
+"""``nlpsf slopes``: bias and scatter slopes against magnitude (the paper's Figs. 3 and 5)."""
+
+from __future__ import annotations
+
+import argparse
+
+from .. import defaults
+from . import progress_printer
+from .options import add_simulation_options, config_from, print_json, with_error
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    add_simulation_options(parser)
+    parser.add_argument(
+        "--magnitude",
+        type=float,
+        action="append",
+        help=f"AB magnitude; repeat (default {' '.join(f'{m:g}' for m in defaults.PAPER_MAGNITUDES)}, the paper's)",
+    )
+    parser.add_argument(
+        "--beta0", type=float, default=defaults.BETA0, help="beta at which slopes are taken [1/e-], in --beta-convention"
+    )
+    parser.add_argument(
+        "--sigma-beta",
+        type=float,
+        default=None,
+        help=f"per-pixel beta scatter of the Monte Carlo scatter slope [1/e-] (default {defaults.SIGMA_BETA_FRACTION:g} |beta0|)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import experiment
+
+    config = config_from(args)
+    magnitudes = args.magnitude or list(defaults.PAPER_MAGNITUDES)
+    results = experiment.slopes(
+        config,
+        magnitudes,
+        beta0=args.beta0,
+        sigma_beta=args.sigma_beta,
+        beta_convention=args.beta_convention,
+        progress=progress_printer(not args.quiet and not args.json),
+    )
+    if args.json:
+        print_json([r.to_dict() for r in results])
+        return 0
+    print(
+        f"{config.band} SCA {config.sca}, beta0={args.beta0:g} /e- ({args.beta_convention} convention), {config.exptime_s:g} s, "
+        f"fidelity {config.fidelity}"
+    )
+    print("bias slope d(metric)/dbeta and scatter slope sigma(metric)/sigma_beta, both per (1/e-), ± standard error")
+    print(
+        f"{'mag AB':>6} {'size bias':>18} {'e1 bias':>18} {'e2 bias':>18} {'size scatter':>18} {'e1 scatter':>18} "
+        f"{'e2 scatter':>18}"
+    )
+    for r in results:
+        b, s = r.bias, r.scatter
+        cells = [with_error(b[n].mean, b[n].stderr) for n in ("dR_over_R", "de1", "de2")]
+        cells += [with_error(s[n]["value"], s[n]["uncertainty"]) for n in ("dR_over_R", "de1", "de2")]
+        print(f"{r.magnitude:6.2f} " + " ".join(f"{c:>18}" for c in cells))
+        for flag in r.flags:
+            print(f"       ! {flag}")
+    return 0

@@ -1,0 +1,82 @@
+"""``nlpsf solve``: given two of precision, tolerance and magnitude, the third (paper Eq. calib)."""
+
+from __future__ import annotations
+
+import argparse
+
+from .. import defaults
+from ..fidelity import LEVELS
+from .options import add_band_sca, add_exposure, print_json, with_error
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    add_band_sca(parser)
+    parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
+    parser.add_argument(
+        "--mode", choices=defaults.MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
+    )
+    parser.add_argument("--beta0", type=float, default=defaults.BETA0, help="nominal NL coefficient [1/e-], paper convention")
+    add_exposure(parser)
+    parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
+    parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
+    parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
+    parser.add_argument("--fidelity", choices=LEVELS, default=None, help="how the slope is obtained (default table)")
+    parser.add_argument(
+        "--accuracy",
+        type=float,
+        default=None,
+        help="relative accuracy wanted: picks the cheapest fidelity whose measured error is below it (instead of --fidelity)",
+    )
+    parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..solver import solve
+
+    solution = solve(
+        args.band,
+        args.sca,
+        args.metric,
+        args.mode,
+        args.beta0,
+        args.exptime,
+        args.precision,
+        args.tolerance,
+        args.magnitude,
+        args.full_well,
+        args.fidelity,
+        args.accuracy,
+    )
+    payload = solution.to_dict()
+    if args.json:
+        print_json(payload)
+        return 0
+    print(
+        f"{solution.band} SCA {solution.sca}, {solution.metric} {solution.mode}, beta0={solution.beta0:g} /e-, "
+        f"{solution.exptime:g} s, full well {solution.full_well:.4g} e-, fidelity {solution.fidelity}"
+    )
+    units = {"precision": "(fraction of beta0)", "tolerance": _tolerance_unit(solution.metric), "magnitude": "AB"}
+    for name in ("precision", "tolerance", "magnitude"):
+        value = payload[name]
+        solved = name == solution.solved_for
+        text = with_error(value, payload["uncertainty"]) if solved else ("n/a" if value is None else f"{value:.6g}")
+        print(f"  {name:<10} {text} {units[name]}{'  <- solved' if solved else ''}")
+    if payload["uncertainty"] is not None:
+        parts = ", ".join(
+            f"{k} {payload[f'uncertainty_{k}']:.2g}"
+            for k in ("statistical", "fidelity")
+            if payload[f"uncertainty_{k}"] is not None
+        )
+        print(f"  uncertainty ({parts})")
+    slope_unit = "per (1/e-) of " + ("beta" if solution.mode == "bias" else "sigma_beta")
+    print(f"  slope c(m) {with_error(payload['slope'], payload['slope_uncertainty'])} {slope_unit}")
+    print(f"  saturation at m={solution.saturation_magnitude:.2f} AB")
+    if solution.binding_limit:
+        print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
+    for flag in solution.flags:
+        print(f"  ! {flag}")
+    return 0
+
+
+def _tolerance_unit(metric: str) -> str:
+    return "(fractional size error dR/R)" if metric == "size" else f"(ellipticity error |d{metric}|)"

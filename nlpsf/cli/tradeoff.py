@@ -1,0 +1,24 @@
+"""``nlpsf tradeoff``: measure each fidelity level's error and time against the most exact one."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from . import progress_printer
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--write", action="store_true", help="store it in nlpsf/data/fidelity.json (read by --accuracy)")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of the markdown table")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import fidelity, tradeoff
+
+    result = tradeoff.tradeoff(progress=progress_printer(not args.quiet and not args.json))
+    if args.write:
+        fidelity.write_measured(result)
+    print(json.dumps(result, indent=1) if args.json else tradeoff.markdown(result))
+    return 0

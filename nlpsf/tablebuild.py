@@ -1,0 +1,279 @@
+"""Building the slope tables: what ``nlpsf tables build`` runs (see ``nlpsf.tables`` for what they hold).
+
+For every SCA and band, on a magnitude grid from 1.5 mag brighter than saturation to m = 28 in
+steps of 0.25 mag (twice as fine near saturation), the linear response at beta0 gives the bias and
+scatter slopes with their standard errors, and a leave-one-out estimate of the interpolation error.
+Per-(band, SCA) tables are written atomically into a folder, so an interrupted build resumes;
+``merge_tables`` stacks them into the shipped ECSV file and writes its binary companion (the
+reading side's fast path, ``tables.write_companion``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from astropy.table import Table, vstack
+from scipy.interpolate import CubicSpline
+
+from . import __version__, defaults, experiment, photometry, roman
+from .checks import InputError
+from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, write_companion
+
+FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
+MAGNITUDE_STEP = defaults.TABLE_MAGNITUDE_STEP
+#: Where the nonlinearity is strong (up to a magnitude fainter than saturation) the grid is twice
+#: as fine, so that interpolation stays below the statistical error there too.
+BRIGHT_STEP_FACTOR = 0.5
+
+
+@dataclass(frozen=True)
+class TableSettings:
+    """How a set of tables is computed. Defaults are the paper's."""
+
+    exptime_s: float = defaults.EXPTIME_S
+    beta0: float = defaults.BETA0
+    full_well_e: float = defaults.FULL_WELL_E
+    oversampling: int = defaults.OVERSAMPLING
+    stamp: int = defaults.STAMP
+    realizations: int = defaults.REALIZATIONS
+    seed: int = defaults.SEED
+    weight_cut_rho2: float = defaults.PAPER_WEIGHT_CUT_RHO2
+    pupil_scale: str = defaults.PUPIL_SCALE
+    magnitude_step: float = MAGNITUDE_STEP
+    faint_limit: float = FAINT_LIMIT
+
+    def config(self, band: str, sca: int) -> experiment.SimulationConfig:
+        return experiment.SimulationConfig(
+            band=band,
+            sca=sca,
+            realizations=self.realizations,
+            seed=self.seed,
+            oversampling=self.oversampling,
+            stamp=self.stamp,
+            exptime_s=self.exptime_s,
+            full_well_e=self.full_well_e,
+            weight_cut_rho2=self.weight_cut_rho2,
+            pupil_scale=self.pupil_scale,
+            method="linear",
+        )
+
+    def fingerprint(self) -> str:
+        """Identifies the settings and code a table was made with (resuming skips matching ones)."""
+        text = json.dumps({**asdict(self), "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def saturation_magnitude(peak_fraction: float, band: str, exptime_s: float, full_well_e: float, oversampling: int) -> float:
+    """Magnitude at which the brightest fine pixel (over centroids) reaches the full well."""
+    electrons_at_full_well = full_well_e / (peak_fraction * oversampling**2)
+    return float(photometry.electrons_to_magnitude(electrons_at_full_well, band, exptime_s))
+
+
+def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit: float = FAINT_LIMIT) -> np.ndarray:
+    """From BRIGHT_MARGIN_MAG brighter than saturation to ``faint_limit``, finer at the bright end."""
+    fine = step * BRIGHT_STEP_FACTOR
+    first = math.floor((saturation - BRIGHT_MARGIN_MAG) / step) * step
+    switch = math.ceil((saturation + 1.0) / step) * step
+    bright = np.arange(first, switch, fine)
+    faint = np.arange(switch, faint_limit + step / 2, step)
+    return np.round(np.concatenate([bright, faint]), 6)
+
+
+def compute_table(band: str, sca: int, settings: TableSettings | None = None, progress=None) -> Table:
+    """The slope table of one (band, SCA)."""
+    settings = settings or TableSettings()
+    start = time.perf_counter()
+    config = settings.config(band, sca)
+    scene = experiment.prepare(config)
+    m_sat = saturation_magnitude(
+        float(scene.peak_fraction.max()), config.band, settings.exptime_s, settings.full_well_e, settings.oversampling
+    )
+    magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+    results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
+    columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
+    for metric in COLUMN_METRICS:
+        for mode in MODES:
+            columns[f"{mode}_{metric}"] = []
+            columns[f"{mode}_{metric}_err"] = []
+    columns["failed_realizations"] = []
+    for r in results:
+        columns["flux_electrons"].append(r.flux_electrons)
+        columns["peak_electrons"].append(r.peak_electrons)
+        columns["failed_realizations"].append(r.failed_realizations)
+        for metric, name in COLUMN_METRICS.items():
+            bias = r.bias[name]
+            columns[f"bias_{metric}"].append(np.nan if bias.mean is None else bias.mean)
+            columns[f"bias_{metric}_err"].append(np.nan if bias.stderr is None else bias.stderr)
+            scatter = r.scatter[name]
+            columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
+            columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
+    flux = np.asarray(columns["flux_electrons"])
+    for metric in COLUMN_METRICS:
+        for mode in MODES:
+            name = f"{mode}_{metric}"
+            columns[f"{name}_interp"] = list(interpolation_error_estimate(flux, np.asarray(columns[name])))
+    table = Table(columns)
+    table.add_column(band, name="band", index=0)
+    table.add_column(np.int16(sca), name="sca", index=1)
+    table.meta.update(
+        {
+            "band": band,
+            "sca": int(sca),
+            "saturation_magnitude": m_sat,
+            "peak_fraction": float(scene.peak_fraction.max()),
+            "settings": asdict(settings),
+            "fingerprint": settings.fingerprint(),
+            "method": "linear response at beta0, mean over centroid realizations",
+            "data_version": roman.DATA_VERSION,
+            "code_version": __version__,
+            "elapsed_s": time.perf_counter() - start,
+        }
+    )
+    return table
+
+
+def _partial_path(directory: Path, band: str, sca: int) -> Path:
+    return directory / f"slopes_{band}_SCA{sca:02d}.ecsv"
+
+
+def _compute_and_write(band: str, sca: int, settings: TableSettings, directory: str) -> tuple[str, int, float]:
+    table = compute_table(band, sca, settings)
+    path = _partial_path(Path(directory), band, sca)
+    temporary = path.with_suffix(".tmp")
+    table.write(temporary, format="ascii.ecsv", overwrite=True)
+    temporary.replace(path)  # atomic: an interrupted build never leaves half a table behind
+    return band, sca, float(table.meta["elapsed_s"])
+
+
+def build_tables(
+    directory: Path | str,
+    bands: Iterable[str] = defaults.BANDS,
+    scas: Iterable[int] = range(1, defaults.N_SCA + 1),
+    settings: TableSettings | None = None,
+    workers: int = 1,
+    dask_address: str | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> list[Path]:
+    """Compute every (band, SCA) table into ``directory``, skipping those already done.
+
+    Work is spread over ``workers`` local processes, or over a dask.distributed cluster when
+    ``dask_address`` is given ("local" starts a LocalCluster with ``workers`` workers).
+    Interrupting and re-running resumes where it stopped.
+    """
+    settings = settings or TableSettings()
+    # Absolute: a dask worker runs in a directory of its own, where a relative path means another folder.
+    directory = Path(directory).resolve()
+    directory.mkdir(parents=True, exist_ok=True)
+    todo, done = [], []
+    pairs = [(roman.check_band(b), roman.check_sca(s)) for b in bands for s in scas]
+    for band, sca in pairs:
+        path = _partial_path(directory, band, sca)
+        if path.exists() and Table.read(path, format="ascii.ecsv").meta.get("fingerprint") == settings.fingerprint():
+            done.append(path)
+        else:
+            todo.append((band, sca))
+    total = len(pairs)
+    if progress:
+        progress(len(done), total, "resumed" if done else "starting")
+    if dask_address is not None:
+        finished = _run_dask(todo, settings, str(directory), workers, dask_address)
+    elif workers > 1 and len(todo) > 1:
+        finished = _run_processes(todo, settings, str(directory), workers)
+    else:
+        finished = (_compute_and_write(band, sca, settings, str(directory)) for band, sca in todo)
+    for count, (band, sca, elapsed) in enumerate(finished, start=len(done) + 1):
+        done.append(_partial_path(directory, band, sca))
+        if progress:
+            progress(count, total, f"{band} SCA {sca} ({elapsed:.1f} s)")
+    return done
+
+
+def _run_processes(todo, settings, directory, workers):
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(_compute_and_write, band, sca, settings, directory) for band, sca in todo]
+        for future in as_completed(futures):
+            yield future.result()
+
+
+def _run_dask(todo, settings, directory, workers, address):
+    try:
+        from dask.distributed import Client, LocalCluster
+        from dask.distributed import as_completed as dask_completed
+    except ImportError as error:  # pragma: no cover - depends on the optional extra
+        raise InputError("dask", "dask.distributed is not installed: pip install 'nlpsf[dask]'") from error
+    cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, processes=True) if address == "local" else None
+    client = Client(cluster if cluster is not None else address)
+    try:
+        futures = [client.submit(_compute_and_write, band, sca, settings, directory, pure=False) for band, sca in todo]
+        for future in dask_completed(futures):
+            yield future.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def merge_tables(paths: Iterable[Path], destination: Path | str) -> Table:
+    """Stack per-(band, SCA) tables into one file with their metadata kept per table."""
+    tables = [Table.read(p, format="ascii.ecsv") for p in sorted(paths)]
+    if not tables:
+        raise InputError("tables", "nothing to merge")
+    fingerprints = {t.meta["fingerprint"] for t in tables}
+    if len(fingerprints) != 1:
+        raise InputError("tables", f"the partial tables were made with different settings: {sorted(fingerprints)}")
+    per_table = {
+        f"{t.meta['band']} {t.meta['sca']}": {k: t.meta[k] for k in ("saturation_magnitude", "peak_fraction", "elapsed_s")}
+        for t in tables
+    }
+    merged = vstack([Table(t, meta={}) for t in tables], metadata_conflicts="silent")
+    merged.meta.update(
+        {
+            "description": "nlpsf slope tables: bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta",
+            "settings": tables[0].meta["settings"],
+            "fingerprint": tables[0].meta["fingerprint"],
+            "method": tables[0].meta["method"],
+            "data_version": tables[0].meta["data_version"],
+            "code_version": tables[0].meta["code_version"],
+            "per_table": per_table,
+            "units": {
+                "magnitude": "AB mag",
+                "flux_electrons": "e-",
+                "peak_electrons": "e- per fine pixel x N^2",
+                "bias_*": "per (1/e-) of beta",
+                "scatter_*": "per (1/e-) of sigma_beta",
+            },
+        }
+    )
+    Path(destination).parent.mkdir(parents=True, exist_ok=True)
+    merged.write(destination, format="ascii.ecsv", overwrite=True)
+    write_companion(merged, Path(destination))
+    return merged
+
+
+def interpolation_error_estimate(flux: np.ndarray, slope: np.ndarray) -> np.ndarray:
+    """Estimated error of interpolating slope / flux with a cubic spline in flux, per grid point.
+
+    Leave each interior point out, interpolate it back from the others (which doubles the local
+    spacing) and divide by 2^4, the factor by which a cubic spline's error grows when the spacing
+    doubles. End points take their neighbour's estimate. The tests check the estimate against
+    fresh simulations between grid points.
+    """
+    order = np.argsort(flux)
+    x, q = flux[order], slope[order] / flux[order]
+    estimate = np.zeros_like(q)
+    for k in range(1, q.size - 1):
+        keep = np.ones(q.size, dtype=bool)
+        keep[k] = False
+        estimate[k] = abs(CubicSpline(x[keep], q[keep])(x[k]) - q[k]) / 16.0
+    estimate[0], estimate[-1] = estimate[1], estimate[-2]
+    out = np.empty_like(estimate)
+    out[order] = estimate * x  # back to slope units
+    return out
