@@ -27,7 +27,7 @@ import math
 import time
 from dataclasses import replace
 
-from . import experiment, roman
+from . import defaults, experiment, roman
 from . import scene as scenes
 from .checks import InputError, check_integer, check_number
 
@@ -76,7 +76,7 @@ def impact(
     metric: str = "size",
     mode: str = "bias",
     beta0: float = 5e-7,
-    exptime: float = roman.DEFAULT_EXPTIME_S,
+    exptime: float = defaults.EXPTIME_S,
     realizations: int = 100,
     seed: int = 1,
     progress=None,

@@ -53,6 +53,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -527,7 +528,9 @@ def load(name_or_path: str) -> SceneModel:
 
 def read_table(path: str, name: str, columns: int) -> np.ndarray:
     try:
-        array = np.loadtxt(path, ndmin=2, dtype=np.float64)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty file is refused below, by shape
+            array = np.loadtxt(path, ndmin=2, dtype=np.float64)
     except (OSError, ValueError) as error:
         raise InputError(name, f"cannot read {path}: {error}") from None
     if columns and array.shape[1] != columns:
