@@ -83,6 +83,27 @@ async def solve(body: models.SolveRequest) -> Response:
     return SafeJSONResponse(solution.to_dict())
 
 
+@router.post("/impact", responses=ERRORS, summary="What each scene effect changes in the slopes at one point (linear response)")
+async def impact(body: models.ImpactRequest, request: Request) -> Response:
+    from starlette.concurrency import run_in_threadpool
+
+    from nlpsf import impact as impact_module
+
+    from .simulation import LimitError, build_scene
+
+    arguments = body.model_dump()
+    limits = request.app.state.settings.limits
+    if arguments["realizations"] > limits.max_realizations:
+        raise LimitError(
+            "realizations",
+            "max_realizations",
+            f"asks for {arguments['realizations']:,} realizations; the limit max_realizations is {limits.max_realizations:,}",
+        )
+    scene = build_scene(arguments.pop("scene"))
+    report = await run_in_threadpool(impact_module.impact, scene=scene, **arguments)
+    return SafeJSONResponse(json_safe(report))
+
+
 @router.get("/tables", responses=ERRORS, summary="The shipped slope tables as JSON rows (optionally one band / SCA)")
 def table_json(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResponse:
     table_set = tables.load_tables()

@@ -94,6 +94,51 @@ class Problem(BaseModel):
     detail: list[FieldError] = Field(default_factory=list)
 
 
+class SceneRequest(BaseModel):
+    """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
+
+    model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
+
+    preset: Literal["paper", "roman"] | None = Field(
+        None, description="roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
+    )
+    position: list[float] | None = Field(None, min_length=2, max_length=2, description="X, Y on the SCA in pixels (1-4088)")
+    sed: str | None = Field(None, description="flat (f_nu) or blackbody:TEFF")
+    sed_table: list[list[float]] | None = Field(None, max_length=20_000, description="the SED as rows [wavelength nm, flux]")
+    sed_units: Literal["flambda", "fnu"] = Field("flambda", description="what sed_table's flux is")
+    n_wavelengths: int | None = Field(None, description="wavelengths for the SED (default: chosen for 0.1 % of the slopes)")
+    jitter: float | None = Field(None, description="pointing jitter, arcsec rms per axis (Roman 0.014)")
+    charge_diffusion: float | None = Field(None, description="charge diffusion, native pixels rms (GalSim's Roman 0.1)")
+    ipc: str | float | list[list[float]] | None = Field(
+        None, description="interpixel capacitance: roman, a nearest-neighbour alpha, or a 3x3 kernel (rows y, columns x)"
+    )
+    ipc_order: Literal["after", "before"] | None = Field(None, description="IPC after (default, as GalSim) or before the NL")
+    nl_coefficients: list[float] | None = Field(
+        None, max_length=6, description="NL beyond the quadratic: b3, b4, ... in S = Q - beta Q^2 - b3 Q^3 - ..."
+    )
+    bfe: float | None = Field(None, description="brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours)")
+    background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
+
+
+class ImpactRequest(BaseModel):
+    """What each scene effect changes in the slopes at one point (``nlpsf impact``)."""
+
+    model_config = ConfigDict(
+        **_STRICT, json_schema_extra={"examples": [{"band": "H158", "sca": 18, "magnitude": 18.3, "scene": {"preset": "roman"}}]}
+    )
+
+    band: str = Field(defaults.BAND, description=f"Roman band: {', '.join(roman.BANDS)}")
+    sca: int = Field(defaults.SCA, description=f"detector 1-{roman.N_SCA}")
+    magnitude: float = Field(defaults.MAGNITUDE, description="AB magnitude of the star")
+    metric: Metric = Field("size", description="the request's metric")
+    mode: Mode = Field("bias", description="bias or scatter slopes")
+    beta0: float = Field(defaults.BETA0, description="beta0 in 1/e- (paper convention)")
+    exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
+    realizations: int = Field(50, description="centroid realizations per run (both runs of an effect share them)")
+    seed: int = Field(1, description="random seed")
+    scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
+
+
 class SimulationRequest(BaseModel):
     """A fresh simulation on the grid magnitudes x betas x sigma_betas (paper's defaults)."""
 
@@ -122,6 +167,7 @@ class SimulationRequest(BaseModel):
         defaults.PAPER_WEIGHT_CUT_RHO2, description="adaptive-moment weight cut rho^2 (paper 25, GalSim 32.24)"
     )
     pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule")
+    scene: SceneRequest | None = Field(None, description="scene effects (position, SED, jitter, IPC, ...); default the paper's")
 
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]

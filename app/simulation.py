@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from nlpsf import __version__, detector, experiment, fidelity, roman
+from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 
 from .settings import Limits
@@ -42,9 +43,18 @@ def request_field(argument: str) -> str:
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 
+def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
+    """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``."""
+    try:
+        return scenes.from_request(fields)
+    except InputError as error:
+        raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
+
+
 def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
+    scene = build_scene(request.get("scene"))
     return experiment.SimulationConfig(
         band=request["band"],
         sca=request["sca"],
@@ -58,11 +68,12 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         weight_cut_rho2=request["weight_cut_rho2"],
         pupil_scale=request["pupil_scale"],
         method=level.method,
+        scene=scene,
     )
 
 
 def work_of(config: experiment.SimulationConfig, cells: int) -> int:
-    return config.realizations * config.stamp**2 * (config.n_wavelengths + cells)
+    return config.realizations * config.stamp**2 * (config.optics.n_wavelengths + cells)
 
 
 def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
@@ -98,7 +109,7 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
     cells = len(magnitudes) * len(betas) * len(sigma_betas)
     _check_limits(
         [
-            ("n_wavelengths", "max_wavelengths", config.n_wavelengths, limits.max_wavelengths, "wavelengths"),
+            ("n_wavelengths", "max_wavelengths", config.optics.n_wavelengths, limits.max_wavelengths, "wavelengths"),
             (
                 "realizations",
                 "max_stamp_pixels",
@@ -123,6 +134,8 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
         betas=betas,
         sigma_betas=sigma_betas,
     )
+    if normalised.get("scene") is None:
+        normalised.pop("scene", None)  # the paper's scene: same hash as before scenes existed
     return normalised
 
 

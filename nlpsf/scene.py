@@ -696,3 +696,61 @@ def charge_before_nl(psi: np.ndarray, charge_scale: float, model: SceneModel, ov
     if model.ipc is not None and model.ipc_order == "before":
         charge = apply_ipc(charge, model.ipc, oversampling)
     return charge
+
+
+def from_request(fields_: dict | None) -> SceneModel:
+    """A scene from the REST API's ``scene`` object (no files on a server: tables and kernels inline).
+
+    Keys: ``preset`` (paper | roman), ``position`` [x, y], ``sed`` (flat | blackbody:TEFF),
+    ``sed_table`` [[nm, flux], ...] with ``sed_units``, ``jitter``, ``charge_diffusion``, ``ipc``
+    (roman | alpha | 3x3 rows), ``ipc_order``, ``nl_coefficients`` (b3, b4, ...), ``bfe``,
+    ``background``, ``n_wavelengths``. Unset keys keep the preset's value.
+    """
+    if not fields_:
+        return SceneModel()
+    data = {k: v for k, v in fields_.items() if v is not None}
+    base = preset(data.pop("preset")) if "preset" in data else SceneModel()
+    changes: dict = {}
+    if "sed_table" in data:
+        rows = data.pop("sed_table")
+        if data.get("sed") not in (None,) and not str(data.get("sed", "")).startswith("file"):
+            raise InputError("sed", "give either sed or sed_table, not both")
+        data.pop("sed", None)
+        try:
+            columns = tuple(zip(*rows, strict=True))
+        except (TypeError, ValueError):
+            raise InputError("sed_table", "must be rows of [wavelength nm, flux]") from None
+        if len(columns) != 2:
+            raise InputError("sed_table", "must be rows of [wavelength nm, flux]")
+        changes.update(sed="file:request", sed_table=columns, sed_units=data.pop("sed_units", "flambda"))
+    if "ipc" in data:
+        value = data.pop("ipc")
+        if isinstance(value, (list, tuple)):
+            changes["ipc"], changes["ipc_label"] = _check_kernel(value), "kernel"
+        elif isinstance(value, str) and value.strip().lower() not in ("roman", "none", "off"):
+            raise InputError("ipc", f"must be roman, a coupling alpha or 3x3 rows, got {value!r}")
+        else:
+            changes["ipc"], changes["ipc_label"] = parse_ipc(value)
+    if "sed" in data:
+        sed = data.pop("sed")
+        if isinstance(sed, str) and sed.strip() != "flat" and not sed.strip().startswith("blackbody:"):
+            raise InputError("sed", f"unknown SED {sed!r}: use flat, blackbody:TEFF or sed_table")
+        changes.update(sed=sed, sed_table=None)
+    renames = {
+        "jitter": "jitter_arcsec",
+        "charge_diffusion": "charge_diffusion_px",
+        "bfe": "bfe_coefficient",
+        "background": "background_e",
+    }
+    for key, value in data.items():
+        if key == "sed_units":
+            changes["sed_units"] = value
+        elif key in ("position", "nl_coefficients"):
+            changes[key] = tuple(value)
+        elif key in ("ipc_order", "n_wavelengths"):
+            changes[key] = value
+        elif key in renames:
+            changes[renames[key]] = value
+        else:
+            raise InputError("scene", f"unknown scene field {key!r}")
+    return replace(base, name=None, **changes) if changes else base
