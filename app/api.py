@@ -100,7 +100,14 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
             f"asks for {arguments['realizations']:,} realizations; the limit max_realizations is {limits.max_realizations:,}",
         )
     scene = build_scene(arguments.pop("scene"))
-    report = await run_in_threadpool(impact_module.impact, scene=scene, **arguments)
+    wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
+    if wavelengths > limits.max_wavelengths:
+        raise LimitError(
+            "scene",
+            "max_wavelengths",
+            f"the scene's SED needs {wavelengths} wavelengths; the limit max_wavelengths is {limits.max_wavelengths}",
+        )
+    report = await run_in_threadpool(impact_module.impact, scene=scene, max_wavelengths=limits.max_wavelengths, **arguments)
     return SafeJSONResponse(json_safe(report))
 
 

@@ -86,7 +86,9 @@ class SimulationConfig:
         check_choice(self.method, "method", METHODS)
         check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
         moments.MomentSettings(weight_cut_rho2=self.weight_cut_rho2)
-        _ = self.optics  # validates n_wavelengths and pupil_bin
+        optics_config = self.optics  # validates n_wavelengths and pupil_bin
+        if not self.scene.is_paper:
+            optics_config.wavelengths_and_weights()  # a SED table must cover the band: refuse it here, not mid-run
 
     @property
     def optics(self) -> optics.OpticsConfig:

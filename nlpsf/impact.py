@@ -79,6 +79,7 @@ def impact(
     exptime: float = defaults.EXPTIME_S,
     realizations: int = 100,
     seed: int = 1,
+    max_wavelengths: int = 64,
     progress=None,
 ) -> dict:
     """Every effect's relative change of the slope at this point; see the module docstring.
@@ -120,6 +121,12 @@ def impact(
             progress(index, total, name)
         on = scene.effects_on()[name]
         with_scene = scene if on else scene.with_nominal(name)
+        if name == "sed" and not on and with_scene is not None:
+            # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
+            wanted = with_scene.wavelengths(base.band)
+            with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
+            capped = wanted > max_wavelengths
+        capped = False
         entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
         if with_scene is None:
             entry.update(
@@ -137,7 +144,8 @@ def impact(
             impact={m: r[0] for m, r in ratios.items()},
             uncertainty={m: r[1] for m, r in ratios.items()},
             cost_s=max(0.0, with_cost - without_cost),
-            note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}"),
+            note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
+            + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
         )
         effects.append(entry)
     if progress:
