@@ -74,7 +74,11 @@ async def solve(body: models.SolveRequest) -> Response:
     # Runs on the event loop: a table solve takes microseconds, a thread hop would cost more.
     # Slower fidelities (Monte Carlo) go to a thread so they cannot stall other requests.
     arguments = body.model_dump()
-    if body.fidelity == "table" and body.accuracy is None:
+    if arguments["scene"] is not None:
+        from .simulation import build_scene
+
+        arguments["scene"] = build_scene(arguments["scene"])
+    if body.fidelity == "table" and body.accuracy is None and body.scene is None:
         solution = solver.solve(**arguments)
     else:
         from starlette.concurrency import run_in_threadpool

@@ -30,6 +30,32 @@ BetaConvention = Literal[detector.BETA_CONVENTIONS]  # type: ignore[valid-type]
 PupilScale = Literal[roman.PUPIL_SCALE_RULES]  # type: ignore[valid-type]
 
 
+class SceneRequest(BaseModel):
+    """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
+
+    model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
+
+    preset: Literal["paper", "roman"] | None = Field(
+        None, description="roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
+    )
+    position: list[float] | None = Field(None, min_length=2, max_length=2, description="X, Y on the SCA in pixels (1-4088)")
+    sed: str | None = Field(None, description="flat (f_nu) or blackbody:TEFF")
+    sed_table: list[list[float]] | None = Field(None, max_length=20_000, description="the SED as rows [wavelength nm, flux]")
+    sed_units: Literal["flambda", "fnu"] = Field("flambda", description="what sed_table's flux is")
+    n_wavelengths: int | None = Field(None, description="wavelengths for the SED (default: chosen for 0.1 % of the slopes)")
+    jitter: float | None = Field(None, description="pointing jitter, arcsec rms per axis (Roman 0.014)")
+    charge_diffusion: float | None = Field(None, description="charge diffusion, native pixels rms (GalSim's Roman 0.1)")
+    ipc: str | float | list[list[float]] | None = Field(
+        None, description="interpixel capacitance: roman, a nearest-neighbour alpha, or a 3x3 kernel (rows y, columns x)"
+    )
+    ipc_order: Literal["after", "before"] | None = Field(None, description="IPC after (default, as GalSim) or before the NL")
+    nl_coefficients: list[float] | None = Field(
+        None, max_length=6, description="NL beyond the quadratic: b3, b4, ... in S = Q - beta Q^2 - b3 Q^3 - ..."
+    )
+    bfe: float | None = Field(None, description="brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours)")
+    background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
+
+
 class SolveRequest(BaseModel):
     """The two-of-three calculator: give exactly two of precision, tolerance, magnitude."""
 
@@ -52,7 +78,12 @@ class SolveRequest(BaseModel):
         _SOLVE_DEFAULTS["fidelity"],
         description="how the slope is obtained: table (instant, the default), linear, monte_carlo, polychromatic",
     )
-    accuracy: float | None = Field(None, description="relative accuracy target; picks the cheapest fidelity meeting it")
+    accuracy: float | None = Field(
+        None,
+        description="relative accuracy target: picks the cheapest fidelity meeting it, simulates only the scene effects whose "
+        "measured impact exceeds it and adds the others to the uncertainty's model part",
+    )
+    scene: SceneRequest | None = Field(None, description="what the star goes through (default the paper's scene)")
 
 
 class SolveResponse(BaseModel):
@@ -92,32 +123,6 @@ class Problem(BaseModel):
     field: str | None = None
     limit: str | None = None
     detail: list[FieldError] = Field(default_factory=list)
-
-
-class SceneRequest(BaseModel):
-    """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
-
-    model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
-
-    preset: Literal["paper", "roman"] | None = Field(
-        None, description="roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
-    )
-    position: list[float] | None = Field(None, min_length=2, max_length=2, description="X, Y on the SCA in pixels (1-4088)")
-    sed: str | None = Field(None, description="flat (f_nu) or blackbody:TEFF")
-    sed_table: list[list[float]] | None = Field(None, max_length=20_000, description="the SED as rows [wavelength nm, flux]")
-    sed_units: Literal["flambda", "fnu"] = Field("flambda", description="what sed_table's flux is")
-    n_wavelengths: int | None = Field(None, description="wavelengths for the SED (default: chosen for 0.1 % of the slopes)")
-    jitter: float | None = Field(None, description="pointing jitter, arcsec rms per axis (Roman 0.014)")
-    charge_diffusion: float | None = Field(None, description="charge diffusion, native pixels rms (GalSim's Roman 0.1)")
-    ipc: str | float | list[list[float]] | None = Field(
-        None, description="interpixel capacitance: roman, a nearest-neighbour alpha, or a 3x3 kernel (rows y, columns x)"
-    )
-    ipc_order: Literal["after", "before"] | None = Field(None, description="IPC after (default, as GalSim) or before the NL")
-    nl_coefficients: list[float] | None = Field(
-        None, max_length=6, description="NL beyond the quadratic: b3, b4, ... in S = Q - beta Q^2 - b3 Q^3 - ..."
-    )
-    bfe: float | None = Field(None, description="brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours)")
-    background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
 
 
 class ImpactRequest(BaseModel):

@@ -72,6 +72,10 @@ class Solution:
     fidelity: str
     conditions: dict
     elapsed_s: float = field(default=0.0, compare=False)
+    #: Effects the answer leaves out (name, impact on the metric's slope, relative) and the
+    #: uncertainty they add, in the solved quantity's units; None when not measured (no ``accuracy``).
+    uncertainty_model: float | None = None
+    model: dict | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -89,6 +93,8 @@ class Solution:
             "uncertainty": _json_number(self.uncertainty),
             "uncertainty_statistical": _json_number(self.uncertainty_statistical),
             "uncertainty_fidelity": _json_number(self.uncertainty_fidelity),
+            "uncertainty_model": _json_number(self.uncertainty_model),
+            "model": self.model,
             "slope": _json_number(self.slope),
             "slope_uncertainty": _json_number(self.slope_uncertainty),
             "saturation_magnitude": _json_number(self.saturation_magnitude),
@@ -109,9 +115,12 @@ def _json_number(value: float | None) -> float | None:
 class _Slopes:
     """c(m) at the request's conditions, from the tables or from fresh simulations."""
 
-    def __init__(self, band: str, sca: int, metric: str, mode: str, beta0: float, exptime: float, fidelity: str, tableset):
+    def __init__(
+        self, band: str, sca: int, metric: str, mode: str, beta0: float, exptime: float, fidelity: str, tableset, scene=None
+    ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
+        self.scene = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
         self.table = tableset.get(band, sca)
         self._cache: dict[float, tuple[float, float]] = {}
 
@@ -148,6 +157,7 @@ class _Slopes:
             weight_cut_rho2=float(settings["weight_cut_rho2"]),
             pupil_scale=str(settings["pupil_scale"]),
             method=level.method,
+            **({} if self.scene is None else {"scene": self.scene}),
             n_wavelengths=level.n_wavelengths,
         )
         result = experiment.slopes(config, [magnitude], beta0=self.beta0)[0]
@@ -192,9 +202,15 @@ def solve(
     fidelity: str | None = None,
     accuracy: float | None = None,
     tables_set: tables.TableSet | None = None,
+    scene=None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
-    error allowed) and ``magnitude`` (AB); get the third. See the module docstring."""
+    error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
+
+    ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
+    answer models only the effects whose measured impact at the point exceeds it (see
+    :func:`_select_scene`) and its uncertainty gains a ``model`` part for those left out.
+    """
     start = time.perf_counter()
     band = roman.check_band(band)
     sca = roman.check_sca(sca)
@@ -216,7 +232,31 @@ def solve(
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
     chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
-    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables())
+    model_relative, model_info, simulated_scene = None, None, None
+    if scene is not None and not isinstance(scene, _scene_type()):
+        raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
+    if accuracy is not None:
+        point = magnitude
+        if point is None:
+            # The effects are measured where the answer will be: a first, table-level pass finds it.
+            first = solve(
+                band, sca, metric, mode, beta0, exptime, precision, tolerance, None, full_well, "table", None, tables_set
+            )
+            point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
+        simulated_scene, model_relative, model_info = _select_scene(
+            scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy)
+        )
+    elif scene is not None and not scene.is_paper:
+        simulated_scene = scene
+    if simulated_scene is not None and not simulated_scene.is_paper and chosen == "table":
+        flags.append("the tables hold the paper's scene only: the scene's effects are simulated (fidelity linear)")
+        chosen = "linear"
+    if simulated_scene is not None and simulated_scene.breaks_beta_q_scaling():
+        flags.append(
+            f"{', '.join(simulated_scene.breaks_beta_q_scaling())} add a flux dependence of their own: slopes are simulated at "
+            "this exposure and beta0, never rescaled from the tables (the beta Q rule does not hold)"
+        )
+    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), scene=simulated_scene)
     table = slopes.table
     m_sat = table.saturation(exptime, full_well)
     solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
@@ -233,9 +273,11 @@ def solve(
         if binding == "nonlinearity" and log_derivative:
             statistical = (slope_err / abs(slope)) / abs(log_derivative)
             fidelity_part = None if systematic is None else systematic / abs(log_derivative)
+            model_part = None if model_relative is None else model_relative / abs(log_derivative)
         else:
             # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
             statistical, fidelity_part = 0.0, 0.0
+            model_part = None if model_relative is None else 0.0
             slope, slope_err, _ = slopes.at(m_sat)
             flags.append(
                 f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0:.3g} "
@@ -249,23 +291,28 @@ def solve(
             tolerance = c * precision * beta0
             statistical = c_err * precision * beta0
             fidelity_part = None if systematic is None else tolerance * systematic
+            model_part = None if model_relative is None else tolerance * model_relative
         elif c <= max(c_err, 1e-300):
             flags.append(
                 f"the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {c_err:.2g}): "
                 "this metric is insensitive to beta here, so no calibration precision is needed for it"
             )
-            precision, statistical, fidelity_part = math.inf, None, None
+            precision, statistical, fidelity_part, model_part = math.inf, None, None, None
         else:
             precision = tolerance / (c * beta0)
             statistical = precision * c_err / c
             fidelity_part = None if systematic is None else precision * systematic
-    uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0)
+            model_part = None if model_relative is None else precision * model_relative
+    uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0)
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
     conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
         conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
+    if simulated_scene is not None:
+        conditions["scene"] = simulated_scene.to_dict()
+        conditions["scene_description"] = simulated_scene.describe()
     return Solution(
         band=band,
         sca=sca,
@@ -291,7 +338,94 @@ def solve(
         fidelity=chosen,
         conditions=conditions,
         elapsed_s=time.perf_counter() - start,
+        uncertainty_model=model_part,
+        model=model_info,
     )
+
+
+def _scene_type():
+    from .scene import SceneModel
+
+    return SceneModel
+
+
+def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, accuracy):
+    """Model only what the scene requires: (scene to simulate, relative model uncertainty, report).
+
+    The impact of every effect is measured at the point (``nlpsf.impact``, linear response). An
+    effect is simulated when |impact| on the request's metric exceeds ``accuracy`` -- at the scene's
+    value, or at its nominal Roman value when the scene leaves it off (no scene: a Roman star). The
+    others are left out and their impacts added in quadrature to the answer's relative model
+    uncertainty, together with two model choices the answer cannot make for the user: where on
+    the SCA the star is when no position is given (centre vs corner) and the pupil-mask scale rule
+    (``galsim`` vs ``header``, measured here).
+    """
+    from . import experiment, impact
+    from . import scene as scenes
+
+    scene = scene if scene is not None else scenes.SceneModel()
+    report = impact.impact(band, sca, magnitude, scene=scene, metric=metric, mode=mode, beta0=beta0, exptime=exptime)
+    include, leave = impact.left_out(report, accuracy)
+    simulated = scenes.SceneModel()
+    names = []
+    for effect in include:
+        name = effect["name"]
+        if name == "position" and not scene.effects_on()["position"]:
+            leave.append(effect)  # no position given: the spread over the SCA is uncertainty, not a guess
+            continue
+        source = scene if scene.effects_on()[name] else scene.with_nominal(name)
+        simulated = _with_effect(simulated, source, name)
+        names.append(name)
+    parts = []
+    for effect in leave:
+        value = effect["impact"][metric]
+        parts.append(
+            {
+                "name": effect["name"],
+                "impact": value,
+                "why": (
+                    "spread over the SCA: no position given (centre vs corner)"
+                    if effect["name"] == "position" and not effect["on"]
+                    else ("below the accuracy" if value is not None else effect["note"])
+                ),
+            }
+        )
+    # The pupil-mask scale rule (nlpsf/data/SOURCES.md): the same point with the other rule.
+    runs = {}
+    for rule in ("galsim", "header"):
+        config = experiment.SimulationConfig(
+            band=band, sca=sca, realizations=50, exptime_s=exptime, method="linear", pupil_scale=rule, scene=simulated
+        )
+        runs[rule] = impact._slope_values(experiment.slopes(config, [magnitude], beta0=beta0)[0], mode)[metric][0]
+    pupil = None if not runs["galsim"] or runs["header"] is None else runs["header"] / runs["galsim"] - 1
+    parts.append({"name": "pupil_scale", "impact": pupil, "why": "pupil-mask scale rule: galsim (used) vs header"})
+    relative = math.sqrt(sum(p["impact"] ** 2 for p in parts if p["impact"] is not None))
+    info = {
+        "accuracy": accuracy,
+        "magnitude_measured_at": magnitude,
+        "included": [{"name": e["name"], "impact": e["impact"][metric]} for e in include if e["name"] in names],
+        "left_out": parts,
+        "relative_uncertainty": relative,
+        "basis": "impact of each effect on the slope at this point (nlpsf impact, linear response), added in quadrature",
+    }
+    return simulated, relative, info
+
+
+def _with_effect(target, source, name: str):
+    """``target`` with effect ``name`` set as in ``source``."""
+    from dataclasses import replace
+
+    fields_of = {
+        "position": ("position",),
+        "sed": ("sed", "sed_table", "sed_units", "n_wavelengths"),
+        "jitter": ("jitter_arcsec",),
+        "charge_diffusion": ("charge_diffusion_px",),
+        "ipc": ("ipc", "ipc_label", "ipc_order"),
+        "nl_polynomial": ("nl_coefficients",),
+        "brighter_fatter": ("bfe_coefficient",),
+        "background": ("background_e",),
+    }
+    return replace(target, **{f: getattr(source, f) for f in fields_of[name]})
 
 
 def _fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:

@@ -72,3 +72,37 @@ def test_bad_requests_are_refused_by_name():
         impact.impact(band="X1")
     with pytest.raises(InputError, match="magnitude"):
         impact.impact(magnitude=float("nan"))
+
+
+@pytest.mark.slow
+def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene():
+    import numpy as np
+
+    from nlpsf import solver
+
+    full = scenes.SceneModel()
+    for name in ("sed", "jitter", "charge_diffusion", "ipc", "nl_polynomial", "background"):
+        full = full.with_nominal(name)
+    rng = np.random.default_rng(8)
+    points = [("H158", 18, float(18.3 + rng.uniform(0, 2))), ("J129", int(rng.integers(1, 19)), float(19 + rng.uniform(0, 2)))]
+    for band, sca, magnitude in points:
+        reference = solver.solve(band, sca, magnitude=magnitude, tolerance=1e-4, fidelity="monte_carlo", scene=full)
+        included = []
+        for accuracy in (0.1, 0.01, 0.002):
+            answer = solver.solve(band, sca, magnitude=magnitude, tolerance=1e-4, accuracy=accuracy)
+            included.append({e["name"] for e in answer.model["included"]})
+            left = [p for p in answer.model["left_out"] if p["impact"] is not None]
+            assert all(abs(p["impact"]) <= accuracy for p in left if p["name"] not in ("position", "pupil_scale"))
+            # Coverage by the parts that are about this scene (the pupil rule is a model choice the
+            # full scene shares, so it is left out of this check).
+            relative = math.sqrt(sum(p["impact"] ** 2 for p in left if p["name"] != "pupil_scale"))
+            spread = math.hypot(answer.uncertainty_statistical, answer.uncertainty_fidelity or 0.0, answer.precision * relative)
+            assert abs(answer.precision - reference.precision) <= 3 * spread + 1e-3 * reference.precision, (
+                band,
+                accuracy,
+                answer.precision,
+                reference.precision,
+                spread,
+            )
+            assert answer.uncertainty >= spread
+        assert included[0] <= included[1] <= included[2] and len(included[2]) > len(included[0])

@@ -6,7 +6,7 @@ import argparse
 
 from .. import defaults
 from ..fidelity import LEVELS
-from .options import add_band_sca, add_exposure, print_json, with_error
+from .options import add_band_sca, add_exposure, add_scene_options, print_json, scene_from, with_error
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -27,6 +27,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="relative accuracy wanted: picks the cheapest fidelity whose measured error is below it (instead of --fidelity)",
     )
+    add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
 
 
@@ -46,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
         args.full_well,
         args.fidelity,
         args.accuracy,
+        scene=_scene(args),
     )
     payload = solution.to_dict()
     if args.json:
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if payload["uncertainty"] is not None:
         parts = ", ".join(
             f"{k} {payload[f'uncertainty_{k}']:.2g}"
-            for k in ("statistical", "fidelity")
+            for k in ("statistical", "fidelity", "model")
             if payload[f"uncertainty_{k}"] is not None
         )
         print(f"  uncertainty ({parts})")
@@ -73,9 +75,45 @@ def run(args: argparse.Namespace) -> int:
     print(f"  saturation at m={solution.saturation_magnitude:.2f} AB")
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
+    if solution.model:
+        included = ", ".join(f"{e['name']} {100 * e['impact']:+.2g} %" for e in solution.model["included"]) or "none"
+        print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
+        left = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["left_out"])
+        print(f"  left out (in the model uncertainty): {left}")
     for flag in solution.flags:
         print(f"  ! {flag}")
     return 0
+
+
+def _percent(value: float | None) -> str:
+    return "n/a" if value is None else f"{100 * value:+.2g} %"
+
+
+def _scene(args: argparse.Namespace):
+    """The scene options, or None when none was given (the paper's scene, the tables' answer)."""
+    given = any(
+        getattr(args, name, None) is not None
+        for name in (
+            "scene",
+            "position",
+            "sed",
+            "jitter",
+            "charge_diffusion",
+            "ipc",
+            "ipc_order",
+            "nl_coefficients",
+            "bfe",
+            "background",
+        )
+    )
+    if not given:
+        return None
+    model, b2 = scene_from(args)
+    if b2 is not None and b2 != args.beta0:
+        from ..checks import InputError
+
+        raise InputError("nl_coefficients", f"b2={b2:g} must equal --beta0 ({args.beta0:g}) in solve")
+    return model
 
 
 def _tolerance_unit(metric: str) -> str:
