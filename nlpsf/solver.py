@@ -360,6 +360,8 @@ def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, acc
     the SCA the star is when no position is given (centre vs corner) and the pupil-mask scale rule
     (``galsim`` vs ``header``, measured here).
     """
+    from dataclasses import replace
+
     from . import experiment, impact
     from . import scene as scenes
 
@@ -375,6 +377,10 @@ def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, acc
             continue
         source = scene if scene.effects_on()[name] else scene.with_nominal(name)
         simulated = _with_effect(simulated, source, name)
+        if name == "sed" and simulated.n_wavelengths is None:
+            # Integrate the band finely enough for the accuracy asked for (scene.binning_error).
+            n, _ = scenes.choose_wavelengths(band, simulated.spectrum(), accuracy)
+            simulated = replace(simulated, n_wavelengths=n)
         names.append(name)
     parts = []
     for effect in leave:
