@@ -11,10 +11,11 @@ on at its representative value (``scene.NOMINAL``: Roman's jitter, diffusion and
 SED, a corner of the SCA, ...), so the report says what including it would change. Brighter-fatter
 has no default coefficient: unless the scene gives one, its impact is not measured (``null``).
 
-``cost_s`` is what the effect adds to a fresh simulation at this point: the seconds the run with it
-took minus the run without (its own optics included: a position or SED needs a new optical PSF;
-blurs and detector effects reuse the cached one). ``nlpsf``'s benchmark measures the same ratios
-more carefully (``benchmarks/bench_scene.py``).
+``cost_s`` is the seconds the linear-response simulation with the effect took at this point (its
+own optics included where it needs new ones: a position or an SED; blurs and detector effects reuse
+the cached optical PSF), beside ``conditions.plain_cost_s`` for the paper's scene. The benchmark
+``benchmarks/bench_scene.py`` measures each effect's cost relative to the plain simulation with
+repeats, in one run.
 
 Both runs use the same centroids (same seed), so most of the realization noise cancels in the
 ratio; the quoted ``uncertainty`` combines the two standard errors as if independent, an upper
@@ -138,12 +139,12 @@ def impact(
             effects.append(entry)
             continue
         with_values, with_cost, _ = run(with_scene)
-        without_values, without_cost, _ = run(with_scene.without(name))
+        without_values, _, _ = run(with_scene.without(name))
         ratios = {m: _ratio(with_values[m], without_values[m]) for m in IMPACT_METRICS}
         entry.update(
             impact={m: r[0] for m, r in ratios.items()},
             uncertainty={m: r[1] for m, r in ratios.items()},
-            cost_s=max(0.0, with_cost - without_cost),
+            cost_s=with_cost,
             note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
             + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
         )
