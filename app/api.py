@@ -78,6 +78,15 @@ async def solve(body: models.SolveRequest) -> Response:
         from .simulation import build_scene
 
         arguments["scene"] = build_scene(arguments["scene"])
+    over_field = arguments.pop("over_field")
+    if over_field is not None:
+        from starlette.concurrency import run_in_threadpool
+
+        scas = "all" if over_field == "focal_plane" else [arguments.pop("sca")]
+        arguments.pop("sca", None)
+        band = arguments.pop("band")
+        solution = await run_in_threadpool(solver.solve_over_field, band, scas, **arguments)
+        return SafeJSONResponse(solution.to_dict())
     if body.fidelity == "table" and body.accuracy is None and body.scene is None:
         solution = solver.solve(**arguments)
     else:

@@ -84,6 +84,11 @@ class SolveRequest(BaseModel):
         "measured impact exceeds it and adds the others to the uncertainty's model part",
     )
     scene: SceneRequest | None = Field(None, description="what the star goes through (default the paper's scene)")
+    over_field: Literal["sca", "focal_plane"] | None = Field(
+        None,
+        description="answer for the worst position: over the SCA's five field points (sca) or all 18 SCAs' (focal_plane); "
+        "simulates (seconds per point)",
+    )
 
 
 class SolveResponse(BaseModel):

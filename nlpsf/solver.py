@@ -588,3 +588,65 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
         )
         return m_sat, "saturation"
     return m_nl, "nonlinearity"
+
+
+def field_points(sca: int) -> list[tuple[float, float]]:
+    """Where the SCA's aberrations are given: its centre and four corners (pixels, inside 1-4088)."""
+    _table, x, y = roman._zernike_table(roman.check_sca(sca))
+    return [(_clip_pixel(px), _clip_pixel(py)) for px, py in zip(x, y, strict=True)]
+
+
+def _clip_pixel(value: float) -> float:
+    return float(min(max(value, 1.0), roman.SCA_PIXELS))
+
+
+def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:
+    """The answer for the worst position over the field: every field point of the given SCAs
+    (``"all"``: the 18 of the focal plane), each simulated with its own aberrations (linear response).
+
+    Worst means the most demanding answer: the smallest precision, the largest tolerance, or the
+    faintest brightest-usable magnitude. The Solution returned is that point's, with every point's
+    value in ``conditions["over_field"]`` and where the worst lies in a flag. The tables hold SCA
+    centres only, so this always simulates (seconds per point).
+    """
+    from dataclasses import replace
+
+    from . import scene as scenes
+
+    chosen = list(range(1, roman.N_SCA + 1)) if scas == "all" else [roman.check_sca(s) for s in scas]
+    base = scene if scene is not None else scenes.SceneModel()
+    if base.position is not None:
+        raise InputError("position", "give a position or ask for the worst over the field, not both")
+    request.setdefault("fidelity", "linear")
+    if request["fidelity"] == "table":
+        request["fidelity"] = "linear"
+    answers = []
+    points = [(s, p) for s in chosen for p in field_points(s)]
+    for index, (sca, position) in enumerate(points):
+        if progress:
+            progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
+        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
+    if progress:
+        progress(len(points), len(points), "done")
+    solved = answers[0][2].solved_for
+
+    def demand(solution: Solution) -> float:
+        value = getattr(solution, solved)
+        if value is None or not math.isfinite(value):
+            return -math.inf
+        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+
+    sca, position, worst = max(answers, key=lambda item: demand(item[2]))
+    values = [getattr(a[2], solved) for a in answers]
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    conditions = dict(worst.conditions)
+    conditions["over_field"] = [
+        {"sca": s, "position": list(p), solved: _json_number(getattr(a, solved)), "uncertainty": _json_number(a.uncertainty)}
+        for s, p, a in answers
+    ]
+    where = "all 18 SCAs" if scas == "all" else "SCA " + ", ".join(map(str, chosen))
+    flag = (
+        f"worst over {len(points)} field points ({where}): "
+        f"SCA {sca} at pixel ({position[0]:.0f}, {position[1]:.0f}); {solved} ranges {min(finite):.4g} to {max(finite):.4g}"
+    )
+    return replace(worst, flags=[flag, *worst.flags], conditions=conditions)

@@ -108,3 +108,21 @@ def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene(
             )
             assert answer.uncertainty >= spread
         assert included[0] <= included[1] <= included[2] and len(included[2]) > len(included[0])
+
+
+def test_over_field_answers_for_the_worst_field_point():
+    from nlpsf import solver
+
+    worst = solver.solve_over_field("H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4)
+    points = worst.conditions["over_field"]
+    assert len(points) == 5 and {tuple(p["position"]) for p in points} == set(solver.field_points(18))
+    assert worst.precision == min(p["precision"] for p in points)
+    assert "worst over 5 field points" in worst.flags[0]
+    # Each point is the plain solve with that position in the scene.
+    corner = points[1]
+    direct = solver.solve(
+        "H158", 18, "e1", magnitude=18.3, tolerance=1e-4, fidelity="linear", scene=scenes.SceneModel(position=corner["position"])
+    )
+    assert direct.precision == corner["precision"]
+    with pytest.raises(InputError, match="position"):
+        solver.solve_over_field("H158", [18], scene=scenes.SceneModel(position=(5.0, 5.0)), magnitude=18.3, tolerance=1e-4)

@@ -159,3 +159,24 @@ def test_api_impact(client):
     jitter = next(e for e in report["effects"] if e["name"] == "jitter")
     assert jitter["on"] and jitter["impact"]["size"] < 0
     assert client.post("/api/v1/impact", json={"realizations": 501}).json()["limit"] == "max_realizations"
+
+
+def test_cli_over_field_and_sca_all(capsys):
+    code, out, _ = run_cli(
+        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"
+    )
+    assert code == 0
+    got = json.loads(out)
+    assert len(got["conditions"]["over_field"]) == 5 and got["flags"][0].startswith("worst over 5 field points (SCA 3)")
+    code, _, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "all", "--magnitude", "19", "--tolerance", "1e-4")
+    assert code == 2 and "--sca" in err
+
+
+def test_api_solve_over_field_and_with_scene(client):
+    body = {"band": "J129", "sca": 3, "magnitude": 19.0, "tolerance": 1e-4, "over_field": "sca"}
+    response = client.post("/api/v1/solve", json=body)
+    assert response.status_code == 200, response.text
+    assert len(response.json()["conditions"]["over_field"]) == 5
+    with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
+    assert with_scene["fidelity"] == "linear" and with_scene["conditions"]["scene"]["jitter_arcsec"] == 0.014
+    assert client.post("/api/v1/solve", json={**body, "over_field": "everywhere"}).status_code == 422

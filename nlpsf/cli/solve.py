@@ -6,11 +6,29 @@ import argparse
 
 from .. import defaults
 from ..fidelity import LEVELS
-from .options import add_band_sca, add_exposure, add_scene_options, print_json, scene_from, with_error
+from . import progress_printer
+from .options import add_exposure, add_scene_options, print_json, scene_from, with_error
+
+
+def _sca(text: str):
+    if text.strip().lower() == "all":
+        return "all"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 1-{defaults.N_SCA} or all, got {text!r}") from None
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    add_band_sca(parser)
+    parser.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
+    parser.add_argument(
+        "--sca", type=_sca, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18); all with --over-field"
+    )
+    parser.add_argument(
+        "--over-field",
+        action="store_true",
+        help="answer for the worst position over the SCA's field points (all 18 SCAs with --sca all); simulates",
+    )
     parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
     parser.add_argument(
         "--mode", choices=defaults.MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
@@ -32,8 +50,30 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..solver import solve
+    from ..solver import solve, solve_over_field
 
+    if args.over_field:
+        solution = solve_over_field(
+            args.band,
+            "all" if args.sca == "all" else [args.sca],
+            scene=_scene(args),
+            progress=progress_printer(not args.json),
+            metric=args.metric,
+            mode=args.mode,
+            beta0=args.beta0,
+            exptime=args.exptime,
+            precision=args.precision,
+            tolerance=args.tolerance,
+            magnitude=args.magnitude,
+            full_well=args.full_well,
+            fidelity=args.fidelity,
+            accuracy=args.accuracy,
+        )
+        return _report(solution, args)
+    if args.sca == "all":
+        from ..checks import InputError
+
+        raise InputError("sca", "--sca all needs --over-field")
     solution = solve(
         args.band,
         args.sca,
@@ -49,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
         args.accuracy,
         scene=_scene(args),
     )
+    return _report(solution, args)
+
+
+def _report(solution, args: argparse.Namespace) -> int:
     payload = solution.to_dict()
     if args.json:
         print_json(payload)
