@@ -6,6 +6,8 @@
 #
 # Configuration by environment (see README): NLPSF_WORKERS (HTTP worker processes), NLPSF_JOB_WORKERS
 # (simulation processes), NLPSF_MAX_QUEUE, NLPSF_MAX_* limits, NLPSF_DB_PATH (default /data, a volume).
+# The container listens on all its interfaces (a published port needs it): on a shared network set
+# NLPSF_API_KEYS (comma-separated keys required on /api/v1) and NLPSF_ALLOWED_HOSTS (Host header check).
 ARG BASE_IMAGE=python:3.11-slim
 FROM ${BASE_IMAGE}
 
@@ -19,13 +21,13 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN python -m venv /opt/venv
 
 WORKDIR /srv/nlpsf
-# The library first (its layer changes less often than the service's).
+# The package as users install it: the library, the web layer (app/ -> nlpsf.web) and the page
+# (static/ -> nlpsf.web.static) in one installed distribution; the source tree is not kept.
 COPY pyproject.toml README.md LICENSE ./
 COPY nlpsf ./nlpsf
-# uvicorn[standard] brings uvloop and httptools: about twice the requests per second of the pure-Python stack.
-RUN pip install --no-cache-dir . "uvicorn[standard]" && python -c "import nlpsf.tables as t; t.load_tables()"
 COPY app ./app
 COPY static ./static
+RUN pip install --no-cache-dir . && rm -rf /srv/nlpsf/* && python -c "import nlpsf.tables as t; t.load_tables().load_all()"
 
 # A system user without a login; written directly because minimal Debian bases lack useradd.
 RUN echo "nlpsf:x:10001:10001:nlpsf service:/srv/nlpsf:/usr/sbin/nologin" >> /etc/passwd \
@@ -33,9 +35,7 @@ RUN echo "nlpsf:x:10001:10001:nlpsf service:/srv/nlpsf:/usr/sbin/nologin" >> /et
     && mkdir -p /data && chown 10001:10001 /data
 USER 10001:10001
 
-ENV NLPSF_APP_DIR=/srv/nlpsf \
-    NLPSF_STATIC_DIR=/srv/nlpsf/static \
-    NLPSF_DB_PATH=/data/jobs.sqlite3 \
+ENV NLPSF_DB_PATH=/data/jobs.sqlite3 \
     NLPSF_WORKERS=2 \
     NLPSF_JOB_WORKERS=1 \
     PORT=8000

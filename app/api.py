@@ -5,15 +5,18 @@ from __future__ import annotations
 import csv
 import io
 import math
+from pathlib import PurePath
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
+from nlpsf import __version__, defaults, detector, fidelity, ramps, roman, solver, tables
+from nlpsf.checks import InputError
 
-from . import models
-from .errors import SafeJSONResponse, input_error_response, json_safe
+from . import models, simulation
+from .errors import SafeJSONResponse, input_error_response, json_safe, problem
+from .store import QueueFull
 
 router = APIRouter(prefix="/api/v1")
 
@@ -24,9 +27,38 @@ Sca = Annotated[int, Query(description=f"detector 1-{roman.N_SCA}")]
 Number = Annotated[float, Query(allow_inf_nan=False)]
 
 
-@router.get("/health", summary="Liveness: 200 when the service answers")
-async def health() -> dict[str, str]:
-    return {"status": "ok", "version": __version__}
+@router.get("/health", summary="Liveness: 200 when the service answers; 'degraded' (with the reason) when simulations cannot run")
+async def health(request: Request) -> dict[str, Any]:
+    # No I/O here: the job store's state is kept by the dispatcher's heartbeat (every 2 s).
+    store = getattr(request.app.state, "store", None)
+    job_store = store.status() if store is not None else {"state": "starting", "reason": None, "since": None}
+    return {
+        "status": "ok" if job_store["state"] == "ok" else "degraded",
+        "version": __version__,
+        "calculator": "ok",
+        "job_store": job_store,
+    }
+
+
+def public_table_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """The tables' metadata without the server's file system: a source path becomes its file name."""
+    out = json_safe(meta)
+    if "source" in out:
+        out["source"] = PurePath(str(out["source"])).name
+    return out
+
+
+def _ma_table_summary(name: str) -> dict:
+    table = ramps.load_ma_table(name)
+    return {
+        "name": name,
+        "resultants": table.n_resultants,
+        "reads": table.n_reads,
+        "frame_time_s": table.frame_time_s,
+        "last_read_s": table.duration_s,
+        "first_resultant_end_s": table.resultants[0][-1] * table.frame_time_s,
+        "source": table.source,
+    }
 
 
 @router.get("/meta", summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
@@ -40,7 +72,7 @@ def meta(request: Request) -> SafeJSONResponse:
             "api_version": "v1",
             "code_version": __version__,
             "data_version": roman.DATA_VERSION,
-            "tables": json_safe(table_set.meta),
+            "tables": public_table_meta(table_set.meta),
             "bands": list(roman.BANDS),
             "paper_bands": list(roman.PAPER_BANDS),
             "table_bands": table_set.bands,
@@ -50,6 +82,8 @@ def meta(request: Request) -> SafeJSONResponse:
             "fidelities": list(solver.FIDELITIES),
             "simulation_fidelities": list(fidelity.SIMULATION_LEVELS),
             "beta_conventions": list(detector.BETA_CONVENTIONS),
+            "ramp_fits": list(defaults.RAMP_FITS),
+            "ma_tables": [_ma_table_summary(name) for name in ramps.shipped_table_names()],
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
                 "simulation": models.SimulationRequest().model_dump(),
@@ -59,6 +93,9 @@ def meta(request: Request) -> SafeJSONResponse:
                 "max_queue": settings.max_queue,
                 "job_workers": settings.job_workers,
                 "max_wait_s": settings.max_wait_s,
+                "solve_wait_s": settings.solve_wait_s,
+                "job_memory_mb": settings.job_memory_mb,
+                "max_body_bytes": settings.max_body_bytes,
             },
         }
     )
@@ -67,33 +104,60 @@ def meta(request: Request) -> SafeJSONResponse:
 @router.post(
     "/solve",
     response_model=models.SolveResponse,
-    responses=ERRORS,
+    responses={
+        **ERRORS,
+        202: {"model": models.Job, "description": "the solve needs a simulation that is still running: poll the Location"},
+        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
+        429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
+        503: {"model": models.Problem, "description": "the solve needs a simulation and the job store is unavailable"},
+    },
     summary="Two of (precision, tolerance, magnitude) -> the third, with its uncertainty",
 )
-async def solve(body: models.SolveRequest) -> Response:
-    # Runs on the event loop: a table solve takes microseconds, a thread hop would cost more.
-    # Slower fidelities (Monte Carlo) go to a thread so they cannot stall other requests.
-    arguments = body.model_dump()
-    if arguments["scene"] is not None:
-        from .simulation import build_scene
+async def solve(body: models.SolveRequest, request: Request) -> Response:
+    # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
+    ramp_keys = ("ramp", "ma_table", "ramp_fit", "read_noise")
+    scene_keys = ("scene", "over_field")
+    raw = body.model_dump()
+    arguments = {k: v for k, v in raw.items() if k not in ramp_keys and k not in scene_keys}
+    ramp, arguments["exptime"] = body.ramp_arguments(body.exptime)  # validates the ramp
+    from .simulation import build_scene
 
-        arguments["scene"] = build_scene(arguments["scene"])
-    over_field = arguments.pop("over_field")
-    if over_field is not None:
-        from starlette.concurrency import run_in_threadpool
+    scene = build_scene(raw["scene"]) if raw["scene"] is not None else None  # validates the scene
+    if scene is not None and ramp is not None:
+        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
+    plain = ramp is None and scene is None and body.over_field is None
+    if plain and body.fidelity in (None, "table") and body.accuracy is None:
+        return SafeJSONResponse(solver.solve(**arguments).to_dict())
+    # Validate everything else, and find the level, at table cost; a simulating level -- or a ramp,
+    # a scene or an over-field answer, whose slopes need fresh simulations -- is a job like any other
+    # simulation (queue, limits, idle priority), never work inside this HTTP worker.
+    checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None})
+    chosen, _ = solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
+    if chosen == "table" and plain:
+        return SafeJSONResponse(solver.solve(**arguments).to_dict())
+    from .simulations import queue_full_response, submit_job
 
-        scas = "all" if over_field == "focal_plane" else [arguments.pop("sca")]
-        arguments.pop("sca", None)
-        band = arguments.pop("band")
-        solution = await run_in_threadpool(solver.solve_over_field, band, scas, **arguments)
-        return SafeJSONResponse(solution.to_dict())
-    if body.fidelity == "table" and body.accuracy is None and body.scene is None:
-        solution = solver.solve(**arguments)
-    else:
-        from starlette.concurrency import run_in_threadpool
+    job_arguments = {**arguments, "band": checked.band, "scene_request": raw["scene"], "over_field": raw["over_field"]}
+    if ramp is not None:
+        # The worker rebuilds the ramp from the request's own (JSON) fields.
+        job_arguments["exptime"] = body.exptime
+        job_arguments["ramp_request"] = {
+            **{k: raw[k] for k in ramp_keys},
+            "exptime_given": "exptime" in body.model_fields_set,
+        }
 
-        solution = await run_in_threadpool(solver.solve, **arguments)
-    return SafeJSONResponse(solution.to_dict())
+    try:
+        job, status = await submit_job(request, simulation.solve_job(job_arguments), request.app.state.settings.solve_wait_s)
+    except QueueFull as full:
+        return queue_full_response(full)
+    if job.get("status") == "done" and job.get("result") is not None:
+        return SafeJSONResponse(job["result"], headers={"Location": f"/api/v1/simulations/{job['id']}"})
+    if job.get("status") == "failed" and (job.get("error") or {}).get("field"):
+        error = job["error"]
+        return problem(422, f"{error['field']}: {error['message']}", error["field"])
+    from .simulations import job_response
+
+    return job_response(job, status)
 
 
 @router.post("/impact", responses=ERRORS, summary="What each scene effect changes in the slopes at one point (linear response)")
@@ -127,7 +191,7 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
 @router.get("/tables", responses=ERRORS, summary="The shipped slope tables as JSON rows (optionally one band / SCA)")
 def table_json(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResponse:
     table_set = tables.load_tables()
-    return SafeJSONResponse({"meta": json_safe(table_set.meta), "rows": tables.table_rows(band, sca)})
+    return SafeJSONResponse({"meta": public_table_meta(table_set.meta), "rows": tables.table_rows(band, sca)})
 
 
 @router.get(

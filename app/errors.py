@@ -17,6 +17,17 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from nlpsf.checks import InputError
 
+from .store import StoreUnavailable
+
+#: Longest piece of a client's input an error message repeats: enough to recognise it, never the
+#: megabytes a hostile request sends.
+ECHO_CHARS = 120
+
+
+def short(text: Any, limit: int = ECHO_CHARS) -> str:
+    text = str(text)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
+
 
 def json_safe(value: Any) -> Any:
     """Non-finite floats become None (JSON has no NaN); numpy scalars become Python numbers."""
@@ -42,7 +53,8 @@ class SafeJSONResponse(JSONResponse):
 
 
 def problem(status: int, message: str, field: str | None = None, limit: str | None = None, detail=None, headers=None):
-    body = {"message": message, "field": field, "limit": limit, "detail": detail or []}
+    detail = [{**d, "msg": short(d["msg"], 4 * ECHO_CHARS), "field": d["field"] and short(d["field"])} for d in detail or []]
+    body = {"message": short(message, 4 * ECHO_CHARS), "field": field and short(field), "limit": limit, "detail": detail}
     return SafeJSONResponse(body, status_code=status, headers=headers)
 
 
@@ -50,7 +62,7 @@ def input_error_response(error: InputError, field: str | None = None, location: 
     field = field or error.argument
     limit = getattr(error, "limit", None)
     message = f"{field}: {error.reason}"
-    detail = [{"loc": [location, field], "field": field, "msg": error.reason, "type": "limit" if limit else "value_error"}]
+    detail = [{"loc": [location, short(field)], "field": field, "msg": error.reason, "type": "limit" if limit else "value_error"}]
     return problem(422, message, field, limit, detail)
 
 
@@ -76,11 +88,16 @@ def _readable(error: dict[str, Any]) -> str:
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     detail = []
-    for error in exc.errors():
-        loc = [p if isinstance(p, (str, int)) else str(p) for p in error.get("loc", ())]
+    # At most a few entries, each location cut short: a body of a million unknown keys must not
+    # come back as a million errors.
+    errors = exc.errors()
+    for error in errors[:10]:
+        loc = [short(p) if isinstance(p, str) else p if isinstance(p, int) else short(p) for p in error.get("loc", ())]
         detail.append({"loc": loc, "field": _field_of(loc), "msg": _readable(error), "type": str(error.get("type", ""))})
     first = detail[0] if detail else {"field": None, "msg": "invalid request"}
     message = f"{first['field']}: {first['msg']}" if first["field"] else first["msg"]
+    if len(errors) > 10:
+        message += f" (and {len(errors) - 1:,} more errors)"
     return problem(422, message, first["field"], None, detail)
 
 
@@ -97,11 +114,26 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 
 async def _server_error(request: Request, exc: Exception) -> JSONResponse:
-    return problem(500, f"internal error ({type(exc).__name__}); please report it with the request that caused it")
+    from .security import SECURITY_HEADERS
+
+    # This handler answers outside the middleware stack: add its headers here.
+    headers = {name.decode(): value.decode() for name, value in SECURITY_HEADERS}
+    message = f"internal error ({type(exc).__name__}); please report it with the request that caused it"
+    return problem(500, message, headers=headers)
+
+
+def store_unavailable_response(error: StoreUnavailable) -> JSONResponse:
+    """Simulations need the job database; while it is unusable they are refused with the reason."""
+    return problem(503, f"simulations are unavailable: {error.reason}", limit=None, headers={"Retry-After": "30"})
+
+
+async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+    return store_unavailable_response(exc)
 
 
 def install(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
     app.add_exception_handler(InputError, _input_error)  # type: ignore[arg-type]
+    app.add_exception_handler(StoreUnavailable, _store_unavailable)  # type: ignore[arg-type]
     app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
     app.add_exception_handler(Exception, _server_error)

@@ -3,7 +3,9 @@
 Each web worker process runs one :class:`Dispatcher` on its event loop. It claims queued jobs
 while fewer than ``job_workers`` run across the whole service (the claim is one SQLite
 transaction), starts one process per job from a forkserver (so a cancel can stop it at once and a
-crash in one cannot break a pool), watches them, and keeps its instance's heartbeat fresh.
+crash in one cannot break a pool), watches them, keeps its instance's heartbeat fresh (the
+heartbeat is also the probe that tells a broken job database from a working one) and applies the
+retention rule. One :class:`Notifier` per web worker answers every ``?wait=`` with one query.
 """
 
 from __future__ import annotations
@@ -18,16 +20,18 @@ import time
 from multiprocessing.process import BaseProcess
 
 from .settings import Settings
-from .store import Store
+from .store import FINISHED, Store, StoreUnavailable
 
 log = logging.getLogger("nlpsf.jobs")
 
 _POLL_S = 0.1
 _HEARTBEAT_S = 2.0
 _SWEEP_S = 5.0
+_PRUNE_S = 60.0
 
+_WORKER_MODULE = f"{__package__}.worker"
 _context = multiprocessing.get_context("forkserver")
-_context.set_forkserver_preload(["app.worker"])
+_context.set_forkserver_preload([_WORKER_MODULE])
 
 
 class Dispatcher:
@@ -43,9 +47,15 @@ class Dispatcher:
         self._stopping = False
 
     async def start(self) -> None:
-        await asyncio.to_thread(self.store.interrupt_orphans, self.settings.stale_after_s)
-        self.instance = await asyncio.to_thread(self.store.register_instance)
+        await asyncio.to_thread(self._register)
         self._task = asyncio.create_task(self._loop(), name="nlpsf-dispatcher")
+
+    def _register(self) -> None:
+        try:
+            self.store.interrupt_orphans(self.settings.stale_after_s)
+            self.instance = self.store.register_instance()
+        except StoreUnavailable:
+            pass  # retried by the loop; the store has logged the reason once
 
     def wake(self) -> None:
         self._wake.set()
@@ -69,30 +79,45 @@ class Dispatcher:
                     process.join(5)
             self.processes.clear()
             if self.instance:
-                self.store.interrupt_owned(
-                    self.instance, "the service was stopped while this simulation was running; submit it again to rerun it"
-                )
-                self.store.unregister_instance(self.instance)
+                with contextlib.suppress(StoreUnavailable):
+                    # Back to the queue: another worker, or this service after a restart, runs them.
+                    self.store.release_owned(self.instance)
+                    self.store.unregister_instance(self.instance)
 
     async def _loop(self) -> None:
         last_heartbeat = last_sweep = time.monotonic()
+        last_prune = 0.0
         while True:
             try:
-                await asyncio.to_thread(self._tick)
                 now = time.monotonic()
-                if now - last_heartbeat > _HEARTBEAT_S:
-                    await asyncio.to_thread(self.store.heartbeat, self.instance)
+                if not self.instance:
+                    await asyncio.to_thread(self._register)
+                if now - last_heartbeat > _HEARTBEAT_S or self.store.state != "ok":
+                    if self.instance:
+                        await asyncio.to_thread(self.store.heartbeat, self.instance)
                     last_heartbeat = now
-                if now - last_sweep > _SWEEP_S:
-                    await asyncio.to_thread(self.store.interrupt_orphans, self.settings.stale_after_s)
-                    last_sweep = now
+                if self.instance and self.store.state == "ok":
+                    await asyncio.to_thread(self._tick)
+                    if now - last_sweep > _SWEEP_S:
+                        await asyncio.to_thread(self.store.interrupt_orphans, self.settings.stale_after_s)
+                        last_sweep = now
+                    if now - last_prune > _PRUNE_S:
+                        await asyncio.to_thread(self._prune)
+                        last_prune = now
             except asyncio.CancelledError:
                 raise
-            except Exception:  # keep dispatching; a transient database error must not stop the service
+            except StoreUnavailable:
+                pass  # the store logged it once; the heartbeat probes until it is back
+            except Exception:  # keep dispatching; a bug here must not stop the service
                 log.exception("job dispatcher")
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), _POLL_S)
+                await asyncio.wait_for(self._wake.wait(), _POLL_S if self.store.state == "ok" else 1.0)
             self._wake.clear()
+
+    def _prune(self) -> None:
+        removed = self.store.prune(self.settings.retention_s, self.settings.max_stored_results)
+        if any(removed.values()):
+            log.info("retention: removed %(results)d results, %(jobs)d jobs, %(tickets)d tickets", removed)
 
     def _tick(self) -> None:
         with self._lock:
@@ -110,8 +135,8 @@ class Dispatcher:
             if process.is_alive():
                 continue
             process.join()
-            del self.processes[job_id]
-            # A worker that exited without recording an outcome (killed, out of memory) failed.
+            # A worker that exited without recording an outcome (killed, out of memory) failed. The
+            # entry is dropped only once that is recorded, so a database fault cannot leave it "running".
             self.store.end(
                 job_id,
                 "failed",
@@ -119,12 +144,14 @@ class Dispatcher:
                 {"field": None, "message": f"exit code {process.exitcode}"},
                 owner=self.instance,
             )
+            del self.processes[job_id]
         while len(self.processes) < self.settings.job_workers:
             job = self.store.claim(self.instance, self.settings.job_workers)
             if job is None:
                 break
-            from . import worker
+            import importlib
 
+            worker = importlib.import_module(_WORKER_MODULE)
             process = _context.Process(
                 target=worker.run_job,
                 args=(
@@ -135,6 +162,7 @@ class Dispatcher:
                     job["request"],
                     os.getpid(),
                     self.settings.job_nice,
+                    self.settings.job_memory_mb,
                 ),
                 name=f"nlpsf-job-{job['id'][:8]}",
                 daemon=True,
@@ -142,3 +170,52 @@ class Dispatcher:
             process.start()
             self.processes[job["id"]] = process
             self.store.set_pid(job["id"], process.pid or 0)
+
+
+class Notifier:
+    """Every ``?wait=`` of this web worker waits on one poll: one query for all watched tickets every
+    ``interval`` s (and only while someone waits), not a connection per waiter."""
+
+    def __init__(self, store: Store, interval: float = 0.1):
+        self.store = store
+        self.interval = interval
+        self._waiters: dict[str, list[asyncio.Future[str]]] = {}
+        self._task: asyncio.Task | None = None
+
+    async def wait(self, ticket: str, timeout: float) -> str | None:
+        """The ticket's finished status, or None if it has not finished within ``timeout``."""
+        if timeout <= 0:
+            return None
+        future: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        self._waiters.setdefault(ticket, []).append(future)
+        if self._task is None or self._task.done():
+            self._task = asyncio.create_task(self._poll(), name="nlpsf-notifier")
+        try:
+            return await asyncio.wait_for(asyncio.shield(future), timeout)
+        except TimeoutError:
+            return None
+        finally:
+            waiters = self._waiters.get(ticket, [])
+            if future in waiters:
+                waiters.remove(future)
+            if not waiters:
+                self._waiters.pop(ticket, None)
+
+    async def _poll(self) -> None:
+        while self._waiters:
+            await asyncio.sleep(self.interval)
+            try:
+                statuses = await asyncio.to_thread(self.store.statuses, list(self._waiters))
+            except StoreUnavailable:
+                continue
+            for ticket, status in statuses.items():
+                if status in FINISHED:
+                    for future in self._waiters.pop(ticket, []):
+                        if not future.done():
+                            future.set_result(status)
+
+    async def stop(self) -> None:
+        if self._task:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task

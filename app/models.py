@@ -28,6 +28,7 @@ Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]
 SimulationFidelity = Literal[fidelity.SIMULATION_LEVELS]  # type: ignore[valid-type]
 BetaConvention = Literal[detector.BETA_CONVENTIONS]  # type: ignore[valid-type]
 PupilScale = Literal[roman.PUPIL_SCALE_RULES]  # type: ignore[valid-type]
+RampFit = Literal[defaults.RAMP_FITS]  # type: ignore[valid-type]
 
 
 class SceneRequest(BaseModel):
@@ -56,7 +57,39 @@ class SceneRequest(BaseModel):
     background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
 
 
-class SolveRequest(BaseModel):
+class MATableSpec(BaseModel):
+    """An MA table given inline: resultants as lists of 1-based read indices."""
+
+    model_config = _STRICT
+
+    resultants: list[list[int]] = Field(description="resultants as lists of read indices, e.g. [[1], [2, 3], [4, 5, 6]]")
+    frame_time_s: float = Field(defaults.ROMAN_FRAME_TIME_S, description="time between reads in s")
+    name: str = Field("custom", max_length=64, description="a label for the conditions")
+
+
+class RampFields(BaseModel):
+    """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
+
+    ramp: int | None = Field(None, description="N uniformly spaced reads over the exposure, one per resultant")
+    ma_table: str | MATableSpec | None = Field(
+        None,
+        description="MultiAccum table: a shipped name (romanisim-1, romanisim-109, romanisim-110) or the table itself; "
+        "without an exptime the exposure is the table's last read",
+    )
+    ramp_fit: RampFit = Field("ols", description="slope fit: ols, or optimal (read + Poisson noise weighting)")
+    read_noise: float = Field(defaults.READ_NOISE_E, description="read noise per read in e- (optimal fit)")
+
+    def ramp_arguments(self, exptime: float) -> tuple[object, float]:
+        """(ramps.Ramp or None, exposure time): the library's one rule for both (an MA table's
+        exposure is its last read unless the request gives ``exptime``)."""
+        from nlpsf import ramps
+
+        table = self.ma_table.model_dump() if isinstance(self.ma_table, MATableSpec) else self.ma_table
+        given = exptime if "exptime" in self.model_fields_set else None
+        return ramps.build(self.ramp, table, self.ramp_fit, self.read_noise, given, allow_files=False)
+
+
+class SolveRequest(RampFields):
     """The two-of-three calculator: give exactly two of precision, tolerance, magnitude."""
 
     model_config = ConfigDict(
@@ -149,7 +182,7 @@ class ImpactRequest(BaseModel):
     scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
 
 
-class SimulationRequest(BaseModel):
+class SimulationRequest(RampFields):
     """A fresh simulation on the grid magnitudes x betas x sigma_betas (paper's defaults)."""
 
     model_config = ConfigDict(

@@ -7,19 +7,12 @@ then, so the command line stays light.
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
 import socket
 import sys
 
 #: The ASGI application, as uvicorn imports it in each worker process.
 APP = "nlpsf.web.main:app"
-
-
-def default_workers() -> int:
-    """One HTTP worker per core, up to 8: on 2 cores that doubles the calculator's throughput
-    (benchmarks/bench_service.py)."""
-    return min(os.cpu_count() or 1, 8)
 
 
 def serve(host: str, port: int, workers: int, access_log: bool = False, log_level: str = "info") -> int:
@@ -92,7 +85,8 @@ def _supervise(workers: int, host: str, port: int, options: dict) -> int:
         time.sleep(0.2)
         for index, process in enumerate(processes):
             if not process.is_alive() and not stopping:
-                if time.monotonic() - started.get(process.pid or 0, 0.0) < 10:
+                # Killed by a signal (kill -9, the OOM killer) is not a configuration error: restart it.
+                if (process.exitcode or 0) > 0 and time.monotonic() - started.get(process.pid or 0, 0.0) < 10:
                     # Dying at start is a configuration error; restarting would only repeat it.
                     print(f"nlpsf serve: worker {process.pid} failed at start ({process.exitcode}); stopping", file=sys.stderr)
                     stopping, status = True, 1

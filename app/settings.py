@@ -1,4 +1,6 @@
-"""Service settings, read from ``NLPSF_*`` environment variables (see the README's Configuration).
+"""Service settings: one object, the only reader of the environment (``NLPSF_*`` variables, see the
+README's Configuration). pydantic-settings parses and range-checks them, so a bad value stops the
+service at start with the variable named, instead of surfacing later as a wrong limit.
 
 Limits bound the work one request may ask for, so a single simulation cannot take the machine:
 they are checked before a job is queued and reported in ``GET /api/v1/meta``.
@@ -7,8 +9,18 @@ they are checked before a job is queued and reported in ``GET /api/v1/meta``.
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+#: Peak resident memory a simulation job adds per stamp pixel (realizations x stamp^2), measured by
+#: benchmarks/bench_job_memory.py: 37 bytes for the linear fidelity (the worst), 18 for Monte Carlo
+#: (2026-11-26, H158, 200 and 1200 realizations of 96^2 stamps); rounded up.
+JOB_BYTES_PER_STAMP_PIXEL = 40
+
+_LIMIT_FIELDS = ("max_realizations", "max_stamp", "max_grid", "max_wavelengths", "max_stamp_pixels", "max_work")
 
 
 def _default_db_path() -> str:
@@ -16,84 +28,130 @@ def _default_db_path() -> str:
     return str(Path(state) / "nlpsf" / "jobs.sqlite3")
 
 
-def _env_int(name: str, default: int, low: int, high: int) -> int:
-    raw = os.environ.get(name)
-    if raw is None or raw.strip() == "":
-        return default
-    try:
-        value = int(raw)
-    except ValueError:
-        raise ValueError(f"{name} must be an integer, got {raw!r}") from None
-    if not low <= value <= high:
-        raise ValueError(f"{name} must lie in [{low}, {high}], got {value}")
-    return value
-
-
-def _env_float(name: str, default: float, low: float, high: float) -> float:
-    raw = os.environ.get(name)
-    if raw is None or raw.strip() == "":
-        return default
-    try:
-        value = float(raw)
-    except ValueError:
-        raise ValueError(f"{name} must be a number, got {raw!r}") from None
-    if not low <= value <= high:
-        raise ValueError(f"{name} must lie in [{low:g}, {high:g}], got {value:g}")
-    return value
-
-
-@dataclass(frozen=True)
-class Limits:
+class Limits(BaseModel):
     """Caps on the work of one simulation request (each named in the 422 that enforces it)."""
 
+    model_config = ConfigDict(frozen=True)
+
     #: centroid realizations (or beta-map draws) per request
-    max_realizations: int = 2000
+    max_realizations: int = Field(2000, ge=1, le=100_000)
     #: stamp side in fine pixels
-    max_stamp: int = 256
+    max_stamp: int = Field(256, ge=16, le=512)
     #: cells of the request's grid: magnitudes x betas x sigma_betas
-    max_grid: int = 200
+    max_grid: int = Field(200, ge=1, le=100_000)
     #: wavelengths of a polychromatic PSF
-    max_wavelengths: int = 16
-    #: realizations x stamp^2: the rendered stamps held in memory (8 bytes each)
-    max_stamp_pixels: int = 40_000_000
+    max_wavelengths: int = Field(16, ge=1, le=64)
+    #: realizations x stamp^2: the stamps a job holds in memory; at JOB_BYTES_PER_STAMP_PIXEL (measured)
+    #: 40 million pixels need about 1.6 GB, inside the default job_memory_mb
+    max_stamp_pixels: int = Field(40_000_000, ge=256, le=10**11)
     #: realizations x stamp^2 x (wavelengths + grid cells): a proxy for CPU time
-    max_work: int = 4_000_000_000
+    max_work: int = Field(4_000_000_000, ge=256, le=10**15)
 
-    def to_dict(self) -> dict:
-        return asdict(self)
+    def to_dict(self) -> dict[str, int]:
+        return self.model_dump()
 
 
-@dataclass(frozen=True)
-class Settings:
-    db_path: str = field(default_factory=_default_db_path)
+class Settings(BaseSettings):
+    """Everything the service reads from its environment. Constructed once per process."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="NLPSF_", frozen=True, extra="forbid", case_sensitive=False, populate_by_name=True
+    )
+
+    # --- where and how it listens -------------------------------------------------------------
+    host: str = Field("127.0.0.1", description="address to listen on (0.0.0.0 for all interfaces)")
+    port: int = Field(8000, ge=0, le=65535)
+    #: HTTP worker processes; None: one per core, up to 8
+    workers: int | None = Field(None, ge=1, le=64)
+    #: Host header values accepted (comma-separated; "*" accepts any). A deployment behind a name sets it.
+    allowed_hosts: Annotated[list[str], NoDecode] = Field(default_factory=lambda: ["*"])
+    #: API keys (comma-separated); with any set, /api/v1 (except /health) needs one, as
+    #: ``Authorization: Bearer <key>`` or ``X-API-Key``, and job listings group by key
+    api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
+    #: largest request body in bytes; a larger one is answered 413 before it is read
+    max_body_bytes: int = Field(65_536, ge=1024, le=64 * 1024**2)
+    #: the page's files; None: the ``static`` folder beside the app
+    static_dir: str | None = None
+
+    # --- simulation jobs ----------------------------------------------------------------------
+    db_path: str = Field(default_factory=_default_db_path)
     #: simulation processes running at once, across all web workers
-    job_workers: int = 1
+    job_workers: int = Field(1, ge=1, le=64)
     #: simulations waiting for a worker; beyond this a POST gets 429
-    max_queue: int = 16
+    max_queue: int = Field(16, ge=0, le=100_000)
     #: niceness of simulation processes, so the calculator keeps the CPU when both want it
-    job_nice: int = 10
+    job_nice: int = Field(10, ge=0, le=19)
+    #: memory one simulation process may add to its start-up size (RLIMIT_AS), MB: a request whose
+    #: measured need (JOB_BYTES_PER_STAMP_PIXEL x stamp pixels) is larger is refused, and a job that
+    #: still grows past it fails cleanly instead of taking the host
+    job_memory_mb: int = Field(2048, ge=64, le=1024**2)
     #: longest ``wait`` a POST /simulations may ask for, seconds
-    max_wait_s: float = 30.0
-    #: a running job whose owning service has not been heard from for this long is interrupted
-    stale_after_s: float = 30.0
-    limits: Limits = field(default_factory=Limits)
+    max_wait_s: float = Field(30.0, ge=0.0, le=600.0, validation_alias="NLPSF_MAX_WAIT")
+    #: how long POST /solve waits for a solve that needs a simulation before answering 202 with its job
+    solve_wait_s: float = Field(10.0, ge=0.0, le=600.0)
+    #: a service instance on another host not heard from for this long has its running jobs interrupted
+    stale_after_s: float = Field(30.0, ge=3.0, le=86_400.0, validation_alias="NLPSF_STALE_AFTER")
+    #: GET /simulations lists every job (operator option); off: only the caller's (by API key)
+    list_all_jobs: bool = False
+
+    # --- retention: the job database must not grow without bound --------------------------------
+    #: finished jobs and stored results older than this are deleted, days
+    retention_days: float = Field(30.0, gt=0.0, le=36_500.0)
+    #: at most this many stored results (and 4x as many finished jobs) are kept; the oldest go first
+    max_stored_results: int = Field(5000, ge=1, le=10**7)
+
+    # --- limits per request (flat in the environment: NLPSF_MAX_REALIZATIONS, ...) -------------
+    max_realizations: int = Field(2000, ge=1, le=100_000)
+    max_stamp: int = Field(256, ge=16, le=512)
+    max_grid: int = Field(200, ge=1, le=100_000)
+    max_wavelengths: int = Field(16, ge=1, le=64)
+    max_stamp_pixels: int = Field(40_000_000, ge=256, le=10**11)
+    max_work: int = Field(4_000_000_000, ge=256, le=10**15)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _spread_limits(cls, values: Any) -> Any:
+        """Accept ``limits=Limits(...)`` in code as well as the flat fields the environment sets."""
+        if isinstance(values, dict) and "limits" in values:
+            values = dict(values)
+            limits = values.pop("limits")
+            values.update(limits.to_dict() if isinstance(limits, Limits) else dict(limits))
+        return values
+
+    @field_validator("allowed_hosts", mode="before")
+    @classmethod
+    def _split_hosts(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return [h.strip() for h in value.split(",") if h.strip()] or ["*"]
+        return value
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_keys(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return [k.strip() for k in value.split(",") if k.strip()]
+        return value
+
+    @field_validator("api_keys")
+    @classmethod
+    def _long_keys(cls, value: list[SecretStr]) -> list[SecretStr]:
+        if any(len(k.get_secret_value()) < 16 for k in value):
+            raise ValueError("each API key must have at least 16 characters")
+        return value
+
+    @property
+    def limits(self) -> Limits:
+        return Limits(**{name: getattr(self, name) for name in _LIMIT_FIELDS})
+
+    @property
+    def http_workers(self) -> int:
+        # One HTTP worker per core: on 2 cores that doubles the calculator's throughput (benchmarks/bench_service.py).
+        return self.workers or min(os.cpu_count() or 1, 8)
+
+    @property
+    def retention_s(self) -> float:
+        return self.retention_days * 86_400.0
 
     @classmethod
     def from_env(cls) -> Settings:
-        limits = Limits(
-            max_realizations=_env_int("NLPSF_MAX_REALIZATIONS", Limits.max_realizations, 1, 100_000),
-            max_stamp=_env_int("NLPSF_MAX_STAMP", Limits.max_stamp, 16, 512),
-            max_grid=_env_int("NLPSF_MAX_GRID", Limits.max_grid, 1, 100_000),
-            max_wavelengths=_env_int("NLPSF_MAX_WAVELENGTHS", Limits.max_wavelengths, 1, 64),
-            max_stamp_pixels=_env_int("NLPSF_MAX_STAMP_PIXELS", Limits.max_stamp_pixels, 256, 10**11),
-            max_work=_env_int("NLPSF_MAX_WORK", Limits.max_work, 256, 10**15),
-        )
-        return cls(
-            db_path=os.environ.get("NLPSF_DB_PATH") or _default_db_path(),
-            job_workers=_env_int("NLPSF_JOB_WORKERS", 1, 1, 64),
-            max_queue=_env_int("NLPSF_MAX_QUEUE", 16, 0, 100_000),
-            job_nice=_env_int("NLPSF_JOB_NICE", 10, 0, 19),
-            max_wait_s=_env_float("NLPSF_MAX_WAIT", 30.0, 0.0, 600.0),
-            stale_after_s=_env_float("NLPSF_STALE_AFTER", 30.0, 3.0, 86_400.0),
-            limits=limits,
-        )
+        return cls()

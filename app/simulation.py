@@ -14,11 +14,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from nlpsf import __version__, detector, experiment, fidelity, roman
+from nlpsf import __version__, defaults, detector, experiment, fidelity, ramps, roman
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 
-from .settings import Limits
+from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
 #: Library argument names -> request field names, so a 422 names what the user typed.
 FIELD_FOR_ARGUMENT = {
@@ -28,7 +28,13 @@ FIELD_FOR_ARGUMENT = {
     "exptime": "exptime",
     "full_well": "full_well",
     "weight_cut_rho2": "weight_cut_rho2",
+    "ma_table.resultants": "ma_table",
+    "ma_table.frame_time_s": "ma_table",
 }
+
+#: Request fields of an up-the-ramp exposure; absent from a final-frame request's normalised form
+#: (so its hash, the result cache's key, is what it was before ramps existed).
+RAMP_FIELDS = ("ramp", "ma_table", "ramp_fit", "read_noise")
 
 
 class LimitError(InputError):
@@ -55,6 +61,14 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
     scene = build_scene(request.get("scene"))
+    ramp, exptime = ramps.build(
+        request.get("ramp"),
+        request.get("ma_table"),
+        request.get("ramp_fit", "ols"),
+        request.get("read_noise", defaults.READ_NOISE_E),
+        request.get("exptime"),
+        allow_files=False,
+    )
     return experiment.SimulationConfig(
         band=request["band"],
         sca=request["sca"],
@@ -62,13 +76,14 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         seed=request["seed"],
         oversampling=request["oversampling"],
         stamp=request["stamp"],
-        exptime_s=request["exptime"],
+        exptime_s=exptime,
         full_well_e=request["full_well"],
         n_wavelengths=level.n_wavelengths,
         weight_cut_rho2=request["weight_cut_rho2"],
         pupil_scale=request["pupil_scale"],
         method=level.method,
         scene=scene,
+        ramp=ramp,
     )
 
 
@@ -76,7 +91,7 @@ def work_of(config: experiment.SimulationConfig, cells: int) -> int:
     return config.realizations * config.stamp**2 * (config.optics.n_wavelengths + cells)
 
 
-def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
+def validate(request: dict[str, Any], limits: Limits, memory_mb: int | None = None) -> dict[str, Any]:
     """Check a request against the library and the service's limits.
 
     Returns the normalised request (band upper-cased, values as the library will use them), whose
@@ -126,8 +141,21 @@ def validate(request: dict[str, Any], limits: Limits) -> dict[str, Any]:
             ),
         ]
     )
+    if memory_mb is not None:
+        need = config.realizations * config.stamp**2 * JOB_BYTES_PER_STAMP_PIXEL
+        if need > memory_mb * 1024**2:
+            raise LimitError(
+                "realizations",
+                "job_memory_mb",
+                f"needs about {need / 1024**2:,.0f} MB ({JOB_BYTES_PER_STAMP_PIXEL} bytes per stamp pixel, measured); "
+                f"the limit job_memory_mb is {memory_mb:,} MB",
+            )
     normalised = dict(request)
+    if config.ramp is None:
+        for name in RAMP_FIELDS:
+            normalised.pop(name, None)
     normalised.update(
+        exptime=config.exptime_s,
         band=config.band,
         n_wavelengths=config.n_wavelengths,
         magnitudes=magnitudes,
@@ -161,8 +189,50 @@ def estimate_seconds(normalised: dict[str, Any]) -> float:
 Progress = Callable[[float, str], None]
 
 
+#: A job that is a solve at a simulating fidelity (POST /solve), not a simulation grid.
+SOLVE_KIND = "solve"
+
+
+def solve_job(arguments: dict[str, Any]) -> dict[str, Any]:
+    """The job request of a solve that needs a simulation (``arguments`` as ``solver.solve`` takes them)."""
+    return {"kind": SOLVE_KIND, "solve": arguments}
+
+
 def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[str, Any]:
     """Run a validated request with the library; ``progress(fraction, message)`` along the way."""
+    if normalised.get("kind") == SOLVE_KIND:
+        from nlpsf import solver
+
+        if progress:
+            progress(0.0, "simulating the slopes this solve needs")
+        arguments = dict(normalised["solve"])
+        ramp_request = arguments.pop("ramp_request", None)
+        if ramp_request is not None:
+            from nlpsf import ramps
+
+            given = arguments["exptime"] if ramp_request["exptime_given"] else None
+            arguments["ramp"], arguments["exptime"] = ramps.build(
+                ramp_request["ramp"],
+                ramp_request["ma_table"],
+                ramp_request["ramp_fit"],
+                ramp_request["read_noise"],
+                given,
+                allow_files=False,
+            )
+        scene_request = arguments.pop("scene_request", None)
+        over_field = arguments.pop("over_field", None)
+        if scene_request is not None:
+            arguments["scene"] = build_scene(scene_request)
+        if over_field is not None:
+            band, sca = arguments.pop("band"), arguments.pop("sca")
+            scas = "all" if over_field == "focal_plane" else [sca]
+            step = None if progress is None else (lambda done, total, message: progress(done / max(total, 1), message))
+            solution = solver.solve_over_field(band, scas, progress=step, **arguments).to_dict()
+        else:
+            solution = solver.solve(**arguments).to_dict()
+        if progress:
+            progress(1.0, "done")
+        return _json_safe(solution)
     start = time.perf_counter()
     config = build_config(normalised)
     magnitudes, betas, sigma_betas = normalised["magnitudes"], normalised["betas"], normalised["sigma_betas"]

@@ -1,9 +1,14 @@
-"""POST/GET/DELETE /api/v1/simulations: fresh simulations as jobs with progress."""
+"""POST/GET/DELETE /api/v1/simulations: fresh simulations as jobs with progress.
+
+The ``id`` a submission returns is its capability: an unguessable token that reads or cancels that
+job and nothing else (identical requests share one run, each with its own id; the run stops when
+every holder has cancelled). Listing shows only the caller's jobs (by API key), or every job when
+the operator allows it (``list_all_jobs``), and never hands out ids that grant access.
+"""
 
 from __future__ import annotations
 
 import asyncio
-import time
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request
@@ -17,15 +22,39 @@ from .store import FINISHED, NotCancellable, QueueFull
 
 router = APIRouter(prefix="/api/v1/simulations", tags=["simulations"])
 
-JobId = Annotated[str, Path(pattern=r"^[0-9a-f]{32}$", description="job id returned by POST")]
+JobId = Annotated[str, Path(pattern=r"^[0-9a-f]{32}$", description="the job's id as POST returned it (its capability)")]
 
 _PROBLEM = {"model": models.Problem}
+_HIDDEN = ("owner", "pid", "attempts")
 
 
-def _job_response(job: dict[str, Any], status: int) -> SafeJSONResponse:
-    job = {k: v for k, v in job.items() if k not in ("owner", "pid")}
+def job_response(job: dict[str, Any], status: int) -> SafeJSONResponse:
+    job = {k: v for k, v in job.items() if k not in _HIDDEN}
     headers = {"Location": f"/api/v1/simulations/{job['id']}"}
     return SafeJSONResponse(job, status_code=status, headers=headers)
+
+
+def client_of(request: Request) -> str | None:
+    return getattr(request.state, "client", None)
+
+
+async def submit_job(request: Request, normalised: dict[str, Any], wait: float) -> tuple[dict[str, Any], int]:
+    """Queue (or answer from stored results, or join) a validated job request and wait up to ``wait``
+    seconds for it; returns the job as its submitter sees it and the HTTP status (200 finished, 202 not).
+    Raises QueueFull as a 429 response and StoreUnavailable (503, by the app's handler)."""
+    app = request.app
+    key = simulation.request_hash(normalised)
+    job, _how = await asyncio.to_thread(app.state.store.submit, normalised, key, app.state.settings.max_queue, client_of(request))
+    app.state.dispatcher.wake()
+    if job["status"] not in FINISHED:
+        finished = await app.state.notifier.wait(job["id"], min(wait, app.state.settings.max_wait_s))
+        if finished:
+            job = await asyncio.to_thread(app.state.store.get, job["id"]) or job
+    return job, 200 if job["status"] in FINISHED else 202
+
+
+def queue_full_response(full: QueueFull) -> Response:
+    return problem(429, f"the simulation queue is full: {full}", limit="max_queue", headers={"Retry-After": "10"})
 
 
 @router.post(
@@ -35,8 +64,10 @@ def _job_response(job: dict[str, Any], status: int) -> SafeJSONResponse:
     responses={
         200: {"model": models.Job, "description": "finished: answered from stored results, or within `wait`"},
         202: {"model": models.Job, "description": "accepted: queued or running; poll the Location"},
+        413: {**_PROBLEM, "description": "the request body is larger than max_body_bytes"},
         422: {**_PROBLEM, "description": "invalid input or over a work limit (the limit is named)"},
         429: {**_PROBLEM, "description": "the queue is full; retry later (Retry-After)"},
+        503: {**_PROBLEM, "description": "the job store is unavailable (the reason is given); the calculator still answers"},
     },
     summary="Start a fresh simulation; returns a job id at once (or the result, if known or quick)",
 )
@@ -45,51 +76,52 @@ async def submit(
     request: Request,
     wait: Annotated[float, Query(ge=0, le=600, allow_inf_nan=False, description="seconds to wait for the result")] = 0.0,
 ) -> Response:
-    app = request.app
+    settings = request.app.state.settings
     try:
-        normalised = simulation.validate(body.model_dump(), app.state.settings.limits)
+        payload = body.model_dump()
+        if body.ma_table is not None and "exptime" not in body.model_fields_set:
+            payload["exptime"] = None  # an MA table's exposure is its last read
+        normalised = simulation.validate(payload, settings.limits, settings.job_memory_mb)
     except InputError as error:
         return input_error_response(error, simulation.request_field(error.argument))
-    key = simulation.request_hash(normalised)
     try:
-        job, _how = await asyncio.to_thread(app.state.store.submit, normalised, key, app.state.settings.max_queue)
+        job, status = await submit_job(request, normalised, wait)
     except QueueFull as full:
-        return problem(429, f"the simulation queue is full: {full}", limit="max_queue", headers={"Retry-After": "10"})
-    app.state.dispatcher.wake()
-    deadline = time.monotonic() + min(wait, app.state.settings.max_wait_s)
-    while job["status"] not in FINISHED and time.monotonic() < deadline:
-        await asyncio.sleep(0.05)
-        job = await asyncio.to_thread(app.state.store.get, job["id"]) or job
-    if job["status"] == "done" and job["result"] is None:
-        job = await asyncio.to_thread(app.state.store.get, job["id"]) or job
-    return _job_response(job, 200 if job["status"] in FINISHED else 202)
+        return queue_full_response(full)
+    return job_response(job, status)
 
 
-@router.get("", response_model=models.JobList, summary="Recent simulation jobs (without their results)")
+@router.get(
+    "",
+    response_model=models.JobList,
+    responses={503: _PROBLEM},
+    summary="The caller's recent simulation jobs (by API key; every job if the operator allows), without results",
+)
 async def list_jobs(request: Request, limit: Annotated[int, Query(ge=1, le=500)] = 50) -> SafeJSONResponse:
     store = request.app.state.store
-    jobs = await asyncio.to_thread(store.list, limit)
+    everyone = request.app.state.settings.list_all_jobs
+    jobs = await asyncio.to_thread(store.list, client_of(request), everyone, limit)
     counts = await asyncio.to_thread(store.counts)
-    return SafeJSONResponse({"jobs": [{k: v for k, v in j.items() if k not in ("owner", "pid")} for j in jobs], "counts": counts})
+    return SafeJSONResponse({"jobs": [{k: v for k, v in j.items() if k not in _HIDDEN} for j in jobs], "counts": counts})
 
 
 @router.get(
     "/{job_id}",
     response_model=models.Job,
-    responses={404: _PROBLEM},
+    responses={404: _PROBLEM, 503: _PROBLEM},
     summary="Status and progress of a job; the result once it is done",
 )
 async def get_job(job_id: JobId, request: Request) -> Response:
     job = await asyncio.to_thread(request.app.state.store.get, job_id)
     if job is None:
-        return problem(404, f"no simulation job {job_id}")
-    return _job_response(job, 200)
+        return problem(404, "no simulation job with this id")
+    return job_response(job, 200)
 
 
 @router.delete(
     "/{job_id}",
     response_model=models.Job,
-    responses={404: _PROBLEM, 409: {**_PROBLEM, "description": "the job has already finished"}},
+    responses={404: _PROBLEM, 409: {**_PROBLEM, "description": "the job has already finished"}, 503: _PROBLEM},
     summary="Cancel a queued or running job",
 )
 async def cancel_job(job_id: JobId, request: Request) -> Response:
@@ -99,11 +131,9 @@ async def cancel_job(job_id: JobId, request: Request) -> Response:
     except NotCancellable as error:
         return problem(409, str(error))
     if job is None:
-        return problem(404, f"no simulation job {job_id}")
+        return problem(404, "no simulation job with this id")
     request.app.state.dispatcher.wake()
     # The owner stops a running job within a poll or two; wait briefly so the answer is final.
-    deadline = time.monotonic() + 5.0
-    while job["status"] not in FINISHED and time.monotonic() < deadline:
-        await asyncio.sleep(0.05)
+    if job["status"] not in FINISHED and await request.app.state.notifier.wait(job_id, 5.0):
         job = await asyncio.to_thread(store.get, job_id) or job
-    return _job_response(job, 200)
+    return job_response(job, 200)

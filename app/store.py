@@ -6,23 +6,39 @@ state, so any web worker can answer for any job, and what is in it survives a re
 
 - ``results``: finished results keyed by the content hash of the request (code and data versions
   included), so a repeated request is answered from here at once;
-- ``jobs``: one row per submitted simulation; ``owner`` names the service instance that runs it;
+- ``jobs``: one row per run of a request; ``owner`` names the service instance that runs it;
+- ``tickets``: one per submission, the capability a client holds: reading or cancelling a job
+  needs its ticket (an unguessable 128-bit token, stored only as its SHA-256). Identical requests
+  in flight share one run but not a ticket, and a run is cancelled only when every ticket on it is;
 - ``instances``: the live service processes and their heartbeats, so a job whose owner died is
-  reported as interrupted rather than left "running" forever.
+  queued again (or, after ``MAX_ATTEMPTS`` starts, reported interrupted) rather than left "running".
+
+Storage faults (file deleted, corrupt, read-only, disk full) raise :class:`StoreUnavailable` with a
+reason a client may see (never the file's path); :attr:`Store.state` follows them (any failure sets
+it, only a heartbeat write clears it, so it cannot flicker), and the log says so once per change.
+Nothing is cached across calls, so a file that comes back is used again at once, without a restart.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import hashlib
 import json
+import logging
 import os
+import secrets
 import socket
 import sqlite3
+import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+
+log = logging.getLogger("nlpsf.store")
 
 ACTIVE = ("queued", "running")
 FINISHED = ("done", "failed", "cancelled", "interrupted")
@@ -45,6 +61,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     owner TEXT,
     pid INTEGER,
     cancel_requested INTEGER NOT NULL DEFAULT 0,
+    attempts INTEGER NOT NULL DEFAULT 0,
     created_at REAL NOT NULL,
     started_at REAL,
     finished_at REAL,
@@ -52,6 +69,15 @@ CREATE TABLE IF NOT EXISTS jobs (
 );
 CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs (status, created_at);
 CREATE INDEX IF NOT EXISTS jobs_by_hash ON jobs (request_hash, status);
+CREATE TABLE IF NOT EXISTS tickets (
+    hash TEXT PRIMARY KEY,
+    job_id TEXT NOT NULL,
+    client TEXT,
+    cancelled INTEGER NOT NULL DEFAULT 0,
+    created_at REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS tickets_by_job ON tickets (job_id);
+CREATE INDEX IF NOT EXISTS tickets_by_client ON tickets (client, created_at);
 CREATE TABLE IF NOT EXISTS instances (
     id TEXT PRIMARY KEY,
     hostname TEXT NOT NULL,
@@ -61,6 +87,8 @@ CREATE TABLE IF NOT EXISTS instances (
     started_at REAL NOT NULL
 );
 """
+
+T = TypeVar("T")
 
 
 class QueueFull(Exception):
@@ -72,6 +100,22 @@ class QueueFull(Exception):
 
 class NotCancellable(Exception):
     pass
+
+
+class StoreUnavailable(Exception):
+    """The job database cannot be used; ``reason`` is safe to show a client (no paths)."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+def new_ticket() -> str:
+    return secrets.token_hex(16)
+
+
+def ticket_hash(ticket: str) -> str:
+    return hashlib.sha256(ticket.encode()).hexdigest()
 
 
 def process_start_time(pid: int) -> str | None:
@@ -90,27 +134,122 @@ def process_start_time(pid: int) -> str | None:
         return "unknown"
 
 
+def describe_fault(error: BaseException, path: str) -> str:
+    """What is wrong with the database, in words a client may read (the path stays in the log)."""
+    text = str(error).lower()
+    # SQLite often says only "disk I/O error" or "unable to open": ask the file system first.
+    with contextlib.suppress(OSError):
+        filesystem = os.statvfs(os.path.dirname(os.path.abspath(path)))
+        if filesystem.f_flag & os.ST_RDONLY:
+            return "the job database is read-only (its file system is mounted read-only)"
+        if filesystem.f_bavail * filesystem.f_frsize < 64 * 1024:
+            return "the disk holding the job database is full"
+    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return "the disk holding the job database is full"
+    if "disk is full" in text or "database or disk is full" in text:
+        return "the disk holding the job database is full"
+    if "readonly" in text or "read-only" in text or (isinstance(error, OSError) and error.errno in (errno.EACCES, errno.EROFS)):
+        return "the job database is read-only (no permission to write it)"
+    if "not a database" in text or "malformed" in text or "corrupt" in text:
+        return "the job database is corrupt"
+    if not os.path.exists(path):
+        return "the job database file is missing"
+    if "unable to open" in text or "disk i/o" in text or isinstance(error, OSError):
+        return "the job database cannot be opened or written (I/O error)"
+    if "locked" in text or "busy" in text:
+        return "the job database is locked by another process"
+    if "no such table" in text:
+        return "the job database has lost its tables"
+    return f"the job database failed ({type(error).__name__})"
+
+
+#: Runs of one job: a job whose service process died is queued again until it has started this often.
+MAX_ATTEMPTS = 3
+
+
+def _migrate(db: sqlite3.Connection) -> None:
+    db.executescript(_SCHEMA)
+    columns = {row[1] for row in db.execute("PRAGMA table_info(jobs)")}
+    if "attempts" not in columns:  # databases written before jobs were requeued
+        db.execute("ALTER TABLE jobs ADD COLUMN attempts INTEGER NOT NULL DEFAULT 0")
+
+
 class Store:
     def __init__(self, path: str | os.PathLike[str]):
         self.path = str(path)
-        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
-        with self.connect() as db:
-            db.execute("PRAGMA journal_mode=WAL")
-            db.executescript(_SCHEMA)
+        self._schema_ready = False
+        self._state_lock = threading.Lock()
+        #: "ok" or "unavailable", and why; updated by every call, logged when it changes
+        self.state = "ok"
+        self.reason: str | None = None
+        self.since = time.time()
+        # A database that cannot be opened at start leaves the calculator running: the log says why,
+        # the dispatcher keeps probing, and /health reports it.
+        with contextlib.suppress(StoreUnavailable):
+            self._guard(self._create)
 
-    @contextmanager
-    def connect(self) -> Iterator[sqlite3.Connection]:
+    # --- connections and faults ---------------------------------------------------------------
+
+    def _create(self) -> None:
+        # Only at start is a missing file created: a file deleted later is a fault to report, not
+        # an empty database to write over the operator's restore.
+        Path(self.path).parent.mkdir(parents=True, exist_ok=True)
         db = sqlite3.connect(self.path, timeout=15.0, isolation_level=None)
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            _migrate(db)
+        finally:
+            db.close()
+        self._schema_ready = True
+
+    def _open(self) -> sqlite3.Connection:
+        # mode=rw: never create the file behind a fault (a deleted database stays a reported fault).
+        db = sqlite3.connect(f"file:{self.path}?mode=rw", uri=True, timeout=15.0, isolation_level=None)
         db.row_factory = sqlite3.Row
         try:
             db.execute("PRAGMA busy_timeout=15000")
             db.execute("PRAGMA synchronous=NORMAL")
+            if not self._schema_ready:
+                _migrate(db)  # a database restored from elsewhere, or created empty
+                self._schema_ready = True
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    def _guard(self, operation: Callable[[], T]) -> T:
+        try:
+            value = operation()
+        except (sqlite3.Error, OSError) as error:
+            self._schema_ready = False
+            reason = describe_fault(error, self.path)
+            self._set_state("unavailable", reason, error)
+            raise StoreUnavailable(reason) from error
+        return value
+
+    def _set_state(self, state: str, reason: str | None, error: BaseException | None = None) -> None:
+        with self._state_lock:
+            if (state, reason) == (self.state, self.reason):
+                return
+            self.state, self.reason, self.since = state, reason, time.time()
+        if state == "ok":
+            log.warning("job database %s is usable again", self.path)
+        else:
+            log.error("job database %s unavailable: %s (%s: %s)", self.path, reason, type(error).__name__, error)
+
+    def status(self) -> dict[str, Any]:
+        return {"state": self.state, "reason": self.reason, "since": self.since}
+
+    @contextmanager
+    def connect(self) -> Iterator[sqlite3.Connection]:
+        db = self._open()
+        try:
             yield db
         finally:
             db.close()
 
     @contextmanager
-    def transaction(self) -> Iterator[sqlite3.Connection]:
+    def _transaction_raw(self) -> Iterator[sqlite3.Connection]:
         """A write transaction taken at once (BEGIN IMMEDIATE), so check-then-write is atomic."""
         with self.connect() as db:
             db.execute("BEGIN IMMEDIATE")
@@ -121,15 +260,34 @@ class Store:
                 raise
             db.execute("COMMIT")
 
+    def _read_op(self, function: Callable[[sqlite3.Connection], T]) -> T:
+        def run() -> T:
+            with self.connect() as db:
+                return function(db)
+
+        return self._guard(run)
+
+    def _write_op(self, function: Callable[[sqlite3.Connection], T]) -> T:
+        def run() -> T:
+            with self._transaction_raw() as db:
+                return function(db)
+
+        return self._guard(run)
+
     # --- submitting and reading ---------------------------------------------------------------
 
-    def submit(self, request: dict[str, Any], request_hash: str, max_queue: int) -> tuple[dict[str, Any], str]:
+    def submit(
+        self, request: dict[str, Any], request_hash: str, max_queue: int, client: str | None = None
+    ) -> tuple[dict[str, Any], str]:
         """Queue a request, or answer it from the results, or join the same request in flight.
 
-        Returns the job and how it was handled: "cached", "joined" or "queued".
+        Returns the job as the submitter sees it (``id`` is their ticket) and how it was handled:
+        "cached", "joined" or "queued".
         """
         now = time.time()
-        with self.transaction() as db:
+        ticket = new_ticket()
+
+        def run(db: sqlite3.Connection) -> tuple[str, str]:
             if db.execute("SELECT 1 FROM results WHERE hash = ?", (request_hash,)).fetchone():
                 job_id = uuid.uuid4().hex
                 db.execute(
@@ -137,6 +295,8 @@ class Store:
                     " finished_at, updated_at) VALUES (?, ?, ?, 'done', 1, 'answered from stored results', 1, ?, ?, ?, ?)",
                     (job_id, request_hash, json.dumps(request), now, now, now, now),
                 )
+                # A result in use is a fresh result for retention.
+                db.execute("UPDATE results SET created_at = ? WHERE hash = ?", (now, request_hash))
                 how = "cached"
             else:
                 row = db.execute(
@@ -156,18 +316,58 @@ class Store:
                         " VALUES (?, ?, ?, 'queued', 'waiting for a worker', ?, ?)",
                         (job_id, request_hash, json.dumps(request), now, now),
                     )
-            job = self._read(db, job_id)
+            db.execute(
+                "INSERT INTO tickets (hash, job_id, client, created_at) VALUES (?, ?, ?, ?)",
+                (ticket_hash(ticket), job_id, client, now),
+            )
+            return job_id, how
+
+        _, how = self._write_op(run)
+        job = self.get(ticket)
         assert job is not None
         return job, how
 
-    def get(self, job_id: str) -> dict[str, Any] | None:
-        with self.connect() as db:
-            return self._read(db, job_id)
+    def get(self, ticket: str) -> dict[str, Any] | None:
+        """The job a ticket holds, as its holder sees it; None for an unknown ticket."""
+        return self._read_op(lambda db: self._read_ticket(db, ticket_hash(ticket), ticket))
 
-    def list(self, limit: int = 50) -> list[dict[str, Any]]:
-        with self.connect() as db:
-            rows = db.execute("SELECT id FROM jobs ORDER BY created_at DESC LIMIT ?", (limit,)).fetchall()
-            return [job for row in rows if (job := self._read(db, row["id"], with_result=False))]
+    def job_of(self, ticket: str) -> str | None:
+        row = self._read_op(lambda db: db.execute("SELECT job_id FROM tickets WHERE hash = ?", (ticket_hash(ticket),)).fetchone())
+        return row["job_id"] if row else None
+
+    def list(self, client: str | None, everyone: bool = False, limit: int = 50) -> list[dict[str, Any]]:
+        """Recent jobs of ``client`` (every job if ``everyone``), without results or tickets."""
+
+        def run(db: sqlite3.Connection) -> list[dict[str, Any]]:
+            if everyone:
+                rows = db.execute("SELECT hash, job_id FROM tickets ORDER BY created_at DESC LIMIT ?", (limit,)).fetchall()
+            elif client is not None:
+                rows = db.execute(
+                    "SELECT hash, job_id FROM tickets WHERE client = ? ORDER BY created_at DESC LIMIT ?", (client, limit)
+                ).fetchall()
+            else:
+                return []
+            # The ticket itself is not shown: a listing must not hand out capabilities. Its hash
+            # prefix identifies the entry.
+            shown = [(row["hash"], "h-" + row["hash"][:30]) for row in rows]
+            return [job for hashed, name in shown if (job := self._read_ticket(db, hashed, name, with_result=False))]
+
+        return self._read_op(run)
+
+    def _read_ticket(self, db: sqlite3.Connection, hashed: str, shown_id: str, with_result: bool = True) -> dict[str, Any] | None:
+        row = db.execute("SELECT job_id, cancelled FROM tickets WHERE hash = ?", (hashed,)).fetchone()
+        if row is None:
+            return None
+        job = self._read(db, row["job_id"], with_result=with_result)
+        if job is None:
+            return None
+        job["id"] = shown_id
+        if row["cancelled"] and job["status"] in ACTIVE:
+            job.update(status="cancelled", message="cancelled; the same request may still run for another client", result=None)
+            job["queue_position"] = None
+        if row["cancelled"]:
+            job["cancel_requested"] = True
+        return job
 
     def _read(self, db: sqlite3.Connection, job_id: str, with_result: bool = True) -> dict[str, Any] | None:
         row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
@@ -190,28 +390,52 @@ class Store:
             job["result"] = json.loads(result["result"]) if result else None
         return job
 
-    def cancel(self, job_id: str) -> dict[str, Any] | None:
-        """Cancel a queued job at once; ask the owner of a running one to stop it."""
+    def statuses(self, tickets: list[str]) -> dict[str, str]:
+        """Status of each ticket's job, in one query (the shared notifier of ``?wait=``)."""
+        if not tickets:
+            return {}
+        hashes = {ticket_hash(t): t for t in tickets}
+
+        def run(db: sqlite3.Connection) -> dict[str, str]:
+            marks = ",".join("?" * len(hashes))
+            rows = db.execute(
+                f"SELECT t.hash, t.cancelled, j.status FROM tickets t JOIN jobs j ON j.id = t.job_id WHERE t.hash IN ({marks})",
+                list(hashes),
+            ).fetchall()
+            return {hashes[r["hash"]]: ("cancelled" if r["cancelled"] and r["status"] in ACTIVE else r["status"]) for r in rows}
+
+        return self._read_op(run)
+
+    def cancel(self, ticket: str) -> dict[str, Any] | None:
+        """Withdraw a ticket; the run stops (at once if queued, by its owner if running) when no
+        other ticket holder still wants it."""
         now = time.time()
-        with self.transaction() as db:
-            job = self._read(db, job_id, with_result=False)
+        hashed = ticket_hash(ticket)
+
+        def run(db: sqlite3.Connection) -> dict[str, Any] | None:
+            job = self._read_ticket(db, hashed, ticket, with_result=False)
             if job is None:
                 return None
             if job["status"] in FINISHED:
-                raise NotCancellable(f"job {job_id} has already finished ({job['status']})")
-            if job["status"] == "queued":
-                db.execute(
-                    "UPDATE jobs SET status = 'cancelled', message = 'cancelled before it started', cancel_requested = 1,"
-                    " finished_at = ?, updated_at = ? WHERE id = ?",
-                    (now, now, job_id),
-                )
-            else:
-                db.execute("UPDATE jobs SET cancel_requested = 1, updated_at = ? WHERE id = ?", (now, job_id))
-            return self._read(db, job_id, with_result=False)
+                raise NotCancellable(f"job {ticket} has already finished ({job['status']})")
+            job_id = db.execute("SELECT job_id FROM tickets WHERE hash = ?", (hashed,)).fetchone()["job_id"]
+            db.execute("UPDATE tickets SET cancelled = 1 WHERE hash = ?", (hashed,))
+            wanted = db.execute("SELECT COUNT(*) FROM tickets WHERE job_id = ? AND cancelled = 0", (job_id,)).fetchone()[0]
+            if not wanted:
+                if job["status"] == "queued":
+                    db.execute(
+                        "UPDATE jobs SET status = 'cancelled', message = 'cancelled before it started', cancel_requested = 1,"
+                        " finished_at = ?, updated_at = ? WHERE id = ?",
+                        (now, now, job_id),
+                    )
+                else:
+                    db.execute("UPDATE jobs SET cancel_requested = 1, updated_at = ? WHERE id = ?", (now, job_id))
+            return self._read_ticket(db, hashed, ticket, with_result=False)
+
+        return self._write_op(run)
 
     def counts(self) -> dict[str, int]:
-        with self.connect() as db:
-            rows = db.execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall()
+        rows = self._read_op(lambda db: db.execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall())
         return {row["status"]: row["n"] for row in rows}
 
     # --- the dispatcher's side ----------------------------------------------------------------
@@ -219,7 +443,8 @@ class Store:
     def claim(self, owner: str, max_running: int) -> dict[str, Any] | None:
         """Take the oldest queued job if fewer than ``max_running`` run anywhere."""
         now = time.time()
-        with self.transaction() as db:
+
+        def run(db: sqlite3.Connection) -> dict[str, Any] | None:
             running = db.execute("SELECT COUNT(*) FROM jobs WHERE status = 'running'").fetchone()[0]
             if running >= max_running:
                 return None
@@ -227,37 +452,43 @@ class Store:
             if row is None:
                 return None
             db.execute(
-                "UPDATE jobs SET status = 'running', owner = ?, message = 'starting', started_at = ?, updated_at = ?"
-                " WHERE id = ?",
+                "UPDATE jobs SET status = 'running', owner = ?, message = 'starting', started_at = ?, updated_at = ?,"
+                " attempts = attempts + 1 WHERE id = ?",
                 (owner, now, now, row["id"]),
             )
             return self._read(db, row["id"], with_result=False)
 
+        return self._write_op(run)
+
     def set_pid(self, job_id: str, pid: int) -> None:
-        with self.connect() as db:
-            db.execute("UPDATE jobs SET pid = ? WHERE id = ?", (pid, job_id))
+        self._read_op(lambda db: db.execute("UPDATE jobs SET pid = ? WHERE id = ?", (pid, job_id)))
 
     def cancel_requested(self, owner: str) -> list[str]:
-        with self.connect() as db:
-            rows = db.execute(
+        rows = self._read_op(
+            lambda db: db.execute(
                 "SELECT id FROM jobs WHERE owner = ? AND status = 'running' AND cancel_requested = 1", (owner,)
             ).fetchall()
+        )
         return [row["id"] for row in rows]
 
     def progress(self, job_id: str, owner: str, fraction: float, message: str) -> bool:
         """Record progress; False when the job should stop (cancelled, or no longer this owner's)."""
-        with self.connect() as db:
+
+        def run(db: sqlite3.Connection) -> bool:
             changed = db.execute(
                 "UPDATE jobs SET progress = ?, message = ?, updated_at = ? WHERE id = ? AND owner = ? AND status = 'running'",
                 (fraction, message, time.time(), job_id, owner),
             ).rowcount
             row = db.execute("SELECT cancel_requested FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return bool(changed) and not (row and row["cancel_requested"])
+            return bool(changed) and not (row and row["cancel_requested"])
+
+        return self._read_op(run)
 
     def finish(self, job_id: str, owner: str, request_hash: str, result: dict[str, Any]) -> bool:
         now = time.time()
         text = json.dumps(result, allow_nan=False)
-        with self.transaction() as db:
+
+        def run(db: sqlite3.Connection) -> bool:
             db.execute("INSERT OR REPLACE INTO results (hash, result, created_at) VALUES (?, ?, ?)", (request_hash, text, now))
             return bool(
                 db.execute(
@@ -266,6 +497,8 @@ class Store:
                     (now, now, job_id, owner),
                 ).rowcount
             )
+
+        return self._write_op(run)
 
     def end(self, job_id: str, status: str, message: str, error: dict[str, Any] | None = None, owner: str | None = None) -> bool:
         """Move an active job to a finished state (failed, cancelled, interrupted)."""
@@ -278,68 +511,114 @@ class Store:
         if owner is not None:
             sql += " AND owner = ?"
             args.append(owner)
-        with self.connect() as db:
-            return bool(db.execute(sql, args).rowcount)
+        return self._read_op(lambda db: bool(db.execute(sql, args).rowcount))
 
-    def interrupt_owned(self, owner: str, message: str) -> int:
-        now = time.time()
-        with self.connect() as db:
-            return db.execute(
-                "UPDATE jobs SET status = 'interrupted', message = ?, finished_at = ?, updated_at = ?"
-                " WHERE owner = ? AND status = 'running'",
-                (message, now, now, owner),
+    def release_owned(self, owner: str) -> int:
+        """A stopping service instance hands its running jobs back to the queue (another instance,
+        or this service after a restart, runs them again from the start)."""
+        return self._write_op(lambda db: _requeue(db, "owner = ?", (owner,), "its service process stopped"))
+
+    # --- retention ----------------------------------------------------------------------------
+
+    def prune(self, max_age_s: float, max_results: int, max_jobs: int | None = None) -> dict[str, int]:
+        """Delete finished jobs and stored results older than ``max_age_s`` and beyond the newest
+        ``max_results`` results (``max_jobs``, default 4x that, finished jobs); tickets go with their job.
+
+        A result's age is counted from its last use (a cached answer renews it), so a kept job never
+        points to a deleted result: a done job whose result is gone is deleted with it.
+        """
+        max_jobs = 4 * max_results if max_jobs is None else max_jobs
+        cutoff = time.time() - max_age_s
+        finished = "('done', 'failed', 'cancelled', 'interrupted')"
+
+        def run(db: sqlite3.Connection) -> dict[str, int]:
+            results = db.execute("DELETE FROM results WHERE created_at < ?", (cutoff,)).rowcount
+            newest = "SELECT hash FROM results ORDER BY created_at DESC LIMIT ?"
+            results += db.execute(f"DELETE FROM results WHERE hash NOT IN ({newest})", (max_results,)).rowcount
+            jobs = db.execute(f"DELETE FROM jobs WHERE status IN {finished} AND finished_at < ?", (cutoff,)).rowcount
+            jobs += db.execute(
+                "DELETE FROM jobs WHERE status = 'done' AND request_hash NOT IN (SELECT hash FROM results)"
             ).rowcount
+            jobs += db.execute(
+                f"DELETE FROM jobs WHERE status IN {finished} AND id NOT IN"
+                f" (SELECT id FROM jobs WHERE status IN {finished} ORDER BY finished_at DESC LIMIT ?)",
+                (max_jobs,),
+            ).rowcount
+            tickets = db.execute("DELETE FROM tickets WHERE job_id NOT IN (SELECT id FROM jobs)").rowcount
+            return {"results": results, "jobs": jobs, "tickets": tickets}
+
+        return self._write_op(run)
 
     # --- service instances --------------------------------------------------------------------
 
     def register_instance(self) -> str:
         instance = uuid.uuid4().hex
-        now = time.time()
-        with self.connect() as db:
-            db.execute(
-                "INSERT INTO instances (id, hostname, pid, pid_start, heartbeat, started_at) VALUES (?, ?, ?, ?, ?, ?)",
-                (instance, socket.gethostname(), os.getpid(), process_start_time(os.getpid()), now, now),
-            )
+        self.heartbeat(instance)
         return instance
 
     def heartbeat(self, instance: str) -> None:
-        with self.connect() as db:
-            db.execute("UPDATE instances SET heartbeat = ? WHERE id = ?", (time.time(), instance))
+        """Record that ``instance`` is alive, re-registering it if a peer has removed it meanwhile
+        (a worker stalled past the stale window comes back as itself, with its jobs)."""
+        now = time.time()
+        self._write_op(
+            lambda db: db.execute(
+                "INSERT INTO instances (id, hostname, pid, pid_start, heartbeat, started_at) VALUES (?, ?, ?, ?, ?, ?)"
+                " ON CONFLICT(id) DO UPDATE SET heartbeat = excluded.heartbeat",
+                (instance, socket.gethostname(), os.getpid(), process_start_time(os.getpid()), now, now),
+            )
+        )
+        self._set_state("ok", None)
 
     def unregister_instance(self, instance: str) -> None:
-        with self.connect() as db:
-            db.execute("DELETE FROM instances WHERE id = ?", (instance,))
+        self._read_op(lambda db: db.execute("DELETE FROM instances WHERE id = ?", (instance,)))
 
     def interrupt_orphans(self, stale_after_s: float) -> list[str]:
-        """Jobs running under a service instance that is gone become "interrupted".
+        """Jobs running under a service instance that is gone are queued again (or, after
+        ``MAX_ATTEMPTS`` starts, reported "interrupted"); returns their ids.
 
-        An instance is gone when its heartbeat is older than ``stale_after_s``, or at once when it
-        ran on this host and its process no longer exists (a crash or kill -9 followed by a restart).
+        On this host an instance is gone exactly when its process is (the pid and its kernel start
+        time): a stalled process is alive, however late its heartbeat, so a peer never takes its
+        jobs from it. An instance on another host sharing the file is gone when its heartbeat is
+        older than ``stale_after_s``.
         """
         now = time.time()
         host = socket.gethostname()
-        interrupted = []
-        with self.transaction() as db:
+
+        def run(db: sqlite3.Connection) -> list[str]:
+            interrupted = []
             alive = set()
             for row in db.execute("SELECT * FROM instances").fetchall():
-                gone = now - row["heartbeat"] > stale_after_s
-                if not gone and row["hostname"] == host:
+                if row["hostname"] == host:
                     started = process_start_time(row["pid"])
                     gone = started is None or (row["pid_start"] not in (None, "unknown") and started != row["pid_start"])
+                else:
+                    gone = now - row["heartbeat"] > stale_after_s
                 if gone:
                     db.execute("DELETE FROM instances WHERE id = ?", (row["id"],))
                 else:
                     alive.add(row["id"])
             for row in db.execute("SELECT id, owner FROM jobs WHERE status = 'running'").fetchall():
                 if row["owner"] not in alive:
-                    db.execute(
-                        "UPDATE jobs SET status = 'interrupted', message = ?, finished_at = ?, updated_at = ? WHERE id = ?",
-                        (
-                            "the service stopped while this simulation was running; submit it again to rerun it",
-                            now,
-                            now,
-                            row["id"],
-                        ),
-                    )
+                    _requeue(db, "id = ?", (row["id"],), "its service process ended")
                     interrupted.append(row["id"])
-        return interrupted
+            return interrupted
+
+        return self._write_op(run)
+
+
+def _requeue(db: sqlite3.Connection, where: str, args: tuple, why: str) -> int:
+    """Running jobs matching ``where`` go back to the queue, keeping their place (created_at); one
+    that has already started ``MAX_ATTEMPTS`` times is reported interrupted instead."""
+    now = time.time()
+    queued = db.execute(
+        "UPDATE jobs SET status = 'queued', owner = NULL, pid = NULL, progress = 0, started_at = NULL, updated_at = ?,"
+        f" message = 'queued again: {why} while it ran' WHERE {where} AND status = 'running' AND attempts < ?",
+        (now, *args, MAX_ATTEMPTS),
+    ).rowcount
+    interrupted = db.execute(
+        "UPDATE jobs SET status = 'interrupted', finished_at = ?, updated_at = ?,"
+        f" message = 'interrupted: {why} while it ran, {MAX_ATTEMPTS} times; submit it again to rerun it'"
+        f" WHERE {where} AND status = 'running'",
+        (now, now, *args),
+    ).rowcount
+    return queued + interrupted

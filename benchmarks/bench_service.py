@@ -1,19 +1,22 @@
-"""Load test of the service on loopback: POST /api/v1/solve, idle and while a large simulation runs.
+"""Load test of the service on loopback: POST /api/v1/solve (table solves) in four conditions.
 
-Targets (issue 4): solve sustains >= 1000 requests/s on this 2-core machine with p99 < 20 ms, and
-p99 < 50 ms while a large simulation job runs. The script starts ``nlpsf serve`` on a free port with
-a throw-away database, warms it up, measures, starts a large simulation, measures again, cancels
-the job and stops the server. Bounded: about a minute.
+Phases (issue 10): right after a cold start, a burst of 200 new connections (one solve each, sent
+the moment /health first answers); idle; while a maximal simulation
+runs (the largest the default limits allow); while simulating solves (fidelity monte_carlo, which
+are jobs) queue and run. Targets: >= 2000 req/s and p99 < 20 ms idle and with simulating solves,
+every request answered at the cold start. ``--process-models`` also measures uvicorn's own
+``--workers`` (one shared socket) against ``nlpsf serve``'s SO_REUSEPORT supervisor, idle, in the
+same run, for the process-model decision.
 
 Load generator: ``wrk`` (Debian's package, C, epoll) if it is installed -- one thread and a few
 keep-alive connections, so it takes one core and leaves the other to the server -- with a Lua
 script that rotates over solve requests of every unknown, band, metric and mode. Otherwise an
 asyncio client on raw keep-alive sockets in its own process (slower per request, so its figures
-are a lower bound on the server's). wrk is a closed-loop generator: each connection sends its next
+are a lower bound on the server's). Both are closed-loop generators: each connection sends its next
 request when the previous answer arrives, so the latencies include queueing in the server.
 
 Usage: python benchmarks/bench_service.py [--workers N] [--connections 8] [--duration 10]
-       [--generator wrk|python] [--job-realizations 4000]
+       [--generator wrk|python] [--job-realizations 2000] [--process-models]
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ BODIES = [
     {"band": "Z087", "sca": 1, "metric": "size", "mode": "scatter", "magnitude": 22.0, "tolerance": 1e-5},
     {"band": "R062", "sca": 18, "metric": "e2", "precision": 0.01, "tolerance": 1e-4},
 ]
-TARGET_RPS, TARGET_P99_MS, TARGET_P99_JOB_MS = 1000.0, 20.0, 50.0
+TARGET_RPS, TARGET_P99_MS, TARGET_P99_JOB_MS = 2000.0, 20.0, 50.0
 
 
 # --- wrk -----------------------------------------------------------------------------------------
@@ -111,7 +114,11 @@ def run_wrk(url: str, connections: int, duration: float) -> dict:
 
 
 async def _connection(host: str, port: int, deadline: float, latencies: list[float], errors: list[int], offset: int) -> None:
-    reader, writer = await asyncio.open_connection(host, port)
+    try:
+        reader, writer = await asyncio.open_connection(host, port)
+    except OSError:
+        errors.append(1)  # refused: nothing listening yet
+        return
     payloads = [
         (
             f"POST /api/v1/solve HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n"
@@ -120,16 +127,19 @@ async def _connection(host: str, port: int, deadline: float, latencies: list[flo
         for b in BODIES
     ]
     i = offset
-    while time.perf_counter() < deadline:
-        start = time.perf_counter()
-        writer.write(payloads[i % len(payloads)])
-        i += 1
-        head = await reader.readuntil(b"\r\n\r\n")
-        length = int(re.search(rb"content-length: (\d+)", head.lower()).group(1))
-        await reader.readexactly(length)
-        latencies.append(time.perf_counter() - start)
-        if not head.startswith(b"HTTP/1.1 200"):
-            errors.append(1)
+    try:
+        while time.perf_counter() < deadline:
+            start = time.perf_counter()
+            writer.write(payloads[i % len(payloads)])
+            i += 1
+            head = await reader.readuntil(b"\r\n\r\n")
+            length = int(re.search(rb"content-length: (\d+)", head.lower()).group(1))
+            await reader.readexactly(length)
+            latencies.append(time.perf_counter() - start)
+            if not head.startswith(b"HTTP/1.1 200"):
+                errors.append(1)
+    except (OSError, asyncio.IncompleteReadError):
+        errors.append(1)
     writer.close()
 
 
@@ -182,9 +192,148 @@ def measure(generator: str, url: str, connections: int, duration: float) -> dict
 
 def row(name: str, result: dict) -> str:
     return (
-        f"{name:<28} {result['rps']:>9.0f} {result['p50_ms']:>8.2f} {result['p90_ms']:>8.2f} {result['p99_ms']:>8.2f} "
+        f"{name:<44} {result['rps']:>9.0f} {result['p50_ms']:>8.2f} {result['p90_ms']:>8.2f} {result['p99_ms']:>8.2f} "
         f"{result['max_ms']:>8.1f} {result['requests']:>9} {result['errors']:>7}"
     )
+
+
+def start_uvicorn_workers(db_path: Path, port: int, workers: int, env: dict, log: Path) -> subprocess.Popen:
+    """uvicorn's own multi-process mode (one listening socket shared by the workers), for comparison."""
+    from tests.servers import healthy
+
+    environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), **env}
+    command = [
+        sys.executable,
+        "-m",
+        "uvicorn",
+        "nlpsf.web.main:app",
+        "--workers",
+        str(workers),
+        "--port",
+        str(port),
+        "--no-access-log",
+    ]
+    process = subprocess.Popen(command, cwd=ROOT, env=environment, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
+    wait_for(lambda: healthy(port, process), timeout=90, interval=0.2)
+    return process
+
+
+def stop(server: subprocess.Popen) -> None:
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(30)
+    except subprocess.TimeoutExpired:
+        server.kill()
+
+
+async def _burst(host: str, port: int, connections: int) -> tuple[list[float], int]:
+    """``connections`` new connections at once, one solve each: every latency, and the failures."""
+    latencies: list[float] = []
+    errors: list[int] = []
+    body = json.dumps(BODIES[0])
+    payload = (
+        f"POST /api/v1/solve HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\nConnection: close\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n{body}"
+    ).encode()
+
+    async def one() -> None:
+        start = time.perf_counter()
+        try:
+            reader, writer = await asyncio.open_connection(host, port)
+            writer.write(payload)
+            head = await reader.readuntil(b"\r\n\r\n")
+            writer.close()
+        except (OSError, asyncio.IncompleteReadError):
+            errors.append(1)
+            return
+        latencies.append(time.perf_counter() - start)
+        if not head.startswith(b"HTTP/1.1 200"):
+            errors.append(1)
+
+    await asyncio.gather(*(one() for _ in range(connections)))
+    return sorted(latencies), len(errors)
+
+
+def cold_start(args, directory: Path, env: dict) -> dict:
+    """Start a server and, the moment /health answers, open 200 connections at once, one solve each."""
+    port = free_port()
+    server = start_server(directory / "cold.sqlite3", port, env=env, log=directory / "cold.log")
+    try:
+        start = time.perf_counter()
+        latencies, errors = asyncio.run(_burst("127.0.0.1", port, 200))
+        seconds = time.perf_counter() - start
+    finally:
+        stop(server)
+
+    def pick(q: float) -> float:
+        return 1000 * latencies[min(len(latencies) - 1, int(q * len(latencies)))] if latencies else float("nan")
+
+    return {
+        "requests": len(latencies),
+        "seconds": seconds,
+        "rps": len(latencies) / seconds,
+        "p50_ms": pick(0.5),
+        "p90_ms": pick(0.9),
+        "p99_ms": pick(0.99),
+        "max_ms": 1000 * latencies[-1] if latencies else float("nan"),
+        "errors": errors,
+    }
+
+
+def process_models(args, directory: Path, env: dict) -> dict[str, list[dict]]:
+    """Both process models, idle, alternating ``args.rounds`` times (the machine's other load drifts)."""
+    out: dict[str, list[dict]] = {"nlpsf serve (SO_REUSEPORT supervisor)": [], "uvicorn --workers (shared socket)": []}
+    for _ in range(args.rounds):
+        for name, runs in out.items():
+            port = free_port()
+            if name.startswith("uvicorn"):
+                server = start_uvicorn_workers(directory / "pm.sqlite3", port, args.workers, env, directory / "pm.log")
+            else:
+                server = start_server(directory / "pm.sqlite3", port, env=env, log=directory / "pm.log")
+            try:
+                url = f"http://127.0.0.1:{port}/api/v1/solve"
+                measure(args.generator, url, args.connections, 2.0)  # warm-up
+                runs.append(measure(args.generator, url, args.connections, args.duration))
+                if shutil.which("ss"):
+                    runs[-1]["spread"] = connection_spread(port, args.connections)
+            finally:
+                stop(server)
+    return out
+
+
+def connection_spread(port: int, connections: int, bursts: int = 6) -> list[list[int]]:
+    """How a burst of keep-alive connections lands on the HTTP workers: connections per worker
+    process (from ``ss``), largest first, for each of ``bursts`` bursts."""
+    import collections
+    import socket
+
+    spread = []
+    for _ in range(bursts):
+        sockets = [socket.create_connection(("127.0.0.1", port)) for _ in range(connections)]
+        for sock in sockets:
+            sock.sendall(b"GET /api/v1/health HTTP/1.1\r\nHost: x\r\n\r\n")
+            sock.recv(4096)
+        listing = subprocess.run(
+            ["ss", "-tnpH", "state", "established", f"( sport = :{port} )"], capture_output=True, text=True, check=False
+        ).stdout
+        spread.append(sorted(collections.Counter(re.findall(r"pid=(\d+)", listing)).values(), reverse=True))
+        for sock in sockets:
+            sock.close()
+        time.sleep(0.3)
+    return spread
+
+
+def report_process_models(args, models: dict[str, list[dict]]) -> None:
+    print(f"\nprocess model, idle, {args.workers} workers, same load, {args.rounds} alternating rounds:")
+    for name, runs in models.items():
+        for result in runs:
+            print(row(name, result))
+    first, second = models.values()
+    ratios = [a["rps"] / b["rps"] for a, b in zip(first, second, strict=True)]
+    print(f"  supervisor / uvicorn --workers throughput per round: {', '.join(f'{r:.2f}' for r in ratios)}")
+    for name, runs in models.items():
+        if "spread" in runs[-1]:
+            print(f"  {name}: {args.connections} keep-alive connections per worker, 6 bursts: {runs[-1]['spread']}")
 
 
 def main() -> int:
@@ -193,61 +342,95 @@ def main() -> int:
     parser.add_argument("--connections", type=int, default=8, help="keep-alive connections of the load generator (default 8)")
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per measurement (default 10)")
     parser.add_argument("--generator", choices=("wrk", "python"), default="wrk" if shutil.which("wrk") else "python")
-    parser.add_argument("--job-realizations", type=int, default=4000, help="size of the large simulation (default 4000)")
+    parser.add_argument("--job-realizations", type=int, default=2000, help="the maximal simulation (default 2000)")
+    parser.add_argument("--simulating-solves", type=int, default=8, help="monte_carlo solves queued at once (default 8)")
+    parser.add_argument("--process-models", action="store_true", help="also compare uvicorn --workers, idle")
+    parser.add_argument("--only-process-models", action="store_true", help="only that comparison")
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the comparison (default 3)")
     args = parser.parse_args()
 
     directory = Path(tempfile.mkdtemp(prefix="nlpsf-bench-"))
-    port = free_port()
-    env = {"NLPSF_WORKERS": str(args.workers), "NLPSF_JOB_WORKERS": "1", "NLPSF_MAX_REALIZATIONS": "100000"}
-    env.update(NLPSF_MAX_STAMP_PIXELS=str(10**10), NLPSF_MAX_WORK=str(10**13))
-    server = start_server(directory / "jobs.sqlite3", port, env=env, log=directory / "server.log")
-    base = f"http://127.0.0.1:{port}/api/v1"
-    try:
-        for body in BODIES:  # every request must be a valid solve, or the figures mean nothing
-            response = httpx.post(f"{base}/solve", json=body, timeout=30)
-            assert response.status_code == 200, (body, response.text)
-        generator = {"wrk": "wrk 1 thread (C, epoll)", "python": "asyncio raw sockets, 1 process"}[args.generator]
-        print(f"nlpsf service load test: {os.cpu_count()} cores, server: nlpsf serve --workers {args.workers}")
-        print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
-        print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
-        measure(args.generator, f"{base}/solve", args.connections, 3.0)  # warm-up
-        idle = measure(args.generator, f"{base}/solve", args.connections, args.duration)
-
-        job_body = {
-            "band": "H158",
-            "realizations": args.job_realizations,
-            "magnitudes": [18.0 + 0.1 * k for k in range(60)],
-            "betas": [5e-7],
-            "seed": int(time.time()),  # never answered from stored results
-        }
-        job = httpx.post(f"{base}/simulations", json=job_body, timeout=30).json()
-        wait_for(lambda: httpx.get(f"{base}/simulations/{job['id']}").json()["status"] == "running", timeout=60)
-        time.sleep(1.0)  # past the worker's start-up
-        busy = measure(args.generator, f"{base}/solve", args.connections, args.duration)
-        during = httpx.get(f"{base}/simulations/{job['id']}").json()
-        httpx.delete(f"{base}/simulations/{job['id']}", timeout=30)
-    finally:
-        server.send_signal(signal.SIGTERM)
+    env = {"NLPSF_WORKERS": str(args.workers), "NLPSF_JOB_WORKERS": "1", "NLPSF_MAX_QUEUE": "64", "NLPSF_SOLVE_WAIT_S": "0"}
+    generator = {"wrk": "wrk 1 thread (C, epoll)", "python": "asyncio raw sockets, 1 process"}[args.generator]
+    print(f"nlpsf service load test: {os.cpu_count()} cores, server: nlpsf serve --workers {args.workers}")
+    print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
+    print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
+    results: dict[str, dict] = {}
+    if args.only_process_models:
         try:
-            server.wait(20)
-        except subprocess.TimeoutExpired:
-            server.kill()
+            report_process_models(args, process_models(args, directory, env))
+        finally:
+            shutil.rmtree(directory, ignore_errors=True)
+        return 0
+    try:
+        results["solve, cold start, burst of 200 connections"] = cold_start(args, directory, env)
+        port = free_port()
+        server = start_server(directory / "jobs.sqlite3", port, env=env, log=directory / "server.log")
+        base = f"http://127.0.0.1:{port}/api/v1"
+        try:
+            for body in BODIES:  # every request must be a valid solve, or the figures mean nothing
+                response = httpx.post(f"{base}/solve", json=body, timeout=30)
+                assert response.status_code == 200, (body, response.text)
+            measure(args.generator, f"{base}/solve", args.connections, 3.0)  # warm-up
+            results["solve, idle"] = measure(args.generator, f"{base}/solve", args.connections, args.duration)
+
+            job_body = {
+                "band": "H158",
+                "realizations": args.job_realizations,
+                "magnitudes": [18.0 + 0.1 * k for k in range(60)],
+                "betas": [5e-7],
+                "seed": int(time.time()),  # never answered from stored results
+            }
+            job = httpx.post(f"{base}/simulations", json=job_body, timeout=30).json()
+            wait_for(lambda: httpx.get(f"{base}/simulations/{job['id']}").json()["status"] == "running", timeout=60)
+            time.sleep(1.0)  # past the worker's start-up
+            url = f"{base}/solve"
+            results["solve, maximal simulation running"] = measure(args.generator, url, args.connections, args.duration)
+            during = httpx.get(f"{base}/simulations/{job['id']}").json()
+            httpx.delete(f"{base}/simulations/{job['id']}", timeout=30)
+
+            solves = []
+            for k in range(args.simulating_solves):
+                body = {"band": "J129", "magnitude": 18.5 + 0.25 * k, "precision": 0.01, "fidelity": "monte_carlo"}
+                answer = httpx.post(f"{base}/solve", json=body, timeout=30)
+                assert answer.status_code == 202, answer.text
+                solves.append(answer.json()["id"])
+            time.sleep(1.0)
+            results[f"solve, {args.simulating_solves} simulating solves queued"] = measure(
+                args.generator, f"{base}/solve", args.connections, args.duration
+            )
+            states = [httpx.get(f"{base}/simulations/{t}").json()["status"] for t in solves]
+            for ticket in solves:
+                httpx.delete(f"{base}/simulations/{ticket}", timeout=30)
+        finally:
+            stop(server)
+        models = process_models(args, directory, env) if args.process_models else {}
+    finally:
         shutil.rmtree(directory, ignore_errors=True)
 
     print()
-    print(f"{'phase':<28} {'req/s':>9} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} {'max ms':>8} {'requests':>9} {'errors':>7}")
-    print(row("solve, idle", idle))
-    print(row("solve, large job running", busy))
+    print(f"{'phase':<44} {'req/s':>9} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} {'max ms':>8} {'requests':>9} {'errors':>7}")
+    for name, result in results.items():
+        print(row(name, result))
     print(
-        f"\nlarge job: {args.job_realizations} realizations x {len(job_body['magnitudes'])} magnitudes, "
+        f"\nmaximal simulation: {args.job_realizations} realizations x {len(job_body['magnitudes'])} magnitudes, "
         f"still {during['status']} at the end of the measurement (progress {during['progress']:.0%})"
     )
+    print(f"simulating solves at the end of their phase: {', '.join(f'{states.count(s)} {s}' for s in sorted(set(states)))}")
+    if models:
+        report_process_models(args, models)
+    idle, busy = results["solve, idle"], results["solve, maximal simulation running"]
+    solving = results[f"solve, {args.simulating_solves} simulating solves queued"]
+    cold = results["solve, cold start, burst of 200 connections"]
     checks = [
         (f"idle: >= {TARGET_RPS:.0f} req/s", idle["rps"] >= TARGET_RPS),
         (f"idle: p99 < {TARGET_P99_MS:.0f} ms", idle["p99_ms"] < TARGET_P99_MS),
-        (f"with a job: p99 < {TARGET_P99_JOB_MS:.0f} ms", busy["p99_ms"] < TARGET_P99_JOB_MS),
-        ("the job ran through the measurement", during["status"] == "running"),
-        ("no errors", idle["errors"] == 0 and busy["errors"] == 0),
+        (f"with simulating solves: >= {TARGET_RPS:.0f} req/s", solving["rps"] >= TARGET_RPS),
+        (f"with simulating solves: p99 < {TARGET_P99_MS:.0f} ms", solving["p99_ms"] < TARGET_P99_MS),
+        (f"with the maximal simulation: p99 < {TARGET_P99_JOB_MS:.0f} ms", busy["p99_ms"] < TARGET_P99_JOB_MS),
+        ("cold start: no errors, p99 < 1 s", cold["errors"] == 0 and cold["p99_ms"] < 1000),
+        ("the maximal simulation ran through the measurement", during["status"] == "running"),
+        ("no errors", all(r["errors"] == 0 for r in results.values())),
     ]
     for name, ok in checks:
         print(f"  {'meets' if ok else 'MISSES'}: {name}")

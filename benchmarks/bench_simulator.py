@@ -71,6 +71,7 @@ def run_galsim(realizations: int, redraw: bool) -> dict:
     timings = {"setup": 0.0, "draw": 0.0, "measure": 0.0}
     cells = {}
     start = time.perf_counter()
+    cpu_start = time.process_time()
     for band in BANDS:
         config = experiment.SimulationConfig(band=band, sca=SCA, realizations=realizations)
         offsets = render.draw_offsets(np.random.default_rng(config.seed), realizations, config.oversampling)
@@ -106,7 +107,7 @@ def run_galsim(realizations: int, redraw: bool) -> dict:
                     float(np.mean(v[:, 4] - v[:, 1])),
                     float(np.mean(v[:, 5] - v[:, 2])),
                 ]
-    return {"total_s": time.perf_counter() - start, "timings": timings, "cells": cells}
+    return {"total_s": time.perf_counter() - start, "cpu_s": time.process_time() - cpu_start, "timings": timings, "cells": cells}
 
 
 def _child(realizations: int, method: str) -> None:
@@ -125,6 +126,35 @@ def measure_nlpsf(realizations: int, method: str = "monte_carlo") -> dict:
         env={**os.environ, "PYTHONHASHSEED": "0"},
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_cli_processes(realizations: int) -> dict:
+    """The grid as a user runs it from the shell: one `nlpsf simulate` process per band.
+
+    CPU time of the child processes (user + system), which a shared machine does not inflate the
+    way it does wall time; the optics cache is cleared first, so every process computes its optics.
+    """
+    command = [sys.executable, "-m", "nlpsf", "simulate", "--sca", str(SCA), "--realizations", str(realizations)]
+    command += [a for m in MAGNITUDES for a in ("--magnitude", f"{m:g}")]
+    command += [a for b in BETAS for a in ("--beta", repr(b))] + ["--json", "--quiet"]
+    environment = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    cpu0, wall0 = _children_cpu(), time.perf_counter()
+    for band in BANDS:
+        subprocess.run([*command, "--band", band], check=True, capture_output=True, env=environment)
+    cpu, wall = _children_cpu() - cpu0, time.perf_counter() - wall0
+    cpu1 = _children_cpu()
+    subprocess.run([sys.executable, "-m", "nlpsf", "--help"], check=True, capture_output=True, env=environment)
+    help_cpu = _children_cpu() - cpu1
+    cpu2 = _children_cpu()
+    solve = [sys.executable, "-m", "nlpsf", "solve", "--band", "H158", "--magnitude", "18.3", "--tolerance", "1e-4"]
+    subprocess.run(solve, check=True, capture_output=True, env=environment)
+    solve_cpu = _children_cpu() - cpu2
+    return {"cpu_s": cpu, "wall_s": wall, "help_cpu_s": help_cpu, "solve_cpu_s": solve_cpu}
 
 
 def disagreement(a: dict, b: dict) -> dict:
@@ -158,6 +188,11 @@ def main() -> None:
         print(f"  {name:<20} {seconds:7.3f} s  ({100 * seconds / ours['total_s']:4.1f} %)")
     print(f"  per NL measurement (perturbed fit): {1e6 * ours['timings']['perturbed_moments'] / (cells * r):.1f} us")
     print(f"nlpsf linear response: {linear['total_s']:.2f} s total, peak RSS {linear['max_rss_mb']:.0f} MB")
+    shell = run_cli_processes(r)
+    print(
+        f"nlpsf from the shell, one `nlpsf simulate` per band: {shell['cpu_s']:.2f} CPU-s ({shell['wall_s']:.2f} s wall); "
+        f"`nlpsf --help` {shell['help_cpu_s']:.3f} CPU-s, `nlpsf solve` {shell['solve_cpu_s']:.3f} CPU-s"
+    )
 
     peers = {"galsim-reuse": run_galsim(r, redraw=False)}
     if not args.skip_paper_pipeline:
@@ -173,6 +208,10 @@ def main() -> None:
         print(
             f"  RATIO {name} / nlpsf monte_carlo = {peer['total_s'] / ours['total_s']:.0f}x ;"
             f" / nlpsf linear = {peer['total_s'] / linear['total_s']:.0f}x"
+        )
+        print(
+            f"  CPU RATIO {name} ({peer['cpu_s']:.1f} CPU-s) / nlpsf as four shell processes ({shell['cpu_s']:.2f} CPU-s) = "
+            f"{peer['cpu_s'] / shell['cpu_s']:.0f}x"
         )
         worst = disagreement(ours, peer)
         print(

@@ -56,6 +56,20 @@ SIGMA_BETA_FRACTION = 0.1
 TABLE_MAGNITUDE_STEP = 0.25
 TABLE_FAINT_LIMIT = 28.0
 
+# --- up-the-ramp exposures (nlpsf.ramps) ---------------------------------------------------------
+
+#: WFI frame time [s]: one read of the full array (romanisim ``parameters.read_time``).
+ROMAN_FRAME_TIME_S = 3.04
+#: Read noise per read [e-] for the optimal ramp fit: romanisim's default reference data
+#: (5 DN at a gain of 2 e-/DN).
+READ_NOISE_E = 10.0
+#: Most reads an MA table (or ``--ramp N``) may have.
+MAX_RAMP_READS = 10_000
+READ_NOISE_RANGE_E = (0.0, 1e4)
+#: The optimal fit diagonalises a resultant covariance per number of usable resultants (O(K^3)
+#: each): at most this many resultants (Roman's imaging tables have 6 to 16).
+MAX_OPTIMAL_RESULTANTS = 100
+
 # --- names (one owner each) -------------------------------------------------------------------------
 
 #: Requirement metrics: size Delta R / R, ellipticity components, and the modulus |Delta e|.
@@ -66,6 +80,8 @@ MODES: tuple[str, ...] = ("bias", "scatter")
 METHODS: tuple[str, ...] = ("linear", "monte_carlo")
 #: Sign conventions of beta: paper S = Q - beta Q^2; GalSim/romanisim S = Q + beta Q^2.
 BETA_CONVENTIONS: tuple[str, ...] = ("paper", "galsim")
+#: Ramp slope fits: ordinary least squares, or optimally weighted for read + Poisson noise.
+RAMP_FITS: tuple[str, ...] = ("ols", "optimal")
 #: How the pupil mask's pixel scale is set (see ``roman.pupil``).
 PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header")
 PUPIL_SCALE = "galsim"

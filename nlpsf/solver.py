@@ -14,6 +14,14 @@ the fainter of that and the saturation magnitude, with which limit binds.
 Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from fresh simulations
 (``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
 measured error (``nlpsf tradeoff``) meets it.
+
+Up-the-ramp exposures (``ramp``, see ``nlpsf.ramps``): the saturation rule becomes Roman's (a star
+is usable until its brightest pixel saturates in the *first* resultant, 2.5 log10(T / t_1) mag
+brighter than the final-frame rule), and the slopes come from the tables where the mapping is exact
+(quadratic NL, OLS fit, every pixel keeping every resultant: the final frame at beta_eff = c_2 beta0,
+c_2 = 1 + 1/N for N uniform reads, so c(m) = c_2 c_table(m; c_2 beta0)) and from fresh
+linear-response simulations of the ramp otherwise (optimal fit, or a star bright enough that some
+of its pixels drop saturated resultants). ``conditions["ramp_slopes_from"]`` says which.
 """
 
 from __future__ import annotations
@@ -24,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import __version__, defaults, roman, tables
+from . import __version__, defaults, ramps, roman, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
@@ -76,6 +84,8 @@ class Solution:
     #: uncertainty they add, in the solved quantity's units; None when not measured (no ``accuracy``).
     uncertainty_model: float | None = None
     model: dict | None = None
+    #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
+    final_frame_saturation_magnitude: float | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -98,6 +108,7 @@ class Solution:
             "slope": _json_number(self.slope),
             "slope_uncertainty": _json_number(self.slope_uncertainty),
             "saturation_magnitude": _json_number(self.saturation_magnitude),
+            "final_frame_saturation_magnitude": _json_number(self.final_frame_saturation_magnitude),
             "brightest_usable_magnitude": _json_number(self.brightest_usable_magnitude),
             "binding_limit": self.binding_limit,
             "nonlinearity_magnitude": _json_number(self.nonlinearity_magnitude),
@@ -116,35 +127,79 @@ class _Slopes:
     """c(m) at the request's conditions, from the tables or from fresh simulations."""
 
     def __init__(
-        self, band: str, sca: int, metric: str, mode: str, beta0: float, exptime: float, fidelity: str, tableset, scene=None
+        self,
+        band: str,
+        sca: int,
+        metric: str,
+        mode: str,
+        beta0: float,
+        exptime: float,
+        fidelity: str,
+        tableset,
+        ramp: ramps.Ramp | None = None,
+        full_well: float = defaults.FULL_WELL_E,
+        scene=None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
-        self.scene = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
+        self.ramp, self.full_well = ramp, full_well
+        self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
         self.table = tableset.get(band, sca)
         self._cache: dict[float, tuple[float, float]] = {}
+        self._scene = None  # experiment.Scene of the fresh simulations, prepared once per request
+        #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
+        self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
+        #: How the ramp's slopes were obtained in this request ("table", "simulation").
+        self.ramp_bases: set[str] = set()
+
+    @property
+    def table_beta0(self) -> float:
+        """The beta0 the tables are read at: beta_eff for a ramp that maps exactly."""
+        return self.beta0 * (self.ramp_factor or 1.0)
 
     def range(self) -> tuple[float, float]:
-        return self.table.grid_range(self.exptime, self.beta0)
+        return self.table.grid_range(self.exptime, self.table_beta0)
+
+    def exact_from(self) -> float:
+        """Faintest-side limit of the exact ramp mapping: brighter than this, the brightest pixel's
+        last resultant passes the full well and drops out of its fit."""
+        last = self.ramp.table.duration_s / self.exptime
+        return self.table.saturation(self.exptime, self.full_well) - 2.5 * math.log10(1.0 / last)
 
     def from_table(self, magnitude: float) -> tuple[float, float, int]:
-        value, error, region = self.table.slope(self.metric, self.mode, magnitude, self.exptime, self.beta0)
-        return float(value[0]), float(error[0]), int(region[0])
+        value, error, region = self.table.slope(self.metric, self.mode, magnitude, self.exptime, self.table_beta0)
+        scale = self.ramp_factor or 1.0  # d/d beta = c_2 d/d beta_eff
+        return float(value[0]) * scale, float(error[0]) * scale, int(region[0])
 
     def at(self, magnitude: float) -> tuple[float, float, int]:
         """(slope, uncertainty, region): region -1 brighter than the grid, 0 in it, +1 fainter."""
+        if self.ramp is not None:
+            return self._ramp_at(magnitude)
         value, error, region = self.from_table(magnitude)
         if self.fidelity == "table" or region < 0:
             return value, error, region
+        return (*self._simulated(magnitude), region)
+
+    def _ramp_at(self, magnitude: float) -> tuple[float, float, int]:
+        exact = self.fidelity == "table" and self.ramp_factor is not None and magnitude >= self.exact_from()
+        if exact:
+            self.ramp_bases.add("table")
+            return self.from_table(magnitude)
+        self.ramp_bases.add("simulation")
+        hi = self.table.grid_range(self.exptime, self.beta0)[1]
+        return (*self._simulated(magnitude), 1 if magnitude > hi else 0)
+
+    def _simulated(self, magnitude: float) -> tuple[float, float]:
         key = round(magnitude, 9)
         if key not in self._cache:
             self._cache[key] = self._simulate(magnitude)
-        return (*self._cache[key], region)
+        return self._cache[key]
 
     def _simulate(self, magnitude: float) -> tuple[float, float]:
         from . import experiment  # the simulator: only fresh-simulation levels need it
 
-        level = levels.simulation_settings(self.fidelity)
+        # A ramp that the tables do not map exactly is simulated with the linear response.
+        level = levels.simulation_settings("linear" if self.fidelity == "table" else self.fidelity)
         settings = self.table.settings
         config = experiment.SimulationConfig(
             band=self.band,
@@ -157,10 +212,13 @@ class _Slopes:
             weight_cut_rho2=float(settings["weight_cut_rho2"]),
             pupil_scale=str(settings["pupil_scale"]),
             method=level.method,
-            **({} if self.scene is None else {"scene": self.scene}),
+            **({} if self.scene_model is None else {"scene": self.scene_model}),
             n_wavelengths=level.n_wavelengths,
+            **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
         )
-        result = experiment.slopes(config, [magnitude], beta0=self.beta0)[0]
+        if self._scene is None or self._scene.config != config:
+            self._scene = experiment.prepare(config)  # magnitude-independent: once per request
+        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene)[0]
         names = ("de1", "de2") if self.metric == "e" else (_TABLE_METRIC_NAMES[self.metric],)
         values, errors = [], []
         for name in names:
@@ -180,7 +238,8 @@ class _Slopes:
         return value, error
 
 
-def _choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+    """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
     if accuracy is None:
         return levels.check_level(level or "table"), []
     accuracy = check_number(accuracy, "accuracy", *defaults.ACCURACY_RANGE)
@@ -202,10 +261,15 @@ def solve(
     fidelity: str | None = None,
     accuracy: float | None = None,
     tables_set: tables.TableSet | None = None,
+    ramp: ramps.Ramp | None = None,
     scene=None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
+
+    ``ramp``: an up-the-ramp exposure (``ramps.Ramp``; e.g. ``ramps.Ramp.uniform(N, exptime)``)
+    instead of the paper's single final frame. ``exptime`` stays what is given: for an MA table whose
+    exposure is its last read, ``ramps.build(ma_table=...)`` returns both (as the CLI and the service do).
 
     ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
     answer models only the effects whose measured impact at the point exceeds it (see
@@ -218,6 +282,10 @@ def solve(
     beta0 = check_beta0(beta0)
     exptime = check_exptime(exptime)
     full_well = check_full_well(full_well)
+    if ramp is not None:
+        if not isinstance(ramp, ramps.Ramp):
+            raise InputError("ramp", f"must be a ramps.Ramp, got {type(ramp).__name__}")
+        ramp.check_exposure(exptime)
     given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
     if len(given) != 2:
         missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
@@ -231,10 +299,12 @@ def solve(
         tolerance = check_number(tolerance, "tolerance", *defaults.TOLERANCE_RANGE)
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
-    chosen, flags = _choose_fidelity(fidelity, accuracy, band, metric, mode)
+    chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
     model_relative, model_info, simulated_scene = None, None, None
     if scene is not None and not isinstance(scene, _scene_type()):
         raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
+    if scene is not None and ramp is not None:
+        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
     if accuracy is not None:
         point = magnitude
         if point is None:
@@ -256,9 +326,14 @@ def solve(
             f"{', '.join(simulated_scene.breaks_beta_q_scaling())} add a flux dependence of their own: slopes are simulated at "
             "this exposure and beta0, never rescaled from the tables (the beta Q rule does not hold)"
         )
-    slopes = _Slopes(band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), scene=simulated_scene)
+    slopes = _Slopes(
+        band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), ramp, full_well, simulated_scene
+    )
     table = slopes.table
-    m_sat = table.saturation(exptime, full_well)
+    m_sat_final_frame = table.saturation(exptime, full_well)
+    # The rule in use: with a ramp a star is usable until its brightest pixel saturates in the
+    # first resultant, 2.5 log10(T / t_1) brighter than the single final frame's limit.
+    m_sat = m_sat_final_frame if ramp is None else m_sat_final_frame - ramp.saturation_shift_mag(exptime)
     solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
     brightest, binding, m_nl = None, None, None
 
@@ -266,9 +341,12 @@ def solve(
     if systematic_note:
         flags.append(systematic_note)
     if solved_for == "magnitude":
-        m_nl, slope, slope_err, log_derivative, extra = _solve_magnitude(slopes, precision * beta0, tolerance, m_sat)
+        solve_for_m = _solve_magnitude if ramp is None else _solve_magnitude_ramp
+        m_nl, slope, slope_err, log_derivative, extra = solve_for_m(slopes, precision * beta0, tolerance, m_sat)
         flags += extra
         magnitude, binding = _binding(m_nl, m_sat, flags)
+        if ramp is not None and magnitude < m_sat_final_frame:
+            flags.append(_between_limits_flag(magnitude, m_sat, m_sat_final_frame))
         brightest = magnitude
         if binding == "nonlinearity" and log_derivative:
             statistical = (slope_err / abs(slope)) / abs(log_derivative)
@@ -284,8 +362,11 @@ def solve(
                 f"(tolerance {tolerance:g})"
             )
     else:
+        if ramp is not None:
+            flags += _ramp_magnitude_flags(magnitude, m_sat, m_sat_final_frame)  # refuses before simulating
         slope, slope_err, region = slopes.at(magnitude)
-        flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
+        if ramp is None:
+            flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
         c, c_err = abs(slope), slope_err
         if solved_for == "tolerance":
             tolerance = c * precision * beta0
@@ -307,6 +388,16 @@ def solve(
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
     conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
+    if ramp is None:
+        conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
+    else:
+        conditions["saturation_rule"] = (
+            "ramp: the brightest pixel's first resultant reaches the full well (later saturated resultants are dropped)"
+        )
+        conditions["ramp"] = ramp.conditions(exptime)
+        # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
+        conditions["ramp_table_exact_from_magnitude"] = slopes.exact_from() if slopes.ramp_factor is not None else None
+        conditions["ramp_slopes_from"] = _ramp_basis(slopes)
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
         conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
@@ -331,6 +422,7 @@ def solve(
         slope=slope,
         slope_uncertainty=slope_err,
         saturation_magnitude=m_sat,
+        final_frame_saturation_magnitude=m_sat_final_frame,
         brightest_usable_magnitude=brightest,
         binding_limit=binding,
         nonlinearity_magnitude=m_nl,
@@ -484,6 +576,9 @@ def _validity_flags(
     if magnitude is None or not math.isfinite(magnitude):
         return []
     peak = _peak_electrons(slopes, magnitude)
+    if slopes.ramp is not None:
+        # The fit only sees reads up to the last unsaturated resultant (or the first one).
+        peak = min(peak, max(full_well, peak * slopes.ramp.first_usable_fraction(slopes.exptime)))
     flags = []
     if 2 * beta0 * peak >= 1:
         flags.append(
@@ -576,6 +671,111 @@ def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iteratio
         else:
             a, fa = c, fc
     return c
+
+
+def _ramp_basis(slopes: _Slopes) -> str:
+    parts = []
+    if "table" in slopes.ramp_bases:
+        parts.append(
+            f"tables at beta_eff = {slopes.ramp_factor:.6g} beta0 "
+            "(exact: quadratic NL, OLS fit, every pixel keeps every resultant)"
+        )
+    if "simulation" in slopes.ramp_bases:
+        level = "linear-response" if slopes.fidelity in ("table", "linear") else slopes.fidelity.replace("_", " ")
+        why = (
+            "the optimally weighted fit has no exact table mapping"
+            if slopes.ramp.fit == "optimal"
+            else f"brighter than m={slopes.exact_from():.2f} pixels drop saturated resultants"
+            if slopes.fidelity == "table"
+            else f"fidelity {slopes.fidelity} asked for"
+        )
+        parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
+    return "; ".join(parts) or "none needed"
+
+
+def _between_limits_flag(magnitude: float, m_sat: float, m_sat_final_frame: float) -> str:
+    return (
+        f"between the saturation limits: at m={magnitude:.2f} a single final frame would saturate (m < {m_sat_final_frame:.2f}) "
+        f"but the ramp keeps its early resultants (usable down to m={m_sat:.2f}); the answer uses the ramp fit with "
+        "saturated resultants dropped"
+    )
+
+
+def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: float) -> list[str]:
+    if magnitude < m_sat - tables.BRIGHT_MARGIN_MAG:
+        raise InputError(
+            "magnitude",
+            f"m={magnitude:g} saturates the brightest pixel in the first resultant of the ramp by more than "
+            f"{tables.BRIGHT_MARGIN_MAG} mag (usable down to m={m_sat:.2f}); such a star has no meaningful NL answer",
+        )
+    if magnitude < m_sat:
+        return [
+            f"saturated: at m={magnitude:g} the brightest pixel passes the full well already in the first resultant "
+            f"(ramp saturation at m={m_sat:.2f}); such a star cannot be used for the PSF model at all"
+        ]
+    if magnitude < m_sat_final_frame:
+        return [_between_limits_flag(magnitude, m_sat, m_sat_final_frame)]
+    return []
+
+
+def _solve_magnitude_ramp(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat: float):
+    """As :func:`_solve_magnitude` for a ramp. Fainter than where the brightest pixel starts dropping
+    resultants, |c(m)| comes at once from the tables at the OLS beta_eff on a 0.05 mag grid (exact for
+    an OLS fit, a bracket for the optimal one); brighter, down to the ramp's saturation magnitude,
+    from the slopes themselves on a 0.25 mag grid (fresh simulations); the crossing is then refined on
+    the exact slopes (secant method on log |c|)."""
+    flags: list[str] = []
+    required = tolerance / delta_beta
+    hi = slopes.range()[1]
+    exact = min(slopes.exact_from(), hi)
+    c_ols = slopes.ramp.ols_quadratic_factor(slopes.exptime)
+    table = slopes.table
+    faint_grid = np.arange(hi, exact - 1e-9, -0.05)
+    shift = table.magnitude_shift(slopes.exptime, c_ols * slopes.beta0)
+    faint_values = table.values(slopes.metric, slopes.mode, faint_grid - shift) * (table.beta0 / slopes.beta0)
+    bright_grid = np.arange(exact - 0.25, m_sat - 1e-9, -0.25)
+    if bright_grid.size == 0 or bright_grid[-1] > m_sat + 1e-9:
+        bright_grid = np.append(bright_grid, m_sat)
+    if slopes.fidelity == "table" and slopes.ramp_factor is not None:
+        slopes.ramp_bases.add("table")
+    if np.any(np.abs(faint_values) > required):
+        bright_grid = bright_grid[:0]  # the crossing is in the table part: no simulation needed to find it
+    grid = np.concatenate([faint_grid, bright_grid])
+    value = np.concatenate([faint_values, [slopes.at(float(m))[0] for m in bright_grid]])
+    above = np.abs(value) > required
+    if above[0]:
+        at_hi = slopes.at(hi)[0]  # the fit in use, at the faint end of the table
+        m_nl = float(hi + 2.5 * math.log10(abs(at_hi) / required))
+        flags.append(
+            f"extrapolated: the tolerance is only met fainter than the table (m > {hi:.2f}); m={m_nl:.2f} follows from the slope "
+            "scaling with flux, exact in the linear regime"
+        )
+        slope, slope_err = slopes.at(m_nl)[:2]
+        return m_nl, slope, slope_err, -0.4 * math.log(10), flags
+    if not above.any():
+        flags.append(f"the NL error stays below the tolerance for every star down to the ramp's saturation limit m={m_sat:.2f}")
+        return None, None, None, None, flags
+    k = int(np.argmax(above))
+    bright, faint = float(grid[k]), float(grid[k - 1])
+
+    def excess(m: float) -> float:
+        return math.log(abs(slopes.at(m)[0]) / required)
+
+    if slopes.fidelity == "table" and slopes.ramp_factor is not None and bright >= slopes.exact_from():
+        from scipy.optimize import brentq  # table look-ups are cheap: bracket to 1e-6 mag
+
+        m_nl = brentq(excess, bright, faint, xtol=1e-6)
+    else:
+        m_nl = _secant_root(excess, bright, faint)
+    slope, slope_err, _ = slopes.at(m_nl)
+    h = 0.01
+    log_derivative = (math.log(abs(slopes.at(m_nl + h)[0])) - math.log(abs(slopes.at(m_nl - h)[0]))) / (2 * h)
+    if any(np.diff(np.sign(value[np.isfinite(value)])) != 0):
+        flags.append(
+            f"the {slopes.metric} slope changes sign over the scan; the answer uses |c| and is the brightest magnitude "
+            "whose error stays within the tolerance for every fainter star"
+        )
+    return m_nl, slope, slope_err, log_derivative, flags
 
 
 def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float, str]:

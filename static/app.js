@@ -60,6 +60,7 @@ function conditionsText(c, extra = {}) {
     `fidelity ${c.fidelity}`,
     c.realizations !== undefined ? `${c.realizations} realizations` : null,
     c.oversampling !== undefined ? `N = ${c.oversampling}, ${c.stamp}×${c.stamp}` : null,
+    c.ramp ? `up the ramp: ${c.ramp.description}` : null,
     ...Object.entries(extra).map(([k, v]) => `${k} ${v}`),
   ];
   return parts.filter(Boolean).join(" · ");
@@ -112,14 +113,15 @@ function pointSeries(label, color, size = 8) {
 }
 
 // Draw (or redraw) plot `name` in its container. `columns` = [{label, x, y, series}], joined on x.
-function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, title }) {
+// `markers` = [{x, label, color}]: dashed vertical lines (e.g. saturation limits), kept in view.
+function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, title, markers = [] }) {
   const el = document.getElementById(`plot-${name}`);
   const usable = columns.map((c) => {
     const keep = c.x.map((x, i) => x !== null && c.y[i] !== null && (!logX || x > 0) && (!logY || c.y[i] > 0));
     const err = c.err ? c.err.filter((_, i) => keep[i]) : null;
     return { ...c, x: c.x.filter((_, i) => keep[i]), y: c.y.filter((_, i) => keep[i]), err };
   }).filter((c) => c.x.length > 0);
-  state.exports[name] = { title, xLabel, yLabel, columns: usable };
+  state.exports[name] = { title, xLabel, yLabel, columns: usable, markers };
   if (state.plots[name]) {
     state.plots[name].destroy();
     delete state.plots[name];
@@ -137,7 +139,14 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
   const options = {
     width: Math.max(320, el.clientWidth || 800),
     height: 320,
-    scales: { x: { time: false, distr: logX ? 3 : 1 }, y: { distr: logY ? 3 : 1 } },
+    scales: {
+      x: { time: false, distr: logX ? 3 : 1,
+        ...(markers.length ? { range: (u, lo, hi) => [Math.min(lo, ...markers.map((m) => m.x - 0.25)),
+          Math.max(hi, ...markers.map((m) => m.x + 0.25))] } : {}) },
+      y: { distr: logY ? 3 : 1 },
+    },
+    // Before the series, so that a point on a limit stays visible.
+    hooks: { drawClear: [(u) => drawMarkers(u, markers)] },
     axes: [
       { label: xLabel, values: axisValues },
       { label: yLabel, values: axisValues, size: 70 },
@@ -158,6 +167,27 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
   state.plots[name] = new uPlot(options, data, el);
 }
 
+function drawMarkers(u, markers) {
+  const ctx = u.ctx;
+  const ratio = window.devicePixelRatio || 1;
+  markers.forEach((m, i) => {
+    const x = u.valToPos(m.x, "x", true);
+    if (!Number.isFinite(x)) return;
+    ctx.save();
+    ctx.strokeStyle = m.color;
+    ctx.fillStyle = m.color;
+    ctx.lineWidth = 1.5 * ratio;
+    ctx.setLineDash([6 * ratio, 4 * ratio]);
+    ctx.beginPath();
+    ctx.moveTo(x, u.bbox.top);
+    ctx.lineTo(x, u.bbox.top + u.bbox.height);
+    ctx.stroke();
+    ctx.font = `${11 * ratio}px sans-serif`;
+    ctx.fillText(m.label, x + 4 * ratio, u.bbox.top + (12 + 14 * i) * ratio);
+    ctx.restore();
+  });
+}
+
 function exportCsv(name) {
   const plot = state.exports[name];
   if (!plot) return;
@@ -166,6 +196,7 @@ function exportCsv(name) {
   for (const c of plot.columns) {
     c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]},${c.err && c.err[i] != null ? c.err[i] : ""}`));
   }
+  for (const m of plot.markers || []) lines.push(`"${m.label.replace(/"/g, "'")}",${m.x},,`);
   download(`nlpsf-${name}.csv`, "data:text/csv;charset=utf-8," + encodeURIComponent(lines.join("\n") + "\n"));
 }
 
@@ -226,6 +257,40 @@ function query(params) {
   return q.toString();
 }
 
+// ---- readout: final frame, uniform ramp or an MA table ------------------------------------------
+
+function fillReadout(group) {
+  const select = document.getElementById(`${group}-readout`);
+  const options = [["final", "final frame (the paper)"], ["uniform", "uniform ramp, N reads"],
+    ...(state.meta.ma_tables || []).map((t) => [`table:${t.name}`,
+      `MA table ${t.name} (${t.resultants} resultants, ${fmt(t.last_read_s)} s)`])];
+  select.innerHTML = options.map(([v, l]) => `<option value="${escapeHtml(v)}">${escapeHtml(l)}</option>`).join("");
+  fillSelect(document.getElementById(`${group}-ramp_fit`), state.meta.ramp_fits || ["ols"], "ols",
+    (f) => (f === "ols" ? "OLS" : "optimal (read + Poisson)"));
+  select.addEventListener("change", () => readoutChanged(group));
+}
+
+function readoutChanged(group) {
+  const choice = document.getElementById(`${group}-readout`).value;
+  document.getElementById(`${group}-ramp`).disabled = choice !== "uniform";
+  document.getElementById(`${group}-ramp_fit`).disabled = choice === "final";
+  // An MA table's exposure is its last read; leaving a table restores the paper's exposure.
+  const exposure = document.getElementById(`${group}-exptime`);
+  const durations = (state.meta.ma_tables || []).map((t) => String(t.last_read_s));
+  const table = (state.meta.ma_tables || []).find((t) => `table:${t.name}` === choice);
+  if (table) exposure.value = String(table.last_read_s);
+  else if (durations.includes(exposure.value.trim())) exposure.value = String(state.meta.defaults.solve.exptime);
+}
+
+// The request fields of the chosen readout (none for the paper's final frame).
+function readoutFields(group) {
+  const choice = document.getElementById(`${group}-readout`).value;
+  const fit = document.getElementById(`${group}-ramp_fit`).value;
+  if (choice === "uniform") return { ramp: numberOrText(document.getElementById(`${group}-ramp`).value), ramp_fit: fit };
+  if (choice.startsWith("table:")) return { ma_table: choice.slice(6), ramp_fit: fit };
+  return {};
+}
+
 // ---- calculator -------------------------------------------------------------------------------
 
 function updateUnknown() {
@@ -254,6 +319,7 @@ async function solve(event) {
     exptime: numberOrText(form.elements.exptime.value),
     full_well: numberOrText(form.elements.full_well.value),
     fidelity: form.elements.fidelity.value,
+    ...readoutFields("solve"),
   };
   for (const name of ["precision", "tolerance", "magnitude"]) {
     if (name === unknown) continue;
@@ -271,7 +337,9 @@ async function solve(event) {
     resultBox.innerHTML = `
       <div class="answer" data-testid="solve-answer">${escapeHtml(names[s.solved_for])} = ${escapeHtml(plusMinus(s[s.solved_for], s.uncertainty))}</div>
       <div>precision ${fmt(s.precision)} · tolerance ${fmt(s.tolerance)} · magnitude ${fmt(s.magnitude)}
-        · slope c(m) = ${fmt(s.slope)} · saturation at m = ${fmt(s.saturation_magnitude)}</div>
+        · slope c(m) = ${fmt(s.slope)} · saturation at m = ${fmt(s.saturation_magnitude)}${s.conditions.ramp
+          ? ` (first resultant; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude)})` : ""}</div>
+      ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
       ${s.flags && s.flags.length ? `<ul class="flags">${s.flags.map((f) => `<li>${escapeHtml(f)}</li>`).join("")}</ul>` : ""}
       <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
         · ${escapeHtml(s.mode)} of ${escapeHtml(METRIC_LABEL[s.metric])}</p>`;
@@ -290,18 +358,40 @@ async function drawCalculatorPlot(solution) {
   const curve = data.curves[0];
   const signed = curve.slope.some((v) => v < 0);
   const abs = (v) => (v === null ? null : Math.abs(v));
-  const label = `${curve.band} ${solution.mode} slope${signed ? " (|c|)" : ""}`;
+  const ramp = solution.conditions.ramp;
+  const label = `${curve.band} ${solution.mode} slope${ramp ? ", final frame" : ""}${signed ? " (|c|)" : ""}`;
+  const columns = [
+    { label, x: curve.magnitude, y: curve.slope.map(abs), err: curve.uncertainty,
+      series: lineSeries(label, BAND_COLORS[curve.band] || "#333") },
+  ];
+  const markers = [{ x: solution.final_frame_saturation_magnitude ?? solution.saturation_magnitude,
+    label: "saturation, final frame", color: "#555" }];
+  if (ramp) {
+    markers.push({ x: solution.saturation_magnitude, label: "saturation, ramp (first resultant)", color: "#c00000" });
+    const factor = ramp.quadratic_beta_factor;
+    const exactFrom = solution.conditions.ramp_table_exact_from_magnitude;
+    if (factor) {
+      // OLS: the ramp is the final frame at beta_eff = c beta0 wherever no pixel drops a resultant.
+      const mapped = await api(`/curves/slope?${query({ metric: solution.metric, mode: solution.mode, sca: solution.sca,
+        exptime: solution.exptime, beta0: solution.beta0 * factor, full_well: c.full_well, bands: solution.band })}`);
+      const rampCurve = mapped.curves[0];
+      const keep = rampCurve.magnitude.map((m) => exactFrom === null || m >= exactFrom);
+      const rampLabel = `ramp ${ramp.ma_table} (tables at β_eff = ${fmt(factor)} β₀)`;
+      columns.push({ label: rampLabel, x: rampCurve.magnitude.filter((_, i) => keep[i]),
+        y: rampCurve.slope.filter((_, i) => keep[i]).map((v) => abs(v * factor)),
+        err: rampCurve.uncertainty.filter((_, i) => keep[i]).map((e) => e * factor),
+        series: lineSeries(rampLabel, "#c00000", [6, 3]) });
+    }
+  }
+  columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, c = ${fmt(solution.slope)}`, x: [solution.magnitude],
+    y: [abs(solution.slope)], series: pointSeries("answer", "#c00000", 12) });
   drawPlot("calc", {
-    title: `${label} vs magnitude; answer marked\n${conditionsText(curve.conditions)}`,
+    markers,
+    title: `${label} vs magnitude; answer marked${ramp ? `; up the ramp: ${ramp.description}` : ""}\n${conditionsText(curve.conditions)}`,
     xLabel: "magnitude (AB)",
     yLabel: `${solution.mode === "bias" ? "d" : "σ"}(${METRIC_LABEL[solution.metric]})/${solution.mode === "bias" ? "dβ" : "σβ"} [e⁻]`,
     logY: true,
-    columns: [
-      { label, x: curve.magnitude, y: curve.slope.map(abs), err: curve.uncertainty,
-        series: lineSeries(label, BAND_COLORS[curve.band] || "#333") },
-      { label: `answer: m = ${fmt(solution.magnitude)}, c = ${fmt(solution.slope)}`, x: [solution.magnitude], y: [abs(solution.slope)],
-        series: pointSeries("answer", "#c00000", 12) },
-    ],
+    columns,
   });
   document.getElementById("plot-calc").dataset.point = `${solution.magnitude},${solution.slope}`;
 }
@@ -435,6 +525,7 @@ async function runSimulation(event) {
     seed: numberOrText(form.elements.seed.value),
     oversampling: numberOrText(form.elements.oversampling.value),
     stamp: numberOrText(form.elements.stamp.value),
+    ...readoutFields("sim"),
   };
   if (document.getElementById("scene-use").checked) {
     const scene = sceneBody();
@@ -633,6 +724,8 @@ async function init() {
   for (const id of ["beta-band", "sigma-band", "sim-band"]) fillSelect(document.getElementById(id), bands, "H158");
   fillSelect(document.getElementById("sim-sca"), meta.scas, 18);
   fillSelect(document.getElementById("sim-fidelity"), meta.simulation_fidelities, "monte_carlo");
+  fillReadout("solve");
+  fillReadout("sim");
 
   document.getElementById("solve-form").addEventListener("submit", solve);
   document.querySelectorAll('input[name="solve_for"]').forEach((r) => r.addEventListener("change", updateUnknown));

@@ -21,7 +21,7 @@ from nlpsf import solver
 
 from .servers import ROOT, free_port, start_server
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARTIFACTS = ROOT / "test-artifacts"
@@ -217,3 +217,57 @@ def test_simulation_limits_are_reported(page):
     assert "realizations" in error.inner_text() and "max_realizations" in error.inner_text()
     assert page.get_attribute("#sim-realizations", "aria-invalid") == "true"
     page.fill("#sim-realizations", "20")
+
+
+def canvas_colour_at(page, plot: str, x_value: float, y_fraction: float) -> list[int]:
+    """RGB of plot's canvas at data x = x_value, a fraction of the way down the plotting area."""
+    return page.evaluate(
+        """([plot, xv, fy]) => {
+            const u = state.plots[plot];
+            const x = Math.round(u.valToPos(xv, "x", true));
+            const y = Math.round(u.bbox.top + fy * u.bbox.height);
+            return Array.from(u.ctx.getImageData(x, y, 1, 1).data.slice(0, 3));
+        }""",
+        [plot, x_value, y_fraction],
+    )
+
+
+def test_ramp_choice_in_the_calculator_draws_both_saturation_limits(page):
+    page.select_option("#solve-readout", "uniform")
+    page.fill("#solve-ramp", "8")
+    solution = solve_for(page, "magnitude", {"precision": "0.01", "tolerance": "1e-4"})
+    assert solution["conditions"]["ramp"]["ma_table"] == "uniform-8"
+    expected = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=solver.ramps.Ramp.uniform(8, 168.1))
+    assert solution["magnitude"] == pytest.approx(expected.magnitude, rel=1e-9)
+    assert "first resultant" in page.inner_text("#solve-result")
+    markers = page.evaluate("() => state.exports.calc.markers.map((m) => m.x)")
+    assert markers == pytest.approx([solution["final_frame_saturation_magnitude"], solution["saturation_magnitude"]])
+    # Both limits are dashed lines on the canvas: grey for the final frame, red for the ramp (a dash
+    # is 6 px of 10, so look at a few heights).
+    final_frame = [canvas_colour_at(page, "calc", markers[0], f) for f in (0.3, 0.35, 0.4, 0.45, 0.5)]
+    ramp = [canvas_colour_at(page, "calc", markers[1], f) for f in (0.3, 0.35, 0.4, 0.45, 0.5)]
+    assert any(abs(r - g) < 20 and r < 140 for r, g, _ in final_frame)
+    assert any(r > 150 and g < 80 and b < 80 for r, g, b in ramp)
+    assert "β_eff" in page.inner_text("#plot-calc")  # the ramp's own curve, from the tables at beta_eff
+    page.locator("#calculator").screenshot(path=str(ARTIFACTS / "e2e-solve-ramp.png"))
+    # An MA table takes its own exposure; going back to the final frame restores the paper's.
+    page.select_option("#solve-readout", "table:romanisim-109")
+    assert float(page.input_value("#solve-exptime")) == pytest.approx(133.76)
+    page.select_option("#solve-readout", "final")
+    assert float(page.input_value("#solve-exptime")) == pytest.approx(168.1)
+    assert page.is_disabled("#solve-ramp") and page.is_disabled("#solve-ramp_fit")
+
+
+def test_ramp_choice_in_a_fresh_simulation(page):
+    page.fill("#sim-magnitudes", "17")
+    page.fill("#sim-betas", "5e-7")
+    page.fill("#sim-realizations", "10")
+    page.select_option("#sim-readout", "table:romanisim-110")
+    page.select_option("#sim-ramp_fit", "optimal")
+    page.click("#sim-button")
+    # The job's progress can reach 1 a poll before its status is done: wait for the shown result.
+    page.wait_for_function("() => document.getElementById('sim-conditions').innerText.includes('romanisim-110')", timeout=120_000)
+    conditions = page.inner_text("#sim-conditions")
+    assert "up the ramp: romanisim-110" in conditions and "optimally weighted" in conditions
+    assert "fitted on fewer than 16 resultants" in page.inner_text("#sim-table")
+    page.select_option("#sim-readout", "final")

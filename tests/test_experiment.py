@@ -278,3 +278,63 @@ def test_scaled_perturbed_fits_equal_fitting_the_nl_image_directly(paper_config,
     d_r = plain.sigma / reference.sigma - 1
     assert r.dR_over_R.mean == pytest.approx(d_r.mean(), rel=1e-9)
     assert r.de2.mean == pytest.approx((plain.e2 - reference.e2).mean(), rel=1e-7)
+
+
+# --- the numerical edges: each is flagged where it gives wrong numbers, and only there -------------
+
+
+def test_undersampled_grids_are_flagged_where_they_bias_the_slopes():
+    """Below Nyquist (q < 1) the slopes move: Y106 at N = 2 (q = 0.84) differs from N = 4; at N = 3
+    (q = 1.26) it does not. The flag follows the same line."""
+
+    def run(n):
+        config = SimulationConfig(band="Y106", realizations=8, oversampling=n, stamp=32 * n, method="linear")
+        return slopes(config, [20.0])[0]
+
+    coarse, fine, finest = run(2), run(3), run(4)
+    assert abs(coarse.bias["de1"].mean / finest.bias["de1"].mean - 1) > 0.03
+    assert abs(fine.bias["de1"].mean / finest.bias["de1"].mean - 1) < 1e-3
+    assert any(f.startswith("undersampled") for f in coarse.flags)
+    assert not any(f.startswith("undersampled") for f in fine.flags + finest.flags)
+
+
+def test_a_stamp_smaller_than_the_weight_window_is_flagged(paper_config, paper_scene):
+    small = SimulationConfig(realizations=4, stamp=16)
+    assert any(f.startswith("stamp too small") for f in simulate(small, [20.0], [5e-7])[0].flags)
+    assert not any(f.startswith("stamp too small") for f in simulate(paper_config, [20.0], [5e-7], scene=paper_scene)[0].flags)
+
+
+def test_monte_carlo_scatter_below_its_float_floor_is_flagged(paper_config, paper_scene):
+    """At sigma_beta = 1e-20 the spread the Monte Carlo reports is float noise, several times the
+    linear response's exact value; at 1e-8 they agree and nothing is flagged."""
+    tiny = simulate(paper_config, [20.0], [5e-7], sigma_beta=1e-20, scene=paper_scene)[0]
+    fine = simulate(paper_config, [20.0], [5e-7], sigma_beta=1e-8, scene=paper_scene)[0]
+    assert any(f.startswith("below the Monte Carlo") for f in tiny.flags)
+    assert not any(f.startswith("below") for f in fine.flags)
+    assert tiny.dR_over_R.std / 1e-20 > 2 * fine.dR_over_R.std / 1e-8
+
+
+def test_linear_scatter_is_taken_at_beta_like_the_linear_slopes(paper_scene):
+    """`simulate --method linear --sigma-beta` linearises about the uniform-beta image, so its mean
+    is the NL change at beta and its spread the Monte Carlo's (to the second-order, ~1e-5)."""
+    linear = SimulationConfig(realizations=20, method="linear")
+    mc = simulate(paper_scene.config, [19.0], [5e-7], sigma_beta=2e-8, scene=paper_scene)[0]
+    lin = simulate(linear, [19.0], [5e-7], sigma_beta=2e-8)[0]
+    uniform = simulate(paper_scene.config, [19.0], [5e-7], scene=paper_scene)[0]
+    assert lin.dR_over_R.std == pytest.approx(mc.dR_over_R.std, rel=1e-3)
+    assert lin.de1.std == pytest.approx(mc.de1.std, rel=1e-3)
+    # The mean is the change at beta of the centroid the scatter runs use (realization 0).
+    assert lin.dR_over_R.mean == pytest.approx(mc.dR_over_R.mean, rel=1e-3)
+    assert abs(lin.dR_over_R.mean) > 0.5 * abs(uniform.dR_over_R.mean)
+
+
+def test_finite_differences_across_the_hard_weight_cut_are_flagged():
+    """With the paper's hard cut, some realizations cross it between beta0 x 0.99 and x 1.01 and the
+    finite-difference e2 slope is off the exact derivative by ~1.7 % (H158, m = 21.5, 50 centroids);
+    without a cut the two agree and nothing is flagged."""
+    hard = slopes(SimulationConfig(realizations=50), [21.5])[0]
+    exact = slopes(SimulationConfig(realizations=50, method="linear"), [21.5])[0]
+    assert abs(hard.bias["de2"].mean / exact.bias["de2"].mean - 1) > 3e-3
+    assert any(f.startswith("jumpy finite difference") for f in hard.flags)
+    none = slopes(SimulationConfig(realizations=50, weight_cut_rho2=math.inf), [21.5])[0]
+    assert not any(f.startswith("jumpy") for f in none.flags)

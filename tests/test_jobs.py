@@ -56,6 +56,7 @@ def pid_alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.slow
 def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
     with TestClient(create_app(settings_for(tmp_path, max_queue=1))) as client:
         first = client.post("/api/v1/simulations", json=LONG)
@@ -65,9 +66,15 @@ def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
         running = until_status(client, long_job["id"], "running")
         assert running["progress"] < 1
 
-        # The same request in flight is joined, not run twice.
+        # The same request in flight is joined, not run twice; the joiner gets a capability of its own.
         again = client.post("/api/v1/simulations", json=LONG)
-        assert again.status_code == 202 and again.json()["id"] == long_job["id"]
+        assert again.status_code == 202 and again.json()["id"] != long_job["id"]
+        store = Store(client.app.state.settings.db_path)
+        assert store.job_of(again.json()["id"]) == store.job_of(long_job["id"])
+        # Withdrawing one of two tickets leaves the run going for the other holder.
+        withdrawn = client.delete(f"/api/v1/simulations/{again.json()['id']}").json()
+        assert withdrawn["status"] == "cancelled"
+        assert job_status(client, long_job["id"])["status"] == "running"
 
         # One worker: the next job waits in the queue...
         second = client.post("/api/v1/simulations", json=SMALL).json()
@@ -82,8 +89,8 @@ def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
         assert "Retry-After" in third.headers
 
         # Cancelling the running job stops its process and frees the worker for the queued one.
-        pid = Store(client.app.state.settings.db_path).get(long_job["id"])["pid"]
-        assert pid and pid_alive(pid)
+        pid = wait_for(lambda: Store(client.app.state.settings.db_path).get(long_job["id"])["pid"])
+        assert pid_alive(pid)
         cancelled = client.delete(f"/api/v1/simulations/{long_job['id']}")
         assert cancelled.status_code == 200
         assert cancelled.json()["status"] == "cancelled"
@@ -95,6 +102,8 @@ def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
         assert client.delete(f"/api/v1/simulations/{second['id']}").status_code == 409
         listing = client.get("/api/v1/simulations").json()
         assert listing["counts"]["cancelled"] == 1 and listing["counts"]["done"] == 1
+        # Without an API key there is no caller identity: the listing shows no one's jobs.
+        assert listing["jobs"] == []
 
 
 def test_cancel_a_queued_job(tmp_path):
@@ -126,6 +135,7 @@ def test_repeated_request_is_answered_from_stored_results(tmp_path):
         assert other["cached"] is False
 
 
+@pytest.mark.slow
 def test_progress_rises_to_one(tmp_path):
     body = {"band": "H158", "magnitudes": [18.0 + 0.05 * k for k in range(60)], "betas": [4e-7, 5e-7, 6e-7], "realizations": 200}
     with TestClient(create_app(settings_for(tmp_path, limits=Limits(max_grid=500)))) as client:
@@ -152,14 +162,19 @@ def test_a_killed_worker_is_reported_as_failed(tmp_path):
         assert "ended unexpectedly" in failed["message"]
 
 
-def test_graceful_shutdown_marks_running_jobs_interrupted(tmp_path):
+def test_graceful_shutdown_queues_running_jobs_again(tmp_path):
     settings = settings_for(tmp_path)
     with TestClient(create_app(settings)) as client:
         job = client.post("/api/v1/simulations", json=LONG).json()
         until_status(client, job["id"], "running")
     stored = Store(settings.db_path).get(job["id"])
-    assert stored["status"] == "interrupted"
-    assert "submit it again" in stored["message"]
+    assert stored["status"] == "queued" and stored["attempts"] == 1
+    assert "queued again" in stored["message"]
+    # The next start runs it (and stopping again hands it back once more).
+    with TestClient(create_app(settings)) as client:
+        running = until_status(client, job["id"], "running")
+        assert running["started_at"] is not None
+        client.delete(f"/api/v1/simulations/{job['id']}")
 
 
 # --- a real restart of a real server ----------------------------------------------------------
@@ -175,7 +190,7 @@ RESTART_ENV = {
 
 
 @pytest.mark.slow
-def test_restart_keeps_results_and_reports_the_running_job_interrupted(tmp_path):
+def test_restart_keeps_results_and_runs_the_lost_job_again(tmp_path):
     db_path = tmp_path / "jobs.sqlite3"
     port = free_port()
     base = f"http://127.0.0.1:{port}/api/v1/simulations"
@@ -196,17 +211,18 @@ def test_restart_keeps_results_and_reports_the_running_job_interrupted(tmp_path)
             server.kill()
     server = start_server(db_path, port, RESTART_ENV)
     try:
-        after = httpx.get(f"{base}/{running['id']}").json()
-        assert after["status"] == "interrupted"
-        assert "submit it again" in after["message"]
+        # The lost run is queued again and started by the new service: no job is lost.
+        after = wait_for(lambda: (job := Store(db_path).get(running["id"]))["attempts"] == 2 and job, timeout=30)
+        assert after["status"] == "running"
         kept = httpx.get(f"{base}/{finished['id']}").json()
         assert kept["status"] == "done" and kept["result"] == finished["result"]
         repeat = httpx.post(base, json=SMALL).json()
         assert repeat["cached"] is True and repeat["result"] == finished["result"]
-        # Resubmitting the interrupted request runs it again rather than returning the stale job.
+        # Submitting the same request again joins that run.
         rerun = httpx.post(base, json=LONG).json()
-        assert rerun["id"] != running["id"] and rerun["status"] in ("queued", "running")
-        httpx.delete(f"{base}/{rerun['id']}", timeout=10)
+        assert rerun["id"] != running["id"] and Store(db_path).job_of(rerun["id"]) == Store(db_path).job_of(running["id"])
+        for ticket in (rerun["id"], running["id"]):
+            httpx.delete(f"{base}/{ticket}", timeout=10)
     finally:
         server.send_signal(signal.SIGTERM)
         server.wait(20)

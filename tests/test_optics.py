@@ -166,6 +166,7 @@ def test_zernikes_agree_with_galsim():
     assert ours == pytest.approx(theirs, abs=1e-12)
 
 
+@pytest.mark.slow
 @requires_galsim
 @pytest.mark.parametrize(("band", "sca"), [("H158", 18), ("F184", 1), ("Y106", 9)])
 def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import schemathesis
 from fastapi.testclient import TestClient
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, seed, settings
 from nlpsf.web.main import create_app
 from nlpsf.web.settings import Limits, Settings
 from schemathesis import checks
@@ -45,7 +45,13 @@ def running_app():
     shutil.rmtree(_directory, ignore_errors=True)
 
 
+#: Recorded, so a failure found here is found again on the next run (change it to explore further).
+SEED = 20261126
+
+
+@pytest.mark.slow
 @schema.parametrize()
-@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@seed(SEED)
+@settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
 def test_api_conforms_to_its_schema(case):
     case.call_and_validate(checks=CHECKS)

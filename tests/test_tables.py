@@ -186,6 +186,7 @@ def test_build_refuses_to_merge_tables_made_with_different_settings(tmp_path):
         tablebuild.merge_tables(a + b, tmp_path / "m.ecsv")
 
 
+@pytest.mark.slow
 def test_build_fans_out_over_dask(tmp_path):
     pytest.importorskip("dask.distributed")
     settings = tablebuild.TableSettings(realizations=3, faint_limit=19.0)

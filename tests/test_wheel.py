@@ -33,6 +33,7 @@ def test_wheel_holds_the_web_package_and_the_page_and_no_top_level_app(wheel):
     assert "nlpsf/web/main.py" in names and "nlpsf/web/static/index.html" in names
     assert "nlpsf/web/static/vendor/uPlot.iife.min.js" in names
     assert "nlpsf/data/tables/slopes.npz" in names and "nlpsf/py.typed" in names
+    assert "nlpsf/data/ma_tables/romanisim-109.json" in names
     assert not any(n.startswith(("app/", "static/", "tests/")) for n in names)
 
 

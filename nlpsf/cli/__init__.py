@@ -39,6 +39,8 @@ OPTION_FOR_ARGUMENT = {
     "scene": "--scene",
     "bfe_coefficient": "--bfe",
     "background_e": "--background",
+    "ma_table.resultants": "--ma-table",
+    "ma_table.frame_time_s": "--ma-table",
 }
 
 

@@ -33,9 +33,60 @@ def add_band_sca(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18)")
 
 
+class _StoreGiven(argparse.Action):
+    """Store the value and note that the user gave it (an MA table's exposure is otherwise its own)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, self.dest, values)
+        setattr(namespace, f"{self.dest}_given", True)
+
+
 def add_exposure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--exptime", type=float, default=defaults.EXPTIME_S, help="exposure time [s]")
+    parser.add_argument(
+        "--exptime",
+        type=float,
+        default=defaults.EXPTIME_S,
+        action=_StoreGiven,
+        help="exposure time [s]; with --ma-table and no --exptime, the table's last read",
+    )
+    parser.set_defaults(exptime_given=False)
     parser.add_argument("--full-well", type=float, default=defaults.FULL_WELL_E, help="full-well depth [e-]")
+    add_ramp_options(parser)
+
+
+def add_ramp_options(parser: argparse.ArgumentParser) -> None:
+    """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--ramp", type=int, default=None, metavar="N", help="N uniformly spaced reads over the exposure, one per resultant"
+    )
+    group.add_argument(
+        "--ma-table",
+        default=None,
+        metavar="FILE|NAME",
+        help="MultiAccum table: a JSON file ({'resultants': [[1], [2, 3], ...], 'frame_time_s': 3.04}) or a shipped name "
+        "(romanisim-1, romanisim-109, romanisim-110)",
+    )
+    parser.add_argument(
+        "--ramp-fit",
+        choices=defaults.RAMP_FITS,
+        default="ols",
+        help="slope fit: ols (ordinary least squares) or optimal (read + Poisson noise weighting)",
+    )
+    parser.add_argument(
+        "--read-noise",
+        type=float,
+        default=defaults.READ_NOISE_E,
+        metavar="E",
+        help=f"read noise per read [e-] for --ramp-fit optimal (default {defaults.READ_NOISE_E:g})",
+    )
+
+
+def ramp_from(args: argparse.Namespace):
+    """(ramps.Ramp or None, exposure time [s]) for these options."""
+    from ..ramps import build
+
+    return build(args.ramp, args.ma_table, args.ramp_fit, args.read_noise, args.exptime if args.exptime_given else None)
 
 
 def add_simulation_options(parser: argparse.ArgumentParser) -> None:
@@ -152,6 +203,7 @@ def config_from(args: argparse.Namespace):
     """The simulator's configuration for these options (validated by the library)."""
     from ..experiment import SimulationConfig
 
+    ramp, exptime = ramp_from(args)
     return SimulationConfig(
         band=args.band,
         sca=args.sca,
@@ -159,13 +211,14 @@ def config_from(args: argparse.Namespace):
         seed=args.seed,
         oversampling=args.oversampling,
         stamp=args.stamp,
-        exptime_s=args.exptime,
+        exptime_s=exptime,
         full_well_e=args.full_well,
         n_wavelengths=args.n_wavelengths,
         weight_cut_rho2=args.weight_cut,
         pupil_scale=args.pupil_scale,
         method=args.method,
         scene=scene_from(args)[0],
+        ramp=ramp,
     )
 
 

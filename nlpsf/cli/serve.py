@@ -1,14 +1,21 @@
-"""``nlpsf serve``: start the web service (REST API under /api/v1, docs at /docs, the page at /)."""
+"""``nlpsf serve``: start the web service (REST API under /api/v1, docs at /docs, the page at /).
+
+Where it listens and how many workers it runs come from the service settings (``NLPSF_HOST``,
+``NLPSF_PORT``, ``NLPSF_WORKERS``, ...; ``nlpsf.web.settings``, the only reader of the environment);
+the options here override them.
+"""
 
 from __future__ import annotations
 
 import argparse
-import os
+import sys
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0 for all interfaces)")
-    parser.add_argument("--port", type=int, default=8000, help="TCP port")
+    parser.add_argument(
+        "--host", default=None, help="address to listen on (default $NLPSF_HOST, else 127.0.0.1; 0.0.0.0 for all)"
+    )
+    parser.add_argument("--port", type=int, default=None, help="TCP port (default $NLPSF_PORT, else 8000)")
     parser.add_argument(
         "--workers",
         type=int,
@@ -22,14 +29,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..checks import InputError, check_integer
-    from ..web.server import default_workers, serve
+    from pydantic import ValidationError
 
-    check_integer(args.port, "port", 0, 65535)
-    raw = args.workers if args.workers is not None else os.environ.get("NLPSF_WORKERS") or default_workers()
+    from ..checks import check_integer
+    from ..web.server import serve
+    from ..web.settings import Settings
+
     try:
-        number = int(raw)
-    except ValueError:
-        raise InputError("workers", f"must be an integer, got {raw!r}") from None
-    workers = check_integer(number, "workers", 1, 64)
-    return serve(args.host, args.port, workers, access_log=args.access_log, log_level=args.log_level)
+        settings = Settings()  # the NLPSF_* variables, checked once, here, before any worker starts
+    except ValidationError as error:
+        problems = "; ".join(f"NLPSF_{'_'.join(map(str, e['loc'])).upper()}: {e['msg']}" for e in error.errors())
+        print(f"nlpsf serve: invalid setting: {problems}", file=sys.stderr)
+        return 2
+    host = args.host if args.host is not None else settings.host
+    port = check_integer(args.port if args.port is not None else settings.port, "port", 0, 65535)
+    workers = check_integer(args.workers if args.workers is not None else settings.http_workers, "workers", 1, 64)
+    return serve(host, port, workers, access_log=args.access_log, log_level=args.log_level)

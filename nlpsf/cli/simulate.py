@@ -67,6 +67,8 @@ def _print_table(config, results, sigma_beta: float) -> None:
     )
     if not config.scene.is_paper:
         print(f"scene: {config.scene.describe()}")
+    if config.ramp is not None:
+        print(f"up the ramp: {config.ramp.describe()}")
     scatter = sigma_beta > 0
     head = f"{'mag AB':>6} {'beta 1/e-':>10} {'flux e-':>9} {'peak e-':>9} {'dR/R':>22} {'de1':>22} {'de2':>22}"
     if scatter:

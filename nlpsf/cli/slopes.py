@@ -54,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if not config.scene.is_paper:
         print(f"scene: {config.scene.describe()}")
+    if config.ramp is not None:
+        print(f"up the ramp: {config.ramp.describe()}")
     print("bias slope d(metric)/dbeta and scatter slope sigma(metric)/sigma_beta, both per (1/e-), ± standard error")
     print(
         f"{'mag AB':>6} {'size bias':>18} {'e1 bias':>18} {'e2 bias':>18} {'size scatter':>18} {'e1 scatter':>18} "

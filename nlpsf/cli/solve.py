@@ -7,7 +7,7 @@ import argparse
 from .. import defaults
 from ..fidelity import LEVELS
 from . import progress_printer
-from .options import add_exposure, add_scene_options, print_json, scene_from, with_error
+from .options import add_exposure, add_scene_options, print_json, ramp_from, scene_from, with_error
 
 
 def _sca(text: str):
@@ -52,7 +52,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..solver import solve, solve_over_field
 
+    ramp, exptime = ramp_from(args)
     if args.over_field:
+        if ramp is not None:
+            from ..checks import InputError
+
+            raise InputError("ramp", "--over-field works on the final frame; give no ramp")
         solution = solve_over_field(
             args.band,
             "all" if args.sca == "all" else [args.sca],
@@ -61,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
             metric=args.metric,
             mode=args.mode,
             beta0=args.beta0,
-            exptime=args.exptime,
+            exptime=exptime,
             precision=args.precision,
             tolerance=args.tolerance,
             magnitude=args.magnitude,
@@ -80,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         args.metric,
         args.mode,
         args.beta0,
-        args.exptime,
+        exptime,
         args.precision,
         args.tolerance,
         args.magnitude,
@@ -88,11 +93,12 @@ def run(args: argparse.Namespace) -> int:
         args.fidelity,
         args.accuracy,
         scene=_scene(args),
+        ramp=ramp,
     )
-    return _report(solution, args)
+    return _report(solution, args, ramp)
 
 
-def _report(solution, args: argparse.Namespace) -> int:
+def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     payload = solution.to_dict()
     if args.json:
         print_json(payload)
@@ -116,7 +122,14 @@ def _report(solution, args: argparse.Namespace) -> int:
         print(f"  uncertainty ({parts})")
     slope_unit = "per (1/e-) of " + ("beta" if solution.mode == "bias" else "sigma_beta")
     print(f"  slope c(m) {with_error(payload['slope'], payload['slope_uncertainty'])} {slope_unit}")
-    print(f"  saturation at m={solution.saturation_magnitude:.2f} AB")
+    if ramp is None:
+        print(f"  saturation at m={solution.saturation_magnitude:.2f} AB")
+    else:
+        print(f"  ramp: {ramp.describe()}; slopes from {solution.conditions['ramp_slopes_from']}")
+        print(
+            f"  saturation at m={solution.saturation_magnitude:.2f} AB (ramp rule: first resultant), "
+            f"final frame m={solution.final_frame_saturation_magnitude:.2f} AB"
+        )
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     if solution.model:
