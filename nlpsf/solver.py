@@ -322,15 +322,21 @@ def solve(
         flags.append("the tables hold the paper's scene only: the scene's effects are simulated (fidelity linear)")
         chosen = "linear"
     if simulated_scene is not None and simulated_scene.breaks_beta_q_scaling():
+        breaking = simulated_scene.breaks_beta_q_scaling()
+        verb = "adds" if len(breaking) == 1 else "add"
         flags.append(
-            f"{', '.join(simulated_scene.breaks_beta_q_scaling())} add a flux dependence of their own: slopes are simulated at "
-            "this exposure and beta0, never rescaled from the tables (the beta Q rule does not hold)"
+            f"{', '.join(breaking)} {verb} a flux dependence of its own: slopes are simulated at this exposure and beta0, "
+            "never rescaled from the tables (the beta Q rule does not hold)"
         )
     slopes = _Slopes(
         band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), ramp, full_well, simulated_scene
     )
     table = slopes.table
-    m_sat_final_frame = table.saturation(exptime, full_well)
+    background = 0.0 if simulated_scene is None else simulated_scene.background_e
+    if background >= full_well:
+        raise InputError("background", f"a background of {background:g} e- fills the full well ({full_well:g} e-) by itself")
+    # A background fills part of the well: the star saturates where its peak reaches the rest.
+    m_sat_final_frame = table.saturation(exptime, full_well - background)
     # The rule in use: with a ramp a star is usable until its brightest pixel saturates in the
     # first resultant, 2.5 log10(T / t_1) brighter than the single final frame's limit.
     m_sat = m_sat_final_frame if ramp is None else m_sat_final_frame - ramp.saturation_shift_mag(exptime)

@@ -126,3 +126,19 @@ def test_over_field_answers_for_the_worst_field_point():
     assert direct.precision == corner["precision"]
     with pytest.raises(InputError, match="position"):
         solver.solve_over_field("H158", [18], scene=scenes.SceneModel(position=(5.0, 5.0)), magnitude=18.3, tolerance=1e-4)
+
+
+def test_background_moves_the_saturation_limit_and_stops_the_table_rescaling():
+    import math
+
+    from nlpsf import solver
+
+    plain = solver.solve("H158", magnitude=19.0, tolerance=1e-4)
+    with_background = solver.solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=5e4))
+    # The star saturates where its peak reaches the well minus the background: a flux ratio.
+    shift = with_background.saturation_magnitude - plain.saturation_magnitude
+    assert shift == pytest.approx(2.5 * math.log10(1.1e5 / 6e4), rel=1e-9)
+    assert with_background.fidelity == "linear"
+    assert any("background adds a flux dependence" in f for f in with_background.flags)
+    with pytest.raises(InputError, match="background"):
+        solver.solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=2e5))
