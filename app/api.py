@@ -72,6 +72,8 @@ def meta(request: Request) -> SafeJSONResponse:
             "api_version": "v1",
             "code_version": __version__,
             "data_version": roman.DATA_VERSION,
+            "throughputs": {name: roman.THROUGHPUT_VERSIONS[name] for name in roman.THROUGHPUTS},
+            "default_throughput": roman.DEFAULT_THROUGHPUT,
             "tables": public_table_meta(table_set.meta),
             "bands": list(roman.BANDS),
             "paper_bands": list(roman.PAPER_BANDS),

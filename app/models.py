@@ -8,7 +8,7 @@ library's to check, so the service and the CLI refuse the same things with the s
 from __future__ import annotations
 
 import inspect
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -22,12 +22,15 @@ _SOLVE_DEFAULTS = {
     if parameter.default is not inspect.Parameter.empty
 }
 
+#: A [ratio, weight] pair of a size-ratio distribution.
+_RatioWeight = Annotated[list[float], Field(min_length=2, max_length=2)]
 Metric = Literal[solver.METRICS]  # type: ignore[valid-type]
 Mode = Literal[solver.MODES]  # type: ignore[valid-type]
 Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]
 SimulationFidelity = Literal[fidelity.SIMULATION_LEVELS]  # type: ignore[valid-type]
 BetaConvention = Literal[detector.BETA_CONVENTIONS]  # type: ignore[valid-type]
 PupilScale = Literal[roman.PUPIL_SCALE_RULES]  # type: ignore[valid-type]
+Throughput = Literal[roman.THROUGHPUTS]  # type: ignore[valid-type]
 RampFit = Literal[defaults.RAMP_FITS]  # type: ignore[valid-type]
 
 
@@ -122,6 +125,25 @@ class SolveRequest(RampFields):
         description="answer for the worst position: over the SCA's five field points (sca) or all 18 SCAs' (focal_plane); "
         "simulates (seconds per point)",
     )
+    throughput: Throughput | None = Field(
+        None, description="photometry of the magnitude: null for the tables' own (roman-2024), or galsim-2021"
+    )
+    shear_m: float | None = Field(
+        None, description="multiplicative shear-bias budget |m| (size metric); with size_ratio, in place of tolerance"
+    )
+    shear_c: float | None = Field(
+        None, description="additive shear-bias budget |c| (e1, e2, e metrics); with size_ratio, in place of tolerance"
+    )
+    # No strings here: the library also reads '@FILE', which a web request must not reach.
+    size_ratio: float | list[float | _RatioWeight] | None = Field(
+        None,
+        description="R_gal/R_psf (intrinsic galaxy over PSF, R = det(M)^(1/4)): a number, or a list of ratios or "
+        "[ratio, weight] pairs; alone it reports the shear bias the tolerance implies",
+    )
+    stars: int = Field(
+        _SOLVE_DEFAULTS["stars"],
+        description="scatter mode: stars/dithers on independent pixels the PSF model averages (sigma / sqrt(stars))",
+    )
 
 
 class SolveResponse(BaseModel):
@@ -142,6 +164,9 @@ class SolveResponse(BaseModel):
     uncertainty: float | None
     slope: float | None
     saturation_magnitude: float | None
+    stars: int
+    applies_to: str
+    shear: dict[str, Any] | None
     flags: list[str]
     fidelity: str
     conditions: dict[str, Any]
@@ -211,6 +236,10 @@ class SimulationRequest(RampFields):
     )
     pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule")
     scene: SceneRequest | None = Field(None, description="scene effects (position, SED, jitter, IPC, ...); default the paper's")
+    throughput: Throughput = Field(
+        defaults.THROUGHPUT,
+        description="effective-area data: roman-2024 (official, per SCA) or galsim-2021 (GalSim's, the paper comparison)",
+    )
 
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled", "interrupted"]

@@ -83,6 +83,7 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         pupil_scale=request["pupil_scale"],
         method=level.method,
         scene=scene,
+        throughput=request.get("throughput", roman.DEFAULT_THROUGHPUT),
         ramp=ramp,
     )
 

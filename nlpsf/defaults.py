@@ -85,6 +85,10 @@ RAMP_FITS: tuple[str, ...] = ("ols", "optimal")
 #: How the pupil mask's pixel scale is set (see ``roman.pupil``).
 PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header")
 PUPIL_SCALE = "galsim"
+#: Throughput (effective-area) data, newest first: the official per-SCA curves of
+#: roman-technical-information 1.5.0, and GalSim 2.8.5's 2021 table (one curve for every SCA).
+THROUGHPUTS: tuple[str, ...] = ("roman-2024", "galsim-2021")
+THROUGHPUT = "roman-2024"
 
 # --- ranges every entry point accepts ------------------------------------------------------------
 

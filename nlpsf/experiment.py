@@ -68,6 +68,7 @@ class SimulationConfig:
     pupil_scale: str = defaults.PUPIL_SCALE
     pupil_bin: int = 4
     method: str = "monte_carlo"
+    throughput: str = roman.DEFAULT_THROUGHPUT
     #: Up-the-ramp exposure (MA table and slope fit); None: the paper's single final frame.
     ramp: ramps.Ramp | None = None
     #: The scene effects (``nlpsf.scene``); the default is the paper's scene.
@@ -80,6 +81,7 @@ class SimulationConfig:
             raise InputError("scene", f"must be a scene description, got {type(self.scene).__name__}")
         object.__setattr__(self, "band", roman.check_band(self.band))
         object.__setattr__(self, "sca", roman.check_sca(self.sca))
+        roman.check_throughput(self.throughput)
         check_integer(self.realizations, "realizations", 1, MAX_REALIZATIONS)
         check_integer(self.seed, "seed", 0, 2**63 - 1)
         render.Grid(self.oversampling, self.stamp)
@@ -114,12 +116,17 @@ class SimulationConfig:
         return optics.OpticsConfig(
             band=self.band,
             sca=self.sca,
-            n_wavelengths=self.scene.wavelengths(self.band, self.n_wavelengths),
+            n_wavelengths=self.scene.wavelengths(self.band, self.n_wavelengths, self.sca, self.throughput),
             pupil_bin=self.pupil_bin,
             pupil_scale=self.pupil_scale,
             position_pixels=self.scene.position,
             spectrum=self.scene.spectrum(),
+            throughput=self.throughput,
         )
+
+    def electrons(self, magnitude) -> np.ndarray:
+        """Electrons of a star of AB ``magnitude`` on this SCA and band over the exposure."""
+        return photometry.magnitude_to_electrons(magnitude, self.band, self.exptime_s, sca=self.sca, throughput=self.throughput)
 
     @property
     def grid(self) -> render.Grid:
@@ -148,6 +155,7 @@ class SimulationConfig:
             wavelengths_used=self.optics.n_wavelengths,
             fidelity=self.fidelity,
             pixel_scale_arcsec=roman.PIXEL_SCALE_ARCSEC,
+            throughput_version=roman.THROUGHPUT_VERSIONS[self.throughput],
             data_version=roman.DATA_VERSION,
             code_version=__version__,
         )
@@ -545,7 +553,7 @@ def simulate(
     total = len(mags) * len(paper_betas)
     share = scene.elapsed_s / total
     for m_index, magnitude in enumerate(mags):
-        flux = float(photometry.magnitude_to_electrons(magnitude, config.band, config.exptime_s))
+        flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         for b_index, (beta_given, beta) in enumerate(zip(given_betas, paper_betas, strict=True)):
             start = time.perf_counter()
@@ -869,7 +877,7 @@ def slopes(
         start = time.perf_counter()
         if progress:
             progress(index, len(mags), f"m={magnitude:g}")
-        flux = float(photometry.magnitude_to_electrons(magnitude, config.band, config.exptime_s))
+        flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         peak = _peak_electrons(scene, charge_scale)
         effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None

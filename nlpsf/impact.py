@@ -124,7 +124,7 @@ def impact(
         with_scene = scene if on else scene.with_nominal(name)
         if name == "sed" and not on and with_scene is not None:
             # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
-            wanted = with_scene.wavelengths(base.band)
+            wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
             with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
             capped = wanted > max_wavelengths
         capped = False

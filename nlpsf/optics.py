@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -83,7 +84,8 @@ class OpticsConfig:
     """What the optical PSF depends on. ``wavelength_nm=None`` means the band's effective wavelength.
 
     ``n_wavelengths`` = 1 is the achromatic PSF (the paper's choice); more integrates the band for
-    a flat-f_nu source (photon weights proportional to A_eff(lambda) / lambda).
+    a flat-f_nu source (photon weights proportional to A_eff(lambda) / lambda). Both use the
+    effective-area curve of this SCA from the ``throughput`` data set (``roman.THROUGHPUTS``).
     """
 
     band: str = "H158"
@@ -95,10 +97,12 @@ class OpticsConfig:
     position_pixels: tuple[float, float] | None = None
     #: The star's f_lambda (any units) tabulated as (wavelengths nm, values); None: flat f_nu.
     spectrum: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    throughput: str = roman.DEFAULT_THROUGHPUT
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band", roman.check_band(self.band))
         object.__setattr__(self, "sca", roman.check_sca(self.sca))
+        roman.check_throughput(self.throughput)
         check_integer(self.n_wavelengths, "n_wavelengths", 1, 64)
         if self.wavelength_nm is not None:
             check_number(self.wavelength_nm, "wavelength_nm", 300.0, 3000.0)
@@ -108,38 +112,66 @@ class OpticsConfig:
             object.__setattr__(self, "position_pixels", tuple(float(v) for v in self.position_pixels))
 
     def wavelengths_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        """Wavelengths [nm] and their normalised photon weights."""
-        curve = roman.throughput(self.band)
+        """Wavelengths [nm] and their normalised photon weights (the star's SED, flat f_nu by default)."""
+        curve = roman.throughput(self.band, sca=self.sca, source=self.throughput)
         if self.n_wavelengths == 1 and self.spectrum is None:
             wavelength = self.wavelength_nm if self.wavelength_nm is not None else curve.effective_wavelength_nm
             return np.array([float(wavelength)]), np.array([1.0])
-        # Equal-width bins over the band; each bin is represented by its photon-weighted mean
-        # wavelength and carries its share of the photons.
-        fine, photons = photon_weights_fine(self.band, self.spectrum, self.n_wavelengths)
-        edges = np.linspace(0, fine.size - 1, self.n_wavelengths + 1).astype(int)
-        wavelengths, weights = [], []
-        for lo, hi in itertools.pairwise(edges):
-            w = np.trapezoid(photons[lo : hi + 1], fine[lo : hi + 1])
-            wavelengths.append(np.trapezoid(photons[lo : hi + 1] * fine[lo : hi + 1], fine[lo : hi + 1]) / w)
-            weights.append(w)
-        weights_array = np.asarray(weights)
-        return np.asarray(wavelengths), weights_array / weights_array.sum()
+        return band_wavelengths_and_weights(curve, self.n_wavelengths, tabulated_sed(curve, self.spectrum))
 
 
-def photon_weights_fine(band: str, spectrum, n_wavelengths: int) -> tuple[np.ndarray, np.ndarray]:
+def tabulated_sed(curve: roman.Throughput, spectrum) -> Callable[[np.ndarray], np.ndarray] | None:
+    """f_lambda interpolated from a table (wavelengths nm, values), refused if it does not cover the band."""
+    if spectrum is None:
+        return None
+    wave, flambda = (np.asarray(v, dtype=np.float64) for v in spectrum)
+    if curve.blue_limit_nm < wave[0] or curve.red_limit_nm > wave[-1]:
+        raise InputError(
+            "sed",
+            f"the SED covers {wave[0]:g}-{wave[-1]:g} nm but {curve.band} spans "
+            f"{curve.blue_limit_nm:g}-{curve.red_limit_nm:g} nm",
+        )
+    return lambda lam: np.interp(lam, wave, flambda)
+
+
+def band_wavelengths_and_weights(
+    curve: roman.Throughput, n_wavelengths: int, sed_flambda: Callable[[np.ndarray], np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n_wavelengths`` wavelengths [nm] over the band and their normalised photon weights.
+
+    Photons per unit wavelength are proportional to A_eff(lambda) f_lambda(lambda) lambda; for the
+    default flat-f_nu source (f_lambda proportional to lambda^-2) that is A_eff / lambda.
+    ``sed_flambda`` gives f_lambda (any normalisation) at wavelengths in nm.
+    """
+    # Equal-width bins over the band; each bin is represented by its photon-weighted mean
+    # wavelength and carries its share of the photons.
+    fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * n_wavelengths + 1)
+    photons = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2) / fine
+    if sed_flambda is not None:
+        photons = photons * np.asarray(sed_flambda(fine), dtype=np.float64) * fine**2
+    edges = np.linspace(0, fine.size - 1, n_wavelengths + 1).astype(int)
+    wavelengths, weights = [], []
+    for lo, hi in itertools.pairwise(edges):
+        w = np.trapezoid(photons[lo : hi + 1], fine[lo : hi + 1])
+        wavelengths.append(np.trapezoid(photons[lo : hi + 1] * fine[lo : hi + 1], fine[lo : hi + 1]) / w)
+        weights.append(w)
+    weights_array = np.asarray(weights)
+    return np.asarray(wavelengths), weights_array / weights_array.sum()
+
+
+def photon_weights_fine(curve: roman.Throughput, spectrum, n_wavelengths: int) -> tuple[np.ndarray, np.ndarray]:
     """Photons per unit wavelength over the band, on a grid fine enough to bin into n_wavelengths.
 
     Counts per unit wavelength are proportional to A_eff(lambda) f_lambda lambda (photon energy
     h c / lambda); for a flat f_nu star f_lambda ~ lambda^-2, i.e. A_eff / lambda.
     """
-    curve = roman.throughput(band)
     fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * n_wavelengths + 1)
     area = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2)
     if spectrum is None:
         return fine, area / fine
     wave, flambda = (np.asarray(v, dtype=np.float64) for v in spectrum)
     if fine[0] < wave[0] or fine[-1] > wave[-1]:
-        raise InputError("sed", f"the SED covers {wave[0]:g}-{wave[-1]:g} nm but {band} spans {fine[0]:g}-{fine[-1]:g} nm")
+        raise InputError("sed", f"the SED covers {wave[0]:g}-{wave[-1]:g} nm but {curve.band} spans {fine[0]:g}-{fine[-1]:g} nm")
     return fine, area * np.interp(fine, wave, flambda) * fine
 
 
@@ -254,9 +286,11 @@ def psf_from_pupil(
     field_arcsec: float,
     optics: OpticsConfig | None = None,
     aberration_wavelength_nm: float = roman.ZERNIKE_REFERENCE_WAVELENGTH_NM,
+    pixel_response: bool = True,
 ) -> EffectivePSF:
     """Effective PSF of any pupil; ``aberrations_waves`` are Noll coefficients in waves at
-    ``aberration_wavelength_nm`` (the optical path difference is the same at every wavelength)."""
+    ``aberration_wavelength_nm`` (the optical path difference is the same at every wavelength).
+    ``pixel_response=False`` leaves out the native pixel: the optical PSF alone."""
     wavelengths_nm = np.atleast_1d(np.asarray(wavelengths_nm, dtype=np.float64))
     weights = np.atleast_1d(np.asarray(weights, dtype=np.float64))
     frequencies = frequency_grid(field_arcsec, _optical_cutoff(pupil, float(wavelengths_nm.min())))
@@ -264,8 +298,9 @@ def psf_from_pupil(
     for wavelength, weight in zip(wavelengths_nm, weights, strict=True):
         scaled = np.asarray(aberrations_waves, dtype=np.float64) * aberration_wavelength_nm / wavelength
         total += weight * _intensity_coefficients(pupil, scaled, float(wavelength), frequencies, field_arcsec)
-    pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * frequencies)
-    total *= pixel[:, None] * pixel[None, :]
+    if pixel_response:
+        pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * frequencies)
+        total *= pixel[:, None] * pixel[None, :]
     total.setflags(write=False)
     frequencies.setflags(write=False)
     return EffectivePSF(optics, field_arcsec, frequencies, total, wavelengths_nm, weights)

@@ -230,4 +230,4 @@ def galsim_electrons(band: str, magnitude: float, exptime_s: float) -> tuple[flo
 
     bandpass = galsim.roman.getBandpasses(AB_zeropoint=True)[band]
     theirs = 10 ** (-0.4 * (magnitude - bandpass.zeropoint)) * galsim.roman.collecting_area * exptime_s
-    return theirs, float(photometry.magnitude_to_electrons(magnitude, band, exptime_s))
+    return theirs, float(photometry.magnitude_to_electrons(magnitude, band, exptime_s, sca=18, throughput="galsim-2021"))

@@ -1,13 +1,17 @@
 """Roman Wide Field Instrument: constants, bands, SCAs and the shipped optical data.
 
-Numbers that come from the instrument are the ones GalSim 2.8 uses (``galsim.roman``), because
-GalSim's Roman module is the reference optical model this project is checked against. Data files
-live in ``nlpsf/data/roman`` (see ``nlpsf/data/SOURCES.md`` for their provenance).
+Optical numbers are the ones GalSim 2.8 uses (``galsim.roman``), because GalSim's Roman module is
+the reference optical model this project is checked against (data in ``nlpsf/data/roman``). The
+throughput (effective area per band) comes by default from the official per-detector curves of
+STScI's ``roman-technical-information`` 1.5.0 (``nlpsf/data/roman_technical_information``); the
+GalSim 2021 table, one curve for all SCAs, stays available as ``"galsim-2021"``. See
+``nlpsf/data/SOURCES.md`` for provenance.
 """
 
 from __future__ import annotations
 
 import gzip
+import json
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
@@ -40,7 +44,31 @@ PAPER_BANDS = defaults.PAPER_BANDS
 #: F184 and K213 use the long-wavelength (cold) pupil mask.
 LONG_WAVELENGTH_BANDS: frozenset[str] = frozenset({"F184", "K213"})
 
-DATA_VERSION = "GalSim 2.8.5 share/roman: Cycle-9 Zernikes (082623), RST_WIM pupil masks, effarea 20210614"
+#: Throughput data sets by name, newest first, with the version every answer's conditions quote.
+THROUGHPUT_VERSIONS: dict[str, str] = {
+    "roman-2024": "roman-technical-information 1.5.0: WFI effective areas v8 per SCA (2024-03-01)",
+    "galsim-2021": "GalSim 2.8.5 share/roman: Roman_effarea_20210614, one curve for every SCA",
+}
+THROUGHPUTS = defaults.THROUGHPUTS
+#: Newest official data by default; "galsim-2021" is what GalSim's Roman module and the
+#: cross-check tests use.
+DEFAULT_THROUGHPUT = defaults.THROUGHPUT
+#: The official files name the bands by filter (F062, ...); GalSim and nlpsf by band.
+OFFICIAL_FILTER_NAMES: dict[str, str] = {
+    "R062": "F062",
+    "Z087": "F087",
+    "Y106": "F106",
+    "J129": "F129",
+    "H158": "F158",
+    "F184": "F184",
+    "W146": "F146",
+    "K213": "F213",
+}
+#: Version of the optical (and throughput) data a result depends on; caches key on it.
+DATA_VERSION = (
+    "GalSim 2.8.5 share/roman: Cycle-9 Zernikes (082623), RST_WIM pupil masks, effarea 20210614; "
+    "roman-technical-information 1.5.0: effarea v8 per SCA (20240301)"
+)
 
 
 def check_band(band: str) -> str:
@@ -53,17 +81,51 @@ def check_sca(sca: int) -> int:
     return check_integer(sca, "sca", 1, N_SCA)
 
 
+def check_throughput(name: str) -> str:
+    if not isinstance(name, str) or name not in THROUGHPUT_VERSIONS:
+        raise InputError("throughput", f"unknown throughput data {shown(name)}; choose one of {', '.join(THROUGHPUTS)}")
+    return name
+
+
 def _data_dir() -> Path:
     return Path(str(resources.files("nlpsf") / "data" / "roman"))
 
 
+def official_data_dir() -> Path:
+    """The vendored files of ``roman-technical-information`` (see ``nlpsf/data/SOURCES.md``)."""
+    return Path(str(resources.files("nlpsf") / "data" / "roman_technical_information"))
+
+
+@cache
+def _optical_model_uncertainty() -> dict:
+    path = Path(str(resources.files("nlpsf") / "data" / "optical_model_uncertainty.json"))
+    return json.loads(path.read_text())
+
+
+def optical_model_uncertainty(band: str, metric: str) -> float:
+    """Relative uncertainty of ``band``'s NL slopes from nlpsf's optical model (Cycle-9 Zernikes)
+    against the official post-CDR PSFs, measured by ``scripts/psf_statistics.py``.
+
+    ``metric`` "size": relative to the size slope. "e1", "e2", "e": the change of the ellipticity
+    slopes relative to their modulus |c_e| (scale it by |c_e| / |c_e1| for one component).
+    """
+    entry = _optical_model_uncertainty()["per_band"][check_band(band)]
+    return float(entry["size" if metric == "size" else "e"])
+
+
 @dataclass(frozen=True)
 class Throughput:
-    """Effective-area curve of one band: wavelength [nm] and effective area [m^2]."""
+    """Effective-area curve of one band: wavelength [nm] and effective area [m^2].
+
+    ``sca`` is the detector the curve belongs to (None for SCA-independent data) and ``source``
+    the throughput data set (a key of ``THROUGHPUT_VERSIONS``).
+    """
 
     band: str
     wavelength_nm: np.ndarray
     effective_area_m2: np.ndarray
+    sca: int | None = None
+    source: str = "galsim-2021"
 
     @property
     def throughput(self) -> np.ndarray:
@@ -85,20 +147,54 @@ class Throughput:
         return float(self.wavelength_nm[-1])
 
 
-@cache
-def throughput(band: str) -> Throughput:
-    """Effective-area curve of ``band``, trimmed to the range where it is non-zero."""
+def throughput(band: str, *, sca: int, source: str = DEFAULT_THROUGHPUT) -> Throughput:
+    """Effective-area curve of ``band`` on detector ``sca`` from the throughput data ``source``.
+
+    Trimmed to where it is non-zero plus one zero on each side (as GalSim's trim does), which
+    changes no integral. "galsim-2021" has one curve for every SCA; its ``sca`` is None.
+    """
     band = check_band(band)
-    table = np.genfromtxt(_data_dir() / "Roman_effarea_20210614.txt", names=True)
-    wave_nm = 1000.0 * np.asarray(table["Wave"], dtype=np.float64)
-    area = np.asarray(table[band], dtype=np.float64)
+    sca = check_sca(sca)
+    source = check_throughput(source)
+    return _throughput(band, sca if source != "galsim-2021" else None, source)
+
+
+@cache
+def _throughput(band: str, sca: int | None, source: str) -> Throughput:
+    if source == "galsim-2021":
+        names, data = _galsim_effective_areas()
+    else:
+        names, data = _official_effective_areas(sca)
+    wave_nm = 1000.0 * data[:, names.index("Wave")]
+    area = data[:, names.index(band if source == "galsim-2021" else OFFICIAL_FILTER_NAMES[band])]
     nonzero = np.flatnonzero(area > 0)
-    # Keep one zero on each side so the curve starts and ends at zero, as GalSim's trim does.
     lo, hi = max(nonzero[0] - 1, 0), min(nonzero[-1] + 1, area.size - 1)
-    wave_nm, area = wave_nm[lo : hi + 1], area[lo : hi + 1]
+    wave_nm, area = wave_nm[lo : hi + 1].copy(), area[lo : hi + 1].copy()
     wave_nm.setflags(write=False)
     area.setflags(write=False)
-    return Throughput(band, wave_nm, area)
+    return Throughput(band, wave_nm, area, sca, source)
+
+
+@cache
+def _galsim_effective_areas() -> tuple[list[str], np.ndarray]:
+    table = np.genfromtxt(_data_dir() / "Roman_effarea_20210614.txt", names=True)
+    names = list(table.dtype.names)
+    return names, np.column_stack([np.asarray(table[n], dtype=np.float64) for n in names])
+
+
+@cache
+def _official_effective_areas(sca: int) -> tuple[list[str], np.ndarray]:
+    """Columns of ``Roman_effarea_v8_SCAnn_20240301.ecsv`` (wavelength in um, areas in m^2).
+
+    The files' headers carry a free-text line that is not valid ECSV YAML, so astropy's ECSV
+    reader refuses them; the body is plain comma-separated values under a header row.
+    """
+    path = official_data_dir() / f"Roman_effarea_v8_SCA{sca:02d}_20240301.ecsv.gz"
+    with gzip.open(path, "rt") as handle:
+        lines = [line for line in handle if line.strip() and not line.startswith("#")]
+    names = [name.strip() for name in lines[0].split(",")]
+    data = np.loadtxt(lines[1:], delimiter=",", dtype=np.float64)
+    return names, data
 
 
 @dataclass(frozen=True)

@@ -253,7 +253,7 @@ class SceneModel:
             flux = flux / wave**2  # f_lambda = f_nu c / lambda^2
         return tuple(wave), tuple(flux / flux.max())
 
-    def wavelengths(self, band: str, config_n_wavelengths: int = 1) -> int:
+    def wavelengths(self, band: str, config_n_wavelengths: int = 1, sca: int = 18, source: str | None = None) -> int:
         """How many wavelengths the optics integrate (1: achromatic at the effective wavelength)."""
         if self.sed is None:
             return config_n_wavelengths
@@ -261,7 +261,7 @@ class SceneModel:
             return self.n_wavelengths
         if config_n_wavelengths > 1:
             return config_n_wavelengths
-        return choose_wavelengths(band, self.spectrum(), self.wavelength_accuracy)[0]
+        return choose_wavelengths(band, self.spectrum(), self.wavelength_accuracy, sca, source)[0]
 
     def blur_sigma_arcsec(self) -> float:
         """Total rms of the Gaussian blurs (jitter and charge diffusion add in quadrature)."""
@@ -350,7 +350,7 @@ def planck_flambda(wavelength_nm: np.ndarray, temperature_k: float) -> np.ndarra
     return 1.0 / (lam**5 * np.expm1(x))
 
 
-def binning_error(band: str, spectrum, n: int) -> float:
+def binning_error(band: str, spectrum, n: int, sca: int = 18, source: str | None = None) -> float:
     """Estimated relative error of the NL slopes (size and |e|) from n photon-weighted wavelengths.
 
     The band is cut into n equal-width bins, each drawn at its photon-weighted mean wavelength. A
@@ -364,7 +364,8 @@ def binning_error(band: str, spectrum, n: int) -> float:
     """
     from .optics import photon_weights_fine
 
-    fine, photons = photon_weights_fine(band, spectrum, 1)
+    curve = roman.throughput(band, sca=sca, source=source or roman.DEFAULT_THROUGHPUT)
+    fine, photons = photon_weights_fine(curve, spectrum, 1)
     weight = np.trapezoid(photons, fine)
     mean = np.trapezoid(photons * fine, fine) / weight
     var = np.trapezoid(photons * (fine - mean) ** 2, fine) / weight
@@ -372,13 +373,13 @@ def binning_error(band: str, spectrum, n: int) -> float:
 
 
 @lru_cache(maxsize=256)
-def choose_wavelengths(band: str, spectrum, accuracy: float) -> tuple[int, float]:
+def choose_wavelengths(band: str, spectrum, accuracy: float, sca: int = 18, source: str | None = None) -> tuple[int, float]:
     """Fewest wavelengths whose estimated slope error (:func:`binning_error`) is below ``accuracy``."""
     for n in range(2, 65):
-        error = binning_error(band, spectrum, n)
+        error = binning_error(band, spectrum, n, sca, source)
         if error <= accuracy:
             return n, error
-    return 64, binning_error(band, spectrum, 64)
+    return 64, binning_error(band, spectrum, 64, sca, source)
 
 
 # --- Gaussian blurs ---------------------------------------------------------------------------

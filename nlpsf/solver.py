@@ -11,6 +11,20 @@ with c(m) the slope d(metric)/dβ (bias) or σ(metric)/σβ (scatter) at magnitu
 returns the magnitude at which the NL error reaches the tolerance, and the brightest usable star:
 the fainter of that and the saturation magnitude, with which limit binds.
 
+Shear budgets. Instead of the tolerance, a shear-bias budget may be given: ``shear_m`` (the
+multiplicative bias, size metric) or ``shear_c`` (the additive bias, e metrics) with the
+galaxy-to-PSF size ratio ``size_ratio`` (a number or a distribution); ``nlpsf.shear`` turns it into
+the tolerance (ΔR/R = |m| ρ²/2, Δe = 2 |c| ρ², derived there). With ``size_ratio`` alone, the answer
+reports the shear bias that its tolerance implies.
+
+Averaging (scatter mode). A per-pixel β spread is fixed in the detector, but each star of a PSF
+model, and each dither of it, falls on other pixels: its NL error is an independent draw as long as
+no two of them share the pixels under the moment weight (a few native pixels around each centroid).
+A PSF model that averages ``stars`` such images with equal weight then has the scatter
+σ(metric)/√stars, and the answer holds for that model; with stars of different brightness, all taken
+at the answer's (brightest) magnitude, it is an upper bound. A bias in the mean β is common to
+every star, so averaging does not reduce it and ``stars`` applies to scatter mode only.
+
 Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from fresh simulations
 (``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
 measured error (``nlpsf tradeoff``) meets it.
@@ -32,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import __version__, defaults, ramps, roman, tables
+from . import __version__, defaults, ramps, roman, shear, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
@@ -40,6 +54,7 @@ from .checks import (
     check_beta0,
     check_exptime,
     check_full_well,
+    check_integer,
     check_magnitude,
     check_number,
 )
@@ -49,6 +64,8 @@ MODES = defaults.MODES
 FIDELITIES = levels.LEVELS
 #: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
 LINEAR_REGIME_LIMIT = 0.05
+#: Stars (and dithers) a scatter-mode PSF model may average.
+MAX_STARS = 10**9
 _TABLE_METRIC_NAMES = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
 
@@ -79,9 +96,17 @@ class Solution:
     flags: list[str]
     fidelity: str
     conditions: dict
+    #: The optical model's share (Cycle-9 Zernikes against the official post-CDR PSF statistics).
+    uncertainty_optical_model: float | None = None
     elapsed_s: float = field(default=0.0, compare=False)
-    #: Effects the answer leaves out (name, impact on the metric's slope, relative) and the
-    #: uncertainty they add, in the solved quantity's units; None when not measured (no ``accuracy``).
+    #: Stars (and dithers) averaged by the PSF model the scatter-mode answer holds for.
+    stars: int = 1
+    applies_to: str = ""
+    #: The shear budget given (or, with a size ratio alone, implied): ``Budget``-like dict.
+    shear: dict | None = None
+    #: Scene effects the answer leaves out (name, impact on the metric's slope, relative), the SCA
+    #: spread and the pupil-scale rule, and the uncertainty they add in the solved quantity's units;
+    #: None when not measured (no ``accuracy``).
     uncertainty_model: float | None = None
     model: dict | None = None
     #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
@@ -103,6 +128,7 @@ class Solution:
             "uncertainty": _json_number(self.uncertainty),
             "uncertainty_statistical": _json_number(self.uncertainty_statistical),
             "uncertainty_fidelity": _json_number(self.uncertainty_fidelity),
+            "uncertainty_optical_model": _json_number(self.uncertainty_optical_model),
             "uncertainty_model": _json_number(self.uncertainty_model),
             "model": self.model,
             "slope": _json_number(self.slope),
@@ -114,6 +140,9 @@ class Solution:
             "nonlinearity_magnitude": _json_number(self.nonlinearity_magnitude),
             "flags": list(self.flags),
             "fidelity": self.fidelity,
+            "stars": self.stars,
+            "applies_to": self.applies_to,
+            "shear": self.shear,
             "conditions": self.conditions,
             "elapsed_s": self.elapsed_s,
         }
@@ -138,6 +167,7 @@ class _Slopes:
         tableset,
         ramp: ramps.Ramp | None = None,
         full_well: float = defaults.FULL_WELL_E,
+        throughput: str | None = None,
         scene=None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
@@ -145,6 +175,10 @@ class _Slopes:
         self.ramp, self.full_well = ramp, full_well
         self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
         self.table = tableset.get(band, sca)
+        #: Magnitudes the table was relabelled by for another throughput's photometry (0: none).
+        self.relabel_shift = 0.0
+        if throughput is not None:
+            self.table, self.relabel_shift = tables.with_throughput(self.table, throughput)
         self._cache: dict[float, tuple[float, float]] = {}
         self._scene = None  # experiment.Scene of the fresh simulations, prepared once per request
         #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
@@ -211,10 +245,11 @@ class _Slopes:
             exptime_s=self.exptime,
             weight_cut_rho2=float(settings["weight_cut_rho2"]),
             pupil_scale=str(settings["pupil_scale"]),
+            throughput=self.table.throughput,
             method=level.method,
-            **({} if self.scene_model is None else {"scene": self.scene_model}),
             n_wavelengths=level.n_wavelengths,
             **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
+            **({} if self.scene_model is None else {"scene": self.scene_model}),
         )
         if self._scene is None or self._scene.config != config:
             self._scene = experiment.prepare(config)  # magnitude-independent: once per request
@@ -260,16 +295,30 @@ def solve(
     full_well: float = defaults.FULL_WELL_E,
     fidelity: str | None = None,
     accuracy: float | None = None,
+    shear_m: float | None = None,
+    shear_c: float | None = None,
+    size_ratio: float | list | str | shear.SizeRatio | None = None,
+    stars: int = 1,
     tables_set: tables.TableSet | None = None,
     ramp: ramps.Ramp | None = None,
+    throughput: str | None = None,
     scene=None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
 
+    ``shear_m`` (size metric) or ``shear_c`` (e metrics), with ``size_ratio`` = R_gal/R_psf (a
+    number, (ratio, weight) pairs, or a string ``nlpsf.shear.check_size_ratio`` reads), stands in
+    for ``tolerance``. ``stars`` (scatter mode): the PSF model averages that many independent
+    star images (σ / √stars).
+
     ``ramp``: an up-the-ramp exposure (``ramps.Ramp``; e.g. ``ramps.Ramp.uniform(N, exptime)``)
     instead of the paper's single final frame. ``exptime`` stays what is given: for an MA table whose
     exposure is its last read, ``ramps.build(ma_table=...)`` returns both (as the CLI and the service do).
+
+    ``throughput`` (``defaults.THROUGHPUTS``) is the photometry that turns the magnitude into
+    electrons; None is the tables' own. Another one reads the tables relabelled
+    (``tables.with_throughput``), and fresh simulations use it directly.
 
     ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
     answer models only the effects whose measured impact at the point exceeds it (see
@@ -282,6 +331,26 @@ def solve(
     beta0 = check_beta0(beta0)
     exptime = check_exptime(exptime)
     full_well = check_full_well(full_well)
+    stars = check_integer(stars, "stars", 1, MAX_STARS)
+    if stars > 1 and mode != "scatter":
+        raise InputError(
+            "stars",
+            "averaging over stars applies to scatter mode only: a bias in the mean beta is common to every star, "
+            "so a PSF model averaging n stars has the same bias error as one",
+        )
+    budget, ratio = None, None
+    if shear_m is not None or shear_c is not None:
+        if tolerance is not None:
+            raise InputError(
+                "tolerance", "give the tolerance or a shear budget (shear_m / shear_c), not both: the budget sets the tolerance"
+            )
+        budget = shear.budget_for(metric, shear_m, shear_c, size_ratio)
+        ratio = budget.size_ratio
+        tolerance = check_number(
+            budget.tolerance, f"shear_{budget.kind}", *defaults.TOLERANCE_RANGE
+        )  # e.g. a tiny budget on tiny galaxies
+    elif size_ratio is not None:
+        ratio = shear.check_size_ratio(size_ratio)
     if ramp is not None:
         if not isinstance(ramp, ramps.Ramp):
             raise InputError("ramp", f"must be a ramps.Ramp, got {type(ramp).__name__}")
@@ -289,9 +358,12 @@ def solve(
     given = {k: v for k, v in (("precision", precision), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None}
     if len(given) != 2:
         missing = ", ".join(k for k in ("precision", "tolerance", "magnitude") if k not in given) or "none"
+        field_at_fault = "precision" if "precision" not in given else ("tolerance" if "tolerance" not in given else "magnitude")
+        if budget is not None and (field_at_fault == "tolerance" or len(given) == 3):
+            field_at_fault = f"shear_{budget.kind}"
         raise InputError(
-            "precision" if "precision" not in given else ("tolerance" if "tolerance" not in given else "magnitude"),
-            f"give exactly two of precision, tolerance, magnitude (got {len(given)}; missing: {missing})",
+            field_at_fault,
+            f"give exactly two of precision, tolerance (or a shear budget), magnitude (got {len(given)}; missing: {missing})",
         )
     if precision is not None:
         precision = check_number(precision, "precision", *defaults.PRECISION_RANGE)
@@ -300,7 +372,9 @@ def solve(
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
     chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
-    model_relative, model_info, simulated_scene = None, None, None
+    if throughput is not None:
+        roman.check_throughput(throughput)
+    scene_relative, model_info, simulated_scene = None, None, None
     if scene is not None and not isinstance(scene, _scene_type()):
         raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
     if scene is not None and ramp is not None:
@@ -310,10 +384,27 @@ def solve(
         if point is None:
             # The effects are measured where the answer will be: a first, table-level pass finds it.
             first = solve(
-                band, sca, metric, mode, beta0, exptime, precision, tolerance, None, full_well, "table", None, tables_set
+                band,
+                sca,
+                metric,
+                mode,
+                beta0,
+                exptime,
+                precision,
+                tolerance,
+                None,
+                full_well,
+                "table",
+                None,
+                shear_m=shear_m,
+                shear_c=shear_c,
+                size_ratio=size_ratio,
+                stars=stars,
+                tables_set=tables_set,
+                throughput=throughput,
             )
             point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
-        simulated_scene, model_relative, model_info = _select_scene(
+        simulated_scene, scene_relative, model_info = _select_scene(
             scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy)
         )
     elif scene is not None and not scene.is_paper:
@@ -329,9 +420,28 @@ def solve(
             "never rescaled from the tables (the beta Q rule does not hold)"
         )
     slopes = _Slopes(
-        band, sca, metric, mode, beta0, exptime, chosen, tables_set or tables.load_tables(), ramp, full_well, simulated_scene
+        band,
+        sca,
+        metric,
+        mode,
+        beta0,
+        exptime,
+        chosen,
+        tables_set or tables.load_tables(),
+        ramp,
+        full_well,
+        throughput=throughput,
+        scene=simulated_scene,
     )
     table = slopes.table
+    if "relabelled_from" in table.settings:
+        size_error, e_error = tables.RELABEL_ERROR[band]
+        flags.append(
+            f"the {table.settings['relabelled_from']} tables read with {throughput} photometry (magnitudes "
+            f"{-slopes.relabel_shift:+.3f}); their achromatic PSF keeps the {table.settings['relabelled_from']} curve's "
+            f"wavelength, up to {100 * (size_error if metric == 'size' else e_error):.1f} % on the slope, "
+            "added to the optical-model uncertainty"
+        )
     background = 0.0 if simulated_scene is None else simulated_scene.background_e
     if background >= full_well:
         raise InputError("background", f"a background of {background:g} e- fills the full well ({full_well:g} e-) by itself")
@@ -343,12 +453,14 @@ def solve(
     solved_for = next(k for k in ("precision", "tolerance", "magnitude") if k not in given)
     brightest, binding, m_nl = None, None, None
 
+    # The PSF model averages `stars` independent draws of the per-pixel beta map (scatter mode).
+    averaging = 1.0 / math.sqrt(stars)
     systematic, systematic_note = _fidelity_error(chosen, band, metric, mode)
     if systematic_note:
         flags.append(systematic_note)
     if solved_for == "magnitude":
         solve_for_m = _solve_magnitude if ramp is None else _solve_magnitude_ramp
-        m_nl, slope, slope_err, log_derivative, extra = solve_for_m(slopes, precision * beta0, tolerance, m_sat)
+        m_nl, slope, slope_err, log_derivative, extra = solve_for_m(slopes, precision * beta0 * averaging, tolerance, m_sat)
         flags += extra
         magnitude, binding = _binding(m_nl, m_sat, flags)
         if ramp is not None and magnitude < m_sat_final_frame:
@@ -357,14 +469,15 @@ def solve(
         if binding == "nonlinearity" and log_derivative:
             statistical = (slope_err / abs(slope)) / abs(log_derivative)
             fidelity_part = None if systematic is None else systematic / abs(log_derivative)
-            model_part = None if model_relative is None else model_relative / abs(log_derivative)
+            model_part = _optical_model_relative(slopes, m_nl) / abs(log_derivative)
+            scene_part = None if scene_relative is None else scene_relative / abs(log_derivative)
         else:
             # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
-            statistical, fidelity_part = 0.0, 0.0
-            model_part = None if model_relative is None else 0.0
+            statistical, fidelity_part, model_part = 0.0, 0.0, 0.0
+            scene_part = None if scene_relative is None else 0.0
             slope, slope_err, _ = slopes.at(m_sat)
             flags.append(
-                f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0:.3g} "
+                f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0 * averaging:.3g} "
                 f"(tolerance {tolerance:g})"
             )
     else:
@@ -373,27 +486,34 @@ def solve(
         slope, slope_err, region = slopes.at(magnitude)
         if ramp is None:
             flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
-        c, c_err = abs(slope), slope_err
+        c, c_err = abs(slope) * averaging, slope_err * averaging
+        model = _optical_model_relative(slopes, magnitude) if region >= 0 else None
         if solved_for == "tolerance":
             tolerance = c * precision * beta0
             statistical = c_err * precision * beta0
             fidelity_part = None if systematic is None else tolerance * systematic
-            model_part = None if model_relative is None else tolerance * model_relative
+            model_part = None if model is None else tolerance * model
+            scene_part = None if scene_relative is None else tolerance * scene_relative
         elif c <= max(c_err, 1e-300):
             flags.append(
                 f"the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {c_err:.2g}): "
                 "this metric is insensitive to beta here, so no calibration precision is needed for it"
             )
-            precision, statistical, fidelity_part, model_part = math.inf, None, None, None
+            precision, statistical, fidelity_part, model_part, scene_part = math.inf, None, None, None, None
         else:
             precision = tolerance / (c * beta0)
             statistical = precision * c_err / c
             fidelity_part = None if systematic is None else precision * systematic
-            model_part = None if model_relative is None else precision * model_relative
-    uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0)
+            model_part = None if model is None else precision * model
+            scene_part = None if scene_relative is None else precision * scene_relative
+    uncertainty = (
+        None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0, scene_part or 0.0)
+    )
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
-    conditions.update(fidelity=chosen, code_version=__version__, relation="T = |c(m)| * precision * beta0")
+    relation = "T = |c(m)| * precision * beta0" + (" / sqrt(stars)" if mode == "scatter" else "")
+    applies_to = _applies_to(mode, stars)
+    conditions.update(fidelity=chosen, code_version=__version__, relation=relation, stars=stars, applies_to=applies_to)
     if ramp is None:
         conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
     else:
@@ -404,6 +524,11 @@ def solve(
         # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
         conditions["ramp_table_exact_from_magnitude"] = slopes.exact_from() if slopes.ramp_factor is not None else None
         conditions["ramp_slopes_from"] = _ramp_basis(slopes)
+    shear_answer = None
+    if ratio is not None and tolerance is not None and math.isfinite(tolerance):
+        shear_answer = _shear_answer(metric, budget, ratio, tolerance, statistical if solved_for == "tolerance" else None)
+        if metric != "size":
+            flags.append(shear.CROSS_TERM_NOTE)
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
         conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
@@ -425,6 +550,7 @@ def solve(
         uncertainty=uncertainty,
         uncertainty_statistical=statistical,
         uncertainty_fidelity=fidelity_part,
+        uncertainty_optical_model=model_part,
         slope=slope,
         slope_uncertainty=slope_err,
         saturation_magnitude=m_sat,
@@ -436,7 +562,10 @@ def solve(
         fidelity=chosen,
         conditions=conditions,
         elapsed_s=time.perf_counter() - start,
-        uncertainty_model=model_part,
+        stars=stars,
+        applies_to=applies_to,
+        shear=shear_answer,
+        uncertainty_model=scene_part,
         model=model_info,
     )
 
@@ -530,6 +659,44 @@ def _with_effect(target, source, name: str):
         "background": ("background_e",),
     }
     return replace(target, **{f: getattr(source, f) for f in fields_of[name]})
+
+
+def _optical_model_relative(slopes: _Slopes, magnitude: float | None) -> float:
+    """Relative slope uncertainty from the optical model (``roman.optical_model_uncertainty``).
+
+    For one ellipticity component it is stated against |c_e|, so it grows as |c_e| / |c_ei|."""
+    relative = roman.optical_model_uncertainty(slopes.band, slopes.metric)
+    if "relabelled_from" in slopes.table.settings:
+        relative = math.hypot(relative, tables.RELABEL_ERROR[slopes.band][0 if slopes.metric == "size" else 1])
+    if slopes.metric in ("e1", "e2") and magnitude is not None:
+        modulus, _, _ = slopes.table.slope("e", slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
+        component, _, _ = slopes.table.slope(slopes.metric, slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
+        if np.isfinite(modulus[0]) and abs(component[0]) > 0:
+            relative *= float(modulus[0] / abs(component[0]))
+    return relative
+
+
+def _applies_to(mode: str, stars: int) -> str:
+    if mode == "bias":
+        return "every star alike: a bias in the mean beta is common to all stars, averaging does not reduce it"
+    if stars == 1:
+        return "one star: the scatter of a single star's metric over per-pixel beta maps"
+    return (
+        f"a PSF model averaging {stars} stars or dithers on independent pixels (scatter / sqrt({stars})), "
+        "each as bright as the answer's magnitude"
+    )
+
+
+def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncertainty: float | None) -> dict:
+    """The shear budget given, or the bias the tolerance implies for galaxies of this size ratio."""
+    if budget is not None:
+        return {**budget.to_dict(), "given": budget.kind}
+    kind = shear.BUDGET_FOR_METRIC[metric]
+    factor = (2.0 if kind == "m" else 1.0 / shear.RESPONSIVITY) / ratio.effective**2
+    implied = shear.Budget(kind, tolerance * factor, ratio, tolerance).to_dict()
+    implied["given"] = "tolerance"
+    implied["uncertainty"] = None if tolerance_uncertainty is None else tolerance_uncertainty * factor
+    return implied
 
 
 def _fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:

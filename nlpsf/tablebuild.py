@@ -3,7 +3,9 @@
 For every SCA and band, on a magnitude grid from 1.5 mag brighter than saturation to m = 28 in
 steps of 0.25 mag (twice as fine near saturation), the linear response at beta0 gives the bias and
 scatter slopes with their standard errors, and a leave-one-out estimate of the interpolation error.
-Per-(band, SCA) tables are written atomically into a folder, so an interrupted build resumes;
+Per-(band, SCA) tables are written atomically into a folder, so an interrupted build resumes; the
+workers (local processes or a dask cluster, ``nlpsf.cluster``) return the tables and the client
+writes them, so a worker on another machine or in another directory never needs the client's path;
 ``merge_tables`` stacks them into the shipped ECSV file and writes its binary companion (the
 reading side's fast path, ``tables.write_companion``).
 """
@@ -15,7 +17,6 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -23,8 +24,8 @@ import numpy as np
 from astropy.table import Table, vstack
 from scipy.interpolate import CubicSpline
 
-from . import __version__, defaults, experiment, photometry, roman
-from .checks import InputError
+from . import __version__, cluster, defaults, experiment, photometry, roman
+from .checks import InputError, SimulationError
 from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, write_companion
 
 FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
@@ -49,6 +50,11 @@ class TableSettings:
     pupil_scale: str = defaults.PUPIL_SCALE
     magnitude_step: float = MAGNITUDE_STEP
     faint_limit: float = FAINT_LIMIT
+    #: Throughput data (``defaults.THROUGHPUTS``): the per-SCA official curves by default.
+    throughput: str = defaults.THROUGHPUT
+
+    def __post_init__(self) -> None:
+        roman.check_throughput(self.throughput)
 
     def config(self, band: str, sca: int) -> experiment.SimulationConfig:
         return experiment.SimulationConfig(
@@ -63,6 +69,7 @@ class TableSettings:
             weight_cut_rho2=self.weight_cut_rho2,
             pupil_scale=self.pupil_scale,
             method="linear",
+            throughput=self.throughput,
         )
 
     def fingerprint(self) -> str:
@@ -71,10 +78,14 @@ class TableSettings:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def saturation_magnitude(peak_fraction: float, band: str, exptime_s: float, full_well_e: float, oversampling: int) -> float:
+def saturation_magnitude(peak_fraction: float, config: experiment.SimulationConfig) -> float:
     """Magnitude at which the brightest fine pixel (over centroids) reaches the full well."""
-    electrons_at_full_well = full_well_e / (peak_fraction * oversampling**2)
-    return float(photometry.electrons_to_magnitude(electrons_at_full_well, band, exptime_s))
+    electrons_at_full_well = config.full_well_e / (peak_fraction * config.oversampling**2)
+    return float(
+        photometry.electrons_to_magnitude(
+            electrons_at_full_well, config.band, config.exptime_s, sca=config.sca, throughput=config.throughput
+        )
+    )
 
 
 def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit: float = FAINT_LIMIT) -> np.ndarray:
@@ -93,9 +104,7 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
     start = time.perf_counter()
     config = settings.config(band, sca)
     scene = experiment.prepare(config)
-    m_sat = saturation_magnitude(
-        float(scene.peak_fraction.max()), config.band, settings.exptime_s, settings.full_well_e, settings.oversampling
-    )
+    m_sat = saturation_magnitude(float(scene.peak_fraction.max()), config)
     magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
     results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
@@ -144,15 +153,6 @@ def _partial_path(directory: Path, band: str, sca: int) -> Path:
     return directory / f"slopes_{band}_SCA{sca:02d}.ecsv"
 
 
-def _compute_and_write(band: str, sca: int, settings: TableSettings, directory: str) -> tuple[str, int, float]:
-    table = compute_table(band, sca, settings)
-    path = _partial_path(Path(directory), band, sca)
-    temporary = path.with_suffix(".tmp")
-    table.write(temporary, format="ascii.ecsv", overwrite=True)
-    temporary.replace(path)  # atomic: an interrupted build never leaves half a table behind
-    return band, sca, float(table.meta["elapsed_s"])
-
-
 def build_tables(
     directory: Path | str,
     bands: Iterable[str] = defaults.BANDS,
@@ -161,16 +161,19 @@ def build_tables(
     workers: int = 1,
     dask_address: str | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    scheduler_file: str | None = None,
+    retries: int = 1,
 ) -> list[Path]:
     """Compute every (band, SCA) table into ``directory``, skipping those already done.
 
     Work is spread over ``workers`` local processes, or over a dask.distributed cluster when
-    ``dask_address`` is given ("local" starts a LocalCluster with ``workers`` workers).
-    Interrupting and re-running resumes where it stopped.
+    ``dask_address`` ("local" starts a LocalCluster with ``workers`` workers) or ``scheduler_file``
+    is given. Workers return the tables; this process writes them, each as soon as it arrives, so
+    interrupting and re-running resumes where it stopped. A table that fails (after ``retries``)
+    is reported once the others are written.
     """
     settings = settings or TableSettings()
-    # Absolute: a dask worker runs in a directory of its own, where a relative path means another folder.
-    directory = Path(directory).resolve()
+    directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     todo, done = [], []
     pairs = [(roman.check_band(b), roman.check_sca(s)) for b in bands for s in scas]
@@ -179,46 +182,27 @@ def build_tables(
         if path.exists() and Table.read(path, format="ascii.ecsv").meta.get("fingerprint") == settings.fingerprint():
             done.append(path)
         else:
-            todo.append((band, sca))
+            todo.append((band, sca, settings))
     total = len(pairs)
     if progress:
         progress(len(done), total, "resumed" if done else "starting")
-    if dask_address is not None:
-        finished = _run_dask(todo, settings, str(directory), workers, dask_address)
-    elif workers > 1 and len(todo) > 1:
-        finished = _run_processes(todo, settings, str(directory), workers)
-    else:
-        finished = (_compute_and_write(band, sca, settings, str(directory)) for band, sca in todo)
-    for count, (band, sca, elapsed) in enumerate(finished, start=len(done) + 1):
-        done.append(_partial_path(directory, band, sca))
+    failures = []
+    finished = cluster.run_tasks(
+        compute_table, todo, workers=workers, dask_address=dask_address, scheduler_file=scheduler_file, retries=retries
+    )
+    for index, table, error in finished:
+        band, sca, _ = todo[index]
+        if error is not None:
+            failures.append(f"{band} SCA {sca}: {type(error).__name__}: {error}")
+            continue
+        path = _partial_path(directory, band, sca)
+        cluster.write_atomic(table, path)
+        done.append(path)
         if progress:
-            progress(count, total, f"{band} SCA {sca} ({elapsed:.1f} s)")
+            progress(len(done), total, f"{band} SCA {sca} ({float(table.meta['elapsed_s']):.1f} s)")
+    if failures:
+        raise SimulationError(f"{len(failures)} of {total} tables failed (re-run to retry them): " + "; ".join(failures))
     return done
-
-
-def _run_processes(todo, settings, directory, workers):
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(_compute_and_write, band, sca, settings, directory) for band, sca in todo]
-        for future in as_completed(futures):
-            yield future.result()
-
-
-def _run_dask(todo, settings, directory, workers, address):
-    try:
-        from dask.distributed import Client, LocalCluster
-        from dask.distributed import as_completed as dask_completed
-    except ImportError as error:  # pragma: no cover - depends on the optional extra
-        raise InputError("dask", "dask.distributed is not installed: pip install 'nlpsf[dask]'") from error
-    cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, processes=True) if address == "local" else None
-    client = Client(cluster if cluster is not None else address)
-    try:
-        futures = [client.submit(_compute_and_write, band, sca, settings, directory, pure=False) for band, sca in todo]
-        for future in dask_completed(futures):
-            yield future.result()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 def merge_tables(paths: Iterable[Path], destination: Path | str) -> Table:

@@ -140,6 +140,8 @@ def tradeoff(points=TEST_POINTS, progress=None) -> dict:
         "seconds_per_answer": seconds,
         "rows": rows,
         "data_version": roman.DATA_VERSION,
+        "throughput": roman.DEFAULT_THROUGHPUT,
+        "throughput_version": roman.THROUGHPUT_VERSIONS[roman.DEFAULT_THROUGHPUT],
     }
 
 

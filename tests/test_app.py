@@ -48,6 +48,7 @@ def test_meta_lists_what_the_library_offers(client):
     assert meta["modes"] == list(solver.MODES)
     assert meta["fidelities"] == list(solver.FIDELITIES)
     assert meta["data_version"] == roman.DATA_VERSION
+    assert list(meta["throughputs"]) == list(roman.THROUGHPUTS) and meta["default_throughput"] == "roman-2024"
     assert meta["tables"]["fingerprint"] == tables.load_tables().meta["fingerprint"]
     assert meta["defaults"]["solve"]["beta0"] == 5e-7
     assert meta["defaults"]["solve"]["exptime"] == defaults.EXPTIME_S
@@ -280,6 +281,31 @@ def test_small_simulation_answered_synchronously_matches_the_library(client):
             assert got[metric]["mean"] == pytest.approx(want[metric]["mean"], rel=1e-12)
             assert got[metric]["stderr"] == pytest.approx(want[metric]["stderr"], rel=1e-12)
     assert job["result"]["conditions"]["sca"] == 7
+
+
+def test_solve_takes_a_throughput_and_names_it(client):
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
+    default = client.post("/api/v1/solve", json=body).json()
+    galsim = client.post("/api/v1/solve", json={**body, "throughput": "galsim-2021"}).json()
+    assert default["conditions"]["throughput"] == "roman-2024" and galsim["conditions"]["throughput"] == "galsim-2021"
+    # GalSim's 2021 H158 curve gives 5 % more electrons: the same star needs a tighter calibration.
+    assert galsim["precision"] < default["precision"]
+    assert client.post("/api/v1/solve", json={**body, "throughput": "cycle-5"}).status_code == 422
+
+
+def test_simulation_throughput_is_a_request_field_named_in_the_conditions(client):
+    body = {"band": "H158", "sca": 1, "magnitudes": [20.0], "realizations": 4, "fidelity": "linear"}
+    runs = {}
+    for throughput in roman.THROUGHPUTS:
+        job = client.post("/api/v1/simulations", params={"wait": 120}, json={**body, "throughput": throughput}).json()
+        assert job["status"] == "done", job
+        assert job["result"]["conditions"]["throughput"] == throughput
+        assert job["result"]["conditions"]["throughput_version"] == roman.THROUGHPUT_VERSIONS[throughput]
+        runs[throughput] = job["result"]["results"][0]["flux_electrons"]
+    # Official SCA 1 F158 zero point 26.323 (Roman_zeropoints_20240301) against GalSim 2021's 26.511.
+    assert runs["roman-2024"] / runs["galsim-2021"] == pytest.approx(10 ** (-0.4 * 0.188), rel=0.01)
+    refused = client.post("/api/v1/simulations", json={**body, "throughput": "cycle-5"})
+    assert refused.status_code == 422
 
 
 def test_sigma_beta_simulation_gives_the_scatter(client):

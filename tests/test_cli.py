@@ -189,3 +189,18 @@ def test_a_closed_pipe_is_not_a_traceback():
     producer.stdout.close()
     _, err = producer.communicate(timeout=60)
     assert b"Traceback" not in err and b"BrokenPipeError" not in err
+
+
+def test_throughput_option_picks_the_effective_areas_and_is_named_in_the_conditions(capsys):
+    fluxes = {}
+    for throughput in ("roman-2024", "galsim-2021"):
+        code, out, _ = run(capsys, "simulate", "--sca", "18", "--realizations", "3", "--throughput", throughput, "--json")
+        assert code == 0
+        payload = json.loads(out)
+        assert payload["conditions"]["throughput"] == throughput
+        fluxes[throughput] = payload["flux_electrons"]
+    # Official SCA 18 F158 zero point 26.457 (Roman_zeropoints_20240301) against GalSim 2021's 26.511.
+    assert fluxes["roman-2024"] / fluxes["galsim-2021"] == pytest.approx(10 ** (-0.4 * (26.511 - 26.457)), rel=2e-3)
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["simulate", "--throughput", "cycle-5"])
+    assert refused.value.code == 2 and "--throughput" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """The shipped Roman data is what SOURCES.md says it is, and photometry follows from it."""
 
+import gzip
 import hashlib
 from importlib import resources
 from pathlib import Path
@@ -8,8 +9,9 @@ import astropy.units as u
 import numpy as np
 import pytest
 from astropy.constants import h
+from astropy.table import Table
 
-from nlpsf import photometry, roman
+from nlpsf import experiment, photometry, roman
 from nlpsf.checks import InputError
 
 DATA = Path(str(resources.files("nlpsf") / "data"))
@@ -50,33 +52,91 @@ def test_galsim_pupil_scale_puts_farthest_open_pixel_on_the_disc():
     assert header.scale_m == pytest.approx(4 * 1.1798e-3, rel=1e-3)
 
 
-def test_electrons_follow_from_the_effective_area_by_hand():
-    band = "J129"
-    curve = roman.throughput(band)
-    # Midpoint sum instead of the module's trapezoid, with the AB definition written out.
+def test_official_files_match_the_published_package():
+    # sha256.txt holds the digests of the files in roman-technical-information 1.5.0 (the same
+    # ones its wheel's RECORD lists); the effective areas are stored gzipped, so compare contents.
+    folder = DATA / "roman_technical_information"
+    for line in (folder / "sha256.txt").read_text().splitlines():
+        digest, upstream = line.split()
+        name = upstream.rsplit("/", 1)[-1]
+        path = folder / name if (folder / name).exists() else folder / f"{name}.gz"
+        content = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+        assert hashlib.sha256(content).hexdigest() == digest, name
+
+
+def _official_zero_points() -> dict[tuple[int, str], float]:
+    table = Table.read(DATA / "roman_technical_information" / "Roman_zeropoints_20240301.ecsv", format="ascii.ecsv")
+    official = {v: k for k, v in roman.OFFICIAL_FILTER_NAMES.items()}
+    return {
+        (int(str(d)[3:]), official[str(f)]): float(z)
+        for d, f, z in zip(table["detector"], table["element"], table["ABMag"], strict=True)
+    }
+
+
+def test_electrons_reproduce_the_official_zero_points_on_every_sca_and_band():
+    """The official AB zero point of a detector and filter is the magnitude that gives one count
+    per second (synphot 1.4 ``unit_response`` on the same effective-area curves); nlpsf's electrons
+    for that magnitude, per second, must be one, on all 18 x 8."""
+    official = _official_zero_points()
+    assert len(official) == 144
+    residuals = []
+    for (sca, band), zp in official.items():
+        rate = photometry.magnitude_to_electrons(zp, band, 1.0, sca=sca, throughput="roman-2024")
+        residuals.append(2.5 * np.log10(rate))
+    assert np.max(np.abs(residuals)) < 1e-3
+
+
+def test_official_throughput_differs_by_sca_and_galsim_2021_does_not():
+    new = [photometry.zero_point("H158", sca=s, throughput="roman-2024") for s in (1, 18)]
+    old = [photometry.zero_point("H158", sca=s, throughput="galsim-2021") for s in (1, 18)]
+    assert old[0] == old[1]
+    # The issue's numbers: SCA 1 is about 0.13 mag fainter than SCA 18; GalSim's 2021 curve is
+    # 0.054 mag more sensitive than the official SCA 18 one in H158.
+    assert new[1] - new[0] == pytest.approx(0.13, abs=0.02)
+    assert old[1] - new[1] == pytest.approx(0.054, abs=0.002)
+
+
+@pytest.mark.parametrize("throughput", roman.THROUGHPUTS)
+def test_electrons_follow_from_the_effective_area_by_hand(throughput):
+    band, sca = "J129", 7
+    curve = roman.throughput(band, sca=sca, source=throughput)
+    # Midpoint sum instead of the module's trapezoid, with the AB definition written out:
+    # 3631 Jy rounds the 48.60 of the definition m = -2.5 log10 f_nu - 48.60 by 6.6e-5 mag.
     lam = 0.5 * (curve.wavelength_nm[1:] + curve.wavelength_nm[:-1]) * u.nm
     area = 0.5 * (curve.effective_area_m2[1:] + curve.effective_area_m2[:-1]) * u.m**2
     dlam = np.diff(curve.wavelength_nm) * u.nm
     fnu = 3631 * u.Jy * 10 ** (-0.4 * 20.0)
     expected = (np.sum(fnu / (h * lam) * area * dlam) * 100 * u.s).to(u.dimensionless_unscaled).value
-    got = photometry.magnitude_to_electrons(20.0, band, 100.0)
+    got = photometry.magnitude_to_electrons(20.0, band, 100.0, sca=sca, throughput=throughput)
     assert got == pytest.approx(expected, rel=2e-3)
 
 
-def test_magnitude_is_only_a_label_for_flux():
+@pytest.mark.parametrize("throughput", roman.THROUGHPUTS)
+def test_magnitude_is_only_a_label_for_flux(throughput):
     for band in roman.BANDS:
-        e = photometry.magnitude_to_electrons([18.3, 20.8], band, 168.1)
+        e = photometry.magnitude_to_electrons([18.3, 20.8], band, 168.1, sca=3, throughput=throughput)
         assert e[0] / e[1] == pytest.approx(10, rel=1e-12)
-        assert photometry.electrons_to_magnitude(e, band, 168.1) == pytest.approx([18.3, 20.8], abs=1e-12)
+        back = photometry.electrons_to_magnitude(e, band, 168.1, sca=3, throughput=throughput)
+        assert back == pytest.approx([18.3, 20.8], abs=1e-12)
         # Exposure time scales the electrons and nothing else.
-        assert photometry.magnitude_to_electrons(20.0, band, 2 * 168.1) == pytest.approx(2 * e[1] * 10 ** (0.4 * 0.8), rel=1e-12)
+        twice = photometry.magnitude_to_electrons(20.0, band, 2 * 168.1, sca=3, throughput=throughput)
+        assert twice == pytest.approx(2 * e[1] * 10 ** (0.4 * 0.8), rel=1e-12)
 
 
-def test_effective_wavelengths_lie_inside_their_bands():
-    for band in roman.BANDS:
-        c = roman.throughput(band)
-        assert c.blue_limit_nm < c.effective_wavelength_nm < c.red_limit_nm
-    assert roman.throughput("H158").effective_wavelength_nm == pytest.approx(1579.1, abs=0.5)
+@pytest.mark.parametrize("throughput", roman.THROUGHPUTS)
+def test_effective_wavelengths_lie_inside_their_bands(throughput):
+    for sca in (1, 18):
+        for band in roman.BANDS:
+            c = roman.throughput(band, sca=sca, source=throughput)
+            assert c.blue_limit_nm < c.effective_wavelength_nm < c.red_limit_nm
+    assert roman.throughput("H158", sca=18, source="galsim-2021").effective_wavelength_nm == pytest.approx(1579.1, abs=0.5)
+
+
+def test_unknown_throughput_is_refused_by_name():
+    with pytest.raises(InputError, match="throughput"):
+        roman.throughput("H158", sca=1, source="cycle-5")
+    with pytest.raises(InputError, match="throughput"):
+        experiment.SimulationConfig(throughput="newest")
 
 
 @pytest.mark.parametrize("bad", [0, 19, -3, 1.5, "18", True, None])
@@ -94,9 +154,9 @@ def test_unknown_band_is_refused_by_name(bad):
 @pytest.mark.parametrize("exptime", [0, -1, float("nan"), float("inf")])
 def test_bad_exposure_is_refused(exptime):
     with pytest.raises(InputError, match="exptime"):
-        photometry.magnitude_to_electrons(20, "H158", exptime)
+        photometry.magnitude_to_electrons(20, "H158", exptime, sca=18, throughput="roman-2024")
 
 
 def test_negative_flux_has_no_magnitude():
     with pytest.raises(InputError, match="flux_electrons"):
-        photometry.electrons_to_magnitude(-5.0, "H158", 168.1)
+        photometry.electrons_to_magnitude(-5.0, "H158", 168.1, sca=18, throughput="roman-2024")

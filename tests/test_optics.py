@@ -123,7 +123,7 @@ def test_polychromatic_psf_is_a_weighted_sum_of_monochromatic_ones():
     cfg = optics.OpticsConfig("F184", 18, n_wavelengths=3)
     wavelengths, weights = cfg.wavelengths_and_weights()
     assert weights.sum() == pytest.approx(1.0)
-    curve = roman.throughput("F184")
+    curve = roman.throughput("F184", sca=18)
     assert curve.blue_limit_nm < wavelengths[0] < wavelengths[-1] < curve.red_limit_nm
     poly = optics.effective_psf(cfg, 5.0)
     parts = [optics.effective_psf(optics.OpticsConfig("F184", 18, wavelength_nm=w), 5.0) for w in wavelengths]
@@ -177,11 +177,34 @@ def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):
 
     grid = render.Grid(3, 64)
     offsets = np.array([[0.0, 0.0], [0.37, -1.21]])
-    ours = render.draw(optics.effective_psf(optics.OpticsConfig(band, sca), grid.field_arcsec()), grid, offsets)
-    psf = reference._get_psf_oversampled(sca, band, roman.throughput(band).effective_wavelength_nm, 4.0)
+    config = optics.OpticsConfig(band, sca, throughput="galsim-2021")
+    ours = render.draw(optics.effective_psf(config, grid.field_arcsec()), grid, offsets)
+    wavelength = roman.throughput(band, sca=sca, source="galsim-2021").effective_wavelength_nm
+    psf = reference._get_psf_oversampled(sca, band, wavelength, 4.0)
     effective = galsim.Convolve(psf, galsim.Pixel(0.11))
     for k, offset in enumerate(offsets):
         theirs = effective.drawImage(
             nx=64, ny=64, scale=grid.scale_arcsec, method="no_pixel", offset=tuple(offset), dtype=float
         ).array
         assert np.abs(ours[k] - theirs).max() < 5e-5 * theirs.max()
+
+
+def test_polychromatic_weights_follow_the_sca_s_own_throughput_and_the_sed():
+    from nlpsf import psfstats
+
+    def mean_wavelength(wavelengths, weights):
+        return float(np.sum(wavelengths * weights))
+
+    # Photon-weighted mean wavelength of a flat-f_nu star: integral A lambda^0 / integral A lambda^-1,
+    # straight from the SCA's effective-area curve.
+    for sca in (1, 18):
+        curve = roman.throughput("W146", sca=sca, source="roman-2024")
+        w, a = curve.wavelength_nm, curve.effective_area_m2
+        expected = np.trapezoid(a, w) / np.trapezoid(a / w, w)
+        got = mean_wavelength(*optics.OpticsConfig("W146", sca, n_wavelengths=8).wavelengths_and_weights())
+        assert got == pytest.approx(expected, rel=1e-4)
+    # A K0V star falls faster than flat f_nu in the near infrared: its photons are bluer.
+    curve = roman.throughput("W146", sca=18, source="roman-2024")
+    flat = mean_wavelength(*optics.band_wavelengths_and_weights(curve, 8))
+    k0v = mean_wavelength(*optics.band_wavelengths_and_weights(curve, 8, psfstats.blackbody_flambda(5270.0)))
+    assert k0v < flat - 20.0

@@ -256,7 +256,7 @@ def test_the_ramp_saturation_magnitude_moves_by_the_first_resultant_time(paper_c
     ramp_cfg = uniform(8)
     config, scene = _with(paper_config, paper_scene, ramp=ramp_cfg)
     peak = float(paper_scene.peak_fraction.max())
-    final_frame = tablebuild.saturation_magnitude(peak, config.band, T, FULL_WELL, config.oversampling)
+    final_frame = tablebuild.saturation_magnitude(peak, config)  # its exposure T and full well FULL_WELL
     predicted = final_frame - 2.5 * math.log10(T / (T / 8))
     step = 0.05
     grid = np.round(np.arange(final_frame + 0.5, predicted - 0.5, -step), 6)

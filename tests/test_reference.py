@@ -40,7 +40,10 @@ def pipeline(band, sca, cut, pupil_oversampling):
 
 
 def ours(band, sca, magnitude, beta, cut):
-    config = experiment.SimulationConfig(band=band, sca=sca, realizations=REALIZATIONS, weight_cut_rho2=cut, seed=7)
+    # GalSim's Roman module uses its 2021 effective areas: compare like with like.
+    config = experiment.SimulationConfig(
+        band=band, sca=sca, realizations=REALIZATIONS, weight_cut_rho2=cut, seed=7, throughput="galsim-2021"
+    )
     scene = experiment.prepare(config)
     return scene, experiment.simulate(config, [magnitude], [beta], scene=scene)[0]
 

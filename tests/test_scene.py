@@ -128,7 +128,7 @@ def test_detector_scene_equals_building_the_image_the_plain_way(name):
     config = SimulationConfig(realizations=6, scene=model)
     prepared = experiment.prepare(config)
     result = experiment.simulate(config, [18.5], [5e-7], scene=prepared)[0]
-    flux = float(photometry.magnitude_to_electrons(18.5, "H158", 168.1))
+    flux = float(photometry.magnitude_to_electrons(18.5, "H158", 168.1, sca=18, throughput=config.throughput))
     psi = prepared.charge
     charge = flux * 9 * psi + model.background_e
     if model.bfe_coefficient:
@@ -154,11 +154,13 @@ def test_detector_scene_equals_building_the_image_the_plain_way(name):
 def test_linear_response_matches_monte_carlo_slopes_with_detector_effects(name):
     model = DETECTOR_SCENES[name]
     out = {}
+    # No weight cut: a pixel crossing the hard cut between beta0 x 0.99 and x 1.01 makes the finite
+    # difference jumpy (experiment._cut_jump_flags); without it the two agree to second order.
     for method in ("monte_carlo", "linear"):
-        config = SimulationConfig(realizations=6, scene=model, method=method)
+        config = SimulationConfig(realizations=6, scene=model, method=method, weight_cut_rho2=math.inf)
         out[method] = experiment.slopes(config, [20.0])[0]
     for metric in experiment.METRICS:
-        assert out["linear"].bias[metric].mean == pytest.approx(out["monte_carlo"].bias[metric].mean, rel=2e-3)
+        assert out["linear"].bias[metric].mean == pytest.approx(out["monte_carlo"].bias[metric].mean, rel=1e-6)
 
 
 def test_ipc_after_linear_scatter_matches_monte_carlo():

@@ -243,3 +243,39 @@ def test_cli_solve_json_contract(capsys):
 def test_cli_solve_refuses_one_member(capsys):
     assert cli.main(["solve", "--band", "H158", "--magnitude", "18.3", "--json"]) == 2
     assert "exactly two" in capsys.readouterr().err
+
+
+def test_answers_carry_the_optical_model_uncertainty_in_quadrature():
+    # scripts/psf_statistics.py measured how far the slopes move when nlpsf's PSF is made as wide as
+    # the official one; the answer's uncertainty holds that share beside the statistical and
+    # fidelity ones, scaled like them (T = c p beta0: relative on p and T).
+    d = solver.solve("Y106", 18, magnitude=20.0, tolerance=1e-4).to_dict()
+    model = roman.optical_model_uncertainty("Y106", "size")
+    assert d["uncertainty_optical_model"] == pytest.approx(d["precision"] * model, rel=1e-12)
+    parts = (d["uncertainty_statistical"], d["uncertainty_fidelity"], d["uncertainty_optical_model"])
+    assert d["uncertainty"] == pytest.approx(math.hypot(*parts), rel=1e-12)
+    assert d["conditions"]["throughput"] == TABLES.meta["settings"]["throughput"]
+    # One ellipticity component's share is stated against |c_e|: relative to e1 alone it is larger.
+    e = solver.solve("Y106", 18, "e", magnitude=20.0, tolerance=1e-4)
+    e1 = solver.solve("Y106", 18, "e1", magnitude=20.0, tolerance=1e-4)
+    assert e.uncertainty_optical_model / e.precision == pytest.approx(roman.optical_model_uncertainty("Y106", "e"))
+    assert e1.uncertainty_optical_model / e1.precision >= e.uncertainty_optical_model / e.precision
+
+
+def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulation_under_it():
+    default = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4)
+    galsim = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4, throughput="galsim-2021")
+    assert galsim.conditions["throughput"] == "galsim-2021" and default.conditions["throughput"] == "roman-2024"
+    assert any("read with galsim-2021 photometry" in f for f in galsim.flags)
+    # More electrons per magnitude in GalSim's 2021 curve: stars saturate fainter, by the zero-point gap.
+    from nlpsf import photometry
+
+    gap = photometry.zero_point("J129", sca=11, throughput="galsim-2021") - photometry.zero_point(
+        "J129", sca=11, throughput="roman-2024"
+    )
+    assert galsim.saturation_magnitude - default.saturation_magnitude == pytest.approx(gap, abs=1e-9)
+    # A fresh linear simulation on GalSim's throughput (its own PSF wavelength) agrees within the
+    # relabelling error the flag quotes.
+    fresh = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4, throughput="galsim-2021", fidelity="linear")
+    assert fresh.precision == pytest.approx(galsim.precision, rel=tables.RELABEL_ERROR["J129"][0] + 1e-3)
+    assert galsim.uncertainty_optical_model > default.uncertainty_optical_model * galsim.precision / default.precision

@@ -26,6 +26,7 @@ def fresh(table: tables.SlopeTable, magnitude: float, exptime: float | None = No
         exptime_s=exptime or s["exptime_s"],
         weight_cut_rho2=s["weight_cut_rho2"],
         method="linear",
+        throughput=table.throughput,
     )
     return experiment.slopes(config, [magnitude], beta0=beta0 or s["beta0"])[0]
 
@@ -48,6 +49,11 @@ def test_tables_carry_their_provenance(tableset):
         assert key in meta["settings"]
     assert meta["settings"]["exptime_s"] == 168.1 and meta["settings"]["beta0"] == 5e-7
     assert "code_version" in meta and "linear response" in meta["method"]
+    # Built on the newest official per-SCA throughput, and every answer read from them says so.
+    assert meta["settings"]["throughput"] == roman.DEFAULT_THROUGHPUT == "roman-2024"
+    conditions = tables.curve("K213", 3, tables=tableset)["conditions"]
+    assert conditions["throughput"] == "roman-2024"
+    assert conditions["throughput_version"] == roman.THROUGHPUT_VERSIONS["roman-2024"]
 
 
 def test_table_entries_are_the_simulation_they_claim(tableset):

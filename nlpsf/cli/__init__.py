@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("nlpsf.cli.simulate", "simulate NL-induced PSF size and ellipticity changes"),
     "slopes": ("nlpsf.cli.slopes", "bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta vs magnitude"),
     "solve": ("nlpsf.cli.solve", "given two of precision, tolerance, magnitude, get the third"),
+    "sweep": ("nlpsf.cli.sweep", "run a grid of simulations (bands x SCAs x magnitudes x betas), locally or on dask; resumable"),
     "tables": ("nlpsf.cli.tables", "slope tables: build, show, power-law fits"),
     "tradeoff": ("nlpsf.cli.tradeoff", "measure each fidelity level's error and time against the most exact one"),
     "impact": ("nlpsf.cli.impact", "what each scene effect (position, SED, jitter, IPC, ...) changes in the slopes"),

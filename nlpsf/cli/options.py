@@ -33,6 +33,15 @@ def add_band_sca(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18)")
 
 
+def add_throughput(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--throughput",
+        choices=defaults.THROUGHPUTS,
+        default=defaults.THROUGHPUT,
+        help="effective-area data: the official per-SCA curves of 2024, or GalSim's 2021 table (the paper comparison)",
+    )
+
+
 class _StoreGiven(argparse.Action):
     """Store the value and note that the user gave it (an MA table's exposure is otherwise its own)."""
 
@@ -89,9 +98,10 @@ def ramp_from(args: argparse.Namespace):
     return build(args.ramp, args.ma_table, args.ramp_fit, args.read_noise, args.exptime if args.exptime_given else None)
 
 
-def add_simulation_options(parser: argparse.ArgumentParser) -> None:
-    """Options shared by every command that runs the simulator."""
-    add_band_sca(parser)
+def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = True) -> None:
+    """Options shared by every command that runs the simulator (``band_sca=False``: the caller adds its own)."""
+    if band_sca:
+        add_band_sca(parser)
     parser.add_argument(
         "--realizations",
         type=int,
@@ -120,6 +130,7 @@ def add_simulation_options(parser: argparse.ArgumentParser) -> None:
         default=defaults.PUPIL_SCALE,
         help="pupil mask scale rule (see nlpsf/data/SOURCES.md)",
     )
+    add_throughput(parser)
     parser.add_argument(
         "--method", choices=defaults.METHODS, default="monte_carlo", help="every realization fitted, or the linear response"
     )
@@ -218,6 +229,7 @@ def config_from(args: argparse.Namespace):
         pupil_scale=args.pupil_scale,
         method=args.method,
         scene=scene_from(args)[0],
+        throughput=args.throughput,
         ramp=ramp,
     )
 

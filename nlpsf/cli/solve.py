@@ -38,12 +38,39 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
     parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
     parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
+    parser.add_argument(
+        "--shear-m",
+        type=float,
+        help="multiplicative shear-bias budget |m| (size metric); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--shear-c",
+        type=float,
+        help="additive shear-bias budget |c| (e1, e2, e metrics); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--size-ratio",
+        help="R_gal/R_psf, intrinsic galaxy over PSF, R = det(M)^(1/4): a number, 'ratio:weight,...' or @FILE "
+        "(lines 'ratio [weight]'); alone it reports the shear bias the tolerance implies",
+    )
+    parser.add_argument(
+        "--stars",
+        type=int,
+        default=1,
+        help="scatter mode: the PSF model averages this many stars/dithers on independent pixels (sigma / sqrt(n))",
+    )
     parser.add_argument("--fidelity", choices=LEVELS, default=None, help="how the slope is obtained (default table)")
     parser.add_argument(
         "--accuracy",
         type=float,
         default=None,
         help="relative accuracy wanted: picks the cheapest fidelity whose measured error is below it (instead of --fidelity)",
+    )
+    parser.add_argument(
+        "--throughput",
+        choices=defaults.THROUGHPUTS,
+        default=None,
+        help=f"photometry of the magnitude: default the tables' own ({defaults.THROUGHPUT}); another relabels them",
     )
     add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
@@ -93,6 +120,11 @@ def run(args: argparse.Namespace) -> int:
         args.fidelity,
         args.accuracy,
         scene=_scene(args),
+        throughput=args.throughput,
+        shear_m=args.shear_m,
+        shear_c=args.shear_c,
+        size_ratio=args.size_ratio,
+        stars=args.stars,
         ramp=ramp,
     )
     return _report(solution, args, ramp)
@@ -130,6 +162,9 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
             f"  saturation at m={solution.saturation_magnitude:.2f} AB (ramp rule: first resultant), "
             f"final frame m={solution.final_frame_saturation_magnitude:.2f} AB"
         )
+    print(f"  applies to {solution.applies_to}")
+    if solution.shear:
+        _print_shear(solution.shear)
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     if solution.model:
@@ -175,3 +210,16 @@ def _scene(args: argparse.Namespace):
 
 def _tolerance_unit(metric: str) -> str:
     return "(fractional size error dR/R)" if metric == "size" else f"(ellipticity error |d{metric}|)"
+
+
+def _print_shear(budget: dict) -> None:
+    kind = "m" if "m" in budget else "c"
+    ratio = budget["size_ratio"]
+    ratio_text = (
+        f"{ratio:g}" if isinstance(ratio, float) else f"{len(ratio['ratios'])} ratios, effective {ratio['effective']:.4g}"
+    )
+    if budget["given"] == "tolerance":
+        value = with_error(budget[kind], budget.get("uncertainty"))
+        print(f"  implied shear bias |{kind}| {value} for R_gal/R_psf {ratio_text} ({budget['relation']})")
+    else:
+        print(f"  shear budget |{kind}| {budget[kind]:.4g}, R_gal/R_psf {ratio_text} -> tolerance {budget['tolerance']:.4g}")

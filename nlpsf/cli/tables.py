@@ -24,11 +24,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     build.add_argument("--sca", action="append", type=int, help="only these SCAs (repeat); default all")
     build.add_argument("--workers", type=int, default=1, help="local worker processes")
     build.add_argument("--dask", default=None, metavar="ADDRESS", help="run on a dask.distributed scheduler ('local' starts one)")
+    build.add_argument("--scheduler-file", default=None, help="connect to the dask scheduler described in this file")
+    build.add_argument("--retries", type=int, default=1, help="re-runs of a table whose computation raised")
     build.add_argument("--realizations", type=int, default=defaults.REALIZATIONS, help="centroid realizations per table")
     build.add_argument(
         "--faint-limit", type=float, default=defaults.TABLE_FAINT_LIMIT, help="faintest magnitude of the grid [AB]"
     )
     build.add_argument("--step", type=float, default=defaults.TABLE_MAGNITUDE_STEP, help="magnitude step of the grid [mag]")
+    build.add_argument(
+        "--throughput", choices=defaults.THROUGHPUTS, default=defaults.THROUGHPUT, help="effective-area data the tables use"
+    )
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     show = sub.add_parser("show", help="print one table", formatter_class=parser.formatter_class)
     show.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
@@ -53,7 +58,9 @@ def _build(args) -> int:
     from ..checks import check_integer
 
     check_integer(args.workers, "workers", 1, 256)
-    settings = tablebuild.TableSettings(realizations=args.realizations, faint_limit=args.faint_limit, magnitude_step=args.step)
+    settings = tablebuild.TableSettings(
+        realizations=args.realizations, faint_limit=args.faint_limit, magnitude_step=args.step, throughput=args.throughput
+    )
     start = time.perf_counter()
     paths = tablebuild.build_tables(
         args.output,
@@ -62,6 +69,8 @@ def _build(args) -> int:
         settings=settings,
         workers=args.workers,
         dask_address=args.dask,
+        scheduler_file=args.scheduler_file,
+        retries=args.retries,
         progress=progress_printer(not args.quiet),
     )
     print(f"{len(paths)} tables in {args.output} ({time.perf_counter() - start:.1f} s)", file=sys.stderr)

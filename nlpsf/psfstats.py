@@ -1,0 +1,163 @@
+"""nlpsf's optical model against the official Roman PSF summary statistics.
+
+STScI's ``SummaryPSFstats_{center,corner}.ecsv`` (roman-technical-information 1.5.0, post-CDR
+optical design, WebbPSF/STPSF) give, for SCA 1 and 18 at the detector centre in every filter, a
+K0V star sampled over the band and 8 mas FWHM Gaussian pointing jitter:
+
+- FWHM [arcsec] of the 8x oversampled PSF (STPSF's ``measure_fwhm``: a Gaussian of fixed centre
+  fitted to the pixels above 10 % of the peak);
+- N_eff = 1 / sum(p_i^2) over native pixels, and the peak native-pixel value, with p normalised
+  to the flux entering the telescope (the ~7" images hold 97-99 % of it);
+- the flux inside the image, ``tot_flux``.
+
+:func:`psf_statistics` computes the same four numbers from nlpsf's optics (GalSim's Cycle-9
+Zernikes and pupil masks) under the same conditions, so the two optical models can be compared.
+The K0V spectrum is a 5270 K blackbody (Pecaut & Mamajek's K0V effective temperature): over one
+band the photon weights of a K dwarf and of its blackbody differ by a few percent, a small
+effect next to that of the SED's slope (compare ``sed="flat"``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from functools import cache
+
+import numpy as np
+from astropy import constants as const
+from scipy.optimize import curve_fit
+
+from . import optics, render, roman
+from .checks import InputError
+
+#: K0V effective temperature [K] (Pecaut & Mamajek 2013) for the blackbody stand-in SED.
+K0V_TEMPERATURE_K = 5270.0
+#: The official PSFs' pointing jitter: Gaussian of 8 mas FWHM.
+OFFICIAL_JITTER_FWHM_ARCSEC = 0.008
+#: The official images: ~7 arcsec square; 64 native pixels is 7.04".
+OFFICIAL_IMAGE_PIXELS = 64
+#: STPSF's measure_fwhm: pixels above this fraction of the peak enter the Gaussian fit.
+FWHM_FIT_THRESHOLD = 0.1
+CENTRINGS = ("center", "corner")
+SEDS = ("K0V", "flat")
+
+
+@dataclass(frozen=True)
+class PSFStatistics:
+    band: str
+    sca: int
+    centring: str
+    fwhm_arcsec: float
+    n_eff_pixels: float
+    peak_fraction: float
+    total_flux: float
+
+
+def blackbody_flambda(temperature_k: float):
+    """f_lambda of a blackbody (arbitrary normalisation) as a function of wavelength in nm."""
+    hc_over_k = (const.h * const.c / const.k_B).to_value("nm K")
+
+    def flambda(wavelength_nm: np.ndarray) -> np.ndarray:
+        wavelength_nm = np.asarray(wavelength_nm, dtype=np.float64)
+        return wavelength_nm**-5 / np.expm1(hc_over_k / (wavelength_nm * temperature_k))
+
+    return flambda
+
+
+@cache
+def official_statistics() -> dict[tuple[int, str, str], PSFStatistics]:
+    """The official table, keyed by (sca, band, centring). Bands use nlpsf's names."""
+    out = {}
+    band_of = {v: k for k, v in roman.OFFICIAL_FILTER_NAMES.items()}
+    for centring in CENTRINGS:
+        # The files' YAML header does not parse as ECSV; the body is plain CSV.
+        path = roman.official_data_dir() / f"SummaryPSFstats_{centring}.ecsv"
+        rows = [line for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+        names = [n.strip() for n in rows[0].split(",")]
+        for line in rows[1:]:
+            values = dict(zip(names, (v.strip() for v in line.split(",")), strict=True))
+            band = band_of[values["Filter"]]
+            sca = int(values["SCA"])
+            out[(sca, band, centring)] = PSFStatistics(
+                band=band,
+                sca=sca,
+                centring=centring,
+                fwhm_arcsec=float(values["FWHM"]),
+                n_eff_pixels=float(values["N_Eff_Pix"]),
+                peak_fraction=float(values["peak_flux"]),
+                total_flux=float(values["tot_flux"]),
+            )
+    return out
+
+
+def _gaussian_blur(psf: optics.EffectivePSF, fwhm_arcsec: float) -> optics.EffectivePSF:
+    """The PSF convolved with a round Gaussian: its Fourier coefficients times the Gaussian's."""
+    sigma = fwhm_arcsec / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    f = psf.frequencies
+    transfer = np.exp(-2.0 * math.pi**2 * sigma**2 * (f[:, None] ** 2 + f[None, :] ** 2))
+    return optics.EffectivePSF(psf.optics, psf.field_arcsec, f, psf.coefficients * transfer, psf.wavelengths_nm, psf.weights)
+
+
+def fwhm_gaussian_fit(image: np.ndarray, scale_arcsec: float, threshold: float = FWHM_FIT_THRESHOLD) -> float:
+    """FWHM of a centred PSF image as STPSF measures it: a Gaussian of fixed centre (the image
+    centre) fitted to the radii and values of the pixels above ``threshold`` of the peak."""
+    image = image / image.max()
+    n = image.shape[0]
+    c = (np.arange(n) - (n - 1) / 2) * scale_arcsec
+    r = np.hypot(c[None, :], c[:, None])
+    keep = image > threshold
+    (_amplitude, sigma), _ = curve_fit(
+        lambda x, a, s: a * np.exp(-0.5 * (x / s) ** 2), r[keep], image[keep], p0=(1.0, 0.4 * r[keep].max())
+    )
+    return float(2.0 * math.sqrt(2.0 * math.log(2.0)) * abs(sigma))
+
+
+def psf_statistics(
+    band: str,
+    sca: int,
+    sed: str = "K0V",
+    n_wavelengths: int = 10,
+    jitter_fwhm_arcsec: float = OFFICIAL_JITTER_FWHM_ARCSEC,
+    throughput: str = roman.DEFAULT_THROUGHPUT,
+    pupil_scale: str = "galsim",
+) -> dict[str, PSFStatistics]:
+    """nlpsf's PSF statistics under the official conditions, for both centrings."""
+    band, sca = roman.check_band(band), roman.check_sca(sca)
+    if sed not in SEDS:
+        raise InputError("sed", f"must be one of {', '.join(SEDS)}, got {sed!r}")
+    curve = roman.throughput(band, sca=sca, source=throughput)
+    flambda = blackbody_flambda(K0V_TEMPERATURE_K) if sed == "K0V" else None
+    wavelengths, weights = optics.band_wavelengths_and_weights(curve, n_wavelengths, flambda)
+    pupil = roman.pupil(sca, band, 4, pupil_scale)
+    aberrations = roman.aberrations(sca)
+    field = OFFICIAL_IMAGE_PIXELS * roman.PIXEL_SCALE_ARCSEC
+    optical = _gaussian_blur(
+        optics.psf_from_pupil(pupil, aberrations, wavelengths, weights, field, pixel_response=False), jitter_fwhm_arcsec
+    )
+    # The FWHM of the 8x oversampled optical PSF, centred on the image as STPSF's is.
+    fine = render.Grid(8, 64)
+    fwhm = fwhm_gaussian_fit(render.draw(optical, fine, np.zeros((1, 2)))[0], fine.scale_arcsec)
+    # Native pixels: the pixel-convolved PSF sampled at pixel centres, centred on a pixel corner
+    # (zero offset on an even stamp) or on a pixel centre (half a pixel off).
+    pixel = np.sinc(roman.PIXEL_SCALE_ARCSEC * optical.frequencies)
+    effective = optics.EffectivePSF(
+        None, field, optical.frequencies, optical.coefficients * pixel[:, None] * pixel[None, :], wavelengths, weights
+    )
+    native = render.Grid(1, OFFICIAL_IMAGE_PIXELS)
+    images = render.draw(effective, native, np.array([[0.5, 0.5], [0.0, 0.0]]))
+    out = {}
+    for centring, image in zip(CENTRINGS, images, strict=True):
+        out[centring] = PSFStatistics(
+            band=band,
+            sca=sca,
+            centring=centring,
+            fwhm_arcsec=fwhm,
+            n_eff_pixels=float(1.0 / np.sum(image**2)),
+            peak_fraction=float(image.max()),
+            total_flux=float(image.sum()),
+        )
+    return out
+
+
+def as_dict(stats: PSFStatistics) -> dict:
+    return asdict(stats)
