@@ -345,7 +345,10 @@ def _agree(ours, peer):
 
 
 def _ours(model, band="H158", sca=18, magnitude=18.3, **kw):
-    config = SimulationConfig(band=band, sca=sca, realizations=GALSIM_REALIZATIONS, seed=3, scene=model, **kw)
+    # GalSim's Roman module uses its 2021 effective areas (flux and, polychromatic, the weights).
+    config = SimulationConfig(
+        band=band, sca=sca, realizations=GALSIM_REALIZATIONS, seed=3, scene=model, throughput="galsim-2021", **kw
+    )
     prepared = experiment.prepare(config)
     return prepared, experiment.simulate(config, [magnitude], [5e-7], scene=prepared)[0]
 
