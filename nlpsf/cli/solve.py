@@ -148,7 +148,7 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     if payload["uncertainty"] is not None:
         parts = ", ".join(
             f"{k} {payload[f'uncertainty_{k}']:.2g}"
-            for k in ("statistical", "fidelity", "model")
+            for k in ("statistical", "fidelity", "optical_model", "model")
             if payload[f"uncertainty_{k}"] is not None
         )
         print(f"  uncertainty ({parts})")
