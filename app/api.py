@@ -132,21 +132,28 @@ def meta(request: Request) -> SafeJSONResponse:
 async def solve(body: models.SolveRequest, request: Request) -> Response:
     # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
     ramp_keys = ("ramp", "ma_table", "ramp_fit", "read_noise")
+    scene_keys = ("scene", "over_field")
     raw = body.model_dump()
-    arguments = {k: v for k, v in raw.items() if k not in ramp_keys}
+    arguments = {k: v for k, v in raw.items() if k not in ramp_keys and k not in scene_keys}
     ramp, arguments["exptime"] = body.ramp_arguments(body.exptime)  # validates the ramp
-    if ramp is None and body.fidelity in (None, "table") and body.accuracy is None:
+    from .simulation import build_scene
+
+    scene = build_scene(raw["scene"]) if raw["scene"] is not None else None  # validates the scene
+    if scene is not None and ramp is not None:
+        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
+    plain = ramp is None and scene is None and body.over_field is None
+    if plain and body.fidelity in (None, "table") and body.accuracy is None:
         return SafeJSONResponse(solver.solve(**arguments).to_dict())
     # Validate everything else, and find the level, at table cost; a simulating level -- or a ramp,
-    # whose slopes may need fresh simulations -- is a job like any other simulation (queue, limits,
-    # idle priority), never work inside this HTTP worker.
+    # a scene or an over-field answer, whose slopes need fresh simulations -- is a job like any other
+    # simulation (queue, limits, idle priority), never work inside this HTTP worker.
     checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None})
     chosen, _ = solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
-    if chosen == "table" and ramp is None:
+    if chosen == "table" and plain:
         return SafeJSONResponse(solver.solve(**arguments).to_dict())
     from .simulations import queue_full_response, submit_job
 
-    job_arguments = {**arguments, "band": checked.band}
+    job_arguments = {**arguments, "band": checked.band, "scene_request": raw["scene"], "over_field": raw["over_field"]}
     if ramp is not None:
         # The worker rebuilds the ramp from the request's own (JSON) fields.
         job_arguments["exptime"] = body.exptime
@@ -167,6 +174,39 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     from .simulations import job_response
 
     return job_response(job, status)
+
+
+@router.post(
+    "/impact",
+    response_model=models.ImpactReport,
+    responses=ERRORS,
+    summary="What each scene effect changes in the slopes at one point (linear response)",
+)
+async def impact(body: models.ImpactRequest, request: Request) -> Response:
+    from starlette.concurrency import run_in_threadpool
+
+    from nlpsf import impact as impact_module
+
+    from .simulation import LimitError, build_scene
+
+    arguments = body.model_dump()
+    limits = request.app.state.settings.limits
+    if arguments["realizations"] > limits.max_realizations:
+        raise LimitError(
+            "realizations",
+            "max_realizations",
+            f"asks for {arguments['realizations']:,} realizations; the limit max_realizations is {limits.max_realizations:,}",
+        )
+    scene = build_scene(arguments.pop("scene"))
+    wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
+    if wavelengths > limits.max_wavelengths:
+        raise LimitError(
+            "scene",
+            "max_wavelengths",
+            f"the scene's SED needs {wavelengths} wavelengths; the limit max_wavelengths is {limits.max_wavelengths}",
+        )
+    report = await run_in_threadpool(impact_module.impact, scene=scene, max_wavelengths=limits.max_wavelengths, **arguments)
+    return SafeJSONResponse(json_safe(report))
 
 
 def _table_etag(kind: str, band: str | None, sca: int | None) -> str:
@@ -212,9 +252,13 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
     except ValidationError as invalid:
         return {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}
     raw = request.model_dump()
-    arguments = {k: v for k, v in raw.items() if k not in ("ramp", "ma_table", "ramp_fit", "read_noise")}
+    job_only = ("ramp", "ma_table", "ramp_fit", "read_noise", "scene", "over_field")
+    arguments = {k: v for k, v in raw.items() if k not in job_only}
     try:
         ramp, arguments["exptime"] = request.ramp_arguments(request.exptime)
+        for name in ("scene", "over_field"):
+            if raw[name] is not None:
+                raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
         if ramp is not None or request.fidelity not in (None, "table") or request.accuracy is not None:
             # A batch answers at table cost; a simulating solve is a job (POST /solve), one at a time.
             raise InputError("fidelity", "a batch solves from the tables only: send ramps and simulating levels to POST /solve")

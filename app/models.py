@@ -35,6 +35,44 @@ Throughput = Literal[roman.THROUGHPUTS]  # type: ignore[valid-type]
 RampFit = Literal[defaults.RAMP_FITS]  # type: ignore[valid-type]
 
 
+class SceneRequest(BaseModel):
+    """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
+
+    model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
+
+    preset: Literal["paper", "roman"] | None = Field(
+        None, description="(no unit) roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
+    )
+    position: list[float] | None = Field(None, min_length=2, max_length=2, description="X, Y on the SCA in pixels (1-4088)")
+    sed: str | None = Field(None, description="(no unit) flat (f_nu) or blackbody:TEFF (TEFF in K)")
+    sed_table: list[list[float]] | None = Field(
+        None, max_length=20_000, description="the SED as rows [wavelength in nm, flux in sed_units]"
+    )
+    sed_units: Literal["flambda", "fnu"] = Field(
+        "flambda", description="(no unit) what sed_table's flux is: flambda or fnu, any scale"
+    )
+    n_wavelengths: int | None = Field(
+        None, description="number of wavelengths for the SED (count; default: chosen for 0.1 % of the slopes)"
+    )
+    jitter: float | None = Field(None, description="pointing jitter, arcsec rms per axis (Roman 0.014)")
+    charge_diffusion: float | None = Field(None, description="charge diffusion, native pixels rms (GalSim's Roman 0.1)")
+    ipc: str | float | list[list[float]] | None = Field(
+        None,
+        description="interpixel capacitance: roman, a nearest-neighbour alpha (dimensionless fraction), or a 3x3 kernel "
+        "(dimensionless, rows y, columns x)",
+    )
+    ipc_order: Literal["after", "before"] | None = Field(
+        None, description="(no unit) IPC after (default, as GalSim) or before the NL"
+    )
+    nl_coefficients: list[float] | None = Field(
+        None,
+        max_length=6,
+        description="NL beyond the quadratic: b3 in 1/e-^2, b4 in 1/e-^3, ... in S = Q - beta Q^2 - b3 Q^3 - ...",
+    )
+    bfe: float | None = Field(None, description="brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours)")
+    background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
+
+
 class MATableSpec(BaseModel):
     """An MA table given inline: resultants as lists of 1-based read indices."""
 
@@ -98,7 +136,17 @@ class SolveRequest(RampFields):
         description="how the slope is obtained (no unit): table (instant, the default), linear, monte_carlo, polychromatic",
     )
     accuracy: float | None = Field(
-        None, description="relative accuracy target (dimensionless fraction); picks the cheapest fidelity meeting it"
+        None,
+        description="relative accuracy target (dimensionless fraction): picks the cheapest fidelity meeting it, "
+        "simulates only the scene effects whose measured impact exceeds it and adds the others to the uncertainty's model part",
+    )
+    scene: SceneRequest | None = Field(
+        None, description="what the star goes through (default the paper's scene; units per field)"
+    )
+    over_field: Literal["sca", "focal_plane"] | None = Field(
+        None,
+        description="(no unit) answer for the worst position: over the SCA's five field points (sca) or all 18 SCAs' "
+        "(focal_plane); simulates (seconds per point)",
     )
     throughput: Throughput | None = Field(
         None, description="photometry of the magnitude (no unit): null for the tables' own (roman-2024), or galsim-2021"
@@ -306,6 +354,46 @@ class PaperData(BaseModel):
     magnitudes: list[float] = _f("the paper's magnitudes in AB mag")
 
 
+class ImpactRequest(BaseModel):
+    """What each scene effect changes in the slopes at one point (``nlpsf impact``)."""
+
+    model_config = ConfigDict(
+        **_STRICT, json_schema_extra={"examples": [{"band": "H158", "sca": 18, "magnitude": 18.3, "scene": {"preset": "roman"}}]}
+    )
+
+    band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
+    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    magnitude: float = Field(defaults.MAGNITUDE, description="magnitude of the star in AB mag")
+    metric: Metric = Field("size", description="the request's metric (no unit)")
+    mode: Mode = Field("bias", description="bias or scatter slopes (no unit)")
+    beta0: float = Field(defaults.BETA0, description="beta0 in 1/e- (paper convention)")
+    exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
+    realizations: int = Field(
+        50, description="number of centroid realizations per run (count; both runs of an effect share them)"
+    )
+    seed: int = Field(1, description="random seed (integer, no unit)")
+    scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
+
+
+class ImpactEffect(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    name: str = _f("the scene effect (no unit)")
+    on: bool = _f("whether the request's scene has the effect on")
+    impact: dict[str, float | None] = _f("relative change of the slope per metric (dimensionless; 0.05 = +5 %)")
+    uncertainty: dict[str, float | None] = _f("1-sigma uncertainty of each relative change (dimensionless)")
+    cost_s: float | None = _f("time of the run with the effect, in s")
+    value: Any = _f("the effect's value as measured, in the unit of its scene field", None)
+    note: str | None = _f("how the effect was measured (text)", None)
+
+
+class ImpactReport(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    effects: list[ImpactEffect] = _f("one entry per scene effect")
+    conditions: dict[str, Any] = _f("conditions: band, SCA, magnitude (AB mag), beta0 (1/e-), exposure (s), scene, slopes (e-)")
+
+
 class SimulationRequest(RampFields):
     """A fresh simulation on the grid magnitudes x betas x sigma_betas (paper's defaults)."""
 
@@ -338,6 +426,9 @@ class SimulationRequest(RampFields):
         defaults.PAPER_WEIGHT_CUT_RHO2, description="adaptive-moment weight cut rho^2, dimensionless (paper 25, GalSim 32.24)"
     )
     pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule (no unit)")
+    scene: SceneRequest | None = Field(
+        None, description="scene effects (position, SED, jitter, IPC, ...; units per field); default the paper's"
+    )
     throughput: Throughput = Field(
         defaults.THROUGHPUT,
         description="effective-area data (no unit): roman-2024 (official, per SCA) or galsim-2021 (GalSim's, paper comparison)",

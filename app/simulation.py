@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from nlpsf import __version__, defaults, detector, experiment, fidelity, ramps, roman
+from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 
 from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
@@ -48,9 +49,18 @@ def request_field(argument: str) -> str:
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 
+def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
+    """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``."""
+    try:
+        return scenes.from_request(fields)
+    except InputError as error:
+        raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
+
+
 def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
+    scene = build_scene(request.get("scene"))
     ramp, exptime = ramps.build(
         request.get("ramp"),
         request.get("ma_table"),
@@ -72,13 +82,14 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         weight_cut_rho2=request["weight_cut_rho2"],
         pupil_scale=request["pupil_scale"],
         method=level.method,
+        scene=scene,
         throughput=request.get("throughput", roman.DEFAULT_THROUGHPUT),
         ramp=ramp,
     )
 
 
 def work_of(config: experiment.SimulationConfig, cells: int) -> int:
-    return config.realizations * config.stamp**2 * (config.n_wavelengths + cells)
+    return config.realizations * config.stamp**2 * (config.optics.n_wavelengths + cells)
 
 
 def validate(request: dict[str, Any], limits: Limits, memory_mb: int | None = None) -> dict[str, Any]:
@@ -114,7 +125,7 @@ def validate(request: dict[str, Any], limits: Limits, memory_mb: int | None = No
     cells = len(magnitudes) * len(betas) * len(sigma_betas)
     _check_limits(
         [
-            ("n_wavelengths", "max_wavelengths", config.n_wavelengths, limits.max_wavelengths, "wavelengths"),
+            ("n_wavelengths", "max_wavelengths", config.optics.n_wavelengths, limits.max_wavelengths, "wavelengths"),
             (
                 "realizations",
                 "max_stamp_pixels",
@@ -152,6 +163,8 @@ def validate(request: dict[str, Any], limits: Limits, memory_mb: int | None = No
         betas=betas,
         sigma_betas=sigma_betas,
     )
+    if normalised.get("scene") is None:
+        normalised.pop("scene", None)  # the paper's scene: same hash as before scenes existed
     return normalised
 
 
@@ -207,7 +220,17 @@ def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[st
                 given,
                 allow_files=False,
             )
-        solution = solver.solve(**arguments).to_dict()
+        scene_request = arguments.pop("scene_request", None)
+        over_field = arguments.pop("over_field", None)
+        if scene_request is not None:
+            arguments["scene"] = build_scene(scene_request)
+        if over_field is not None:
+            band, sca = arguments.pop("band"), arguments.pop("sca")
+            scas = "all" if over_field == "focal_plane" else [sca]
+            step = None if progress is None else (lambda done, total, message: progress(done / max(total, 1), message))
+            solution = solver.solve_over_field(band, scas, progress=step, **arguments).to_dict()
+        else:
+            solution = solver.solve(**arguments).to_dict()
         if progress:
             progress(1.0, "done")
         return _json_safe(solution)

@@ -47,3 +47,34 @@ def apply_nonlinearity(charge: np.ndarray, beta) -> np.ndarray:
 def draw_pixel_betas(rng: np.random.Generator, beta0: float, sigma_beta: float, shape: tuple[int, ...]) -> np.ndarray:
     """Per-pixel beta ~ N(beta0, sigma_beta^2) (paper section 4.2)."""
     return beta0 + sigma_beta * rng.standard_normal(shape)
+
+
+def polynomial_perturbation(charge: np.ndarray, beta, higher: tuple[float, ...] = ()) -> np.ndarray:
+    """S - Q for the polynomial response S = Q - b2 Q^2 - b3 Q^3 - ... (paper sign convention).
+
+    ``beta`` is b2 (a scalar or per-pixel values: the scatter option applies to it) and ``higher``
+    holds (b3, b4, ...). Computed term by term, never as S - Q, so a tiny NL keeps full relative
+    precision. GalSim's convention (S = Q + b Q^2 + ...) is every coefficient negated.
+    """
+    out = nonlinearity_perturbation(charge, beta)
+    power = charge * charge
+    for coefficient in higher:
+        power = power * charge
+        if coefficient != 0.0:
+            out = out - coefficient * power
+    return out
+
+
+def apply_polynomial_nonlinearity(charge: np.ndarray, beta, higher: tuple[float, ...] = ()) -> np.ndarray:
+    """S = Q - b2 Q^2 - b3 Q^3 - ... (``beta`` = b2, ``higher`` = (b3, b4, ...))."""
+    return charge + polynomial_perturbation(charge, beta, higher)
+
+
+def response_slope(charge: np.ndarray, beta, higher: tuple[float, ...] = ()) -> np.ndarray:
+    """dS/dQ = 1 - 2 b2 Q - 3 b3 Q^2 - ...: where it reaches zero the response stops being monotonic."""
+    out = 1.0 - 2.0 * np.asarray(beta, dtype=np.float64) * charge
+    power = charge
+    for k, coefficient in enumerate(higher, start=3):
+        power = power * charge
+        out = out - k * coefficient * power
+    return out

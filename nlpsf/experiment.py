@@ -36,10 +36,12 @@ from functools import cached_property
 import numpy as np
 
 from . import __version__, defaults, detector, moments, optics, photometry, ramps, render, roman
+from . import scene as scenes
 from .checks import InputError, check_choice, check_exptime, check_full_well, check_integer, check_number, check_numbers
 from .fidelity import level_name
 
 METHODS = defaults.METHODS
+PAPER_SCENE = scenes.SceneModel()
 MAX_REALIZATIONS = defaults.MAX_REALIZATIONS
 #: The rendered stamps of a scene are kept in memory; this bounds them (realizations x stamp^2).
 MAX_STAMP_BYTES = 1_500_000_000
@@ -69,8 +71,14 @@ class SimulationConfig:
     throughput: str = roman.DEFAULT_THROUGHPUT
     #: Up-the-ramp exposure (MA table and slope fit); None: the paper's single final frame.
     ramp: ramps.Ramp | None = None
+    #: The scene effects (``nlpsf.scene``); the default is the paper's scene.
+    scene: scenes.SceneModel = PAPER_SCENE
 
     def __post_init__(self) -> None:
+        if isinstance(self.scene, dict):
+            object.__setattr__(self, "scene", scenes.from_dict(self.scene))
+        if not isinstance(self.scene, scenes.SceneModel):
+            raise InputError("scene", f"must be a scene description, got {type(self.scene).__name__}")
         object.__setattr__(self, "band", roman.check_band(self.band))
         object.__setattr__(self, "sca", roman.check_sca(self.sca))
         roman.check_throughput(self.throughput)
@@ -88,20 +96,31 @@ class SimulationConfig:
         check_choice(self.method, "method", METHODS)
         check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
         moments.MomentSettings(weight_cut_rho2=self.weight_cut_rho2)
-        _ = self.optics  # validates n_wavelengths and pupil_bin
+        optics_config = self.optics  # validates n_wavelengths and pupil_bin
+        if not self.scene.is_paper:
+            optics_config.wavelengths_and_weights()  # a SED table must cover the band: refuse it here, not mid-run
         if self.ramp is not None:
             if not isinstance(self.ramp, ramps.Ramp):
                 raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
             self.ramp.check_exposure(self.exptime_s)
+            if not self.scene.plain_detector:
+                # The ramp's per-pixel factor c_2 is derived for the quadratic on the plain charge.
+                raise InputError(
+                    "scene",
+                    "the scene's detector effects (IPC, polynomial NL, brighter-fatter, background) and a ramp "
+                    "cannot be combined yet; optical effects (position, SED, jitter, diffusion) can",
+                )
 
     @property
     def optics(self) -> optics.OpticsConfig:
         return optics.OpticsConfig(
             band=self.band,
             sca=self.sca,
-            n_wavelengths=self.n_wavelengths,
+            n_wavelengths=self.scene.wavelengths(self.band, self.n_wavelengths, self.sca, self.throughput),
             pupil_bin=self.pupil_bin,
             pupil_scale=self.pupil_scale,
+            position_pixels=self.scene.position,
+            spectrum=self.scene.spectrum(),
             throughput=self.throughput,
         )
 
@@ -119,7 +138,8 @@ class SimulationConfig:
 
     @property
     def fidelity(self) -> str:
-        return level_name(self.method, self.n_wavelengths)
+        polychromatic = self.n_wavelengths > 1 or self.scene.sed is not None
+        return level_name(self.method, 2 if polychromatic else 1) + ("" if self.scene.is_paper else "+scene")
 
     def conditions(self) -> dict:
         """What every number computed under this configuration holds for."""
@@ -129,7 +149,10 @@ class SimulationConfig:
             out["ramp"] = self.ramp.conditions(self.exptime_s)
         if not math.isfinite(self.weight_cut_rho2):
             out["weight_cut_rho2"] = None  # no cut (JSON has no infinity)
+        out["scene"] = self.scene.to_dict()
         out.update(
+            scene_description=self.scene.describe(),
+            wavelengths_used=self.optics.n_wavelengths,
             fidelity=self.fidelity,
             pixel_scale_arcsec=roman.PIXEL_SCALE_ARCSEC,
             throughput_version=roman.THROUGHPUT_VERSIONS[self.throughput],
@@ -149,6 +172,12 @@ class Scene:
     stamps: np.ndarray  # (R, n, n) unit-flux stamps
     reference: moments.Moments
     elapsed_s: float
+    #: Unit-flux charge stamps before IPC (None: the same as ``stamps``, no IPC in the scene).
+    unit_charge: np.ndarray | None = None
+
+    @property
+    def charge(self) -> np.ndarray:
+        return self.stamps if self.unit_charge is None else self.unit_charge
 
     @cached_property
     def peak_fraction(self) -> np.ndarray:
@@ -173,6 +202,8 @@ def prepare(config: SimulationConfig, progress: Progress | None = None) -> Scene
     if progress:
         progress(0, 3, "optics")
     psf = optics.effective_psf(config.optics, round(grid.field_arcsec(), 9))
+    # Jitter and charge diffusion: Gaussian blurs, a multiplication of the Fourier coefficients.
+    psf = scenes.blur(psf, config.scene.blur_sigma_arcsec())
     rng = np.random.default_rng(config.seed)
     offsets = render.draw_offsets(rng, config.realizations, config.oversampling)
     chunk = 256
@@ -182,13 +213,17 @@ def prepare(config: SimulationConfig, progress: Progress | None = None) -> Scene
         if progress:
             progress(1 + k / len(blocks), 3, "rendering")
         stamps[first : first + chunk] = render.draw(psf, grid, offsets[first : first + chunk])
+    unit_charge = None
+    if config.scene.ipc is not None:
+        # The linear image the moments are referred to is the IPC-coupled one.
+        unit_charge, stamps = stamps, scenes.apply_ipc(stamps, config.scene.ipc, config.oversampling)
     parts = []
     for k, first in enumerate(blocks):
         if progress:
             progress(2 + k / len(blocks), 3, "reference moments")
         parts.append(moments.fit(stamps[first : first + chunk], config.moment_settings))
     reference = moments.concatenate(parts)
-    return Scene(config, psf, offsets, stamps, reference, time.perf_counter() - start)
+    return Scene(config, psf, offsets, stamps, reference, time.perf_counter() - start, unit_charge)
 
 
 @dataclass(frozen=True)
@@ -308,8 +343,17 @@ def _validity_flags(
             f"of {config.full_well_e:.4g} e-, in {int(over.sum())} of {over.size} realizations; "
             "a real detector would clip this star, so the numbers describe an unphysical case"
         )
+    model = config.scene
     if ramp_effect is not None:
         worst = float(np.min(1.0 - 2.0 * np.max(beta_map) * ramp_effect.used_peak_e))
+    elif not model.plain_detector:
+        # dS/dQ of the polynomial at the charge the NL acts on (background, BFE, IPC-before included).
+        pick = slice(None) if index is None else slice(index, index + 1)
+        charge = scenes.charge_before_nl(scene.charge[pick], charge_scale, model, config.oversampling)
+        b2 = beta_map if beta_map.size > 1 else float(beta_map.ravel()[0])
+        slope = detector.response_slope(charge, b2, model.nl_coefficients)
+        weighted = np.broadcast_to(scene.weighted_region[pick], np.broadcast_shapes(slope.shape, charge.shape))
+        worst = float(np.where(weighted, slope, np.inf).min())
     elif beta_map.size == 1:
         peak = scene.weighted_peak_fraction if index is None else scene.weighted_peak_fraction[index]
         worst = float(np.min(1.0 - 2.0 * float(beta_map.ravel()[0]) * charge_scale * peak))
@@ -321,6 +365,9 @@ def _validity_flags(
         flags.append(
             f"nonlinearity not monotonic: 1 - 2 beta Q reaches {worst:.3g} in pixels that carry weight in the moments; "
             "the quadratic model S = Q - beta Q^2 is invalid at this charge, so the result is not physical"
+            if model.plain_detector
+            else f"nonlinearity not monotonic: dS/dQ reaches {worst:.3g} in pixels that carry weight in the moments; "
+            "the NL model is invalid at this charge, so the result is not physical"
         )
     elif beta_map.size == 1 and beta_map.ravel()[0] < 0:
         flags.append("beta < 0 in the paper's convention: the simulated response is super-linear (brightening)")
@@ -551,25 +598,63 @@ def _zero_flag(d_r: np.ndarray) -> list[str]:
     return []
 
 
+def nl_images(scene: Scene, charge_scale: float, beta, count: int | None = None, effect: RampEffect | None = None):
+    """The detector at one flux: (linear image, its reference fit, NL perturbation, d perturbation / d beta).
+
+    All per unit flux, for the first ``count`` realizations (all by default). ``beta`` is b2, a
+    scalar or per-pixel values. This is the one place the NL meets the stamps: the paper's scene
+    keeps its plain expressions (-beta s psi^2, bit for bit as before scenes existed); any other
+    scene goes through ``scene.detector_chain`` (brighter-fatter, IPC before/after, polynomial NL,
+    background). With brighter-fatter the NL-free image depends on the flux, and its reference fit
+    is made here, from the stored one. Up the ramp (``effect``) the NL pattern is psi^2 c_2
+    (``_nl_shape``); a ramp with the scene's detector effects is refused by the configuration.
+    """
+    config = scene.config
+    model = config.scene
+    pick = slice(None) if count is None else slice(0, count)
+    stamps = scene.stamps[pick]
+    reference = scene.reference if count is None else moments.select(scene.reference, pick)
+    if model.plain_detector:
+        shape = _nl_shape(stamps, effect)
+        return stamps, reference, -(beta * charge_scale) * shape, -charge_scale * shape
+    shift, perturbation, derivative = scenes.detector_chain(scene.charge[pick], charge_scale, beta, model, config.oversampling)
+    if shift is not None:
+        reference = moments.fit_perturbed(stamps, shift, reference, config.moment_settings)
+        stamps = stamps + shift
+    return stamps, reference, perturbation, derivative
+
+
 def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
     config = scene.config
-    stamps, reference = scene.stamps, scene.reference
-    product = beta * charge_scale
-    peak = charge_scale * scene.peak_fraction
+    peak = _peak_electrons(scene, charge_scale)
     effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
     extras: dict = {} if effect is None else dict(effect.extras)
-    shape = _nl_shape(stamps, effect)
+    stamps, reference, perturbation, _ = nl_images(scene, charge_scale, beta, effect=effect)
     if config.method == "monte_carlo":
-        fit = moments.fit_perturbed(stamps, -product * shape, reference, settings)
+        fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
     else:
         gradient = moments.pixel_response(stamps, reference, settings)
-        linear = np.einsum("bkij,bij->bk", gradient, -shape) * product
+        if config.scene.plain_detector:
+            linear = np.einsum("bkij,bij->bk", gradient, -_nl_shape(stamps, effect)) * (beta * charge_scale)
+        else:
+            linear = np.einsum("bkij,bij->bk", gradient, perturbation)
         ok = reference.ok
         d_r, d_e1, d_e2 = (np.where(ok, linear[:, k], np.nan) for k in range(3))
         status = reference.status
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene), None, extras
+
+
+def _peak_electrons(scene: Scene, charge_scale: float, count: int | None = None) -> np.ndarray:
+    """Largest charge in any pixel before the NL, per realization (background included)."""
+    model = scene.config.scene
+    if model.plain_detector:
+        peak = charge_scale * scene.peak_fraction
+        return peak if count is None else peak[:count]
+    pick = slice(None) if count is None else slice(0, count)
+    charge = scenes.charge_before_nl(scene.charge[pick], charge_scale, model, scene.config.oversampling)
+    return charge.max(axis=(1, 2))
 
 
 _SCATTER_CHUNK = 256
@@ -581,59 +666,89 @@ def _simulate_scatter(
     config = scene.config
     draws = config.realizations
     stamp = scene.stamps[0]
-    ref_params = scene.reference.parameters()[0]
     rng = np.random.default_rng([config.seed, 1, stream])
     betas = detector.draw_pixel_betas(rng, beta, sigma_beta, (draws, *stamp.shape))
-    peak = np.full(draws, charge_scale * stamp.max())
+    peak = np.full(draws, float(_peak_electrons(scene, charge_scale, 1)[0]))
     effect = ramp_effect(scene, charge_scale, index=0) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
     extras: dict = {} if effect is None else dict(effect.extras)
     shape = stamp**2 if effect is None else stamp**2 * effect.factor[0]
+    model = config.scene
+    stamp_ref, reference0, _, _ = nl_images(scene, charge_scale, beta, count=1)
+    stamp = stamp_ref[0]
+    ref_params = reference0.parameters()[0]
     single_reference = moments.Moments(
         *(np.full(draws, v) for v in ref_params),
-        amplitude=np.full(draws, scene.reference.amplitude[0]),
+        amplitude=np.full(draws, reference0.amplitude[0]),
         iterations=np.zeros(draws, dtype=np.int32),
         last_step=np.zeros(draws),
-        status=np.full(draws, scene.reference.status[0], dtype=np.int8),
+        status=np.full(draws, reference0.status[0], dtype=np.int8),
     )
     if config.method == "monte_carlo":
         parts = []
         for s in range(0, draws, _SCATTER_CHUNK):
             block = betas[s : s + _SCATTER_CHUNK]
             base = np.broadcast_to(stamp, block.shape)
+            if model.plain_detector:
+                perturbation = -(block * charge_scale) * shape
+            else:
+                perturbation = nl_images(scene, charge_scale, block, count=1)[2]
             parts.append(
                 moments.fit_perturbed(
                     base,
-                    -(block * charge_scale) * shape,
+                    perturbation,
                     moments.select(single_reference, slice(s, s + block.shape[0])),
                     settings,
                 )
             )
         fit = moments.concatenate(parts)
-        d_r, d_e1, d_e2, status = _metrics(fit, scene.reference, ref_index=0)
+        d_r, d_e1, d_e2, status = _metrics(fit, reference0, ref_index=0)
     else:
-        # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
-        # metric(beta_k) = metric(beta) + g(I_beta) . (-(beta_k - beta) s psi^2), exact at the mean beta
-        # (psi^2 c_2 after a ramp fit).
-        reference0 = moments.select(scene.reference, slice(0, 1))
-        uniform = -(beta * charge_scale) * shape[None]
-        fit_beta = moments.fit_perturbed(stamp[None], uniform, reference0, settings)
-        base = np.array(moments.differences(fit_beta, reference0))[:, 0]
-        gradient = moments.pixel_response(stamp[None] + uniform, fit_beta, settings)[0]
-        # The gradient of R is relative to R(beta); Delta R / R is relative to the unperturbed R0.
-        gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
-        response = gradient * (-shape * charge_scale)  # d metric / d beta_k, shape (3, n, n)
+        if model.plain_detector:
+            # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
+            # metric(beta_k) = metric(beta) + g(I_beta) . (-(beta_k - beta) s psi^2), exact at the mean beta
+            # (psi^2 c_2 after a ramp fit).
+            reference0 = moments.select(scene.reference, slice(0, 1))
+            uniform = -(beta * charge_scale) * shape[None]
+            fit_beta = moments.fit_perturbed(stamp[None], uniform, reference0, settings)
+            base = np.array(moments.differences(fit_beta, reference0))[:, 0]
+            gradient = moments.pixel_response(stamp[None] + uniform, fit_beta, settings)[0]
+            # The gradient of R is relative to R(beta); Delta R / R is relative to the unperturbed R0.
+            gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
+            response = gradient * (-shape * charge_scale)  # d metric / d beta_k, shape (3, n, n)
+        else:
+            # The same about the scene's uniform-beta image; the per-pixel response goes back through IPC.
+            stamps1, reference0, uniform, _ = nl_images(scene, charge_scale, beta, count=1)
+            fit_beta = moments.fit_perturbed(stamps1, uniform, reference0, settings)
+            base = np.array(moments.differences(fit_beta, reference0))[:, 0]
+            gradient = moments.pixel_response(stamps1 + uniform, fit_beta, settings)[0]
+            gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
+            response = _per_pixel_beta_response(scene, gradient, charge_scale)
         linear = base[None, :] + np.einsum("kij,bij->bk", response, betas - beta)
-        ok = bool(scene.reference.ok[0] and fit_beta.ok[0])
+        ok = bool(reference0.ok[0] and fit_beta.ok[0])
         d_r, d_e1, d_e2 = (np.full(draws, np.nan) if not ok else linear[:, k] for k in range(3))
-        status = np.full(draws, scene.reference.status[0] if not fit_beta.ok[0] else fit_beta.status[0])
+        status = np.full(draws, reference0.status[0] if not fit_beta.ok[0] else fit_beta.status[0])
         closed = np.sqrt(np.sum(response**2, axis=(1, 2))) * sigma_beta
         extras["linear_scatter_closed_form"] = {"dR_over_R": float(closed[0]), "de1": float(closed[1]), "de2": float(closed[2])}
     if config.method == "monte_carlo":
         spread = np.array([np.nanstd(v) for v in (d_r, d_e1, d_e2)])
         flags += _noise_floor_flag(scene, charge_scale, beta, sigma_beta, settings, spread, shape)
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
+
+
+def _per_pixel_beta_response(scene: Scene, gradient: np.ndarray, charge_scale: float) -> np.ndarray:
+    """d metric / d beta_k for the per-pixel beta of pixel k, (3, n, n), at the first centroid.
+
+    The NL of pixel k changes it by -Q_k^2 (Q the charge it acts on); IPC after the NL then spreads
+    that change to the neighbours, so the gradient is carried back through IPC's transpose.
+    """
+    model = scene.config.scene
+    charge = scenes.charge_before_nl(scene.charge[:1], charge_scale, model, scene.config.oversampling)[0]
+    pulled = gradient
+    if model.ipc is not None and model.ipc_order == "after":
+        pulled = scenes.apply_ipc_adjoint(gradient, model.ipc, scene.config.oversampling)
+    return pulled * (-(charge**2) / charge_scale)
 
 
 #: Smallest spread of a metric (Delta R / R, Delta e) that the Monte Carlo resolves: the differences of
@@ -764,7 +879,7 @@ def slopes(
             progress(index, len(mags), f"m={magnitude:g}")
         flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
-        peak = charge_scale * scene.peak_fraction
+        peak = _peak_electrons(scene, charge_scale)
         effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
         flags = scene_flags + _validity_flags(
             scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
@@ -814,12 +929,11 @@ def slopes(
 def _finite_difference_slopes(
     scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, effect: RampEffect | None = None
 ):
-    stamps, reference = scene.stamps, scene.reference
-    shape = _nl_shape(stamps, effect)
     values = []
     statuses = []
     for factor in (1 - PAPER_BETA_STEP, 1 + PAPER_BETA_STEP):
-        fit = moments.fit_perturbed(stamps, -(beta * factor * charge_scale) * shape, reference, settings)
+        stamps, reference, perturbation, _ = nl_images(scene, charge_scale, beta * factor, effect=effect)
+        fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
         values.append(np.stack([d_r, d_e1, d_e2]))
         statuses.append(status)
@@ -869,12 +983,14 @@ def _cut_jump_flags(
 def _linear_slopes(
     scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, effect: RampEffect | None = None
 ):
-    stamps, reference = scene.stamps, scene.reference
     # Everything at unit flux: the distorted image is psi - beta s psi^2 (moments ignore scale),
-    # and d/d beta of the charge image divided by s is -s psi^2 (times c_2 after a ramp fit).
-    derivative = -charge_scale * _nl_shape(stamps, effect)
-    fit = moments.fit_perturbed(stamps, beta * derivative, reference, settings)
-    distorted = stamps + beta * derivative
+    # and d/d beta of the charge image divided by s is -s psi^2 (times c_2 after a ramp fit; scene
+    # effects: ``nl_images``).
+    stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect)
+    if scene.config.scene.plain_detector:
+        perturbation = beta * derivative
+    fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
+    distorted = stamps + perturbation
     bias_values, scatter_values = (v.T.copy() for v in moments.response_to(distorted, fit, derivative, settings))
     ok = fit.ok & reference.ok
     # The gradient of R is relative to R(beta0); Delta R / R is relative to the unperturbed R0.

@@ -95,6 +95,8 @@ class OpticsConfig:
     pupil_bin: int = 4
     pupil_scale: str = "galsim"
     position_pixels: tuple[float, float] | None = None
+    #: The star's f_lambda (any units) tabulated as (wavelengths nm, values); None: flat f_nu.
+    spectrum: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     throughput: str = roman.DEFAULT_THROUGHPUT
 
     def __post_init__(self) -> None:
@@ -110,12 +112,26 @@ class OpticsConfig:
             object.__setattr__(self, "position_pixels", tuple(float(v) for v in self.position_pixels))
 
     def wavelengths_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        """Wavelengths [nm] and their normalised photon weights (flat f_nu source)."""
+        """Wavelengths [nm] and their normalised photon weights (the star's SED, flat f_nu by default)."""
         curve = roman.throughput(self.band, sca=self.sca, source=self.throughput)
-        if self.n_wavelengths == 1:
+        if self.n_wavelengths == 1 and self.spectrum is None:
             wavelength = self.wavelength_nm if self.wavelength_nm is not None else curve.effective_wavelength_nm
             return np.array([float(wavelength)]), np.array([1.0])
-        return band_wavelengths_and_weights(curve, self.n_wavelengths)
+        return band_wavelengths_and_weights(curve, self.n_wavelengths, tabulated_sed(curve, self.spectrum))
+
+
+def tabulated_sed(curve: roman.Throughput, spectrum) -> Callable[[np.ndarray], np.ndarray] | None:
+    """f_lambda interpolated from a table (wavelengths nm, values), refused if it does not cover the band."""
+    if spectrum is None:
+        return None
+    wave, flambda = (np.asarray(v, dtype=np.float64) for v in spectrum)
+    if curve.blue_limit_nm < wave[0] or curve.red_limit_nm > wave[-1]:
+        raise InputError(
+            "sed",
+            f"the SED covers {wave[0]:g}-{wave[-1]:g} nm but {curve.band} spans "
+            f"{curve.blue_limit_nm:g}-{curve.red_limit_nm:g} nm",
+        )
+    return lambda lam: np.interp(lam, wave, flambda)
 
 
 def band_wavelengths_and_weights(
@@ -141,6 +157,22 @@ def band_wavelengths_and_weights(
         weights.append(w)
     weights_array = np.asarray(weights)
     return np.asarray(wavelengths), weights_array / weights_array.sum()
+
+
+def photon_weights_fine(curve: roman.Throughput, spectrum, n_wavelengths: int) -> tuple[np.ndarray, np.ndarray]:
+    """Photons per unit wavelength over the band, on a grid fine enough to bin into n_wavelengths.
+
+    Counts per unit wavelength are proportional to A_eff(lambda) f_lambda lambda (photon energy
+    h c / lambda); for a flat f_nu star f_lambda ~ lambda^-2, i.e. A_eff / lambda.
+    """
+    fine = np.linspace(curve.blue_limit_nm, curve.red_limit_nm, 64 * n_wavelengths + 1)
+    area = np.interp(fine, curve.wavelength_nm, curve.effective_area_m2)
+    if spectrum is None:
+        return fine, area / fine
+    wave, flambda = (np.asarray(v, dtype=np.float64) for v in spectrum)
+    if fine[0] < wave[0] or fine[-1] > wave[-1]:
+        raise InputError("sed", f"the SED covers {wave[0]:g}-{wave[-1]:g} nm but {curve.band} spans {fine[0]:g}-{fine[-1]:g} nm")
+    return fine, area * np.interp(fine, wave, flambda) * fine
 
 
 @dataclass(frozen=True, eq=False)

@@ -70,7 +70,17 @@ class GalSimPipeline:
         stamp: int = 96,
         weight_cut_rho2: float = 25.0,
         pupil_oversampling: float = 1.0,
+        sca_pos: tuple[float, float] | None = None,
+        blur_sigmas_arcsec: tuple[float, ...] = (),
+        ipc_kernel: np.ndarray | None = None,
+        ipc_order: str = "after",
+        n_waves: int | None = None,
     ):
+        """``sca_pos``, ``blur_sigmas_arcsec`` (Gaussians convolved with the PSF: jitter,
+        diffusion), ``ipc_kernel``/``ipc_order`` (GalSim's ``applyIPC`` on the native-pixel images,
+        see :meth:`apply_ipc`) and ``n_waves`` (a flat-f_nu star drawn through the bandpass with
+        GalSim's ``ChromaticOpticalPSF.interpolate`` over ``n_waves`` wavelengths) are the scene
+        effects' peers; the defaults are the paper's pipeline."""
         import galsim
         import galsim.roman
 
@@ -79,11 +89,18 @@ class GalSimPipeline:
         self.oversampling, self.stamp = oversampling, stamp
         bandpass = galsim.roman.getBandpasses(AB_zeropoint=True)[band]
         self.bandpass = bandpass
-        if pupil_oversampling == 1.0:
-            psf = galsim.roman.getPSF(sca, band, wavelength=bandpass)
+        position = None if sca_pos is None else galsim.PositionD(*sca_pos)
+        self.chromatic = n_waves is not None
+        if self.chromatic:
+            psf = _get_psf_oversampled(sca, band, None, pupil_oversampling, position, bandpass, n_waves)
+        elif pupil_oversampling == 1.0:
+            psf = galsim.roman.getPSF(sca, band, SCA_pos=position, wavelength=bandpass)
         else:
-            psf = _get_psf_oversampled(sca, band, bandpass.effective_wavelength, pupil_oversampling)
-        self.effective = galsim.Convolve(psf, galsim.Pixel(galsim.roman.pixel_scale))
+            psf = _get_psf_oversampled(sca, band, bandpass.effective_wavelength, pupil_oversampling, position)
+        parts = [psf, galsim.Pixel(galsim.roman.pixel_scale)] + [galsim.Gaussian(sigma=s) for s in blur_sigmas_arcsec if s > 0]
+        self.effective = galsim.Convolve(parts)
+        self.ipc_kernel = None if ipc_kernel is None else galsim.Image(np.asarray(ipc_kernel, dtype=np.float64))
+        self.ipc_order = ipc_order
         self.scale = galsim.roman.pixel_scale / oversampling
         self.hsm = galsim.hsm.HSMParams(convergence_threshold=weight_cut_threshold(weight_cut_rho2), max_mom2_iter=10000)
 
@@ -91,11 +108,28 @@ class GalSimPipeline:
         return 10 ** (-0.4 * (magnitude - self.bandpass.zeropoint)) * self.galsim.roman.collecting_area * exptime_s
 
     def draw(self, flux: float, offset: tuple[float, float]) -> np.ndarray:
-        image = self.effective.withFlux(flux).drawImage(
-            nx=self.stamp, ny=self.stamp, scale=self.scale, method="no_pixel", offset=offset, dtype=np.float64
-        )
+        kwargs = dict(nx=self.stamp, ny=self.stamp, scale=self.scale, method="no_pixel", offset=offset, dtype=np.float64)
+        if self.chromatic:
+            sed = self.galsim.SED("1", "nm", "fnu").withFlux(1.0, self.bandpass)  # flat f_nu
+            star = self.galsim.Convolve(self.effective, self.galsim.DeltaFunction() * sed)
+            image = star.drawImage(self.bandpass, **kwargs)  # photons for unit flux through the band
+            image *= flux
+        else:
+            image = self.effective.withFlux(flux).drawImage(**kwargs)
         image *= self.oversampling**2
         return image
+
+    def apply_ipc(self, image) -> None:
+        """GalSim's ``applyIPC`` on each of the N^2 native-pixel images the oversampled image
+        interleaves (fine pixel (i, j) = native pixel sample at sub-pixel phase (i mod N, j mod N));
+        this is how GalSim would apply a native-pixel kernel, with no assumption about taps."""
+        n = self.oversampling
+        array = image.array
+        for a in range(n):
+            for b in range(n):
+                native = self.galsim.Image(array[a::n, b::n].copy())
+                native.applyIPC(self.ipc_kernel, edge_treatment="extend")
+                array[a::n, b::n] = native.array
 
     def measure(self, image, precision: float = 1e-10):
         result = self.galsim.hsm.FindAdaptiveMom(image, precision=precision, hsmparams=self.hsm, strict=False)
@@ -127,7 +161,15 @@ class GalSimPipeline:
                 images.append(image.array.copy())
             reference = self.measure(image, precision)
             distorted = self.draw(flux, (dx, dy)) if redraw else image.copy()
+            if self.ipc_kernel is not None:
+                reference_image = image.copy()
+                self.apply_ipc(reference_image)
+                reference = self.measure(reference_image, precision)
+                if self.ipc_order == "before":
+                    self.apply_ipc(distorted)
             distorted.applyNonlinearity(lambda x, b: x - b * x * x, beta)
+            if self.ipc_kernel is not None and self.ipc_order == "after":
+                self.apply_ipc(distorted)
             rows.append(reference + self.measure(distorted, precision))
         values = np.asarray(rows, dtype=np.float64)
         return GalSimMeasurement(
@@ -135,7 +177,15 @@ class GalSimPipeline:
         )
 
 
-def _get_psf_oversampled(sca: int, band: str, wavelength_nm: float, pupil_oversampling: float):
+def _get_psf_oversampled(
+    sca: int,
+    band: str,
+    wavelength_nm: float | None,
+    pupil_oversampling: float,
+    position=None,
+    bandpass=None,
+    n_waves: int | None = None,
+):
     """``galsim.roman.getPSF(sca, band, wavelength=...)`` with a finer-sampled pupil plane.
 
     Every step is the one ``galsim.roman.roman_psfs`` takes (file, scale from the header, bin 4,
@@ -154,7 +204,7 @@ def _get_psf_oversampled(sca: int, band: str, wavelength_nm: float, pupil_oversa
     image.scale *= image.header["HIERARCH PUPIL SCALE FACTOR"] * 1e-6
     image = image.bin(4, 4).flip_ud()
     aperture = galsim.Aperture(
-        lam=wavelength_nm,
+        lam=wavelength_nm if wavelength_nm is not None else bandpass.blue_limit,
         diam=galsim.roman.diameter,
         obscuration=galsim.roman.obscuration,
         pupil_plane_im=image,
@@ -162,8 +212,14 @@ def _get_psf_oversampled(sca: int, band: str, wavelength_nm: float, pupil_oversa
     )
     table, x, y = roman_psfs._read_aberrations(sca)
     centre = galsim.PositionD(galsim.roman.n_pix / 2, galsim.roman.n_pix / 2)
-    aberrations = roman_psfs._interp_aberrations_bilinear(table, x, y, centre)
+    aberrations = roman_psfs._interp_aberrations_bilinear(table, x, y, position or centre)
     aberrations[:4] = 0.0
+    if wavelength_nm is None:
+        # GalSim's chromatic Roman PSF (getPSF with wavelength=None, n_waves), same aperture.
+        psf = galsim.ChromaticOpticalPSF(
+            lam=roman_psfs.zemax_wavelength, diam=galsim.roman.diameter, aberrations=aberrations, aper=aperture
+        )
+        return psf.interpolate(waves=np.linspace(bandpass.blue_limit, bandpass.red_limit, n_waves), oversample_fac=1.5)
     scaled = aberrations * roman_psfs.zemax_wavelength / wavelength_nm
     return galsim.OpticalPSF(lam=wavelength_nm, diam=galsim.roman.diameter, aberrations=scaled, aper=aperture)
 

@@ -104,6 +104,11 @@ class Solution:
     applies_to: str = ""
     #: The shear budget given (or, with a size ratio alone, implied): ``Budget``-like dict.
     shear: dict | None = None
+    #: Scene effects the answer leaves out (name, impact on the metric's slope, relative), the SCA
+    #: spread and the pupil-scale rule, and the uncertainty they add in the solved quantity's units;
+    #: None when not measured (no ``accuracy``).
+    uncertainty_model: float | None = None
+    model: dict | None = None
     #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
     final_frame_saturation_magnitude: float | None = None
 
@@ -124,6 +129,8 @@ class Solution:
             "uncertainty_statistical": _json_number(self.uncertainty_statistical),
             "uncertainty_fidelity": _json_number(self.uncertainty_fidelity),
             "uncertainty_optical_model": _json_number(self.uncertainty_optical_model),
+            "uncertainty_model": _json_number(self.uncertainty_model),
+            "model": self.model,
             "slope": _json_number(self.slope),
             "slope_uncertainty": _json_number(self.slope_uncertainty),
             "saturation_magnitude": _json_number(self.saturation_magnitude),
@@ -161,10 +168,12 @@ class _Slopes:
         ramp: ramps.Ramp | None = None,
         full_well: float = defaults.FULL_WELL_E,
         throughput: str | None = None,
+        scene=None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
         self.ramp, self.full_well = ramp, full_well
+        self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
         self.table = tableset.get(band, sca)
         #: Magnitudes the table was relabelled by for another throughput's photometry (0: none).
         self.relabel_shift = 0.0
@@ -240,6 +249,7 @@ class _Slopes:
             method=level.method,
             n_wavelengths=level.n_wavelengths,
             **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
+            **({} if self.scene_model is None else {"scene": self.scene_model}),
         )
         if self._scene is None or self._scene.config != config:
             self._scene = experiment.prepare(config)  # magnitude-independent: once per request
@@ -292,6 +302,7 @@ def solve(
     tables_set: tables.TableSet | None = None,
     ramp: ramps.Ramp | None = None,
     throughput: str | None = None,
+    scene=None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
@@ -307,7 +318,12 @@ def solve(
 
     ``throughput`` (``defaults.THROUGHPUTS``) is the photometry that turns the magnitude into
     electrons; None is the tables' own. Another one reads the tables relabelled
-    (``tables.with_throughput``), and fresh simulations use it directly."""
+    (``tables.with_throughput``), and fresh simulations use it directly.
+
+    ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
+    answer models only the effects whose measured impact at the point exceeds it (see
+    :func:`_select_scene`) and its uncertainty gains a ``model`` part for those left out.
+    """
     start = time.perf_counter()
     band = roman.check_band(band)
     sca = roman.check_sca(sca)
@@ -358,6 +374,51 @@ def solve(
     chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
     if throughput is not None:
         roman.check_throughput(throughput)
+    scene_relative, model_info, simulated_scene = None, None, None
+    if scene is not None and not isinstance(scene, _scene_type()):
+        raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
+    if scene is not None and ramp is not None:
+        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
+    if accuracy is not None:
+        point = magnitude
+        if point is None:
+            # The effects are measured where the answer will be: a first, table-level pass finds it.
+            first = solve(
+                band,
+                sca,
+                metric,
+                mode,
+                beta0,
+                exptime,
+                precision,
+                tolerance,
+                None,
+                full_well,
+                "table",
+                None,
+                shear_m=shear_m,
+                shear_c=shear_c,
+                size_ratio=size_ratio,
+                stars=stars,
+                tables_set=tables_set,
+                throughput=throughput,
+            )
+            point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
+        simulated_scene, scene_relative, model_info = _select_scene(
+            scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy)
+        )
+    elif scene is not None and not scene.is_paper:
+        simulated_scene = scene
+    if simulated_scene is not None and not simulated_scene.is_paper and chosen == "table":
+        flags.append("the tables hold the paper's scene only: the scene's effects are simulated (fidelity linear)")
+        chosen = "linear"
+    if simulated_scene is not None and simulated_scene.breaks_beta_q_scaling():
+        breaking = simulated_scene.breaks_beta_q_scaling()
+        verb = "adds" if len(breaking) == 1 else "add"
+        flags.append(
+            f"{', '.join(breaking)} {verb} a flux dependence of its own: slopes are simulated at this exposure and beta0, "
+            "never rescaled from the tables (the beta Q rule does not hold)"
+        )
     slopes = _Slopes(
         band,
         sca,
@@ -370,6 +431,7 @@ def solve(
         ramp,
         full_well,
         throughput=throughput,
+        scene=simulated_scene,
     )
     table = slopes.table
     if "relabelled_from" in table.settings:
@@ -380,7 +442,11 @@ def solve(
             f"wavelength, up to {100 * (size_error if metric == 'size' else e_error):.1f} % on the slope, "
             "added to the optical-model uncertainty"
         )
-    m_sat_final_frame = table.saturation(exptime, full_well)
+    background = 0.0 if simulated_scene is None else simulated_scene.background_e
+    if background >= full_well:
+        raise InputError("background", f"a background of {background:g} e- fills the full well ({full_well:g} e-) by itself")
+    # A background fills part of the well: the star saturates where its peak reaches the rest.
+    m_sat_final_frame = table.saturation(exptime, full_well - background)
     # The rule in use: with a ramp a star is usable until its brightest pixel saturates in the
     # first resultant, 2.5 log10(T / t_1) brighter than the single final frame's limit.
     m_sat = m_sat_final_frame if ramp is None else m_sat_final_frame - ramp.saturation_shift_mag(exptime)
@@ -404,9 +470,11 @@ def solve(
             statistical = (slope_err / abs(slope)) / abs(log_derivative)
             fidelity_part = None if systematic is None else systematic / abs(log_derivative)
             model_part = _optical_model_relative(slopes, m_nl) / abs(log_derivative)
+            scene_part = None if scene_relative is None else scene_relative / abs(log_derivative)
         else:
             # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
             statistical, fidelity_part, model_part = 0.0, 0.0, 0.0
+            scene_part = None if scene_relative is None else 0.0
             slope, slope_err, _ = slopes.at(m_sat)
             flags.append(
                 f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0 * averaging:.3g} "
@@ -425,18 +493,22 @@ def solve(
             statistical = c_err * precision * beta0
             fidelity_part = None if systematic is None else tolerance * systematic
             model_part = None if model is None else tolerance * model
+            scene_part = None if scene_relative is None else tolerance * scene_relative
         elif c <= max(c_err, 1e-300):
             flags.append(
                 f"the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {c_err:.2g}): "
                 "this metric is insensitive to beta here, so no calibration precision is needed for it"
             )
-            precision, statistical, fidelity_part, model_part = math.inf, None, None, None
+            precision, statistical, fidelity_part, model_part, scene_part = math.inf, None, None, None, None
         else:
             precision = tolerance / (c * beta0)
             statistical = precision * c_err / c
             fidelity_part = None if systematic is None else precision * systematic
             model_part = None if model is None else precision * model
-    uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0)
+            scene_part = None if scene_relative is None else precision * scene_relative
+    uncertainty = (
+        None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0, scene_part or 0.0)
+    )
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
     relation = "T = |c(m)| * precision * beta0" + (" / sqrt(stars)" if mode == "scatter" else "")
@@ -460,6 +532,9 @@ def solve(
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
         conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
+    if simulated_scene is not None:
+        conditions["scene"] = simulated_scene.to_dict()
+        conditions["scene_description"] = simulated_scene.describe()
     return Solution(
         band=band,
         sca=sca,
@@ -490,7 +565,100 @@ def solve(
         stars=stars,
         applies_to=applies_to,
         shear=shear_answer,
+        uncertainty_model=scene_part,
+        model=model_info,
     )
+
+
+def _scene_type():
+    from .scene import SceneModel
+
+    return SceneModel
+
+
+def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, accuracy):
+    """Model only what the scene requires: (scene to simulate, relative model uncertainty, report).
+
+    The impact of every effect is measured at the point (``nlpsf.impact``, linear response). An
+    effect is simulated when |impact| on the request's metric exceeds ``accuracy`` -- at the scene's
+    value, or at its nominal Roman value when the scene leaves it off (no scene: a Roman star). The
+    others are left out and their impacts added in quadrature to the answer's relative model
+    uncertainty, together with two model choices the answer cannot make for the user: where on
+    the SCA the star is when no position is given (centre vs corner) and the pupil-mask scale rule
+    (``galsim`` vs ``header``, measured here).
+    """
+    from dataclasses import replace
+
+    from . import experiment, impact
+    from . import scene as scenes
+
+    scene = scene if scene is not None else scenes.SceneModel()
+    report = impact.impact(band, sca, magnitude, scene=scene, metric=metric, mode=mode, beta0=beta0, exptime=exptime)
+    include, leave = impact.left_out(report, accuracy)
+    simulated = scenes.SceneModel()
+    names = []
+    for effect in include:
+        name = effect["name"]
+        if name == "position" and not scene.effects_on()["position"]:
+            leave.append(effect)  # no position given: the spread over the SCA is uncertainty, not a guess
+            continue
+        source = scene if scene.effects_on()[name] else scene.with_nominal(name)
+        simulated = _with_effect(simulated, source, name)
+        if name == "sed" and simulated.n_wavelengths is None:
+            # Integrate the band finely enough for the accuracy asked for (scene.binning_error).
+            n, _ = scenes.choose_wavelengths(band, simulated.spectrum(), accuracy)
+            simulated = replace(simulated, n_wavelengths=n)
+        names.append(name)
+    parts = []
+    for effect in leave:
+        value = effect["impact"][metric]
+        parts.append(
+            {
+                "name": effect["name"],
+                "impact": value,
+                "why": (
+                    "spread over the SCA: no position given (centre vs corner)"
+                    if effect["name"] == "position" and not effect["on"]
+                    else ("below the accuracy" if value is not None else effect["note"])
+                ),
+            }
+        )
+    # The pupil-mask scale rule (nlpsf/data/SOURCES.md): the same point with the other rule.
+    runs = {}
+    for rule in ("galsim", "header"):
+        config = experiment.SimulationConfig(
+            band=band, sca=sca, realizations=50, exptime_s=exptime, method="linear", pupil_scale=rule, scene=simulated
+        )
+        runs[rule] = impact._slope_values(experiment.slopes(config, [magnitude], beta0=beta0)[0], mode)[metric][0]
+    pupil = None if not runs["galsim"] or runs["header"] is None else runs["header"] / runs["galsim"] - 1
+    parts.append({"name": "pupil_scale", "impact": pupil, "why": "pupil-mask scale rule: galsim (used) vs header"})
+    relative = math.sqrt(sum(p["impact"] ** 2 for p in parts if p["impact"] is not None))
+    info = {
+        "accuracy": accuracy,
+        "magnitude_measured_at": magnitude,
+        "included": [{"name": e["name"], "impact": e["impact"][metric]} for e in include if e["name"] in names],
+        "left_out": parts,
+        "relative_uncertainty": relative,
+        "basis": "impact of each effect on the slope at this point (nlpsf impact, linear response), added in quadrature",
+    }
+    return simulated, relative, info
+
+
+def _with_effect(target, source, name: str):
+    """``target`` with effect ``name`` set as in ``source``."""
+    from dataclasses import replace
+
+    fields_of = {
+        "position": ("position",),
+        "sed": ("sed", "sed_table", "sed_units", "n_wavelengths"),
+        "jitter": ("jitter_arcsec",),
+        "charge_diffusion": ("charge_diffusion_px",),
+        "ipc": ("ipc", "ipc_label", "ipc_order"),
+        "nl_polynomial": ("nl_coefficients",),
+        "brighter_fatter": ("bfe_coefficient",),
+        "background": ("background_e",),
+    }
+    return replace(target, **{f: getattr(source, f) for f in fields_of[name]})
 
 
 def _optical_model_relative(slopes: _Slopes, magnitude: float | None) -> float:
@@ -793,3 +961,65 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
         )
         return m_sat, "saturation"
     return m_nl, "nonlinearity"
+
+
+def field_points(sca: int) -> list[tuple[float, float]]:
+    """Where the SCA's aberrations are given: its centre and four corners (pixels, inside 1-4088)."""
+    _table, x, y = roman._zernike_table(roman.check_sca(sca))
+    return [(_clip_pixel(px), _clip_pixel(py)) for px, py in zip(x, y, strict=True)]
+
+
+def _clip_pixel(value: float) -> float:
+    return float(min(max(value, 1.0), roman.SCA_PIXELS))
+
+
+def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:
+    """The answer for the worst position over the field: every field point of the given SCAs
+    (``"all"``: the 18 of the focal plane), each simulated with its own aberrations (linear response).
+
+    Worst means the most demanding answer: the smallest precision, the largest tolerance, or the
+    faintest brightest-usable magnitude. The Solution returned is that point's, with every point's
+    value in ``conditions["over_field"]`` and where the worst lies in a flag. The tables hold SCA
+    centres only, so this always simulates (seconds per point).
+    """
+    from dataclasses import replace
+
+    from . import scene as scenes
+
+    chosen = list(range(1, roman.N_SCA + 1)) if scas == "all" else [roman.check_sca(s) for s in scas]
+    base = scene if scene is not None else scenes.SceneModel()
+    if base.position is not None:
+        raise InputError("position", "give a position or ask for the worst over the field, not both")
+    request.setdefault("fidelity", "linear")
+    if request["fidelity"] == "table":
+        request["fidelity"] = "linear"
+    answers = []
+    points = [(s, p) for s in chosen for p in field_points(s)]
+    for index, (sca, position) in enumerate(points):
+        if progress:
+            progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
+        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
+    if progress:
+        progress(len(points), len(points), "done")
+    solved = answers[0][2].solved_for
+
+    def demand(solution: Solution) -> float:
+        value = getattr(solution, solved)
+        if value is None or not math.isfinite(value):
+            return -math.inf
+        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+
+    sca, position, worst = max(answers, key=lambda item: demand(item[2]))
+    values = [getattr(a[2], solved) for a in answers]
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    conditions = dict(worst.conditions)
+    conditions["over_field"] = [
+        {"sca": s, "position": list(p), solved: _json_number(getattr(a, solved)), "uncertainty": _json_number(a.uncertainty)}
+        for s, p, a in answers
+    ]
+    where = "all 18 SCAs" if scas == "all" else "SCA " + ", ".join(map(str, chosen))
+    flag = (
+        f"worst over {len(points)} field points ({where}): "
+        f"SCA {sca} at pixel ({position[0]:.0f}, {position[1]:.0f}); {solved} ranges {min(finite):.4g} to {max(finite):.4g}"
+    )
+    return replace(worst, flags=[flag, *worst.flags], conditions=conditions)

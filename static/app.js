@@ -527,6 +527,10 @@ async function runSimulation(event) {
     stamp: numberOrText(form.elements.stamp.value),
     ...readoutFields("sim"),
   };
+  if (document.getElementById("scene-use").checked) {
+    const scene = sceneBody();
+    if (scene) body.scene = scene;
+  }
   setProgress(0, "submitting");
   try {
     const job = await api("/simulations", { method: "POST", body: JSON.stringify(body) });
@@ -535,6 +539,85 @@ async function runSimulation(event) {
     setProgress(0, "not started");
     showError(errorBox, form, error);
   }
+}
+
+// ---- scene and impact ------------------------------------------------------------------------
+
+function sceneBody() {
+  const f = document.getElementById("scene-form").elements;
+  const scene = {};
+  const text = (name) => f[name].value.trim();
+  const given = (name) => text(name) !== "" && text(name).toLowerCase() !== "none";
+  if (f.preset.value) scene.preset = f.preset.value;
+  if (given("position")) scene.position = listOf(text("position"));
+  if (given("sed")) scene.sed = text("sed");
+  for (const name of ["jitter", "charge_diffusion", "bfe", "background"]) {
+    if (given(name)) scene[name] = numberOrText(text(name));
+  }
+  if (given("ipc")) scene.ipc = numberOrText(text("ipc"));
+  if (f.ipc_order.value) scene.ipc_order = f.ipc_order.value;
+  if (given("nl_coefficients")) scene.nl_coefficients = listOf(text("nl_coefficients"));
+  return Object.keys(scene).length ? scene : null;
+}
+
+// The service names scene fields "scene.jitter"; the form's inputs are named "jitter".
+function sceneError(error) {
+  const field = error.field && error.field.startsWith("scene.") ? error.field.slice(6) : error.field;
+  return new ApiError(error.message, field, error.status);
+}
+
+async function measureImpact(event) {
+  if (event) event.preventDefault();
+  const form = document.getElementById("scene-form");
+  const box = document.getElementById("scene-error");
+  const button = document.getElementById("impact-button");
+  clearError(box, form);
+  const s = document.getElementById("solve-form").elements;
+  const body = {
+    band: s.band.value,
+    sca: numberOrText(s.sca.value),
+    metric: s.metric.value,
+    mode: s.mode.value,
+    beta0: numberOrText(s.beta0.value),
+    exptime: numberOrText(s.exptime.value),
+    magnitude: numberOrText(s.magnitude.value) ?? 18.3,
+    realizations: 30,
+  };
+  const scene = sceneBody();
+  if (scene) body.scene = scene;
+  button.disabled = true;
+  button.textContent = "Measuring…";
+  try {
+    showImpact(await api("/impact", { method: "POST", body: JSON.stringify(body) }));
+  } catch (error) {
+    showError(box, form, sceneError(error));
+  } finally {
+    button.disabled = false;
+    button.textContent = "Measure impact";
+  }
+}
+
+function showImpact(report) {
+  const c = report.conditions;
+  const metric = c.metric;
+  const values = report.effects.map((e) => e.impact[metric]);
+  const largest = Math.max(1e-12, ...values.filter((v) => v !== null).map(Math.abs));
+  document.getElementById("impact-conditions").textContent =
+    `${c.band} · SCA ${c.sca} · m = ${fmt(c.magnitude)} · β₀ = ${fmt(c.beta0)} /e⁻ · ${METRIC_LABEL[metric] || metric} ${c.mode} slope · ` +
+    `scene: ${c.scene_description} · impact = slope with ÷ without − 1 (linear response, ${c.realizations} centroids)`;
+  document.getElementById("impact-bars").innerHTML = report.effects
+    .map((e, k) => {
+      const v = values[k];
+      const width = v === null ? 0 : (50 * Math.abs(v)) / largest;
+      const side = v !== null && v < 0 ? "neg" : "pos";
+      const label = v === null ? "n/a" : `${v > 0 ? "+" : ""}${fmt(100 * v, 3)} %`;
+      return `<div class="bar-row" data-effect="${escapeHtml(e.name)}" title="${escapeHtml(e.note || "")}">` +
+        `<span class="bar-name">${escapeHtml(e.name)}${e.on ? " (on)" : ""}</span>` +
+        `<span class="bar-track"><span class="bar ${side}" style="width:${width}%"></span></span>` +
+        `<span class="bar-value">${label}</span></div>`;
+    })
+    .join("");
+  document.getElementById("impact-result").hidden = false;
 }
 
 function setProgress(fraction, message) {
@@ -649,6 +732,7 @@ async function init() {
   updateUnknown();
   document.getElementById("sim-form").addEventListener("submit", runSimulation);
   document.getElementById("sim-csv").addEventListener("click", simulationCsv);
+  document.getElementById("scene-form").addEventListener("submit", measureImpact);
   document.querySelectorAll("[data-png]").forEach((b) => b.addEventListener("click", () => exportPng(b.dataset.png)));
   document.querySelectorAll("[data-csv]").forEach((b) => b.addEventListener("click", () => exportCsv(b.dataset.csv)));
   const redraw = () => drawCurves();

@@ -82,7 +82,23 @@ def test_choices_are_enums_and_sca_is_bounded(schema):
     assert set(_resolve(schema, _query(schema, "/api/v1/curves/beta", "band")["schema"])["enum"]) == set(roman.BANDS)
 
 
-UNIT_WORDS = ("unit", " s", "1/e-", "e-", "AB mag", "dimensionless", "count", "text", "hex", "fraction", "1/mag")
+UNIT_WORDS = (
+    "unit",
+    "pixel",
+    "arcsec",
+    " K)",
+    " nm",
+    " s",
+    "1/e-",
+    "e-",
+    "AB mag",
+    "dimensionless",
+    "count",
+    "text",
+    "hex",
+    "fraction",
+    "1/mag",
+)
 
 
 def _numeric(entry) -> bool:

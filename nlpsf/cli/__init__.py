@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sweep": ("nlpsf.cli.sweep", "run a grid of simulations (bands x SCAs x magnitudes x betas), locally or on dask; resumable"),
     "tables": ("nlpsf.cli.tables", "slope tables: build, show, power-law fits"),
     "tradeoff": ("nlpsf.cli.tradeoff", "measure each fidelity level's error and time against the most exact one"),
+    "impact": ("nlpsf.cli.impact", "what each scene effect (position, SED, jitter, IPC, ...) changes in the slopes"),
     "serve": ("nlpsf.cli.serve", "start the web service: REST API under /api/v1, docs at /docs, the page at /"),
 }
 
@@ -36,7 +37,9 @@ OPTION_FOR_ARGUMENT = {
     "weight_cut_rho2": "--weight-cut",
     "pupil_bin": "--pupil-bin",
     "offsets": "--realizations",
-    "scene": "--realizations",
+    "scene": "--scene",
+    "bfe_coefficient": "--bfe",
+    "background_e": "--background",
     "ma_table.resultants": "--ma-table",
     "ma_table.frame_time_s": "--ma-table",
 }

@@ -140,8 +140,74 @@ def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = Tru
         default="paper",
         help="paper: S = Q - beta Q^2 (beta > 0); galsim: S = Q + beta Q^2 (beta < 0, e.g. -6e-7)",
     )
+    add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--quiet", action="store_true", help="no progress bar (there is none unless stderr is a terminal)")
+
+
+def add_scene_options(parser: argparse.ArgumentParser) -> None:
+    """The scene effects (``nlpsf.scene``): all off unless asked for; a preset or file first, then overrides."""
+    group = parser.add_argument_group("scene", "effects beyond the paper's scene (all off by default)")
+    group.add_argument("--scene", help="a preset (paper; roman: Roman's jitter, diffusion, IPC, flat f_nu) or a JSON file")
+    group.add_argument("--position", help="X,Y on the SCA [pixels, 1-4088] (default the centre)")
+    group.add_argument("--sed", help="star SED: flat (f_nu), blackbody:TEFF, or a two-column file (nm, flux)")
+    group.add_argument("--sed-units", choices=("flambda", "fnu"), default="flambda", help="what a SED file's flux column is")
+    group.add_argument("--jitter", type=float, help="pointing jitter [arcsec rms per axis] (Roman: 0.014)")
+    group.add_argument("--charge-diffusion", type=float, help="charge diffusion [native pixels rms] (GalSim's Roman: 0.1)")
+    group.add_argument("--ipc", help="interpixel capacitance: roman, a nearest-neighbour alpha, a 3x3 file, or none")
+    group.add_argument("--ipc-order", choices=("after", "before"), help="IPC after (default, as GalSim) or before the NL")
+    group.add_argument(
+        "--nl-coefficients",
+        help="polynomial NL b2,b3,... (S = Q - b2 Q^2 - b3 Q^3 ..., in --beta-convention); b2 sets beta/beta0",
+    )
+    group.add_argument(
+        "--bfe", type=float, help="brighter-fatter coefficient a [1/e-] (Antilogus et al. 2014, nearest neighbours; no default)"
+    )
+    group.add_argument("--background", type=float, help="sky + dark [e- per native pixel over the exposure]")
+    group.add_argument("--save-scene", metavar="FILE", help="also write the scene to FILE as JSON (reload with --scene FILE)")
+
+
+def scene_from(args: argparse.Namespace):
+    """(scene, b2): the scene these options describe, and b2 when --nl-coefficients gave it."""
+    from .. import scene as scenes
+    from ..checks import InputError
+
+    b2 = None
+    higher = None
+    if getattr(args, "nl_coefficients", None) is not None:
+        values = scenes.parse_coefficients(args.nl_coefficients)
+        if not values:
+            raise InputError("nl_coefficients", "give b2 and any higher-order coefficients, comma-separated")
+        b2, higher = values[0], values[1:]
+        if getattr(args, "beta_convention", "paper") == "galsim":
+            higher = tuple(-c for c in higher)  # the scene holds the paper's convention
+    model = scenes.from_options(
+        getattr(args, "scene", None),
+        position=getattr(args, "position", None),
+        sed=getattr(args, "sed", None),
+        sed_units=getattr(args, "sed_units", "flambda"),
+        jitter=getattr(args, "jitter", None),
+        charge_diffusion=getattr(args, "charge_diffusion", None),
+        ipc=getattr(args, "ipc", None),
+        ipc_order=getattr(args, "ipc_order", None),
+        nl_coefficients=higher,
+        bfe=getattr(args, "bfe", None),
+        background=getattr(args, "background", None),
+    )
+    if getattr(args, "save_scene", None):
+        scenes.save(model, args.save_scene)
+    return model, b2
+
+
+def beta_from_coefficients(given: float | None, b2: float | None, default: float) -> float:
+    """beta (or beta0): --nl-coefficients' b2 when given, which must then agree with --beta/--beta0."""
+    from ..checks import InputError
+
+    if b2 is None:
+        return default if given is None else given
+    if given is not None and given != b2:
+        raise InputError("nl_coefficients", f"b2={b2:g} disagrees with the beta given ({given:g}); give one of them")
+    return b2
 
 
 def config_from(args: argparse.Namespace):
@@ -162,6 +228,7 @@ def config_from(args: argparse.Namespace):
         weight_cut_rho2=args.weight_cut,
         pupil_scale=args.pupil_scale,
         method=args.method,
+        scene=scene_from(args)[0],
         throughput=args.throughput,
         ramp=ramp,
     )

@@ -7,7 +7,7 @@ import sys
 
 from .. import defaults
 from . import progress_printer
-from .options import add_simulation_options, config_from, number, print_json, with_error
+from .options import add_simulation_options, beta_from_coefficients, config_from, number, print_json, scene_from, with_error
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -35,6 +35,9 @@ def run(args: argparse.Namespace) -> int:
     config = config_from(args)
     magnitudes = args.magnitude or [defaults.MAGNITUDE]
     betas = args.beta or [defaults.BETA0 if args.beta_convention == "paper" else -defaults.BETA0]
+    b2 = scene_from(args)[1]
+    if b2 is not None:
+        betas = [beta_from_coefficients(b, b2, b2) for b in args.beta] if args.beta else [b2]
     results = experiment.simulate(
         config,
         magnitudes,
@@ -62,6 +65,8 @@ def _print_table(config, results, sigma_beta: float) -> None:
         f"fine pixels, {config.realizations} {'beta maps' if sigma_beta > 0 else 'centroids'}, seed {config.seed}, "
         f"fidelity {config.fidelity}; {first.to_dict()['nl_model']}"
     )
+    if not config.scene.is_paper:
+        print(f"scene: {config.scene.describe()}")
     if config.ramp is not None:
         print(f"up the ramp: {config.ramp.describe()}")
     scatter = sigma_beta > 0

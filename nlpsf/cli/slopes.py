@@ -6,7 +6,7 @@ import argparse
 
 from .. import defaults
 from . import progress_printer
-from .options import add_simulation_options, config_from, print_json, with_error
+from .options import add_simulation_options, beta_from_coefficients, config_from, print_json, scene_from, with_error
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -18,7 +18,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help=f"AB magnitude; repeat (default {' '.join(f'{m:g}' for m in defaults.PAPER_MAGNITUDES)}, the paper's)",
     )
     parser.add_argument(
-        "--beta0", type=float, default=defaults.BETA0, help="beta at which slopes are taken [1/e-], in --beta-convention"
+        "--beta0",
+        type=float,
+        default=None,
+        help=f"beta at which slopes are taken [1/e-], in --beta-convention (default {defaults.BETA0:g})",
     )
     parser.add_argument(
         "--sigma-beta",
@@ -32,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import experiment
 
     config = config_from(args)
+    args.beta0 = beta_from_coefficients(args.beta0, scene_from(args)[1], defaults.BETA0)
     magnitudes = args.magnitude or list(defaults.PAPER_MAGNITUDES)
     results = experiment.slopes(
         config,
@@ -48,6 +52,8 @@ def run(args: argparse.Namespace) -> int:
         f"{config.band} SCA {config.sca}, beta0={args.beta0:g} /e- ({args.beta_convention} convention), {config.exptime_s:g} s, "
         f"fidelity {config.fidelity}"
     )
+    if not config.scene.is_paper:
+        print(f"scene: {config.scene.describe()}")
     if config.ramp is not None:
         print(f"up the ramp: {config.ramp.describe()}")
     print("bias slope d(metric)/dbeta and scatter slope sigma(metric)/sigma_beta, both per (1/e-), ± standard error")

@@ -6,11 +6,29 @@ import argparse
 
 from .. import defaults
 from ..fidelity import LEVELS
-from .options import add_band_sca, add_exposure, print_json, ramp_from, with_error
+from . import progress_printer
+from .options import add_exposure, add_scene_options, print_json, ramp_from, scene_from, with_error
+
+
+def _sca(text: str):
+    if text.strip().lower() == "all":
+        return "all"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 1-{defaults.N_SCA} or all, got {text!r}") from None
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    add_band_sca(parser)
+    parser.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
+    parser.add_argument(
+        "--sca", type=_sca, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18); all with --over-field"
+    )
+    parser.add_argument(
+        "--over-field",
+        action="store_true",
+        help="answer for the worst position over the SCA's field points (all 18 SCAs with --sca all); simulates",
+    )
     parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
     parser.add_argument(
         "--mode", choices=defaults.MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
@@ -54,6 +72,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"photometry of the magnitude: default the tables' own ({defaults.THROUGHPUT}); another relabels them",
     )
+    add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
     parser.add_argument(
         "--batch",
@@ -101,11 +120,37 @@ ANSWER_COLUMNS = (
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..solver import solve
+    from ..solver import solve, solve_over_field
 
     if args.batch:
         return run_batch(args)
     ramp, exptime = ramp_from(args)
+    if args.over_field:
+        if ramp is not None:
+            from ..checks import InputError
+
+            raise InputError("ramp", "--over-field works on the final frame; give no ramp")
+        solution = solve_over_field(
+            args.band,
+            "all" if args.sca == "all" else [args.sca],
+            scene=_scene(args),
+            progress=progress_printer(not args.json),
+            metric=args.metric,
+            mode=args.mode,
+            beta0=args.beta0,
+            exptime=exptime,
+            precision=args.precision,
+            tolerance=args.tolerance,
+            magnitude=args.magnitude,
+            full_well=args.full_well,
+            fidelity=args.fidelity,
+            accuracy=args.accuracy,
+        )
+        return _report(solution, args)
+    if args.sca == "all":
+        from ..checks import InputError
+
+        raise InputError("sca", "--sca all needs --over-field")
     solution = solve(
         args.band,
         args.sca,
@@ -119,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
         args.full_well,
         args.fidelity,
         args.accuracy,
+        scene=_scene(args),
         throughput=args.throughput,
         shear_m=args.shear_m,
         shear_c=args.shear_c,
@@ -126,6 +172,10 @@ def run(args: argparse.Namespace) -> int:
         stars=args.stars,
         ramp=ramp,
     )
+    return _report(solution, args, ramp)
+
+
+def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     payload = solution.to_dict()
     if args.json:
         print_json(payload)
@@ -143,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
     if payload["uncertainty"] is not None:
         parts = ", ".join(
             f"{k} {payload[f'uncertainty_{k}']:.2g}"
-            for k in ("statistical", "fidelity")
+            for k in ("statistical", "fidelity", "optical_model", "model")
             if payload[f"uncertainty_{k}"] is not None
         )
         print(f"  uncertainty ({parts})")
@@ -162,9 +212,45 @@ def run(args: argparse.Namespace) -> int:
         _print_shear(solution.shear)
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
+    if solution.model:
+        included = ", ".join(f"{e['name']} {100 * e['impact']:+.2g} %" for e in solution.model["included"]) or "none"
+        print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
+        left = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["left_out"])
+        print(f"  left out (in the model uncertainty): {left}")
     for flag in solution.flags:
         print(f"  ! {flag}")
     return 0
+
+
+def _percent(value: float | None) -> str:
+    return "n/a" if value is None else f"{100 * value:+.2g} %"
+
+
+def _scene(args: argparse.Namespace):
+    """The scene options, or None when none was given (the paper's scene, the tables' answer)."""
+    given = any(
+        getattr(args, name, None) is not None
+        for name in (
+            "scene",
+            "position",
+            "sed",
+            "jitter",
+            "charge_diffusion",
+            "ipc",
+            "ipc_order",
+            "nl_coefficients",
+            "bfe",
+            "background",
+        )
+    )
+    if not given:
+        return None
+    model, b2 = scene_from(args)
+    if b2 is not None and b2 != args.beta0:
+        from ..checks import InputError
+
+        raise InputError("nl_coefficients", f"b2={b2:g} must equal --beta0 ({args.beta0:g}) in solve")
+    return model
 
 
 def _tolerance_unit(metric: str) -> str:

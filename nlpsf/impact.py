@@ -1,0 +1,226 @@
+"""What each scene effect changes: the impact report.
+
+For a request (band, SCA, magnitude, beta0, metric, mode) and a scene, every effect of
+``nlpsf.scene.EFFECTS`` is measured at that point with the linear response (exact derivatives at
+beta0, cheap): its impact on a metric's slope is
+
+    impact = slope(scene with the effect) / slope(scene without it) - 1.
+
+An effect the scene has on is switched off for the comparison; an effect it leaves off is switched
+on at its representative value (``scene.NOMINAL``: Roman's jitter, diffusion and IPC, a flat-f_nu
+SED, a corner of the SCA, ...), so the report says what including it would change. Brighter-fatter
+has no default coefficient: unless the scene gives one, its impact is not measured (``null``).
+
+``cost_s`` is the seconds the linear-response simulation with the effect took at this point (its
+own optics included where it needs new ones: a position or an SED; blurs and detector effects reuse
+the cached optical PSF), beside ``conditions.plain_cost_s`` for the paper's scene. The benchmark
+``benchmarks/bench_scene.py`` measures each effect's cost relative to the plain simulation with
+repeats, in one run.
+
+Both runs use the same centroids (same seed), so most of the realization noise cancels in the
+ratio; the quoted ``uncertainty`` combines the two standard errors as if independent, an upper
+bound.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+from . import defaults, experiment, roman
+from . import scene as scenes
+from .checks import InputError, check_integer, check_number
+
+#: Impact metrics: the contract's names, and the simulation metrics each combines.
+IMPACT_METRICS: dict[str, tuple[str, ...]] = {"size": ("dR_over_R",), "e1": ("de1",), "e2": ("de2",), "e": ("de1", "de2")}
+MODES = ("bias", "scatter")
+
+
+def _slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
+    """(slope, its standard error) per impact metric; |e| combines e1 and e2 in quadrature."""
+    out = {}
+    for name, parts in IMPACT_METRICS.items():
+        values, errors = [], []
+        for part in parts:
+            if mode == "bias":
+                stat = result.bias[part]
+                values.append(stat.mean)
+                errors.append(stat.stderr)
+            else:
+                values.append(result.scatter[part]["value"])
+                errors.append(result.scatter[part]["uncertainty"])
+        if any(v is None for v in values):
+            out[name] = (None, None)
+        elif len(values) == 1:
+            out[name] = (float(values[0]), float(errors[0] or 0.0))
+        else:
+            value = math.hypot(*values)
+            error = math.hypot(values[0] * (errors[0] or 0), values[1] * (errors[1] or 0)) / value if value else 0.0
+            out[name] = (value, error)
+    return out
+
+
+def _ratio(with_value, without_value):
+    (a, da), (b, db) = with_value, without_value
+    if a is None or b is None or b == 0:
+        return None, None
+    ratio = a / b
+    return ratio - 1.0, abs(ratio) * math.hypot(da / a if a else 0.0, db / b)
+
+
+def impact(
+    band: str = "H158",
+    sca: int = 18,
+    magnitude: float = 18.3,
+    scene: scenes.SceneModel | None = None,
+    metric: str = "size",
+    mode: str = "bias",
+    beta0: float = 5e-7,
+    exptime: float = defaults.EXPTIME_S,
+    realizations: int = 100,
+    seed: int = 1,
+    max_wavelengths: int = 64,
+    progress=None,
+) -> dict:
+    """Every effect's relative change of the slope at this point; see the module docstring.
+
+    Returns ``{"effects": [{"name", "on", "impact": {"size", "e1", "e2", "e"}, "uncertainty": {...},
+    "cost_s", "value", "note"}, ...], "conditions": {...}}``.
+    """
+    scene = scene if scene is not None else scenes.SceneModel()
+    if not isinstance(scene, scenes.SceneModel):
+        raise InputError("scene", "must be a scene description")
+    if metric not in IMPACT_METRICS:
+        raise InputError("metric", f"must be one of {', '.join(IMPACT_METRICS)}, got {metric!r}")
+    if mode not in MODES:
+        raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
+    magnitude = experiment.check_magnitudes([magnitude])[0]
+    beta0 = check_number(beta0, "beta0", 0.0, 1e-3, open_low=True)
+    check_integer(realizations, "realizations", 2, 10_000)
+    base = experiment.SimulationConfig(
+        band=band, sca=sca, realizations=realizations, seed=seed, exptime_s=exptime, method="linear", scene=scene
+    )
+    cache: dict[scenes.SceneModel, tuple[dict, float, list[str]]] = {}
+
+    def run(model: scenes.SceneModel):
+        key = replace(model, name=None)
+        if key not in cache:
+            start = time.perf_counter()
+            result = experiment.slopes(replace(base, scene=key), [magnitude], beta0=beta0)[0]
+            cache[key] = (_slope_values(result, mode), time.perf_counter() - start, result.flags)
+        return cache[key]
+
+    total = len(scenes.EFFECTS) + 1
+    if progress:
+        progress(0, total, "the scene as given")
+    start = time.perf_counter()
+    scene_slopes, scene_cost, scene_flags = run(scene)
+    effects = []
+    for index, name in enumerate(scenes.EFFECTS, start=1):
+        if progress:
+            progress(index, total, name)
+        on = scene.effects_on()[name]
+        with_scene = scene if on else scene.with_nominal(name)
+        if name == "sed" and not on and with_scene is not None:
+            # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
+            wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
+            with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
+            capped = wanted > max_wavelengths
+        capped = False
+        entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
+        if with_scene is None:
+            entry.update(
+                impact=dict.fromkeys(IMPACT_METRICS),
+                uncertainty=dict.fromkeys(IMPACT_METRICS),
+                cost_s=None,
+                note=scenes.NOMINAL[name]["note"],
+            )
+            effects.append(entry)
+            continue
+        with_values, with_cost, _ = run(with_scene)
+        without_values, _, _ = run(with_scene.without(name))
+        ratios = {m: _ratio(with_values[m], without_values[m]) for m in IMPACT_METRICS}
+        entry.update(
+            impact={m: r[0] for m, r in ratios.items()},
+            uncertainty={m: r[1] for m, r in ratios.items()},
+            cost_s=with_cost,
+            note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
+            + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
+        )
+        effects.append(entry)
+    if progress:
+        progress(total, total, "done")
+    plain_slopes, plain_cost, _ = run(scenes.SceneModel())
+    return {
+        "effects": effects,
+        "conditions": {
+            "band": base.band,
+            "sca": base.sca,
+            "magnitude": magnitude,
+            "metric": metric,
+            "mode": mode,
+            "beta0": beta0,
+            "beta_convention": "paper",
+            "exptime_s": exptime,
+            "realizations": realizations,
+            "seed": seed,
+            "method": "linear response at beta0 (exact derivatives), with and without each effect on the same centroids",
+            "scene": scene.to_dict(),
+            "scene_description": scene.describe(),
+            "slope": {m: v[0] for m, v in scene_slopes.items()},
+            "plain_slope": {m: v[0] for m, v in plain_slopes.items()},
+            "plain_cost_s": plain_cost,
+            "scene_cost_s": scene_cost,
+            "flags": scene_flags,
+            "beta_q_scaling_broken_by": scene.breaks_beta_q_scaling(),
+            "elapsed_s": time.perf_counter() - start,
+            "data_version": roman.DATA_VERSION,
+        },
+    }
+
+
+def _effect_value(model: scenes.SceneModel, name: str):
+    """The setting the effect was measured at, in the scene's own words."""
+    return {
+        "position": model.position,
+        "sed": model.sed,
+        "jitter": model.jitter_arcsec,
+        "charge_diffusion": model.charge_diffusion_px,
+        "ipc": None if model.ipc is None else f"{model.ipc_label} {model.ipc_order} NL",
+        "nl_polynomial": list(model.nl_coefficients),
+        "brighter_fatter": model.bfe_coefficient,
+        "background": model.background_e,
+    }[name]
+
+
+def left_out(report: dict, accuracy: float) -> tuple[list[dict], list[dict]]:
+    """Split the report's effects at ``accuracy`` on the request's metric: (include, leave out).
+
+    An effect is included when |impact| on the request's metric exceeds the accuracy asked for;
+    an effect whose impact could not be measured is left out and says so.
+    """
+    metric = report["conditions"]["metric"]
+    include, leave = [], []
+    for effect in report["effects"]:
+        value = effect["impact"][metric]
+        (include if value is not None and abs(value) > accuracy else leave).append(effect)
+    return include, leave
+
+
+def markdown(report: dict) -> str:
+    c = report["conditions"]
+    lines = [
+        f"{c['band']} SCA {c['sca']} m={c['magnitude']:g} beta0={c['beta0']:g} {c['mode']} slopes",
+        f"scene: {c['scene_description']}",
+        "",
+        "| effect | on | size | e1 | e2 | \\|e\\| | cost (s) | measured at |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for e in report["effects"]:
+        cells = ["n/a" if e["impact"][m] is None else f"{100 * e['impact'][m]:+.2f} %" for m in IMPACT_METRICS]
+        cost = "n/a" if e["cost_s"] is None else f"{e['cost_s']:.2f}"
+        lines.append(f"| {e['name']} | {'yes' if e['on'] else 'no'} | " + " | ".join(cells) + f" | {cost} | {e['note']} |")
+    lines.append("")
+    lines.append(f"plain (paper) scene: {c['plain_cost_s']:.2f} s; impact = slope with / without - 1 (linear response)")
+    return "\n".join(lines)

@@ -1,0 +1,182 @@
+"""The scene through the CLI and the REST API: the same library numbers, bad input named."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from fastapi.testclient import TestClient
+from nlpsf.web.main import create_app
+from nlpsf.web.settings import Limits, Settings
+
+from nlpsf import cli, experiment
+from nlpsf import scene as scenes
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    settings = Settings(
+        db_path=str(tmp_path_factory.mktemp("db") / "jobs.sqlite3"),
+        job_workers=1,
+        max_queue=8,
+        limits=Limits(max_realizations=500, max_stamp=128, max_grid=50),
+    )
+    with TestClient(create_app(settings)) as test_client:
+        yield test_client
+
+
+def run_cli(capsys, *argv):
+    code = cli.main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_cli_simulate_with_scene_options_matches_the_library(capsys):
+    code, out, _ = run_cli(
+        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json"
+    )
+    assert code == 0
+    got = json.loads(out)
+    model = scenes.SceneModel(position=(100.0, 200.0), jitter_arcsec=0.014, ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman")
+    want = experiment.simulate(experiment.SimulationConfig(realizations=4, scene=model), [18.3], [5e-7])[0]
+    assert got["dR_over_R"]["mean"] == want.dR_over_R.mean
+    assert got["conditions"]["scene"]["effects_on"]["ipc"] is True
+
+
+def test_cli_nl_coefficients_set_beta_and_higher_orders(capsys, tmp_path):
+    saved = tmp_path / "scene.json"
+    code, out, _ = run_cli(
+        capsys,
+        "slopes",
+        "--realizations",
+        "4",
+        "--magnitude",
+        "20",
+        "--nl-coefficients",
+        "4e-7,1e-13",
+        "--save-scene",
+        str(saved),
+        "--method",
+        "linear",
+        "--json",
+    )
+    assert code == 0
+    got = json.loads(out)[0]
+    assert got["beta0"] == 4e-7 and got["conditions"]["scene"]["nl_coefficients"] == [1e-13]
+    assert scenes.load(str(saved)).nl_coefficients == (1e-13,)
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (("--jitter", "-0.1"), "--jitter"),
+        (("--sed", "vega"), "--sed"),
+        (("--position", "0,10"), "--position"),
+        (("--position", "nan,10"), "--position"),
+        (("--scene", "nominal"), "--scene"),
+        (("--background", "-1"), "--background"),
+        (("--bfe", "nan"), "--bfe"),
+        (("--nl-coefficients", "5e-7", "--beta", "4e-7"), "--nl-coefficients"),
+    ],
+)
+def test_cli_bad_scene_input_exits_2_naming_the_option(capsys, argv, option):
+    code, _, err = run_cli(capsys, "simulate", "--realizations", "2", *argv)
+    assert code == 2 and option in err
+
+
+def test_cli_two_by_two_ipc_file_exits_2(capsys, tmp_path):
+    path = tmp_path / "k.txt"
+    path.write_text("0 0.01\n0.01 1\n")
+    code, _, err = run_cli(capsys, "slopes", "--ipc", str(path))
+    assert code == 2 and "--ipc" in err and "3x3" in err
+
+
+def test_cli_impact_contract(capsys):
+    code, out, _ = run_cli(
+        capsys,
+        "impact",
+        "--band",
+        "H158",
+        "--sca",
+        "18",
+        "--magnitude",
+        "18.3",
+        "--realizations",
+        "6",
+        "--scene",
+        "roman",
+        "--json",
+    )
+    assert code == 0
+    report = json.loads(out)
+    assert [e["name"] for e in report["effects"]] == list(scenes.EFFECTS)
+    for effect in report["effects"]:
+        assert set(effect["impact"]) == {"size", "e1", "e2", "e"} and isinstance(effect["on"], bool)
+        assert "cost_s" in effect
+    assert report["conditions"]["scene"]["name"] == "roman"
+
+
+def test_api_simulation_with_scene_matches_the_library(client):
+    body = {"magnitudes": [19.0], "betas": [5e-7], "realizations": 4, "scene": {"preset": "roman", "position": [300, 400]}}
+    job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
+    assert job["status"] == "done", job
+    model = scenes.from_request({"preset": "roman", "position": [300, 400]})
+    want = experiment.simulate(experiment.SimulationConfig(realizations=4, scene=model), [19.0], [5e-7])[0]
+    assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(want.dR_over_R.mean, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("scene", "field"),
+    [
+        ({"jitter": -0.01}, "scene.jitter"),
+        ({"sed": "vega"}, "scene.sed"),
+        ({"ipc": [[0.0, 0.1], [0.1, 1.0]]}, "scene.ipc"),
+        ({"position": [0, 100]}, "scene.position"),
+        ({"position": [5000, 100]}, "scene.position"),
+        ({"ipc_order": "during"}, "scene"),
+        ({"preset": "hubble"}, "scene"),
+        ({"colour": "red"}, "scene"),
+    ],
+)
+def test_api_bad_scene_is_422_naming_the_field(client, scene, field):
+    for path, body in (("/api/v1/simulations", {"realizations": 2}), ("/api/v1/impact", {"realizations": 2})):
+        response = client.post(path, json={**body, "scene": scene})
+        assert response.status_code == 422, response.text
+        assert response.json()["field"] == field
+
+
+def test_api_nan_in_scene_is_422(client):
+    response = client.post("/api/v1/impact", content='{"scene": {"jitter": NaN}}', headers={"content-type": "application/json"})
+    assert response.status_code == 422 and response.json()["field"] == "scene"
+
+
+def test_api_impact(client):
+    response = client.post(
+        "/api/v1/impact", json={"band": "H158", "magnitude": 19.0, "realizations": 4, "scene": {"jitter": 0.02}}
+    )
+    assert response.status_code == 200, response.text
+    report = response.json()
+    jitter = next(e for e in report["effects"] if e["name"] == "jitter")
+    assert jitter["on"] and jitter["impact"]["size"] < 0
+    assert client.post("/api/v1/impact", json={"realizations": 501}).json()["limit"] == "max_realizations"
+
+
+def test_cli_over_field_and_sca_all(capsys):
+    code, out, _ = run_cli(
+        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"
+    )
+    assert code == 0
+    got = json.loads(out)
+    assert len(got["conditions"]["over_field"]) == 5 and got["flags"][0].startswith("worst over 5 field points (SCA 3)")
+    code, _, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "all", "--magnitude", "19", "--tolerance", "1e-4")
+    assert code == 2 and "--sca" in err
+
+
+def test_api_solve_over_field_and_with_scene(client):
+    body = {"band": "J129", "sca": 3, "magnitude": 19.0, "tolerance": 1e-4, "over_field": "sca"}
+    response = client.post("/api/v1/solve", json=body)
+    assert response.status_code == 200, response.text
+    assert len(response.json()["conditions"]["over_field"]) == 5
+    with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
+    assert with_scene["fidelity"] == "linear" and with_scene["conditions"]["scene"]["jitter_arcsec"] == 0.014
+    assert client.post("/api/v1/solve", json={**body, "over_field": "everywhere"}).status_code == 422
