@@ -110,7 +110,10 @@ def _problem_schema(app: FastAPI) -> None:
         )
         problem = {"schema": {"$ref": "#/components/schemas/Problem"}}
         for operations in schema.get("paths", {}).values():
-            for operation in operations.values():
+            for method, operation in operations.items():
+                if method in ("post", "put", "patch"):
+                    # BodyLimit answers any request body over max_body_bytes before the route runs.
+                    operation["responses"].setdefault("413", {"description": "the request body is larger than max_body_bytes"})
                 for code, response in operation.get("responses", {}).items():
                     if code.isdigit() and int(code) >= 400:
                         response["content"] = {errors.PROBLEM_MEDIA_TYPE: problem}
