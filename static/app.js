@@ -806,6 +806,18 @@ function simulationPoints(kind, band, metric, magnitude) {
   });
 }
 
+// Says which fresh simulation points are drawn, and which are not (another band, magnitude or |Δe|).
+function freshNote(drawn, band, magnitude, metric) {
+  const sim = state.lastSimulation;
+  if (!sim) return "";
+  const shown = drawn.reduce((n, c) => n + c.x.length, 0);
+  const others = sim.results.filter((r) => r.sigma_beta > 0).length - shown;
+  const parts = [` Points: ${shown ? `each β of the last fresh simulation at ${band}, m = ${fmt(magnitude)} (${drawn.length} series)` : "none at these settings"}`];
+  if (others > 0) parts.push(`${others} more at other bands or magnitudes (choose them above, or see the table)`);
+  if (metric === "e") parts.push("simulations give e₁ and e₂, not |Δe|");
+  return parts.join("; ") + ".";
+}
+
 async function drawBeta() {
   const c = sharedConditions();
   const band = document.getElementById("beta-band").value;
@@ -844,10 +856,12 @@ async function drawSigma() {
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
   const columns = [{ label, x: data.sigma_beta, y: data.values, err: data.uncertainty,
     series: lineSeries(label, BAND_COLORS[band] || "#333") }];
-  columns.push(...simulationPoints("sigma", band, metric, Number(magnitude)));
+  const fresh = simulationPoints("sigma", band, metric, Number(magnitude));
+  columns.push(...fresh);
   const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
   document.getElementById("sigma-caption").textContent = `${data.source}. ${conditionsText(data.conditions)}. ` +
-    `Scatter slope = ${fmt(data.slope)} per unit σβ.` + (data.flags.length ? ` Flags: ${data.flags.join("; ")}` : "");
+    `Scatter slope = ${fmt(data.slope)} per unit σβ.` + (data.flags.length ? ` Flags: ${data.flags.join("; ")}` : "") +
+    freshNote(fresh, band, Number(magnitude), metric);
   drawPlot("sigma", { title, xLabel: "σβ [1/e⁻]", yLabel: `σ(${METRIC_LABEL[metric]})`, columns, logX: log, logY: log });
 }
 

@@ -73,15 +73,9 @@ def test_every_bad_field_is_reported_at_once(page):  # noqa: F811
     assert set(items) == {"beta0", "exptime", "magnitude"}
     for field in ("beta0", "exptime", "magnitude"):
         assert page.get_attribute(f"#solve-{field}", "aria-invalid") == "true"
-    # The server's list too: several fields the page cannot judge, all named.
     page.fill("#solve-beta0", "5e-7")
-    page.fill("#solve-exptime", "-1")
-    page.fill("#solve-magnitude", "18.3")
-    page.fill("#solve-full_well", "-5")
-    page.click("#solve-button")
-    page.wait_for_selector("#solve-error:not([hidden])")
     page.fill("#solve-exptime", "168.1")
-    page.fill("#solve-full_well", "1.1e5")
+    page.fill("#solve-magnitude", "18.3")
     page.click("#solve-button")
     page.wait_for_selector("#solve-error", state="hidden")
 
@@ -100,6 +94,7 @@ def test_fresh_simulations_at_several_betas_are_all_shown(page):  # noqa: F811
     assert len(fresh) == 3 and all(f"β = {b}" in " ".join(fresh) for b in ("2.5e-7", "5e-7", "1e-6"))
     points = page.evaluate("() => state.exports.sigma.columns.filter((c) => c.label.startsWith('fresh')).map((c) => c.x.length)")
     assert points == [2, 2, 2]
+    assert "3 series" in page.inner_text("#sigma-caption")
     page.locator("#curves").screenshot(path=str(ARTIFACTS / "e2e-sigma-betas.png"))
     page.fill("#sim-sigma_betas", "0")
     page.select_option("#sim-fidelity", "monte_carlo")
@@ -125,3 +120,22 @@ def test_the_page_at_420_px(page):  # noqa: F811
         page.screenshot(path=str(ARTIFACTS / "e2e-420px.png"), full_page=True)
     finally:
         page.set_viewport_size({"width": 1280, "height": 1000})
+
+
+def test_a_shear_budget_takes_the_place_of_the_tolerance(page):  # noqa: F811
+    page.check("#solve-for-precision")
+    page.fill("#solve-magnitude", "19")
+    page.fill("#solve-shear_m", "2e-3")
+    page.fill("#solve-size_ratio", "1.5")
+    with page.expect_request(lambda r: r.url.endswith("/api/v1/solve")) as request:
+        page.click("#solve-button")
+    sent = request.value.post_data_json
+    assert sent["shear_m"] == 2e-3 and sent["size_ratio"] == 1.5 and "tolerance" not in sent
+    page.wait_for_selector("[data-testid=shear]")
+    expected = solver.solve("H158", magnitude=19, shear_m=2e-3, size_ratio=1.5)
+    assert f"T = {expected.tolerance:.4g}" in page.inner_text("[data-testid=shear]").replace("e-0", "e-")
+    page.fill("#solve-shear_m", "")
+    page.fill("#solve-size_ratio", "")
+    page.fill("#solve-tolerance", "1e-4")
+    page.click("#solve-button")
+    page.wait_for_selector("#solve-error", state="hidden")
