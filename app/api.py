@@ -414,13 +414,16 @@ def _linear_curve(
         magnitude=magnitude,
         full_well=full_well,
     ).to_dict()
-    at_beta0, error = solution["tolerance"], solution["uncertainty"] or 0.0
-    relative = abs(error / at_beta0) if at_beta0 else 0.0
+    # The statistical part per point, the fidelity part as one relative number (the page shows both).
+    at_beta0 = solution["tolerance"]
+    statistical, systematic = solution["uncertainty_statistical"], solution["uncertainty_fidelity"]
+    relative = abs((statistical or 0.0) / at_beta0) if at_beta0 else 0.0
     slope = solution["slope"] or 0.0
     values = [slope * x for x in xs]
     return {
         "values": values,
         "uncertainty": [abs(v) * relative for v in values],
+        "fidelity_relative_uncertainty": abs(systematic / at_beta0) if at_beta0 and systematic is not None else None,
         "slope": solution["slope"],
         "flags": solution["flags"],
         "saturation_magnitude": solution["saturation_magnitude"],

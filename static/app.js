@@ -240,13 +240,17 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
         // Hover shows each value with its uncertainty, looked up by x (the joined data has gaps).
         const index = new Map(c.x.map((x, i) => [x, i]));
         return { ...c.series, value: (u, v, si, i) => {
+          let where = "";
           if (i == null) {
-            i = defaultIdx;
+            // No cursor: this series' value nearest the default x (the joined data has gaps).
+            i = nearestDefined(u.data[si], defaultIdx);
+            if (i == null) return "–";
             v = u.data[si][i];
+            if (i !== defaultIdx) where = ` (at ${fmt(u.data[0][i])})`;
           }
           if (v == null) return "–";
           const j = index.get(u.data[0][i]);
-          return c.describe ? c.describe(v, j) : describeValue(c, v, j);
+          return (c.describe ? c.describe(v, j) : describeValue(c, v, j)) + where;
         } };
       })],
     legend: { live: true },
@@ -255,6 +259,14 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
   state.plots[name] = new uPlot(options, data, el);
   state.plots[name].defaultIdx = defaultIdx;
   state.plots[name].halfWidths = halfWidths;
+}
+
+function nearestDefined(values, start) {
+  for (let d = 0; d < values.length; d++) {
+    if (values[start - d] != null) return start - d;
+    if (values[start + d] != null) return start + d;
+  }
+  return null;
 }
 
 function total(c, i) {
@@ -826,7 +838,8 @@ async function drawBeta() {
   const log = document.getElementById("beta-log").checked;
   const data = await api(`/curves/beta?${query({ band, metric, magnitude, ...c })}`);
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
-  const columns = [{ label, x: data.beta, y: data.values, err: data.uncertainty, series: lineSeries(label, BAND_COLORS[band] || "#333") }];
+  const columns = [{ label, x: data.beta, y: data.values, err: data.uncertainty, fid: data.fidelity_relative_uncertainty,
+    series: lineSeries(label, BAND_COLORS[band] || "#333") }];
   const paper = paperOn();
   if (paper && metric !== "e" && paper["fig2_at_m18.3"][band]) {
     const fig = paper["fig2_at_m18.3"][band];
@@ -840,7 +853,8 @@ async function drawBeta() {
   }
   const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
   document.getElementById("beta-caption").textContent = `${data.source}. ${conditionsText(data.conditions)}. ` +
-    `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}).` +
+    `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty: statistical ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}` +
+    `${data.fidelity_relative_uncertainty != null ? `, fidelity ${fmt(data.fidelity_relative_uncertainty, 2)}` : ""}).` +
     (data.flags.length ? ` Flags: ${data.flags.join("; ")}` : "");
   const yLabel = log ? `|${METRIC_LABEL[metric]}|` : METRIC_LABEL[metric];
   drawPlot("beta", { title, xLabel: "β [1/e⁻]", yLabel, columns, logX: log, logY: log });
@@ -854,7 +868,7 @@ async function drawSigma() {
   const log = document.getElementById("sigma-log").checked;
   const data = await api(`/curves/sigma_beta?${query({ band, metric, magnitude, ...c })}`);
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
-  const columns = [{ label, x: data.sigma_beta, y: data.values, err: data.uncertainty,
+  const columns = [{ label, x: data.sigma_beta, y: data.values, err: data.uncertainty, fid: data.fidelity_relative_uncertainty,
     series: lineSeries(label, BAND_COLORS[band] || "#333") }];
   const fresh = simulationPoints("sigma", band, metric, Number(magnitude));
   columns.push(...fresh);

@@ -173,3 +173,15 @@ def test_batch_answers_each_request_on_its_own(client):
     assert results[0]["solution"]["precision"] == single["precision"]
     assert results[1]["error"]["field"] == "magnitude" and results[2]["error"]["field"] == "beta0"
     assert results[3]["solution"]["metric"] == "e1"
+
+
+def test_curves_carry_the_fidelity_part_the_calculator_quotes(client):
+    # The page's hover and bands show both parts: they must be the solver's own.
+    solution = solver.solve("H158", magnitude=18.3, precision=1.0)
+    fidelity = solution.uncertainty_fidelity / solution.tolerance
+    statistical = solution.uncertainty_statistical / solution.tolerance
+    beta = client.get("/api/v1/curves/beta", params={"band": "H158", "magnitude": 18.3}).json()
+    assert beta["fidelity_relative_uncertainty"] == pytest.approx(fidelity, rel=1e-12)
+    assert beta["uncertainty"][-1] / beta["values"][-1] == pytest.approx(statistical, rel=1e-9)
+    slope = client.get("/api/v1/curves/slope", params={"bands": "H158"}).json()["curves"][0]
+    assert slope["fidelity_relative_uncertainty"] == pytest.approx(fidelity, rel=1e-12)
