@@ -37,6 +37,11 @@ def test_requirement_plot_hover_reads_the_requirement(page):  # noqa: F811
     legend = page.inner_text("#plot-req .u-legend")
     assert "stat" in legend and "fidelity" in legend, "hover gives both uncertainties"
     page.locator("#calculator").screenshot(path=str(ARTIFACTS / "e2e-requirement.png"))
+    with page.expect_download() as png:
+        page.click("button[data-png=req]")
+    path = ARTIFACTS / "e2e-export-requirement.png"
+    png.value.save_as(path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_magnitude_answer_names_the_binding_limit(page):  # noqa: F811
