@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from nlpsf import defaults, detector, fidelity, roman, solver
 
@@ -24,7 +24,14 @@ _SOLVE_DEFAULTS = {
 
 #: A [ratio, weight] pair of a size-ratio distribution.
 _RatioWeight = Annotated[list[float], Field(min_length=2, max_length=2)]
-Band = Literal[roman.BANDS]  # type: ignore[valid-type]
+
+
+def _band_name(value: Any) -> Any:
+    # Band names are case-insensitive (as in the library and the CLI); the schema lists the canonical ones.
+    return value.upper() if isinstance(value, str) else value
+
+
+Band = Annotated[Literal[roman.BANDS], BeforeValidator(_band_name)]  # type: ignore[valid-type]
 Metric = Literal[solver.METRICS]  # type: ignore[valid-type]
 Mode = Literal[solver.MODES]  # type: ignore[valid-type]
 Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]

@@ -185,3 +185,10 @@ def test_curves_carry_the_fidelity_part_the_calculator_quotes(client):
     assert beta["uncertainty"][-1] / beta["values"][-1] == pytest.approx(statistical, rel=1e-9)
     slope = client.get("/api/v1/curves/slope", params={"bands": "H158"}).json()["curves"][0]
     assert slope["fidelity_relative_uncertainty"] == pytest.approx(fidelity, rel=1e-12)
+
+
+def test_band_names_are_case_insensitive_but_listed_as_an_enum(client):
+    lower = client.post("/api/v1/solve", json={"band": "h158", "magnitude": 18.3, "tolerance": 1e-4})
+    upper = client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4})
+    assert lower.status_code == 200 and lower.json()["precision"] == upper.json()["precision"]
+    assert client.get("/api/v1/curves/beta", params={"band": "j129"}).json()["band"] == "J129"
