@@ -168,8 +168,11 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     if solution.model:
-        included = ", ".join(f"{e['name']} {100 * e['impact']:+.2g} %" for e in solution.model["included"]) or "none"
-        print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
+        included = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["included"]) or "none"
+        if "accuracy" in solution.model:
+            print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
+        elif solution.model["included"]:
+            print(f"  effects simulated by the scene: {', '.join(e['name'] for e in solution.model['included'])}")
         left = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["left_out"])
         print(f"  left out (in the model uncertainty): {left}")
     for flag in solution.flags:
