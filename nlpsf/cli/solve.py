@@ -173,15 +173,19 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
             print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
         elif solution.model["included"]:
             print(f"  effects simulated by the scene: {', '.join(e['name'] for e in solution.model['included'])}")
-        left = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["left_out"])
+        # Measured at the point (accuracy): signed; from the shipped worst cases: a magnitude only.
+        signed = "accuracy" in solution.model
+        left = ", ".join(f"{e['name']} {_percent(e['impact'], signed)}" for e in solution.model["left_out"])
         print(f"  left out (in the model uncertainty): {left}")
     for flag in solution.flags:
         print(f"  ! {flag}")
     return 0
 
 
-def _percent(value: float | None) -> str:
-    return "n/a" if value is None else f"{100 * value:+.2g} %"
+def _percent(value: float | None, signed: bool = True) -> str:
+    if value is None:
+        return "n/a"
+    return f"{100 * value:+.2g} %" if signed else f"±{100 * value:.2g} %"
 
 
 def _scene(args: argparse.Namespace):
