@@ -19,34 +19,43 @@ reproduces its source exactly:
   ``galsim.roman.getBandpasses(AB_zeropoint=True)`` and this module give the same electrons.
 
 The two references differ by 6.6e-5 mag (3630.78 vs 3631 Jy).
+
+The arithmetic is in SI with the constants written out (the 2019 SI fixes h exactly), not through
+astropy.units: importing astropy.units costs 0.3-0.4 s of CPU, more than a one-band simulation's
+photometry is worth, in every ``nlpsf simulate`` process. ``tests/test_data.py`` checks the
+numbers against astropy's units and constants.
 """
 
 from __future__ import annotations
 
 from functools import cache
 
-import astropy.units as u
 import numpy as np
-from astropy.constants import h as planck
 
 from . import roman
 from .checks import InputError, check_exptime
 
-#: Flat-f_nu flux density of an AB magnitude 0 source, per throughput data set (see above).
-AB_REFERENCE = {
-    "roman-2024": (0.0 * u.ABmag).to(u.Jy),
-    "galsim-2021": 3631.0 * u.Jy,
+#: Planck constant [J s], exact in the SI since 2019.
+PLANCK_J_S = 6.62607015e-34
+#: One jansky [W m^-2 Hz^-1].
+JANSKY_W_M2_HZ = 1e-26
+#: Flat-f_nu flux density of an AB magnitude 0 source [W m^-2 Hz^-1], per throughput data set (see
+#: above): 10^(-48.60 / 2.5) erg s^-1 cm^-2 Hz^-1 (1 erg s^-1 cm^-2 = 1e-3 W m^-2), or 3631 Jy.
+AB_REFERENCE_W_M2_HZ = {
+    "roman-2024": 10.0 ** (-0.4 * 48.60) * 1e-3,
+    "galsim-2021": 3631.0 * JANSKY_W_M2_HZ,
 }
 
 
 @cache
 def electrons_per_second_at_zero_magnitude(band: str, *, sca: int, throughput: str) -> float:
-    """Electrons per second from an AB magnitude 0 flat-f_nu source through ``band`` on ``sca``."""
+    """Electrons per second from an AB magnitude 0 flat-f_nu source through ``band`` on ``sca``.
+
+    rate = f_nu / h * integral A_eff(lambda) / lambda d lambda: the integral is dimensionless in
+    lambda (m^2 for the area), so the wavelength unit of the data drops out."""
     curve = roman.throughput(band, sca=sca, source=throughput)
-    wavelength = curve.wavelength_nm * u.nm
-    integrand = (AB_REFERENCE[curve.source] / (planck * wavelength)) * (curve.effective_area_m2 * u.m**2)
-    rate = np.trapezoid(integrand, wavelength)
-    return float(rate.to(1 / u.s).value)
+    area_per_wavelength_m2 = np.trapezoid(curve.effective_area_m2 / curve.wavelength_nm, curve.wavelength_nm)
+    return float(AB_REFERENCE_W_M2_HZ[curve.source] / PLANCK_J_S * area_per_wavelength_m2)
 
 
 def zero_point(band: str, *, sca: int, throughput: str) -> float:

@@ -224,20 +224,21 @@ class Pupil:
 PUPIL_SCALE_RULES = defaults.PUPIL_SCALE_RULES
 
 
-@cache
-def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -> Pupil:
-    """Pupil mask of ``sca`` for ``band`` (short- or long-wavelength mask), binned by ``pupil_bin``."""
-    sca = check_sca(sca)
-    band = check_band(band)
-    if check_integer(pupil_bin, "pupil_bin", 1, 16) and 2048 % int(pupil_bin):
-        raise InputError("pupil_bin", f"must divide 2048, got {pupil_bin!r}")
-    if scale_rule not in PUPIL_SCALE_RULES:
-        raise InputError("pupil_scale", f"must be one of {', '.join(PUPIL_SCALE_RULES)}, got {scale_rule!r}")
-    from astropy.io import fits  # 0.4 s to import: only reading a pupil needs it
+#: The binning whose masks are also shipped packed (``pupils_bin4.npz``): the one every simulation
+#: uses by default. Reading them needs numpy alone, where the FITS files need astropy.io.fits
+#: (0.25 s of CPU to import, more than the optics of a one-band simulation).
+PUPIL_COMPANION_BIN = 4
 
-    kind = "long" if band in LONG_WAVELENGTH_BANDS else "short"
-    name = f"RST_WIM_Filter_{'F184' if kind == 'long' else 'skinny'}_SCA_{sca}.fits.gz"
-    with gzip.open(_data_dir() / name, "rb") as handle, fits.open(handle) as hdul:
+
+def _pupil_fits_name(sca: int, kind: str) -> str:
+    return f"RST_WIM_Filter_{'F184' if kind == 'long' else 'skinny'}_SCA_{sca}.fits.gz"
+
+
+def _pupil_from_fits(sca: int, kind: str, pupil_bin: int) -> tuple[np.ndarray, float]:
+    """(open mask binned by ``pupil_bin``, rows flipped to GalSim's orientation; header scale [m])."""
+    from astropy.io import fits
+
+    with gzip.open(_data_dir() / _pupil_fits_name(sca, kind), "rb") as handle, fits.open(handle) as hdul:
         header = hdul[0].header
         data = np.asarray(hdul[0].data, dtype=np.float64)
         # The file's pixel scale is for the exit pupil in microns; the header gives the
@@ -247,7 +248,59 @@ def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -
     binned = data.reshape(n, pupil_bin, n, pupil_bin).sum(axis=(1, 3))
     # GalSim keeps a binned pixel if any sub-pixel is open; we keep that rule so the optical
     # model is the same one the reference pipeline uses.
-    transmission = (binned > 0).astype(np.float64)[::-1, :].copy()
+    return (binned > 0)[::-1, :].copy(), scale_m
+
+
+def _pupil_companion_path() -> Path:
+    return Path(str(resources.files("nlpsf") / "data" / "pupils" / f"pupils_bin{PUPIL_COMPANION_BIN}.npz"))
+
+
+@cache
+def _pupil_companion() -> dict[str, np.ndarray]:
+    with np.load(_pupil_companion_path(), allow_pickle=False) as archive:
+        return {k: archive[k] for k in archive.files}
+
+
+def _pupil_from_companion(sca: int, kind: str) -> tuple[np.ndarray, float]:
+    packed = _pupil_companion()
+    n = int(packed["side"])
+    mask = np.unpackbits(packed[f"{kind}_{sca}"])[: n * n].reshape(n, n).astype(np.float64)
+    return mask, float(packed[f"{kind}_{sca}_scale_m"])
+
+
+def write_pupil_companion() -> Path:
+    """Pack every SCA's binned masks from the FITS files (``python -c 'from nlpsf import roman;
+    roman.write_pupil_companion()'`` after the masks change); ``tests/test_data.py`` checks it."""
+    arrays: dict[str, np.ndarray] = {}
+    for sca in range(1, N_SCA + 1):
+        for kind in ("short", "long"):
+            mask, scale_m = _pupil_from_fits(sca, kind, PUPIL_COMPANION_BIN)
+            arrays[f"{kind}_{sca}"] = np.packbits(mask.ravel())
+            arrays[f"{kind}_{sca}_scale_m"] = np.array(scale_m)
+            arrays["side"] = np.array(mask.shape[0])
+    path = _pupil_companion_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **arrays)
+    _pupil_companion.cache_clear()
+    return path
+
+
+@cache
+def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -> Pupil:
+    """Pupil mask of ``sca`` for ``band`` (short- or long-wavelength mask), binned by ``pupil_bin``."""
+    sca = check_sca(sca)
+    band = check_band(band)
+    if check_integer(pupil_bin, "pupil_bin", 1, 16) and 2048 % int(pupil_bin):
+        raise InputError("pupil_bin", f"must divide 2048, got {pupil_bin!r}")
+    if scale_rule not in PUPIL_SCALE_RULES:
+        raise InputError("pupil_scale", f"must be one of {', '.join(PUPIL_SCALE_RULES)}, got {scale_rule!r}")
+    kind = "long" if band in LONG_WAVELENGTH_BANDS else "short"
+    if pupil_bin == PUPIL_COMPANION_BIN and _pupil_companion_path().exists():
+        transmission, scale_m = _pupil_from_companion(sca, kind)
+    else:
+        open_mask, scale_m = _pupil_from_fits(sca, kind, pupil_bin)
+        transmission = open_mask.astype(np.float64)
+    n = transmission.shape[0]
     transmission.setflags(write=False)
     if scale_rule == "galsim":
         offsets = np.arange(n) - n // 2

@@ -160,3 +160,26 @@ def test_bad_exposure_is_refused(exptime):
 def test_negative_flux_has_no_magnitude():
     with pytest.raises(InputError, match="flux_electrons"):
         photometry.electrons_to_magnitude(-5.0, "H158", 168.1, sca=18, throughput="roman-2024")
+
+
+@pytest.mark.parametrize("throughput", roman.THROUGHPUTS)
+def test_si_constants_give_astropys_units_arithmetic(throughput):
+    """photometry writes the SI constants out (no astropy import on the simulation path): the same
+    trapezoid done with astropy's units and constants gives the same rate to rounding."""
+    reference = {"roman-2024": (0.0 * u.ABmag).to(u.Jy), "galsim-2021": 3631.0 * u.Jy}[throughput]
+    for band, sca in [("R062", 1), ("H158", 18), ("K213", 9)]:
+        curve = roman.throughput(band, sca=sca, source=throughput)
+        lam = curve.wavelength_nm * u.nm
+        rate = np.trapezoid(reference / (h * lam) * curve.effective_area_m2 * u.m**2, lam).to(1 / u.s).value
+        got = photometry.electrons_per_second_at_zero_magnitude(band, sca=sca, throughput=throughput)
+        assert got == pytest.approx(rate, rel=1e-12)
+
+
+@pytest.mark.parametrize("sca", [1, 9, 18])
+def test_packed_pupils_equal_the_fits_masks(sca):
+    """The shipped packed masks (read with numpy alone) are the FITS masks binned as GalSim bins them."""
+    for kind in ("short", "long"):
+        from_fits, scale_fits = roman._pupil_from_fits(sca, kind, roman.PUPIL_COMPANION_BIN)
+        packed, scale_packed = roman._pupil_from_companion(sca, kind)
+        np.testing.assert_array_equal(packed, from_fits.astype(np.float64))
+        assert scale_packed == scale_fits
