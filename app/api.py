@@ -167,6 +167,7 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     responses={
         **ERRORS,
         202: {"model": models.Job, "description": "the report is still being simulated: poll the Location"},
+        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
         429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
         503: {"model": models.Problem, "description": "the job store is unavailable"},
     },
