@@ -40,10 +40,11 @@ of its pixels drop saturated resultants). ``conditions["ramp_slopes_from"]`` say
 Model part. Every answer says what it leaves out of a Roman scene (``model``) and adds it to its
 ``uncertainty`` (``uncertainty_model``): the scene effects it does not simulate, the spread over the
 SCA when no position is given, and the pupil-mask scale rule. With ``accuracy`` they are measured at
-the answer's point (``nlpsf.impact``); otherwise they come from a shipped measurement
-(``nlpsf/data/scene_model_uncertainty.json``: each effect's worst impact over two SCAs and two
-magnitudes). The pupil-scale rule and ``uncertainty_optical_model`` (the official-PSF comparison)
-both measure the optical model's error, so the total counts the larger of the two, not both.
+the answer's point (``nlpsf.impact``) and added in quadrature; otherwise they come from a shipped
+measurement (``nlpsf/data/scene_model_uncertainty.json``: each effect's worst impact on SCA 1, 9
+and 18 at two magnitudes) and are added up, since a Roman star has them all at once with signs often
+alike. The pupil-scale rule and ``uncertainty_optical_model`` (the official-PSF comparison) both
+measure the optical model's error, so the total counts the larger of the two, not both.
 """
 
 from __future__ import annotations
