@@ -22,12 +22,26 @@ router = APIRouter(prefix="/api/v1")
 
 ERRORS: dict[int | str, dict[str, Any]] = {422: {"model": models.Problem, "description": "invalid input; names the field"}}
 
-Band = Annotated[str, Query(description=f"Roman band: {', '.join(roman.BANDS)}")]
-Sca = Annotated[int, Query(description=f"detector 1-{roman.N_SCA}")]
-Number = Annotated[float, Query(allow_inf_nan=False)]
+Band = Annotated[models.Band, Query(description=f"Roman band (no unit): {', '.join(roman.BANDS)}")]
+Sca = Annotated[int, Query(ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")]
+Magnitude = Annotated[float, Query(allow_inf_nan=False, description="star magnitude in AB mag")]
+Exptime = Annotated[float, Query(allow_inf_nan=False, description="exposure time in s")]
+Beta0 = Annotated[float, Query(allow_inf_nan=False, description="NL coefficient beta0 in 1/e- (paper convention)")]
+FullWell = Annotated[float, Query(allow_inf_nan=False, description="full-well depth in e-")]
+OptionalBand = Annotated[models.Band | None, Query(description="Roman band (no unit); default all")]
+OptionalSca = Annotated[
+    int | None, Query(ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}; default all")
+]
+MetricQuery = Annotated[models.Metric, Query(description="the PSF metric (no unit): size (dR/R), e1, e2 or e (|de|)")]
+ModeQuery = Annotated[models.Mode, Query(description="bias or scatter (no unit)")]
+Points = Annotated[int, Query(ge=2, le=1000, description="number of grid points (count)")]
 
 
-@router.get("/health", summary="Liveness: 200 when the service answers; 'degraded' (with the reason) when simulations cannot run")
+@router.get(
+    "/health",
+    response_model=models.Health,
+    summary="Liveness: 200 when the service answers; 'degraded' (with the reason) when simulations cannot run",
+)
 async def health(request: Request) -> dict[str, Any]:
     # No I/O here: the job store's state is kept by the dispatcher's heartbeat (every 2 s).
     store = getattr(request.app.state, "store", None)
@@ -61,7 +75,7 @@ def _ma_table_summary(name: str) -> dict:
     }
 
 
-@router.get("/meta", summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
+@router.get("/meta", response_model=models.Meta, summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
 def meta(request: Request) -> SafeJSONResponse:
     settings = request.app.state.settings
     table_set = tables.load_tables()
@@ -164,6 +178,7 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
 
 @router.post(
     "/impact",
+    response_model=models.ImpactReport,
     responses={
         **ERRORS,
         202: {"model": models.Job, "description": "the report is still being simulated: poll the Location"},
@@ -218,10 +233,123 @@ async def _job_answer(request: Request, job_request: dict[str, Any]) -> Response
     return job_response(job, status)
 
 
-@router.get("/tables", responses=ERRORS, summary="The shipped slope tables as JSON rows (optionally one band / SCA)")
-def table_json(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResponse:
+def _table_etag(kind: str, band: str | None, sca: int | None) -> str:
+    """A strong validator: the tables' fingerprint (their content) and the selection asked for."""
+    fingerprint = tables.load_tables().meta.get("fingerprint", "")
+    return f'"{fingerprint}-{__version__}-{kind}-{band or "all"}-{sca or "all"}"'
+
+
+_CACHE = {
+    "Cache-Control": "public, max-age=3600, must-revalidate",
+}
+_NOT_MODIFIED = {304: {"description": "not modified: the tables are unchanged since the ETag sent in If-None-Match"}}
+
+
+def _not_modified(request: Request, etag: str) -> Response | None:
+    sent = request.headers.get("if-none-match", "")
+    if etag in [tag.strip().removeprefix("W/") for tag in sent.split(",")] or sent.strip() == "*":
+        return Response(status_code=304, headers={"ETag": etag, **_CACHE})
+    return None
+
+
+@router.post(
+    "/solve/batch",
+    response_model=models.BatchSolveResponse,
+    responses={**ERRORS, 413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"}},
+    summary="Many table solves in one call; each request is answered or refused on its own",
+)
+def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
+    results = [_solve_one(index, item) for index, item in enumerate(body.requests)]
+    answered = sum(1 for r in results if r["ok"])
+    return SafeJSONResponse({"results": results, "answered": answered, "failed": len(results) - answered})
+
+
+def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
+    from pydantic import ValidationError
+
+    from nlpsf.checks import SimulationError
+
+    from .errors import input_error_body, problem_body, validation_problem_body
+
+    try:
+        request = models.SolveRequest.model_validate(item)
+    except ValidationError as invalid:
+        return {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}
+    raw = request.model_dump()
+    job_only = ("ramp", "ma_table", "ramp_fit", "read_noise", "scene", "over_field")
+    arguments = {k: v for k, v in raw.items() if k not in job_only}
+    try:
+        ramp, arguments["exptime"] = request.ramp_arguments(request.exptime, request.sca)
+        for name in ("scene", "over_field"):
+            if raw[name] is not None:
+                raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
+        if ramp is not None or request.fidelity not in (None, "table") or request.accuracy is not None:
+            # A batch answers at table cost; a simulating solve is a job (POST /solve), one at a time.
+            raise InputError("fidelity", "a batch solves from the tables only: send ramps and simulating levels to POST /solve")
+        return {"index": index, "ok": True, "solution": json_safe(solver.solve(**arguments).to_dict())}
+    except InputError as error:
+        return {"index": index, "ok": False, "error": input_error_body(error)}
+    except SimulationError as error:
+        return {"index": index, "ok": False, "error": problem_body(422, str(error))}
+
+
+@router.get(
+    "/tables",
+    response_model=models.TableJSON,
+    responses={**ERRORS, **_NOT_MODIFIED},
+    summary="The shipped slope tables as JSON rows (optionally one band / SCA); gzip-compressed, ETag-cacheable",
+)
+def table_json(request: Request, band: OptionalBand = None, sca: OptionalSca = None) -> Response:
+    etag = _table_etag("json", band, sca)
+    if (cached := _not_modified(request, etag)) is not None:
+        return cached
     table_set = tables.load_tables()
-    return SafeJSONResponse({"meta": public_table_meta(table_set.meta), "rows": tables.table_rows(band, sca)})
+    body = {"meta": public_table_meta(table_set.meta), "rows": tables.table_rows(band, sca)}
+    return SafeJSONResponse(body, headers={"ETag": etag, **_CACHE})
+
+
+#: Units of the table columns (the shipped ECSV's own ``units`` metadata, as astropy units).
+_SLOPE_UNIT = "electron"
+
+
+def _column_unit(name: str) -> str | None:
+    if name == "magnitude":
+        return "mag(AB)"
+    if name in ("flux_electrons", "peak_electrons") or name.startswith(("bias_", "scatter_")):
+        return _SLOPE_UNIT
+    return None
+
+
+@router.get(
+    "/tables.ecsv",
+    responses={
+        **ERRORS,
+        **_NOT_MODIFIED,
+        200: {"content": {"text/x-ecsv": {}}, "description": "ECSV (astropy), units on the columns; one row per (band, SCA, m)"},
+    },
+    summary="The shipped slope tables as ECSV with units on the columns",
+)
+def table_ecsv(request: Request, band: OptionalBand = None, sca: OptionalSca = None) -> Response:
+    etag = _table_etag("ecsv", band, sca)
+    if (cached := _not_modified(request, etag)) is not None:
+        return cached
+    from astropy.table import Table
+
+    rows = tables.table_rows(band, sca)
+    table = Table(rows=rows, names=list(rows[0]))
+    for name in table.colnames:
+        if (unit := _column_unit(name)) is not None:
+            table[name].unit = unit
+    table.meta = {
+        "description": "nlpsf slope tables: bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta; "
+        "slopes in e- (a dimensionless metric per 1/e- of beta); peak_electrons per fine pixel x N^2",
+        "tables": public_table_meta(tables.load_tables().meta),
+    }
+    out = io.StringIO()
+    table.write(out, format="ascii.ecsv")
+    name = "nlpsf-slopes" + (f"-{band.upper()}" if band else "") + (f"-sca{sca}" if sca else "") + ".ecsv"
+    headers = {"Content-Disposition": f'attachment; filename="{name}"', "ETag": etag, **_CACHE}
+    return Response(out.getvalue(), media_type="text/x-ecsv", headers=headers)
 
 
 @router.get(
@@ -229,7 +357,7 @@ def table_json(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResp
     responses={**ERRORS, 200: {"content": {"text/csv": {}}, "description": "CSV, one row per (band, SCA, magnitude)"}},
     summary="The shipped slope tables as a CSV download",
 )
-def table_csv(band: Band | None = None, sca: Sca | None = None) -> Response:
+def table_csv(band: OptionalBand = None, sca: OptionalSca = None) -> Response:
     rows = tables.table_rows(band, sca)
     out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=list(rows[0]), lineterminator="\n")
@@ -243,30 +371,47 @@ def _csv_value(value: Any) -> Any:
     return "" if isinstance(value, float) and not math.isfinite(value) else value
 
 
-@router.get("/fits", summary="Power-law fits slope = A 10^(B (m - 20)) per band and SCA (the paper's Table 2 form)")
-def fits(band: Band | None = None, sca: Sca | None = None) -> SafeJSONResponse:
+@router.get(
+    "/fits",
+    response_model=models.Fits,
+    responses=ERRORS,
+    summary="Power-law fits slope = A 10^(B (m - 20)) per band and SCA (the paper's Table 2 form)",
+)
+def fits(band: OptionalBand = None, sca: OptionalSca = None) -> SafeJSONResponse:
     bands = [band] if band else None
     scas = [sca] if sca else None
     return SafeJSONResponse({"fits": json_safe(tables.powerlaw_fits(bands, scas))})
 
 
-@router.get("/paper", summary="The paper's published figure data (Figs. 2, 3, 5, Table 2; Cycle-5 optics)")
+@router.get(
+    "/paper",
+    response_model=models.PaperData,
+    summary="The paper's published figure data (Figs. 2, 3, 5, Table 2; Cycle-5 optics)",
+)
 def paper() -> SafeJSONResponse:
     return SafeJSONResponse(json_safe(tables.paper_data()))
 
 
-@router.get("/curves/slope", responses=ERRORS, summary="Slope vs magnitude for every band (the paper's Figs. 3 and 5)")
+@router.get(
+    "/curves/slope",
+    response_model=models.SlopeCurves,
+    responses=ERRORS,
+    summary="Slope vs magnitude for every band (the paper's Figs. 3 and 5)",
+)
 def slope_curves(
-    metric: models.Metric = "size",
-    mode: models.Mode = "bias",
+    metric: MetricQuery = "size",
+    mode: ModeQuery = "bias",
     sca: Sca = 18,
-    exptime: Number = defaults.EXPTIME_S,
-    beta0: Number = defaults.BETA0,
-    full_well: Number = defaults.FULL_WELL_E,
-    bands: Annotated[list[str] | None, Query(description="bands to include (default: all with tables)")] = None,
+    exptime: Exptime = defaults.EXPTIME_S,
+    beta0: Beta0 = defaults.BETA0,
+    full_well: FullWell = defaults.FULL_WELL_E,
+    bands: Annotated[list[models.Band] | None, Query(description="bands to include (no unit; default: all with tables)")] = None,
 ) -> SafeJSONResponse:
     chosen = bands or tables.load_tables().bands
     curves = [tables.curve(b, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well) for b in chosen]
+    for curve in curves:
+        # The table level's measured error beside the statistical one (the calculator quotes both).
+        curve["fidelity_relative_uncertainty"], _ = solver._fidelity_error("table", curve["band"], metric, mode)
     return SafeJSONResponse(
         {
             "source": "table: the shipped slope tables, interpolated in magnitude and scaled to these conditions",
@@ -293,13 +438,16 @@ def _linear_curve(
         magnitude=magnitude,
         full_well=full_well,
     ).to_dict()
-    at_beta0, error = solution["tolerance"], solution["uncertainty"] or 0.0
-    relative = abs(error / at_beta0) if at_beta0 else 0.0
+    # The statistical part per point, the fidelity part as one relative number (the page shows both).
+    at_beta0 = solution["tolerance"]
+    statistical, systematic = solution["uncertainty_statistical"], solution["uncertainty_fidelity"]
+    relative = abs((statistical or 0.0) / at_beta0) if at_beta0 else 0.0
     slope = solution["slope"] or 0.0
     values = [slope * x for x in xs]
     return {
         "values": values,
         "uncertainty": [abs(v) * relative for v in values],
+        "fidelity_relative_uncertainty": abs(systematic / at_beta0) if at_beta0 and systematic is not None else None,
         "slope": solution["slope"],
         "flags": solution["flags"],
         "saturation_magnitude": solution["saturation_magnitude"],
@@ -311,17 +459,24 @@ def _grid(top: float, points: int) -> list[float]:
     return [top * k / (points - 1) for k in range(points)]
 
 
-@router.get("/curves/beta", responses=ERRORS, summary="Metric vs beta at one magnitude (the paper's Fig. 2)")
+@router.get(
+    "/curves/beta",
+    response_model=models.BetaCurve,
+    responses=ERRORS,
+    summary="Metric vs beta at one magnitude (the paper's Fig. 2)",
+)
 def beta_curve(
     band: Band = "H158",
     sca: Sca = 18,
-    metric: models.Metric = "size",
-    magnitude: Number = 18.3,
-    exptime: Number = defaults.EXPTIME_S,
-    beta0: Number = defaults.BETA0,
-    full_well: Number = defaults.FULL_WELL_E,
-    beta_max: Annotated[float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA)] = 1.25e-6,
-    points: Annotated[int, Query(ge=2, le=1000)] = 26,
+    metric: MetricQuery = "size",
+    magnitude: Magnitude = 18.3,
+    exptime: Exptime = defaults.EXPTIME_S,
+    beta0: Beta0 = defaults.BETA0,
+    full_well: FullWell = defaults.FULL_WELL_E,
+    beta_max: Annotated[
+        float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA, description="largest beta in 1/e-")
+    ] = 1.25e-6,
+    points: Points = 26,
 ) -> SafeJSONResponse:
     betas = _grid(beta_max, points)
     curve = _linear_curve(band, sca, metric, "bias", magnitude, exptime, beta0, full_well, betas)
@@ -341,17 +496,24 @@ def beta_curve(
     )
 
 
-@router.get("/curves/sigma_beta", responses=ERRORS, summary="Scatter of the metric vs sigma_beta at one magnitude")
+@router.get(
+    "/curves/sigma_beta",
+    response_model=models.SigmaBetaCurve,
+    responses=ERRORS,
+    summary="Scatter of the metric vs sigma_beta at one magnitude",
+)
 def sigma_beta_curve(
     band: Band = "H158",
     sca: Sca = 18,
-    metric: models.Metric = "size",
-    magnitude: Number = 18.3,
-    exptime: Number = defaults.EXPTIME_S,
-    beta0: Number = defaults.BETA0,
-    full_well: Number = defaults.FULL_WELL_E,
-    sigma_beta_max: Annotated[float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA)] = 1e-7,
-    points: Annotated[int, Query(ge=2, le=1000)] = 26,
+    metric: MetricQuery = "size",
+    magnitude: Magnitude = 18.3,
+    exptime: Exptime = defaults.EXPTIME_S,
+    beta0: Beta0 = defaults.BETA0,
+    full_well: FullWell = defaults.FULL_WELL_E,
+    sigma_beta_max: Annotated[
+        float, Query(allow_inf_nan=False, gt=0, le=detector.MAX_ABS_BETA, description="largest sigma_beta in 1/e-")
+    ] = 1e-7,
+    points: Points = 26,
 ) -> SafeJSONResponse:
     sigmas = _grid(sigma_beta_max, points)
     curve = _linear_curve(band, sca, metric, "scatter", magnitude, exptime, beta0, full_well, sigmas)

@@ -1,7 +1,9 @@
-"""Errors as one JSON shape (``models.Problem``): a message a person can read, the field at fault.
+"""Errors as RFC 9457 problem details (``application/problem+json``, ``models.Problem``).
 
-Bad input is a 422 naming the field, whether pydantic or the library caught it; nothing a client
-sends may produce a 5xx.
+The standard members (``type``, ``title``, ``status``, ``detail``) plus this service's extensions: the
+``field`` at fault, the ``limit`` a refusal hit, ``errors`` (one entry per bad field) and ``message``
+(the same text as ``detail``, kept for clients written before the problem format). Bad input is a 422
+naming the field, whether pydantic or the library caught it; nothing a client sends may produce a 5xx.
 """
 
 from __future__ import annotations
@@ -52,18 +54,65 @@ class SafeJSONResponse(JSONResponse):
             return json.dumps(json_safe(content), ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode()
 
 
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+
+#: The ``type`` of each kind of problem: a relative URI naming it (RFC 9457 section 3.1.1); the page
+#: /docs lists the statuses. "about:blank" where the HTTP status says all there is.
+PROBLEM_TYPES = {
+    400: "about:blank",
+    401: "/problems/unauthorized",
+    404: "about:blank",
+    409: "/problems/conflict",
+    413: "/problems/limit-exceeded",
+    422: "/problems/invalid-input",
+    429: "/problems/queue-full",
+    500: "/problems/internal-error",
+    503: "/problems/unavailable",
+}
+
+
+def problem_body(status: int, message: str, field: str | None = None, limit: str | None = None, errors=None) -> dict:
+    """The problem object; ``errors`` = [{loc, field, msg, type}] for every bad field found."""
+    from http import HTTPStatus
+
+    message = short(message, 4 * ECHO_CHARS)
+    try:
+        title = HTTPStatus(status).phrase
+    except ValueError:
+        title = "Error"
+    kind = "/problems/limit-exceeded" if status == 422 and limit else PROBLEM_TYPES.get(status, "about:blank")
+    errors = [{**d, "msg": short(d["msg"], 4 * ECHO_CHARS), "field": d["field"] and short(d["field"])} for d in errors or []]
+    return {
+        "type": kind,
+        "title": title,
+        "status": status,
+        "detail": message,
+        "message": message,
+        "field": field and short(field),
+        "limit": limit,
+        "errors": errors,
+    }
+
+
+class ProblemResponse(SafeJSONResponse):
+    media_type = PROBLEM_MEDIA_TYPE
+
+
 def problem(status: int, message: str, field: str | None = None, limit: str | None = None, detail=None, headers=None):
-    detail = [{**d, "msg": short(d["msg"], 4 * ECHO_CHARS), "field": d["field"] and short(d["field"])} for d in detail or []]
-    body = {"message": short(message, 4 * ECHO_CHARS), "field": field and short(field), "limit": limit, "detail": detail}
-    return SafeJSONResponse(body, status_code=status, headers=headers)
+    body = problem_body(status, message, field, limit, detail)
+    return ProblemResponse(body, status_code=status, headers=headers)
 
 
-def input_error_response(error: InputError, field: str | None = None, location: str = "body") -> JSONResponse:
+def input_error_body(error: InputError, field: str | None = None, location: str = "body") -> dict:
     field = field or error.argument
     limit = getattr(error, "limit", None)
     message = f"{field}: {error.reason}"
     detail = [{"loc": [location, short(field)], "field": field, "msg": error.reason, "type": "limit" if limit else "value_error"}]
-    return problem(422, message, field, limit, detail)
+    return problem_body(422, message, field, limit, detail)
+
+
+def input_error_response(error: InputError, field: str | None = None, location: str = "body") -> JSONResponse:
+    return ProblemResponse(input_error_body(error, field, location), status_code=422)
 
 
 def _field_of(loc: tuple | list) -> str | None:
@@ -87,18 +136,24 @@ def _readable(error: dict[str, Any]) -> str:
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    return ProblemResponse(validation_problem_body(exc.errors()), status_code=422)
+
+
+def validation_problem_body(errors: Any, prefix: tuple = ()) -> dict:
+    """Pydantic's errors as one problem: every bad field (up to ten) in ``errors``."""
     detail = []
     # At most a few entries, each location cut short: a body of a million unknown keys must not
     # come back as a million errors.
-    errors = exc.errors()
+    errors = [{**e, "loc": (*prefix, *e.get("loc", ()))} for e in errors]
     for error in errors[:10]:
         loc = [short(p) if isinstance(p, str) else p if isinstance(p, int) else short(p) for p in error.get("loc", ())]
         detail.append({"loc": loc, "field": _field_of(loc), "msg": _readable(error), "type": str(error.get("type", ""))})
     first = detail[0] if detail else {"field": None, "msg": "invalid request"}
     message = f"{first['field']}: {first['msg']}" if first["field"] else first["msg"]
-    if len(errors) > 10:
-        message += f" (and {len(errors) - 1:,} more errors)"
-    return problem(422, message, first["field"], None, detail)
+    if len(detail) > 1:
+        others = ", ".join(str(d["field"]) for d in detail[1:] if d["field"])
+        message += f" (and {len(errors) - 1:,} more: {others})" if others else f" (and {len(errors) - 1:,} more errors)"
+    return problem_body(422, message, first["field"], None, detail)
 
 
 async def _input_error(request: Request, exc: InputError) -> JSONResponse:

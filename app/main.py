@@ -18,11 +18,12 @@ from pathlib import Path
 from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.middleware.gzip import GZipMiddleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from nlpsf import __version__, tables
 
-from . import api, errors, simulations
+from . import api, errors, models, simulations
 from .jobs import Dispatcher, Notifier
 from .security import ApiKey, BodyLimit, SecurityHeaders
 from .settings import Settings
@@ -83,6 +84,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     if directory.is_dir():
         app.mount("/", StaticFiles(directory=directory, html=True), name="page")
+    _problem_schema(app)
+    # The 6.5 MB tables (and the page's scripts) compressed for clients that accept gzip.
+    app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=6)
     # Outermost last: every response, refusals included, gets the security headers.
     if settings.api_keys:
         app.add_middleware(ApiKey, keys=[k.get_secret_value() for k in settings.api_keys])
@@ -91,6 +95,44 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts)
     app.add_middleware(SecurityHeaders)
     return app
+
+
+def _problem_schema(app: FastAPI) -> None:
+    """Every error response in the OpenAPI schema is the Problem model as application/problem+json
+    (FastAPI documents extra responses as application/json and adds its own 422 shape)."""
+    from fastapi.openapi.utils import get_openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = get_openapi(
+            title=app.title, version=app.version, summary=app.summary, description=app.description, routes=app.routes
+        )
+        problem = {"schema": {"$ref": "#/components/schemas/Problem"}}
+        for operations in schema.get("paths", {}).values():
+            for method, operation in operations.items():
+                if method in ("post", "put", "patch"):
+                    # BodyLimit answers any request body over max_body_bytes before the route runs.
+                    operation["responses"].setdefault("413", {"description": "the request body is larger than max_body_bytes"})
+                for code, response in operation.get("responses", {}).items():
+                    if code.isdigit() and int(code) >= 400:
+                        response["content"] = {errors.PROBLEM_MEDIA_TYPE: problem}
+                        continue
+                    content = response.get("content") or {}
+                    # Downloads (CSV, ECSV) are text: FastAPI also lists its default JSON, untyped.
+                    if any(not media.endswith("json") for media in content):
+                        content.pop("application/json", None)
+                    for media, entry in content.items():
+                        if not media.endswith("json") and not entry.get("schema"):
+                            entry["schema"] = {"type": "string"}
+        components = schema.get("components", {}).get("schemas", {})
+        components.setdefault("Problem", models.Problem.model_json_schema(ref_template="#/components/schemas/{model}"))
+        for unused in ("HTTPValidationError", "ValidationError"):
+            components.pop(unused, None)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 app = create_app()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from nlpsf import defaults, detector, fidelity, roman, solver
 
@@ -24,6 +24,14 @@ _SOLVE_DEFAULTS = {
 
 #: A [ratio, weight] pair of a size-ratio distribution.
 _RatioWeight = Annotated[list[float], Field(min_length=2, max_length=2)]
+
+
+def _band_name(value: Any) -> Any:
+    # Band names are case-insensitive (as in the library and the CLI); the schema lists the canonical ones.
+    return value.upper() if isinstance(value, str) else value
+
+
+Band = Annotated[Literal[roman.BANDS], BeforeValidator(_band_name)]  # type: ignore[valid-type]
 Metric = Literal[solver.METRICS]  # type: ignore[valid-type]
 Mode = Literal[solver.MODES]  # type: ignore[valid-type]
 Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]
@@ -40,21 +48,33 @@ class SceneRequest(BaseModel):
     model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
 
     preset: Literal["paper", "roman"] | None = Field(
-        None, description="roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
+        None, description="(no unit) roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
     )
     position: list[float] | None = Field(None, min_length=2, max_length=2, description="X, Y on the SCA in pixels (1-4088)")
-    sed: str | None = Field(None, description="flat (f_nu) or blackbody:TEFF")
-    sed_table: list[list[float]] | None = Field(None, max_length=20_000, description="the SED as rows [wavelength nm, flux]")
-    sed_units: Literal["flambda", "fnu"] = Field("flambda", description="what sed_table's flux is")
-    n_wavelengths: int | None = Field(None, description="wavelengths for the SED (default: chosen for 0.1 % of the slopes)")
+    sed: str | None = Field(None, description="(no unit) flat (f_nu) or blackbody:TEFF (TEFF in K)")
+    sed_table: list[list[float]] | None = Field(
+        None, max_length=20_000, description="the SED as rows [wavelength in nm, flux in sed_units]"
+    )
+    sed_units: Literal["flambda", "fnu"] = Field(
+        "flambda", description="(no unit) what sed_table's flux is: flambda or fnu, any scale"
+    )
+    n_wavelengths: int | None = Field(
+        None, description="number of wavelengths for the SED (count; default: chosen for 0.1 % of the slopes)"
+    )
     jitter: float | None = Field(None, description="pointing jitter, arcsec rms per axis (Roman 0.014)")
     charge_diffusion: float | None = Field(None, description="charge diffusion, native pixels rms (GalSim's Roman 0.1)")
     ipc: str | float | list[list[float]] | None = Field(
-        None, description="interpixel capacitance: roman, a nearest-neighbour alpha, or a 3x3 kernel (rows y, columns x)"
+        None,
+        description="interpixel capacitance: roman, a nearest-neighbour alpha (dimensionless fraction), or a 3x3 kernel "
+        "(dimensionless, rows y, columns x)",
     )
-    ipc_order: Literal["after", "before"] | None = Field(None, description="IPC after (default, as GalSim) or before the NL")
+    ipc_order: Literal["after", "before"] | None = Field(
+        None, description="(no unit) IPC after (default, as GalSim) or before the NL"
+    )
     nl_coefficients: list[float] | None = Field(
-        None, max_length=6, description="NL beyond the quadratic: b3, b4, ... in S = Q - beta Q^2 - b3 Q^3 - ..."
+        None,
+        max_length=6,
+        description="NL beyond the quadratic: b3 in 1/e-^2, b4 in 1/e-^3, ... in S = Q - beta Q^2 - b3 Q^3 - ...",
     )
     bfe: float | None = Field(None, description="brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours)")
     background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
@@ -65,21 +85,23 @@ class MATableSpec(BaseModel):
 
     model_config = _STRICT
 
-    resultants: list[list[int]] = Field(description="resultants as lists of read indices, e.g. [[1], [2, 3], [4, 5, 6]]")
+    resultants: list[list[int]] = Field(
+        description="resultants as lists of 1-based read indices (dimensionless), e.g. [[1], [2, 3], [4, 5, 6]]"
+    )
     frame_time_s: float = Field(defaults.ROMAN_FRAME_TIME_S, description="time between reads in s")
-    name: str = Field("custom", max_length=64, description="a label for the conditions")
+    name: str = Field("custom", max_length=64, description="a label for the conditions (text, no unit)")
 
 
 class RampFields(BaseModel):
     """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
 
-    ramp: int | None = Field(None, description="N uniformly spaced reads over the exposure, one per resultant")
+    ramp: int | None = Field(None, description="N uniformly spaced reads over the exposure, one per resultant (count)")
     ma_table: str | MATableSpec | None = Field(
         None,
-        description="MultiAccum table: a shipped name (romanisim-1, romanisim-109, romanisim-110) or the table itself; "
+        description="MultiAccum table (no unit): a shipped name (romanisim-1, romanisim-109, romanisim-110) or the table itself; "
         "without an exptime the exposure is the table's last read",
     )
-    ramp_fit: RampFit = Field("ols", description="slope fit: ols, or optimal (read + Poisson noise weighting)")
+    ramp_fit: RampFit = Field("ols", description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting)")
     read_noise: float | None = Field(
         None, description="read noise per read in e- (optimal fit); default: the SCA's official value (CDS noise / sqrt 2)"
     )
@@ -102,50 +124,64 @@ class SolveRequest(RampFields):
         json_schema_extra={"examples": [{"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}]},
     )
 
-    band: str = Field(description=f"Roman band: {', '.join(roman.BANDS)}")
-    sca: int = Field(_SOLVE_DEFAULTS["sca"], description=f"detector 1-{roman.N_SCA}")
-    metric: Metric = Field(_SOLVE_DEFAULTS["metric"], description="size (dR/R), e1, e2 or e (|de|)")
-    mode: Mode = Field(_SOLVE_DEFAULTS["mode"], description="bias (calibration error of beta) or scatter (per-pixel sigma_beta)")
+    band: Band = Field(description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
+    sca: int = Field(_SOLVE_DEFAULTS["sca"], ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    metric: Metric = Field(_SOLVE_DEFAULTS["metric"], description="the PSF metric (no unit): size (dR/R), e1, e2 or e (|de|)")
+    mode: Mode = Field(
+        _SOLVE_DEFAULTS["mode"], description="(no unit) bias: calibration error of beta; scatter: per-pixel sigma_beta"
+    )
     beta0: float = Field(_SOLVE_DEFAULTS["beta0"], description="NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)")
     exptime: float = Field(_SOLVE_DEFAULTS["exptime"], description="exposure time in s")
-    precision: float | None = Field(None, description="calibration precision: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)")
-    tolerance: float | None = Field(None, description="tolerated error of the metric (dR/R, de1, de2 or |de|)")
-    magnitude: float | None = Field(None, description="AB magnitude of the brightest star used for the PSF model")
+    precision: float | None = Field(
+        None, description="calibration precision, dimensionless fraction: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)"
+    )
+    tolerance: float | None = Field(None, description="tolerated error of the metric, dimensionless (dR/R, de1, de2 or |de|)")
+    magnitude: float | None = Field(
+        None, description="magnitude of the brightest star used for the PSF model, in AB mag in the band"
+    )
     full_well: float = Field(_SOLVE_DEFAULTS["full_well"], description="full-well depth in e-")
     fidelity: Fidelity | None = Field(
         _SOLVE_DEFAULTS["fidelity"],
-        description="how the slope is obtained: table (instant, the default), linear, monte_carlo, polychromatic",
+        description="how the slope is obtained (no unit): table (instant, the default), linear, monte_carlo, polychromatic",
     )
     accuracy: float | None = Field(
         None,
-        description="relative accuracy target: picks the cheapest fidelity meeting it, simulates only the scene effects whose "
-        "measured impact exceeds it and adds the others to the uncertainty's model part",
+        description="relative accuracy target (dimensionless fraction): picks the cheapest fidelity meeting it, "
+        "simulates only the scene effects whose measured impact exceeds it and adds the others to the uncertainty's model part",
     )
-    scene: SceneRequest | None = Field(None, description="what the star goes through (default the paper's scene)")
+    scene: SceneRequest | None = Field(
+        None, description="what the star goes through (default the paper's scene; units per field)"
+    )
     over_field: Literal["sca", "focal_plane"] | None = Field(
         None,
-        description="answer for the worst position: over the SCA's five field points (sca) or all 18 SCAs' (focal_plane); "
-        "simulates (seconds per point)",
+        description="(no unit) answer for the worst position: over the SCA's five field points (sca) or all 18 SCAs' "
+        "(focal_plane); simulates (seconds per point)",
     )
     throughput: Throughput | None = Field(
-        None, description="photometry of the magnitude: null for the tables' own (roman-2024), or galsim-2021"
+        None, description="photometry of the magnitude (no unit): null for the tables' own (roman-2024), or galsim-2021"
     )
     shear_m: float | None = Field(
-        None, description="multiplicative shear-bias budget |m| (size metric); with size_ratio, in place of tolerance"
+        None,
+        description="multiplicative shear-bias budget |m|, dimensionless (size metric); with size_ratio, in place of tolerance",
     )
     shear_c: float | None = Field(
-        None, description="additive shear-bias budget |c| (e1, e2, e metrics); with size_ratio, in place of tolerance"
+        None,
+        description="additive shear-bias budget |c|, dimensionless (e1, e2, e metrics); with size_ratio, in place of tolerance",
     )
     # No strings here: the library also reads '@FILE', which a web request must not reach.
     size_ratio: float | list[float | _RatioWeight] | None = Field(
         None,
-        description="R_gal/R_psf (intrinsic galaxy over PSF, R = det(M)^(1/4)): a number, or a list of ratios or "
+        description="R_gal/R_psf, dimensionless (intrinsic galaxy over PSF, R = det(M)^(1/4)): a number, or a list of ratios or "
         "[ratio, weight] pairs; alone it reports the shear bias the tolerance implies",
     )
     stars: int = Field(
         _SOLVE_DEFAULTS["stars"],
-        description="scatter mode: stars/dithers on independent pixels the PSF model averages (sigma / sqrt(stars))",
+        description="scatter mode: number of stars/dithers on independent pixels the PSF model averages (sigma / sqrt(stars))",
     )
+
+
+def _f(description: str, default: Any = ...) -> Any:
+    return Field(default, description=description)
 
 
 class SolveResponse(BaseModel):
@@ -153,41 +189,179 @@ class SolveResponse(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    band: str
-    sca: int
-    metric: str
-    mode: str
-    beta0: float
-    exptime: float
-    precision: float | None
-    tolerance: float | None
-    magnitude: float | None
-    solved_for: str
-    uncertainty: float | None
-    slope: float | None
-    saturation_magnitude: float | None
-    stars: int
-    applies_to: str
-    shear: dict[str, Any] | None
-    flags: list[str]
-    fidelity: str
-    conditions: dict[str, Any]
+    band: str = _f("Roman band (no unit)")
+    sca: int = _f("detector (SCA number, no unit)")
+    metric: str = _f("the PSF metric (no unit): size, e1, e2 or e")
+    mode: str = _f("bias or scatter (no unit)")
+    beta0: float = _f("NL coefficient beta0 in 1/e- (paper convention)")
+    exptime: float = _f("exposure time in s")
+    full_well: float | None = _f("full-well depth in e-", None)
+    precision: float | None = _f("calibration precision, dimensionless fraction of beta0")
+    tolerance: float | None = _f("tolerated error of the metric, dimensionless")
+    magnitude: float | None = _f("star magnitude in AB mag")
+    solved_for: str = _f("which of precision, tolerance, magnitude was solved for (no unit)")
+    uncertainty: float | None = _f("1-sigma uncertainty of the solved quantity, in its unit")
+    uncertainty_statistical: float | None = _f("statistical part of the uncertainty, in the solved quantity's unit", None)
+    uncertainty_fidelity: float | None = _f("fidelity (method) part of the uncertainty, in the solved quantity's unit", None)
+    uncertainty_optical_model: float | None = _f("optical-model part of the uncertainty, in the solved quantity's unit", None)
+    slope: float | None = _f("slope c(m) = d(metric)/d(beta) or sigma(metric)/sigma_beta, in e- (metric per 1/e-)")
+    slope_uncertainty: float | None = _f("1-sigma uncertainty of the slope in e-", None)
+    saturation_magnitude: float | None = _f("magnitude (AB mag) brighter than which the brightest pixel saturates")
+    final_frame_saturation_magnitude: float | None = _f("saturation magnitude (AB mag) of a single final frame", None)
+    brightest_usable_magnitude: float | None = _f("brightest usable star in AB mag (magnitude solves)", None)
+    binding_limit: str | None = _f("which limit sets the brightest usable star: nonlinearity or saturation (no unit)", None)
+    nonlinearity_magnitude: float | None = _f("magnitude (AB mag) at which the NL error reaches the tolerance", None)
+    stars: int = _f("number of stars/dithers averaged (count)")
+    applies_to: str = _f("what the tolerance applies to (text)")
+    shear: dict[str, Any] | None = _f("shear-bias budget and the tolerance it implies (dimensionless values)")
+    flags: list[str] = _f("warnings about the answer's validity (text)")
+    fidelity: str = _f("the fidelity level used (no unit)")
+    conditions: dict[str, Any] = _f("the conditions of the answer: band, SCA, exposure (s), beta0 (1/e-), settings")
 
 
 class FieldError(BaseModel):
     loc: list[str | int] = Field(description="where in the request: ['body', field] or ['query', name]")
-    field: str | None = Field(description="the request field at fault")
-    msg: str
-    type: str
+    field: str | None = Field(description="the request field at fault (no unit)")
+    msg: str = Field(description="what is wrong (text)")
+    type: str = Field(description="the kind of error (no unit)")
 
 
 class Problem(BaseModel):
-    """Every error: a readable message, the field at fault (if any) and, for caps, the limit's name."""
+    """Every error, as RFC 9457 problem details (media type application/problem+json), with extensions:
+    the field at fault (if any), the limit's name (for caps) and every bad field found."""
 
-    message: str
-    field: str | None = None
-    limit: str | None = None
-    detail: list[FieldError] = Field(default_factory=list)
+    type: str = Field("about:blank", description="URI reference naming the kind of problem (RFC 9457; text, no unit)")
+    title: str = Field("", description="short summary of the kind of problem (the HTTP status phrase, text)")
+    status: int = Field(0, description="the HTTP status code (no unit)")
+    detail: str = Field("", description="a readable explanation of this occurrence (text)")
+    message: str = Field(description="the same text as detail (kept for older clients)")
+    field: str | None = Field(None, description="the request field at fault (no unit)")
+    limit: str | None = Field(None, description="the name of the service limit the request hit (no unit)")
+    errors: list[FieldError] = Field(default_factory=list, description="one entry per bad field found")
+
+
+class BatchSolveRequest(BaseModel):
+    """Many solves in one call; each is answered or refused on its own."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    requests: list[dict[str, Any]] = Field(
+        min_length=1,
+        max_length=1000,
+        description="solve requests, each a SolveRequest object (table fidelity; simulating levels go to POST /solve)",
+    )
+
+
+class BatchItem(BaseModel):
+    index: int = Field(description="position of the request in the batch (0-based, no unit)")
+    ok: bool = Field(description="true when the request was answered")
+    solution: SolveResponse | None = Field(None, description="the answer, as POST /solve gives it")
+    error: Problem | None = Field(None, description="why this request was refused")
+
+
+class BatchSolveResponse(BaseModel):
+    results: list[BatchItem] = Field(description="one entry per request, in the order given")
+    answered: int = Field(description="number of requests answered (count)")
+    failed: int = Field(description="number of requests refused (count)")
+
+
+class JobStoreStatus(BaseModel):
+    state: str = Field(description="ok, starting or unavailable (no unit)")
+    reason: str | None = Field(None, description="why simulations cannot run (text)")
+    since: float | None = Field(None, description="Unix time in s of the last state change")
+
+
+class Health(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    status: Literal["ok", "degraded"] = Field(description="ok, or degraded when simulations cannot run")
+    version: str = Field(description="code version (no unit)")
+    calculator: str = Field(description="state of the calculator (no unit)")
+    job_store: JobStoreStatus = Field(description="state of the simulation job store")
+
+
+class Meta(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    service: str = _f("service name (no unit)")
+    api_version: str = _f("API version (no unit)")
+    code_version: str = _f("code version (no unit)")
+    data_version: str = _f("optical data version (no unit)")
+    tables: dict[str, Any] = _f("metadata of the shipped slope tables (settings, fingerprint, units)")
+    bands: list[str] = _f("Roman bands (no unit)")
+    table_bands: list[str] = _f("bands with shipped tables (no unit)")
+    scas: list[int] = _f("detector numbers (no unit)")
+    metrics: list[str] = _f("PSF metrics (no unit)")
+    modes: list[str] = _f("modes (no unit)")
+    fidelities: list[str] = _f("solve fidelity levels (no unit)")
+    simulation_fidelities: list[str] = _f("simulation fidelity levels (no unit)")
+    defaults: dict[str, Any] = _f("request defaults, in the units of the request fields")
+    limits: dict[str, Any] = _f("service limits (counts, s, MB, bytes as named)")
+
+
+class TableJSON(BaseModel):
+    meta: dict[str, Any] = _f("metadata of the tables (settings, fingerprint; units under 'units')")
+    rows: list[dict[str, Any]] = _f(
+        "one row per (band, SCA, magnitude): magnitude in AB mag, flux_electrons in e-, peak_electrons in e- per fine "
+        "pixel x N^2, slopes bias_* / scatter_* and their _err / _interp in e- (metric per 1/e- of beta or sigma_beta)"
+    )
+
+
+class Fits(BaseModel):
+    fits: list[dict[str, Any]] | dict[str, Any] = _f(
+        "power-law fits slope = A 10^(B (m - 20)): A in e- (metric per 1/e-), B in 1/mag, per band, SCA and mode"
+    )
+
+
+class SlopeCurve(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    band: str = _f("Roman band (no unit)")
+    sca: int = _f("detector (no unit)")
+    magnitude: list[float] = _f("magnitudes in AB mag")
+    slope: list[float | None] = _f("slope c(m) in e- (metric per 1/e- of beta or sigma_beta), signed")
+    uncertainty: list[float | None] = _f("statistical 1-sigma uncertainty of the slope in e-")
+    fidelity_relative_uncertainty: float | None = _f("the table level's measured relative error (dimensionless)", None)
+    saturation_magnitude: float | None = _f("saturation magnitude in AB mag")
+    conditions: dict[str, Any] = _f("conditions: exposure in s, beta0 in 1/e-, full well in e-, settings")
+
+
+class SlopeCurves(BaseModel):
+    source: str = _f("where the numbers come from (text)")
+    metric: str = _f("the PSF metric (no unit)")
+    mode: str = _f("bias or scatter (no unit)")
+    curves: list[SlopeCurve] = _f("one curve per band")
+
+
+class LinearCurve(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    source: str = _f("where the numbers come from (text)")
+    band: str = _f("Roman band (no unit)")
+    sca: int = _f("detector (no unit)")
+    metric: str = _f("the PSF metric (no unit)")
+    magnitude: float = _f("star magnitude in AB mag")
+    values: list[float | None] = _f("the metric (dimensionless) at each beta or sigma_beta")
+    uncertainty: list[float | None] = _f("statistical 1-sigma uncertainty of each value (dimensionless)")
+    fidelity_relative_uncertainty: float | None = _f("the table level's measured relative error (dimensionless)", None)
+    slope: float | None = _f("slope in e- (metric per 1/e-)")
+    flags: list[str] = _f("validity warnings (text)")
+    saturation_magnitude: float | None = _f("saturation magnitude in AB mag")
+    conditions: dict[str, Any] = _f("conditions: exposure in s, beta0 in 1/e-, full well in e-, settings")
+
+
+class BetaCurve(LinearCurve):
+    beta: list[float] = _f("NL coefficients beta in 1/e-")
+
+
+class SigmaBetaCurve(LinearCurve):
+    sigma_beta: list[float] = _f("per-pixel beta scatter sigma_beta in 1/e-")
+
+
+class PaperData(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    magnitudes: list[float] = _f("the paper's magnitudes in AB mag")
 
 
 class ImpactRequest(BaseModel):
@@ -197,16 +371,37 @@ class ImpactRequest(BaseModel):
         **_STRICT, json_schema_extra={"examples": [{"band": "H158", "sca": 18, "magnitude": 18.3, "scene": {"preset": "roman"}}]}
     )
 
-    band: str = Field(defaults.BAND, description=f"Roman band: {', '.join(roman.BANDS)}")
-    sca: int = Field(defaults.SCA, description=f"detector 1-{roman.N_SCA}")
-    magnitude: float = Field(defaults.MAGNITUDE, description="AB magnitude of the star")
-    metric: Metric = Field("size", description="the request's metric")
-    mode: Mode = Field("bias", description="bias or scatter slopes")
+    band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
+    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    magnitude: float = Field(defaults.MAGNITUDE, description="magnitude of the star in AB mag")
+    metric: Metric = Field("size", description="the request's metric (no unit)")
+    mode: Mode = Field("bias", description="bias or scatter slopes (no unit)")
     beta0: float = Field(defaults.BETA0, description="beta0 in 1/e- (paper convention)")
     exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
-    realizations: int = Field(50, description="centroid realizations per run (both runs of an effect share them)")
-    seed: int = Field(1, description="random seed")
+    realizations: int = Field(
+        50, description="number of centroid realizations per run (count; both runs of an effect share them)"
+    )
+    seed: int = Field(1, description="random seed (integer, no unit)")
     scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
+
+
+class ImpactEffect(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    name: str = _f("the scene effect (no unit)")
+    on: bool = _f("whether the request's scene has the effect on")
+    impact: dict[str, float | None] = _f("relative change of the slope per metric (dimensionless; 0.05 = +5 %)")
+    uncertainty: dict[str, float | None] = _f("1-sigma uncertainty of each relative change (dimensionless)")
+    cost_s: float | None = _f("time of the run with the effect, in s")
+    value: Any = _f("the effect's value as measured, in the unit of its scene field", None)
+    note: str | None = _f("how the effect was measured (text)", None)
+
+
+class ImpactReport(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    effects: list[ImpactEffect] = _f("one entry per scene effect")
+    conditions: dict[str, Any] = _f("conditions: band, SCA, magnitude (AB mag), beta0 (1/e-), exposure (s), scene, slopes (e-)")
 
 
 class SimulationRequest(RampFields):
@@ -217,30 +412,36 @@ class SimulationRequest(RampFields):
         json_schema_extra={"examples": [{"band": "H158", "magnitudes": [18.3, 20.0], "betas": [5e-7], "realizations": 20}]},
     )
 
-    band: str = Field(defaults.BAND, description=f"Roman band: {', '.join(roman.BANDS)}")
-    sca: int = Field(defaults.SCA, description=f"detector 1-{roman.N_SCA}")
-    magnitudes: list[float] = Field([18.3], max_length=10_000, description="AB magnitudes")
+    band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
+    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    magnitudes: list[float] = Field([18.3], max_length=10_000, description="star magnitudes in AB mag in the band")
     betas: list[float] = Field([defaults.BETA0], max_length=10_000, description="NL coefficients beta in 1/e-")
     sigma_betas: list[float] = Field(
-        [0.0], max_length=10_000, description="per-pixel beta scatter; > 0 draws beta maps at a fixed centroid"
+        [0.0], max_length=10_000, description="per-pixel beta scatter sigma_beta in 1/e-; > 0 draws beta maps at a fixed centroid"
     )
-    beta_convention: BetaConvention = Field("paper", description="paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2")
+    beta_convention: BetaConvention = Field(
+        "paper", description="sign convention (no unit); paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2"
+    )
     exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
     full_well: float = Field(defaults.FULL_WELL_E, description="full-well depth in e-")
-    fidelity: SimulationFidelity = Field("monte_carlo", description="linear response, Monte Carlo, or Monte Carlo polychromatic")
-    n_wavelengths: int | None = Field(None, description="wavelengths of the polychromatic PSF (default 8)")
-    realizations: int = Field(100, description="centroid realizations, or beta-map draws when sigma_beta > 0")
-    seed: int = Field(1, description="random seed; the same seed gives the same numbers")
-    oversampling: int = Field(3, description="fine pixels per native pixel, N")
-    stamp: int = Field(96, description="stamp side in fine pixels")
-    weight_cut_rho2: float = Field(
-        defaults.PAPER_WEIGHT_CUT_RHO2, description="adaptive-moment weight cut rho^2 (paper 25, GalSim 32.24)"
+    fidelity: SimulationFidelity = Field(
+        "monte_carlo", description="(no unit) linear response, Monte Carlo, or Monte Carlo polychromatic"
     )
-    pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule")
-    scene: SceneRequest | None = Field(None, description="scene effects (position, SED, jitter, IPC, ...); default the paper's")
+    n_wavelengths: int | None = Field(None, description="number of wavelengths of the polychromatic PSF (count, default 8)")
+    realizations: int = Field(100, description="number of centroid realizations, or beta-map draws when sigma_beta > 0 (count)")
+    seed: int = Field(1, description="random seed (integer, no unit); the same seed gives the same numbers")
+    oversampling: int = Field(3, description="fine pixels per native pixel along a side, N (count)")
+    stamp: int = Field(96, description="stamp side in fine pixels (count)")
+    weight_cut_rho2: float = Field(
+        defaults.PAPER_WEIGHT_CUT_RHO2, description="adaptive-moment weight cut rho^2, dimensionless (paper 25, GalSim 32.24)"
+    )
+    pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule (no unit)")
+    scene: SceneRequest | None = Field(
+        None, description="scene effects (position, SED, jitter, IPC, ...; units per field); default the paper's"
+    )
     throughput: Throughput = Field(
         defaults.THROUGHPUT,
-        description="effective-area data: roman-2024 (official, per SCA) or galsim-2021 (GalSim's, the paper comparison)",
+        description="effective-area data (no unit): roman-2024 (official, per SCA) or galsim-2021 (GalSim's, paper comparison)",
     )
 
 
@@ -250,23 +451,23 @@ JobState = Literal["queued", "running", "done", "failed", "cancelled", "interrup
 class Job(BaseModel):
     """A simulation job; ``result`` is filled once ``status`` is done."""
 
-    id: str
-    status: JobState
-    progress: float = Field(description="fraction done, 0 to 1")
-    message: str
-    cached: bool = Field(description="answered from stored results of an identical earlier request")
-    cancel_requested: bool
-    queue_position: int | None
-    request: dict[str, Any]
-    request_hash: str
-    created_at: float
-    started_at: float | None
-    finished_at: float | None
-    updated_at: float
-    error: dict[str, Any] | None
-    result: dict[str, Any] | None
+    id: str = _f("the job's id, its capability (hex token)")
+    status: JobState = _f("queued, running, done, failed, cancelled or interrupted (no unit)")
+    progress: float = _f("fraction done, dimensionless 0 to 1")
+    message: str = _f("what the job is doing (text)")
+    cached: bool = _f("answered from stored results of an identical earlier request")
+    cancel_requested: bool = _f("a cancel was asked for")
+    queue_position: int | None = _f("place in the queue (count; null when not queued)")
+    request: dict[str, Any] = _f("the normalised request, in the units of SimulationRequest")
+    request_hash: str = _f("hash of the normalised request (hex)")
+    created_at: float = _f("Unix time in s")
+    started_at: float | None = _f("Unix time in s")
+    finished_at: float | None = _f("Unix time in s")
+    updated_at: float = _f("Unix time in s")
+    error: dict[str, Any] | None = _f("why the job failed: field and message (text)")
+    result: dict[str, Any] | None = _f("the result: metrics (dimensionless), fluxes in e-, magnitudes in AB mag, with conditions")
 
 
 class JobList(BaseModel):
-    jobs: list[Job]
-    counts: dict[str, int]
+    jobs: list[Job] = _f("the caller's recent jobs, without results")
+    counts: dict[str, int] = _f("number of jobs per status (count)")

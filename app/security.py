@@ -36,12 +36,18 @@ SECURITY_HEADERS = [
 
 
 async def _problem(send: Send, status: int, message: str, limit: str | None = None, headers: list | None = None) -> None:
-    body = json.dumps({"message": message, "field": None, "limit": limit, "detail": []}).encode()
+    from .errors import PROBLEM_MEDIA_TYPE, problem_body
+
+    body = json.dumps(problem_body(status, message, None, limit)).encode()
     await send(
         {
             "type": "http.response.start",
             "status": status,
-            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), *(headers or [])],
+            "headers": [
+                (b"content-type", PROBLEM_MEDIA_TYPE.encode()),
+                (b"content-length", str(len(body)).encode()),
+                *(headers or []),
+            ],
         }
     )
     await send({"type": "http.response.body", "body": body})

@@ -74,7 +74,7 @@ def queue_full_response(full: QueueFull) -> Response:
 async def submit(
     body: models.SimulationRequest,
     request: Request,
-    wait: Annotated[float, Query(ge=0, le=600, allow_inf_nan=False, description="seconds to wait for the result")] = 0.0,
+    wait: Annotated[float, Query(ge=0, le=600, allow_inf_nan=False, description="time to wait for the result, in s")] = 0.0,
 ) -> Response:
     settings = request.app.state.settings
     try:
@@ -97,7 +97,9 @@ async def submit(
     responses={503: _PROBLEM},
     summary="The caller's recent simulation jobs (by API key; every job if the operator allows), without results",
 )
-async def list_jobs(request: Request, limit: Annotated[int, Query(ge=1, le=500)] = 50) -> SafeJSONResponse:
+async def list_jobs(
+    request: Request, limit: Annotated[int, Query(ge=1, le=500, description="most jobs to list (count)")] = 50
+) -> SafeJSONResponse:
     store = request.app.state.store
     everyone = request.app.state.settings.list_all_jobs
     jobs = await asyncio.to_thread(store.list, client_of(request), everyone, limit)

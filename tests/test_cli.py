@@ -204,3 +204,24 @@ def test_throughput_option_picks_the_effective_areas_and_is_named_in_the_conditi
     with pytest.raises(SystemExit) as refused:
         cli.main(["simulate", "--throughput", "cycle-5"])
     assert refused.value.code == 2 and "--throughput" in capsys.readouterr().err
+
+
+def test_solve_batch_answers_each_csv_row_on_its_own(capsys, tmp_path):
+    import csv
+    import io
+
+    from nlpsf.solver import solve
+
+    batch = tmp_path / "requests.csv"
+    batch.write_text("band,metric,magnitude,tolerance,precision\nH158,size,18.3,1e-4,\nJ129,e1,,1e-4,0.01\nH158,size,abc,1e-4,\n")
+    code, out, err = run(capsys, "solve", "--batch", str(batch))
+    assert code == 1 and "1 of 3 rows" in err
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert [r["error_field"] for r in rows] == ["", "", "magnitude"]
+    assert float(rows[0]["precision"]) == pytest.approx(solve("H158", magnitude=18.3, tolerance=1e-4).precision, rel=1e-12)
+    expected = solve("J129", metric="e1", tolerance=1e-4, precision=0.01)
+    assert rows[1]["solved_for"] == "magnitude" and float(rows[1]["magnitude"]) == pytest.approx(expected.magnitude, rel=1e-12)
+    assert rows[1]["binding_limit"] == (expected.binding_limit or "")
+    code, out, _ = run(capsys, "solve", "--batch", str(batch), "--json")
+    answers = json.loads(out)
+    assert [a["ok"] for a in answers] == [True, True, False] and answers[2]["error"]["field"] == "magnitude"

@@ -44,7 +44,8 @@ def test_a_body_over_the_limit_is_413_before_parsing(client):
     start = time.perf_counter()
     response = client.post("/api/v1/solve", content=huge.encode(), headers={"Content-Type": "application/json"})
     assert response.status_code == 413
-    assert response.json()["limit"] == "max_body_bytes"
+    assert response.headers["content-type"] == "application/problem+json"
+    assert response.json()["limit"] == "max_body_bytes" and response.json()["status"] == 413
     assert len(response.content) < 1000
     assert time.perf_counter() - start < 2.0
 

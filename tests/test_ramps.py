@@ -465,6 +465,12 @@ def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_f
         capsys, "solve", "--sca", "3", "--precision", "0.01", "--magnitude", "19", "--ramp", "8", "--read-noise", "5", "--json"
     )
     assert json.loads(out)["conditions"]["ramp"]["read_noise_source"] == "given"
+    # A batch reads each row's SCA.
+    batch = tmp_path / "rows.csv"
+    batch.write_text("band,sca,magnitude,precision\nH158,1,19,0.01\nH158,3,19,0.01\n")
+    code, out, _ = _cli_json(capsys, "solve", "--batch", str(batch), "--ramp", "8", "--json")
+    assert code == 0
+    assert [row["solution"]["conditions"]["ramp"]["read_noise_e"] for row in json.loads(out)] == [official[1], official[3]]
     # Web: the same rule in /solve (and the simulation models).
     settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4)
     with TestClient(create_app(settings)) as client:

@@ -74,11 +74,56 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
+    parser.add_argument(
+        "--batch",
+        metavar="FILE.csv",
+        help="solve every row of a CSV (header: any of " + ", ".join(BATCH_COLUMNS) + "; empty cells take the options' "
+        "values); prints one CSV row per input row (or, with --json, a JSON list), each answered or failed on its own",
+    )
+
+
+#: Request columns a batch CSV may carry, and how each cell is read.
+BATCH_COLUMNS: dict[str, type] = {
+    "band": str,
+    "sca": int,
+    "metric": str,
+    "mode": str,
+    "beta0": float,
+    "exptime": float,
+    "precision": float,
+    "tolerance": float,
+    "magnitude": float,
+    "full_well": float,
+    "fidelity": str,
+    "accuracy": float,
+    "throughput": str,
+    "shear_m": float,
+    "shear_c": float,
+    "size_ratio": float,
+    "stars": int,
+}
+#: Answer columns of the CSV output (the JSON output is ``Solution.to_dict()``).
+ANSWER_COLUMNS = (
+    "solved_for",
+    "precision",
+    "tolerance",
+    "magnitude",
+    "uncertainty",
+    "uncertainty_statistical",
+    "uncertainty_fidelity",
+    "slope",
+    "saturation_magnitude",
+    "binding_limit",
+    "fidelity",
+    "flags",
+)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..solver import solve, solve_over_field
 
+    if args.batch:
+        return run_batch(args)
     ramp, exptime = ramp_from(args)
     if args.over_field:
         if ramp is not None:
@@ -230,3 +275,72 @@ def _print_shear(budget: dict) -> None:
         print(f"  implied shear bias |{kind}| {value} for R_gal/R_psf {ratio_text} ({budget['relation']})")
     else:
         print(f"  shear budget |{kind}| {budget[kind]:.4g}, R_gal/R_psf {ratio_text} -> tolerance {budget['tolerance']:.4g}")
+
+
+def _batch_arguments(args: argparse.Namespace, row: dict[str, str], exptime: float) -> dict:
+    from ..checks import InputError
+
+    unknown = [name for name in row if name and name not in BATCH_COLUMNS]
+    if unknown:
+        raise InputError(unknown[0], f"unknown batch column (known: {', '.join(BATCH_COLUMNS)})")
+    arguments = {name: getattr(args, name) for name in BATCH_COLUMNS}
+    arguments["exptime"] = exptime
+    for name, cell in row.items():
+        cell = (cell or "").strip()
+        if not cell:
+            continue
+        try:
+            arguments[name] = BATCH_COLUMNS[name](cell)
+        except ValueError:
+            raise InputError(name, f"cannot read {cell!r} as a {BATCH_COLUMNS[name].__name__}") from None
+    return arguments
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """One solve per CSV row; a refused row is reported in its own row and does not stop the others."""
+    import csv
+    import sys
+
+    from ..checks import InputError, SimulationError
+    from ..solver import solve
+
+    ramp, exptime = ramp_from(args)
+    try:
+        with open(args.batch, newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle))
+    except OSError as error:
+        raise InputError("batch", f"cannot read {args.batch}: {error.strerror}") from None
+    answers: list[dict] = []
+    for index, row in enumerate(rows):
+        try:
+            arguments = _batch_arguments(args, row, exptime)
+            row_ramp = ramp
+            if ramp is not None and args.read_noise is None and arguments["sca"] != args.sca:
+                # No read noise given: each row's ramp fit uses its own SCA's official value.
+                row_ramp = ramp_from(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}))[0]
+            solution = solve(**arguments, ramp=row_ramp)
+            answers.append({"index": index, "ok": True, "solution": solution.to_dict()})
+        except (InputError, SimulationError) as error:
+            field = getattr(error, "argument", None)
+            reason = getattr(error, "reason", str(error))
+            answers.append({"index": index, "ok": False, "error": {"field": field, "message": reason}})
+    if args.json:
+        print_json(answers)
+    else:
+        writer = csv.writer(sys.stdout, lineterminator="\n")
+        inputs = list(rows[0]) if rows else []
+        writer.writerow(["row", *inputs, *ANSWER_COLUMNS, "error_field", "error"])
+        for row, answer in zip(rows, answers, strict=True):
+            cells = [answer["index"], *(row.get(name, "") for name in inputs)]
+            if answer["ok"]:
+                solution = answer["solution"]
+                values = ["; ".join(solution[k]) if k == "flags" else solution[k] for k in ANSWER_COLUMNS]
+                writer.writerow([*cells, *("" if v is None else v for v in values), "", ""])
+            else:
+                writer.writerow(
+                    [*cells, *([""] * len(ANSWER_COLUMNS)), answer["error"]["field"] or "", answer["error"]["message"]]
+                )
+    failed = sum(1 for a in answers if not a["ok"])
+    if failed:
+        print(f"{failed} of {len(answers)} rows could not be solved (see their error column)", file=sys.stderr)
+    return 0 if not failed else 1
