@@ -135,7 +135,7 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     scene_keys = ("scene", "over_field")
     raw = body.model_dump()
     arguments = {k: v for k, v in raw.items() if k not in ramp_keys and k not in scene_keys}
-    ramp, arguments["exptime"] = body.ramp_arguments(body.exptime)  # validates the ramp
+    ramp, arguments["exptime"] = body.ramp_arguments(body.exptime, body.sca)  # validates the ramp
     from .simulation import build_scene
 
     scene = build_scene(raw["scene"]) if raw["scene"] is not None else None  # validates the scene
@@ -179,12 +179,16 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
 @router.post(
     "/impact",
     response_model=models.ImpactReport,
-    responses=ERRORS,
-    summary="What each scene effect changes in the slopes at one point (linear response)",
+    responses={
+        **ERRORS,
+        202: {"model": models.Job, "description": "the report is still being simulated: poll the Location"},
+        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
+        429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
+        503: {"model": models.Problem, "description": "the job store is unavailable"},
+    },
+    summary="What each scene effect changes in the slopes at one point (linear response; a job like any simulation)",
 )
 async def impact(body: models.ImpactRequest, request: Request) -> Response:
-    from starlette.concurrency import run_in_threadpool
-
     from nlpsf import impact as impact_module
 
     from .simulation import LimitError, build_scene
@@ -197,7 +201,8 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
             "max_realizations",
             f"asks for {arguments['realizations']:,} realizations; the limit max_realizations is {limits.max_realizations:,}",
         )
-    scene = build_scene(arguments.pop("scene"))
+    scene_request = arguments.pop("scene")
+    scene = build_scene(scene_request)
     wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
     if wavelengths > limits.max_wavelengths:
         raise LimitError(
@@ -205,8 +210,27 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
             "max_wavelengths",
             f"the scene's SED needs {wavelengths} wavelengths; the limit max_wavelengths is {limits.max_wavelengths}",
         )
-    report = await run_in_threadpool(impact_module.impact, scene=scene, max_wavelengths=limits.max_wavelengths, **arguments)
-    return SafeJSONResponse(json_safe(report))
+    # Everything is checked at table cost here; the simulations run as a job (queue, limits, cache).
+    checked = impact_module.check_request(**arguments)
+    job_arguments = {**checked, "scene": scene_request, "max_wavelengths": limits.max_wavelengths}
+    return await _job_answer(request, simulation.impact_job(job_arguments))
+
+
+async def _job_answer(request: Request, job_request: dict[str, Any]) -> Response:
+    """Submit a job and answer with its result when it finishes within ``solve_wait_s`` (200), with
+    its input error (422), or with the job to poll (202)."""
+    from .simulations import job_response, queue_full_response, submit_job
+
+    try:
+        job, status = await submit_job(request, job_request, request.app.state.settings.solve_wait_s)
+    except QueueFull as full:
+        return queue_full_response(full)
+    if job.get("status") == "done" and job.get("result") is not None:
+        return SafeJSONResponse(job["result"], headers={"Location": f"/api/v1/simulations/{job['id']}"})
+    if job.get("status") == "failed" and (job.get("error") or {}).get("field"):
+        error = job["error"]
+        return problem(422, f"{error['field']}: {error['message']}", error["field"])
+    return job_response(job, status)
 
 
 def _table_etag(kind: str, band: str | None, sca: int | None) -> str:
@@ -255,7 +279,7 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
     job_only = ("ramp", "ma_table", "ramp_fit", "read_noise", "scene", "over_field")
     arguments = {k: v for k, v in raw.items() if k not in job_only}
     try:
-        ramp, arguments["exptime"] = request.ramp_arguments(request.exptime)
+        ramp, arguments["exptime"] = request.ramp_arguments(request.exptime, request.sca)
         for name in ("scene", "over_field"):
             if raw[name] is not None:
                 raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")

@@ -102,16 +102,18 @@ class RampFields(BaseModel):
         "without an exptime the exposure is the table's last read",
     )
     ramp_fit: RampFit = Field("ols", description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting)")
-    read_noise: float = Field(defaults.READ_NOISE_E, description="read noise per read in e- (optimal fit)")
+    read_noise: float | None = Field(
+        None, description="read noise per read in e- (optimal fit); default: the SCA's official value (CDS noise / sqrt 2)"
+    )
 
-    def ramp_arguments(self, exptime: float) -> tuple[object, float]:
+    def ramp_arguments(self, exptime: float, sca: int = defaults.SCA) -> tuple[object, float]:
         """(ramps.Ramp or None, exposure time): the library's one rule for both (an MA table's
         exposure is its last read unless the request gives ``exptime``)."""
         from nlpsf import ramps
 
         table = self.ma_table.model_dump() if isinstance(self.ma_table, MATableSpec) else self.ma_table
         given = exptime if "exptime" in self.model_fields_set else None
-        return ramps.build(self.ramp, table, self.ramp_fit, self.read_noise, given, allow_files=False)
+        return ramps.build(self.ramp, table, self.ramp_fit, self.read_noise, given, allow_files=False, sca=sca)
 
 
 class SolveRequest(RampFields):

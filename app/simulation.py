@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from nlpsf import __version__, defaults, detector, experiment, fidelity, ramps, roman
+from nlpsf import __version__, detector, experiment, fidelity, ramps, roman
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 
@@ -65,9 +65,10 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         request.get("ramp"),
         request.get("ma_table"),
         request.get("ramp_fit", "ols"),
-        request.get("read_noise", defaults.READ_NOISE_E),
+        request.get("read_noise"),
         request.get("exptime"),
         allow_files=False,
+        sca=request["sca"],
     )
     return experiment.SimulationConfig(
         band=request["band"],
@@ -199,8 +200,29 @@ def solve_job(arguments: dict[str, Any]) -> dict[str, Any]:
     return {"kind": SOLVE_KIND, "solve": arguments}
 
 
+#: A job that is an impact report (POST /impact): every effect simulated with and without.
+IMPACT_KIND = "impact"
+
+
+def impact_job(arguments: dict[str, Any]) -> dict[str, Any]:
+    """The job request of an impact report (``arguments`` as ``impact.impact`` takes them, the
+    scene as the request's JSON ``scene`` object)."""
+    return {"kind": IMPACT_KIND, "impact": arguments}
+
+
+def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
+    from nlpsf import impact
+
+    arguments = dict(arguments)
+    scene = build_scene(arguments.pop("scene"))
+    step = None if progress is None else (lambda done, total, message: progress(done / max(total, 1), message))
+    return _json_safe(impact.impact(scene=scene, progress=step, **arguments))
+
+
 def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[str, Any]:
     """Run a validated request with the library; ``progress(fraction, message)`` along the way."""
+    if normalised.get("kind") == IMPACT_KIND:
+        return _run_impact(normalised["impact"], progress)
     if normalised.get("kind") == SOLVE_KIND:
         from nlpsf import solver
 
@@ -219,6 +241,7 @@ def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[st
                 ramp_request["read_noise"],
                 given,
                 allow_files=False,
+                sca=arguments["sca"],
             )
         scene_request = arguments.pop("scene_request", None)
         over_field = arguments.pop("over_field", None)

@@ -29,12 +29,12 @@ holds the charge a native pixel would (DESIGN.md), so the same number is added t
 
 from __future__ import annotations
 
+import csv
 import math
 from dataclasses import asdict, dataclass
 from functools import cache
 
 import numpy as np
-from astropy.table import Table
 
 from . import roman
 from .checks import InputError, check_exptime, check_full_well, check_number
@@ -52,15 +52,22 @@ SOURCE_VERSION = "roman-technical-information 1.5.0 (zodiacal light and thermal 
 
 @cache
 def _rate_by_filter(name: str) -> dict[str, float]:
+    from astropy.table import Table  # only the background presets need it
+
     table = Table.read(roman.official_data_dir() / name, format="ascii.ecsv")
     return {str(f).strip(): float(r) for f, r in zip(table["filter"], table["rate"], strict=True)}
 
 
 @cache
 def _per_sca(name: str, column: str) -> tuple[float, ...]:
-    table = Table.read(roman.official_data_dir() / name, format="ascii.ecsv")
-    scu = table.colnames[0]
-    values = {int(str(u)): float(v) for u, v in zip(table[scu], table[column], strict=True) if str(u).isdigit()}
+    # The per-SCA summaries are ECSV whose body is comma-separated under a header row: the standard
+    # library reads it, so a ramp's default read noise costs no astropy import (tests/test_backgrounds.py
+    # checks this reading against astropy's ECSV reader).
+    with open(roman.official_data_dir() / name, newline="") as handle:
+        rows = list(csv.reader(line for line in handle if line.strip() and not line.startswith("#")))
+    header = [name.strip() for name in rows[0]]
+    index = header.index(column)
+    values = {int(row[0]): float(row[index]) for row in rows[1:] if row[0].strip().isdigit()}
     return tuple(values[s] for s in range(1, roman.N_SCA + 1))
 
 

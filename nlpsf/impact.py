@@ -30,7 +30,7 @@ from dataclasses import replace
 
 from . import defaults, experiment, roman
 from . import scene as scenes
-from .checks import InputError, check_integer, check_number
+from .checks import InputError, check_exptime, check_integer, check_number
 
 #: Impact metrics: the contract's names, and the simulation metrics each combines.
 IMPACT_METRICS: dict[str, tuple[str, ...]] = {"size": ("dR_over_R",), "e1": ("de1",), "e2": ("de2",), "e": ("de1", "de2")}
@@ -69,6 +69,36 @@ def _ratio(with_value, without_value):
     return ratio - 1.0, abs(ratio) * math.hypot(da / a if a else 0.0, db / b)
 
 
+def check_request(
+    band: str = "H158",
+    sca: int = 18,
+    magnitude: float = 18.3,
+    metric: str = "size",
+    mode: str = "bias",
+    beta0: float = 5e-7,
+    exptime: float = defaults.EXPTIME_S,
+    realizations: int = 100,
+    seed: int = 1,
+) -> dict:
+    """An impact request's point, validated (InputError naming the field) and normalised, without
+    simulating anything: what a caller checks before queueing the report as a job."""
+    if metric not in IMPACT_METRICS:
+        raise InputError("metric", f"must be one of {', '.join(IMPACT_METRICS)}, got {metric!r}")
+    if mode not in MODES:
+        raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
+    return {
+        "band": roman.check_band(band),
+        "sca": roman.check_sca(sca),
+        "magnitude": experiment.check_magnitudes([magnitude])[0],
+        "metric": metric,
+        "mode": mode,
+        "beta0": check_number(beta0, "beta0", 0.0, 1e-3, open_low=True),
+        "exptime": check_exptime(exptime),
+        "realizations": check_integer(realizations, "realizations", 2, 10_000),
+        "seed": check_integer(seed, "seed", 0, 2**63 - 1),
+    }
+
+
 def impact(
     band: str = "H158",
     sca: int = 18,
@@ -91,15 +121,10 @@ def impact(
     scene = scene if scene is not None else scenes.SceneModel()
     if not isinstance(scene, scenes.SceneModel):
         raise InputError("scene", "must be a scene description")
-    if metric not in IMPACT_METRICS:
-        raise InputError("metric", f"must be one of {', '.join(IMPACT_METRICS)}, got {metric!r}")
-    if mode not in MODES:
-        raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
-    magnitude = experiment.check_magnitudes([magnitude])[0]
-    beta0 = check_number(beta0, "beta0", 0.0, 1e-3, open_low=True)
-    check_integer(realizations, "realizations", 2, 10_000)
+    checked = check_request(band, sca, magnitude, metric, mode, beta0, exptime, realizations, seed)
+    magnitude, beta0 = checked["magnitude"], checked["beta0"]
     base = experiment.SimulationConfig(
-        band=band, sca=sca, realizations=realizations, seed=seed, exptime_s=exptime, method="linear", scene=scene
+        band=checked["band"], sca=sca, realizations=realizations, seed=seed, exptime_s=exptime, method="linear", scene=scene
     )
     cache: dict[scenes.SceneModel, tuple[dict, float, list[str]]] = {}
 
@@ -224,3 +249,84 @@ def markdown(report: dict) -> str:
     lines.append("")
     lines.append(f"plain (paper) scene: {c['plain_cost_s']:.2f} s; impact = slope with / without - 1 (linear response)")
     return "\n".join(lines)
+
+
+#: Metrics of the model-uncertainty measurement. ``size`` and ``e`` are relative to their own slope;
+#: ``e1`` and ``e2`` are the change of that component's slope relative to |c_e| = hypot(c_e1, c_e2)
+#: (as the optical model's part is stated): a component crossing zero would make its own ratio
+#: meaningless, so the solver scales these by |c_e| / |c_ei| at the answer's magnitude.
+MODEL_METRICS: tuple[str, ...] = ("size", "e1", "e2", "e")
+
+
+def _relative_to_scale(change: dict, slope: dict) -> dict:
+    """Impacts (with / without - 1 per metric) restated as in :data:`MODEL_METRICS`."""
+    out = {}
+    for metric in MODEL_METRICS:
+        value = change.get(metric)
+        if value is None:
+            out[metric] = None
+        elif metric in ("e1", "e2"):
+            scale, component = slope.get("e"), slope.get(metric)
+            out[metric] = None if not scale or component is None else float(value * component / scale)
+        else:
+            out[metric] = float(value)
+    return out
+
+
+def model_point(
+    band: str,
+    sca: int,
+    magnitude: float,
+    mode: str = "bias",
+    beta0: float = defaults.BETA0,
+    exptime: float = defaults.EXPTIME_S,
+    realizations: int = 50,
+    seed: int = 1,
+) -> dict:
+    """What the paper's scene leaves out at one point, in the terms of :data:`MODEL_METRICS`.
+
+    Every effect of the impact report at its nominal Roman value (:func:`impact` on the paper's
+    scene), except the position, which is the worst of the SCA's four corner field points and the
+    report's nominal corner (the spread over the SCA when no position is given); plus the pupil-mask
+    scale rule (``galsim``, used, against ``header``), as the solver's ``accuracy`` path measures it.
+    Effects without a nominal value (brighter-fatter) are ``None``. ``scripts/model_uncertainty.py``
+    ships this over bands, SCAs, magnitudes and modes.
+    """
+    report = impact(band, sca, magnitude, mode=mode, beta0=beta0, exptime=exptime, realizations=realizations, seed=seed)
+    conditions = report["conditions"]
+    base = experiment.SimulationConfig(
+        band=band, sca=sca, realizations=realizations, seed=seed, exptime_s=exptime, method="linear"
+    )
+
+    def values(config: experiment.SimulationConfig) -> dict:
+        return _slope_values(experiment.slopes(config, [conditions["magnitude"]], beta0=conditions["beta0"])[0], mode)
+
+    plain = values(base)
+    slope = {m: v[0] for m, v in plain.items()}
+    effects: dict[str, dict | None] = {}
+    for effect in report["effects"]:
+        measured = any(v is not None for v in effect["impact"].values())
+        effects[effect["name"]] = _relative_to_scale(effect["impact"], slope) if measured else None
+    # The spread over the SCA: the worst corner per metric (the report's nominal corner included).
+    corners = [tuple(scenes.NOMINAL["position"]["position"]), *roman.field_points(sca)[1:]]
+    position = dict(effects["position"] or dict.fromkeys(MODEL_METRICS))
+    where = {m: list(corners[0]) for m in MODEL_METRICS}
+    for corner in corners[1:]:
+        moved = values(replace(base, scene=scenes.SceneModel(position=corner)))
+        change = _relative_to_scale({m: _ratio(moved[m], plain[m])[0] for m in IMPACT_METRICS}, slope)
+        for m, value in change.items():
+            if value is not None and (position[m] is None or abs(value) > abs(position[m])):
+                position[m], where[m] = value, list(corner)
+    effects["position"] = position
+    header = values(replace(base, pupil_scale="header"))
+    pupil = _relative_to_scale({m: _ratio(header[m], plain[m])[0] for m in IMPACT_METRICS}, slope)
+    return {
+        "band": conditions["band"],
+        "sca": conditions["sca"],
+        "magnitude": conditions["magnitude"],
+        "mode": mode,
+        "effects": effects,
+        "position_worst_corner": where,
+        "pupil_scale": pupil,
+        "slope": slope,
+    }

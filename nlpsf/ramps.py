@@ -61,7 +61,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -72,7 +72,8 @@ from . import defaults
 from .checks import InputError, check_integer, check_number
 
 ROMAN_FRAME_TIME_S = defaults.ROMAN_FRAME_TIME_S
-#: Read noise per read when none is given; it only matters for the ``optimal`` fit.
+#: Read noise per read of a :class:`Ramp` built without one and without an SCA (:func:`build`
+#: looks up the SCA's official value instead); it only matters for the ``optimal`` fit.
 DEFAULT_READ_NOISE_E = defaults.READ_NOISE_E
 RAMP_FITS = defaults.RAMP_FITS
 MAX_READS = defaults.MAX_RAMP_READS
@@ -223,9 +224,21 @@ class Ramp:
 
     table: MATable
     fit: str = "ols"
-    read_noise_e: float = DEFAULT_READ_NOISE_E
+    #: Noise of one read [e-]; None: :data:`DEFAULT_READ_NOISE_E` (``build`` gives the SCA's own).
+    read_noise_e: float | None = None
+    #: Where the read noise came from, said in the conditions ("given" when the caller chose it).
+    read_noise_source: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
+        if self.read_noise_e is None:
+            object.__setattr__(self, "read_noise_e", DEFAULT_READ_NOISE_E)
+            object.__setattr__(
+                self,
+                "read_noise_source",
+                self.read_noise_source or f"nlpsf default {DEFAULT_READ_NOISE_E:g} e- (romanisim's reference data; no SCA given)",
+            )
+        elif not self.read_noise_source:
+            object.__setattr__(self, "read_noise_source", "given")
         if not isinstance(self.table, MATable):
             raise InputError("ma_table", f"must be an MATable, got {type(self.table).__name__}")
         if self.fit not in RAMP_FITS:
@@ -241,8 +254,10 @@ class Ramp:
         object.__setattr__(self, "read_noise_e", noise)
 
     @classmethod
-    def uniform(cls, n: int, exptime_s: float, fit: str = "ols", read_noise_e: float = DEFAULT_READ_NOISE_E) -> Ramp:
-        return cls(MATable.uniform(n, exptime_s), fit, read_noise_e)
+    def uniform(
+        cls, n: int, exptime_s: float, fit: str = "ols", read_noise_e: float | None = None, read_noise_source: str = ""
+    ) -> Ramp:
+        return cls(MATable.uniform(n, exptime_s), fit, read_noise_e, read_noise_source)
 
     def check_exposure(self, exptime_s: float) -> None:
         self.table.check_exposure(exptime_s, "ramp" if self.table.name.startswith("uniform-") else "ma_table")
@@ -288,6 +303,7 @@ class Ramp:
             "first_resultant_end_s": self.table.resultants[0][-1] * self.table.frame_time_s,
             "fit": self.fit,
             "read_noise_e": self.read_noise_e,
+            "read_noise_source": self.read_noise_source,
             "description": self.describe(),
             "saturation_rule": "resultants past the full well are dropped; a pixel saturated in its first resultant is unusable",
         }
@@ -547,9 +563,10 @@ def build(
     reads: int | None = None,
     ma_table: str | Path | dict | MATable | None = None,
     fit: str = "ols",
-    read_noise_e: float = DEFAULT_READ_NOISE_E,
+    read_noise_e: float | None = None,
     exptime_s: float | None = None,
     allow_files: bool = True,
+    sca: int = defaults.SCA,
 ) -> tuple[Ramp | None, float]:
     """The ramp a request asks for and the exposure time to use with it (one rule for every entry point).
 
@@ -558,6 +575,9 @@ def build(
     object), an inline ``{"resultants": ..., "frame_time_s": ...}`` or an :class:`MATable`. Without
     an exposure time, an MA table's exposure is its last read and otherwise the paper's 168.1 s.
     Neither given: (None, exposure) -- the paper's single final frame.
+
+    ``read_noise_e`` None (not given): the official read noise of ``sca`` (its median CDS noise /
+    sqrt 2, ``backgrounds.read_noise``), named in the ramp's conditions.
     """
     if reads is not None and ma_table is not None:
         raise InputError("ma_table", "give either a uniform ramp (ramp = N reads) or an MA table, not both")
@@ -565,7 +585,7 @@ def build(
         exptime = defaults.EXPTIME_S if exptime_s is None else exptime_s
         if reads is None:
             return None, exptime
-        ramp = Ramp.uniform(reads, exptime, fit, read_noise_e)
+        ramp = Ramp.uniform(reads, exptime, fit, *_read_noise(read_noise_e, sca))
         return ramp, exptime
     if isinstance(ma_table, MATable):
         table = ma_table
@@ -575,8 +595,19 @@ def build(
         raise InputError("ma_table", f"give a shipped table's name ({', '.join(shipped_table_names())}) or the table itself")
     else:
         table = load_ma_table(ma_table)
-    ramp = Ramp(table, fit, read_noise_e)
+    ramp = Ramp(table, fit, *_read_noise(read_noise_e, sca))
     exptime = table.duration_s if exptime_s is None else exptime_s
     check_number(exptime, "exptime", *defaults.EXPTIME_RANGE_S)
     ramp.check_exposure(exptime)
     return ramp, exptime
+
+
+def _read_noise(given: float | None, sca: int) -> tuple[float | None, str]:
+    """(read noise per read [e-], where it came from): the caller's, or the SCA's official one."""
+    if given is not None:
+        return given, "given"
+    from . import backgrounds  # the official tables (astropy): only when no read noise is given
+
+    return backgrounds.read_noise(sca), (
+        f"official read noise of SCA {sca}: median CDS noise / sqrt(2), WFI_CDS_Noise_summary.ecsv ({backgrounds.SOURCE_VERSION})"
+    )

@@ -324,6 +324,16 @@ def _zernike_table(sca: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return aberrations, x + SCA_PIXELS / 2, y + SCA_PIXELS / 2
 
 
+def field_points(sca: int) -> list[tuple[float, float]]:
+    """Where the SCA's aberrations are given: its centre and four corners (pixels, inside 1-4088)."""
+    _table, x, y = _zernike_table(check_sca(sca))
+    return [(_clip_pixel(px), _clip_pixel(py)) for px, py in zip(x, y, strict=True)]
+
+
+def _clip_pixel(value: float) -> float:
+    return float(min(max(value, 1.0), SCA_PIXELS))
+
+
 def aberrations(sca: int, position_pixels: tuple[float, float] | None = None) -> np.ndarray:
     """Noll Zernike coefficients (index 0 unused, 1..22) in waves at 1293 nm.
 

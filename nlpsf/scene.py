@@ -55,6 +55,7 @@ import math
 import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from functools import lru_cache
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +118,19 @@ NOMINAL: dict[str, dict] = {
     "brighter_fatter": {"bfe_coefficient": None, "note": "no default: give a coefficient to measure it"},
     "background": {"background_e": 100.0, "note": "100 e- per pixel, of the order of Roman's sky over 168 s"},
 }
+
+
+#: Where :func:`shipped_model_uncertainty` reads the shipped measurement.
+MODEL_UNCERTAINTY_FILE = "scene_model_uncertainty.json"
+
+
+@lru_cache(maxsize=1)
+def shipped_model_uncertainty() -> dict:
+    """What the paper's scene leaves out, measured by ``scripts/model_uncertainty.py`` (worst
+    |impact| of each effect at its :data:`NOMINAL` value over SCA 1 and 18, two magnitudes; see
+    the file's ``description``). The solver's answers without ``accuracy`` read their model part here."""
+    path = Path(str(resources.files("nlpsf") / "data" / MODEL_UNCERTAINTY_FILE))
+    return json.loads(path.read_text())
 
 
 def _tuple_of_floats(values, name: str) -> tuple[float, ...]:

@@ -36,6 +36,15 @@ brighter than the final-frame rule), and the slopes come from the tables where t
 c_2 = 1 + 1/N for N uniform reads, so c(m) = c_2 c_table(m; c_2 beta0)) and from fresh
 linear-response simulations of the ramp otherwise (optimal fit, or a star bright enough that some
 of its pixels drop saturated resultants). ``conditions["ramp_slopes_from"]`` says which.
+
+Model part. Every answer says what it leaves out of a Roman scene (``model``) and adds it to its
+``uncertainty`` (``uncertainty_model``): the scene effects it does not simulate, the spread over the
+SCA when no position is given, and the pupil-mask scale rule. With ``accuracy`` they are measured at
+the answer's point (``nlpsf.impact``) and added in quadrature; otherwise they come from a shipped
+measurement (``nlpsf/data/scene_model_uncertainty.json``: each effect's worst impact on SCA 1, 9
+and 18 at two magnitudes) and are added up, since a Roman star has them all at once with signs often
+alike. The pupil-scale rule and ``uncertainty_optical_model`` (the official-PSF comparison) both
+measure the optical model's error, so the total counts the larger of the two, not both.
 """
 
 from __future__ import annotations
@@ -106,7 +115,8 @@ class Solution:
     shear: dict | None = None
     #: Scene effects the answer leaves out (name, impact on the metric's slope, relative), the SCA
     #: spread and the pupil-scale rule, and the uncertainty they add in the solved quantity's units;
-    #: None when not measured (no ``accuracy``).
+    #: measured at the point with ``accuracy``, else read from the shipped measurement
+    #: (``scripts/model_uncertainty.py``); None only where the answer has no uncertainty.
     uncertainty_model: float | None = None
     model: dict | None = None
     #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
@@ -374,7 +384,7 @@ def solve(
     chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
     if throughput is not None:
         roman.check_throughput(throughput)
-    scene_relative, model_info, simulated_scene = None, None, None
+    model_info, simulated_scene = None, None
     if scene is not None and not isinstance(scene, _scene_type()):
         raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
     if scene is not None and ramp is not None:
@@ -404,14 +414,15 @@ def solve(
                 throughput=throughput,
             )
             point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
-        simulated_scene, scene_relative, model_info = _select_scene(
-            scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy)
-        )
+        simulated_scene, model_info = _select_scene(scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy))
     elif scene is not None and not scene.is_paper:
         simulated_scene = scene
     if simulated_scene is not None and not simulated_scene.is_paper and chosen == "table":
         flags.append("the tables hold the paper's scene only: the scene's effects are simulated (fidelity linear)")
         chosen = "linear"
+    if model_info is None:
+        # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
+        model_info = _shipped_model(band, sca, metric, mode, simulated_scene, chosen)
     if simulated_scene is not None and simulated_scene.breaks_beta_q_scaling():
         breaking = simulated_scene.breaks_beta_q_scaling()
         verb = "adds" if len(breaking) == 1 else "add"
@@ -470,11 +481,12 @@ def solve(
             statistical = (slope_err / abs(slope)) / abs(log_derivative)
             fidelity_part = None if systematic is None else systematic / abs(log_derivative)
             model_part = _optical_model_relative(slopes, m_nl) / abs(log_derivative)
-            scene_part = None if scene_relative is None else scene_relative / abs(log_derivative)
+            model_info = _model_at(model_info, slopes, m_nl)
+            effects_part, pupil_part = (model_info[k] / abs(log_derivative) for k in _MODEL_PARTS)
         else:
             # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
-            statistical, fidelity_part, model_part = 0.0, 0.0, 0.0
-            scene_part = None if scene_relative is None else 0.0
+            statistical, fidelity_part, model_part, effects_part, pupil_part = 0.0, 0.0, 0.0, 0.0, 0.0
+            model_info = _model_at(model_info, slopes, m_sat)
             slope, slope_err, _ = slopes.at(m_sat)
             flags.append(
                 f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0 * averaging:.3g} "
@@ -488,27 +500,31 @@ def solve(
             flags += _magnitude_flags(slopes, magnitude, region, m_sat, beta0)
         c, c_err = abs(slope) * averaging, slope_err * averaging
         model = _optical_model_relative(slopes, magnitude) if region >= 0 else None
+        model_info = _model_at(model_info, slopes, magnitude) if region >= 0 else None
+        effects, pupil = (None, None) if model_info is None else (model_info[k] for k in _MODEL_PARTS)
         if solved_for == "tolerance":
             tolerance = c * precision * beta0
             statistical = c_err * precision * beta0
             fidelity_part = None if systematic is None else tolerance * systematic
             model_part = None if model is None else tolerance * model
-            scene_part = None if scene_relative is None else tolerance * scene_relative
+            effects_part, pupil_part = (None, None) if effects is None else (tolerance * effects, tolerance * pupil)
         elif c <= max(c_err, 1e-300):
             flags.append(
                 f"the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {c_err:.2g}): "
                 "this metric is insensitive to beta here, so no calibration precision is needed for it"
             )
-            precision, statistical, fidelity_part, model_part, scene_part = math.inf, None, None, None, None
+            precision, statistical, fidelity_part, model_part, effects_part, pupil_part = math.inf, None, None, None, None, None
         else:
             precision = tolerance / (c * beta0)
             statistical = precision * c_err / c
             fidelity_part = None if systematic is None else precision * systematic
             model_part = None if model is None else precision * model
-            scene_part = None if scene_relative is None else precision * scene_relative
-    uncertainty = (
-        None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, model_part or 0.0, scene_part or 0.0)
-    )
+            effects_part, pupil_part = (None, None) if effects is None else (precision * effects, precision * pupil)
+    # The official-PSF comparison (optical_model) and the pupil-scale rule both measure how far the
+    # optical model may be from Roman's: the larger of the two counts, not both (no double counting).
+    optical = max(model_part or 0.0, pupil_part or 0.0)
+    uncertainty = None if statistical is None else math.hypot(statistical, fidelity_part or 0.0, effects_part or 0.0, optical)
+    scene_part = None if effects_part is None else math.hypot(effects_part, pupil_part or 0.0)
     flags += _validity_flags(slopes, magnitude, precision, beta0, full_well)
     conditions = tables._conditions(table, exptime, beta0, full_well)
     relation = "T = |c(m)| * precision * beta0" + (" / sqrt(stars)" if mode == "scatter" else "")
@@ -577,7 +593,7 @@ def _scene_type():
 
 
 def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, accuracy):
-    """Model only what the scene requires: (scene to simulate, relative model uncertainty, report).
+    """Model only what the scene requires: (scene to simulate, the model part's report).
 
     The impact of every effect is measured at the point (``nlpsf.impact``, linear response). An
     effect is simulated when |impact| on the request's metric exceeds ``accuracy`` -- at the scene's
@@ -632,16 +648,93 @@ def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, acc
         runs[rule] = impact._slope_values(experiment.slopes(config, [magnitude], beta0=beta0)[0], mode)[metric][0]
     pupil = None if not runs["galsim"] or runs["header"] is None else runs["header"] / runs["galsim"] - 1
     parts.append({"name": "pupil_scale", "impact": pupil, "why": "pupil-mask scale rule: galsim (used) vs header"})
-    relative = math.sqrt(sum(p["impact"] ** 2 for p in parts if p["impact"] is not None))
     info = {
         "accuracy": accuracy,
         "magnitude_measured_at": magnitude,
         "included": [{"name": e["name"], "impact": e["impact"][metric]} for e in include if e["name"] in names],
         "left_out": parts,
-        "relative_uncertainty": relative,
+        "stated_against": "slope",
+        "combine": "quadrature",
         "basis": "impact of each effect on the slope at this point (nlpsf impact, linear response), added in quadrature",
     }
-    return simulated, relative, info
+    return simulated, info
+
+
+#: The model part's two relative pieces (see :func:`_model_at`).
+_MODEL_PARTS = ("effects_relative", "pupil_scale_relative")
+_COMBINATION = (
+    "uncertainty_model = hypot(effects left out, pupil-scale rule); the total adds the effects left out in "
+    "quadrature with the statistical and fidelity parts and with the larger of the pupil-scale rule and "
+    "uncertainty_optical_model, which both measure the optical model's distance from Roman's (not both)"
+)
+#: How the effects left out add up: measured at the point (each below the accuracy asked for) in
+#: quadrature; from the shipped worst cases as a plain sum, because every Roman star has them all at
+#: once with signs fixed by the optics, often alike (scripts/model_uncertainty.py).
+_COMBINE = {"quadrature": lambda values: math.sqrt(math.fsum(v * v for v in values)), "sum": math.fsum}
+
+
+def _shipped_model(band: str, sca: int, metric: str, mode: str, scene, fidelity: str) -> dict:
+    """The model part of an answer without ``accuracy``: what it leaves out, from the shipped
+    measurement (``scene.shipped_model_uncertainty``). Effects the scene (or the polychromatic
+    level's flat-f_nu band integration) simulates are not left out; the position's spread over the
+    SCA is left out unless a position is given. An SCA the measurement covers reads its own values,
+    any other the worst over those it covers."""
+    from . import scene as scenes
+
+    shipped = scenes.shipped_model_uncertainty()
+    conditions = shipped["conditions"]
+    entry = shipped["per_band"][band][mode][metric]
+    own = entry.get("per_sca", {}).get(str(sca))
+    measured_scas = ", ".join(map(str, conditions["scas"]))
+    where = f"SCA {sca}" if own else f"the worst over SCA {measured_scas} (SCA {sca} is not measured)"
+    entry = own or entry
+    measured_at = conditions["measured_at"]
+    on = dict.fromkeys(scenes.EFFECTS, False) if scene is None else scene.effects_on()
+    if fidelity == "polychromatic":
+        on["sed"] = True
+    parts = []
+    for name in scenes.EFFECTS:
+        if on[name]:
+            continue
+        value = entry["effects"].get(name)
+        if name == "position":
+            why = "spread over the SCA: no position given (the worst corner against the centre the tables hold)"
+        elif value is None:
+            why = f"not measured: {measured_at[name]}"
+        else:
+            why = f"not simulated; measured at {measured_at[name]}"
+        parts.append({"name": name, "impact": value, "why": why})
+    parts.append({"name": "pupil_scale", "impact": entry["pupil_scale"], "why": "pupil-mask scale rule: galsim (used) vs header"})
+    return {
+        "included": [{"name": name, "impact": None} for name in scenes.EFFECTS if on[name]],
+        "left_out": parts,
+        "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
+        "combine": "sum",
+        "basis": (
+            f"shipped measurement ({conditions['script']}, {conditions['measured_utc']}): each effect's worst |impact| on "
+            f"the {mode} slope at its nominal Roman value on {where}, at m = {conditions['magnitudes']} "
+            f"({conditions['method']}), added up (a Roman star has them all at once, with signs often alike)"
+        ),
+    }
+
+
+def _model_at(info: dict, slopes: _Slopes, magnitude: float) -> dict:
+    """The model part at the answer's magnitude: impacts relative to this metric's slope, and the
+    relative uncertainty of the effects left out and of the pupil-scale rule (:data:`_MODEL_PARTS`).
+
+    A shipped e1 / e2 impact is stated against |c_e| and scaled here by |c_e| / |c_ei|, as the
+    optical model's part is."""
+    scale = _component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
+    left = [{**p, "impact": None if p["impact"] is None else p["impact"] * scale} for p in info["left_out"]]
+    effects = _COMBINE[info["combine"]](
+        [abs(p["impact"]) for p in left if p["impact"] is not None and p["name"] != "pupil_scale"]
+    )
+    pupil = next((abs(p["impact"]) for p in left if p["name"] == "pupil_scale" and p["impact"] is not None), 0.0)
+    out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": effects, "pupil_scale_relative": pupil}
+    out.update(relative_uncertainty=math.hypot(effects, pupil), combination=_COMBINATION)
+    if scale != 1.0:
+        out["component_scale"] = scale
+    return out
 
 
 def _with_effect(target, source, name: str):
@@ -668,12 +761,19 @@ def _optical_model_relative(slopes: _Slopes, magnitude: float | None) -> float:
     relative = roman.optical_model_uncertainty(slopes.band, slopes.metric)
     if "relabelled_from" in slopes.table.settings:
         relative = math.hypot(relative, tables.RELABEL_ERROR[slopes.band][0 if slopes.metric == "size" else 1])
-    if slopes.metric in ("e1", "e2") and magnitude is not None:
-        modulus, _, _ = slopes.table.slope("e", slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
-        component, _, _ = slopes.table.slope(slopes.metric, slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
-        if np.isfinite(modulus[0]) and abs(component[0]) > 0:
-            relative *= float(modulus[0] / abs(component[0]))
-    return relative
+    return relative * _component_scale(slopes, magnitude)
+
+
+def _component_scale(slopes: _Slopes, magnitude: float | None) -> float:
+    """|c_e| / |c_ei| at ``magnitude`` for an e1 / e2 answer (1 otherwise): restates a part given
+    against the modulus of the ellipticity slope against the component's own slope."""
+    if slopes.metric not in ("e1", "e2") or magnitude is None:
+        return 1.0
+    modulus, _, _ = slopes.table.slope("e", slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
+    component, _, _ = slopes.table.slope(slopes.metric, slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
+    if np.isfinite(modulus[0]) and abs(component[0]) > 0:
+        return float(modulus[0] / abs(component[0]))
+    return 1.0
 
 
 def _applies_to(mode: str, stars: int) -> str:
@@ -964,13 +1064,8 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
 
 
 def field_points(sca: int) -> list[tuple[float, float]]:
-    """Where the SCA's aberrations are given: its centre and four corners (pixels, inside 1-4088)."""
-    _table, x, y = roman._zernike_table(roman.check_sca(sca))
-    return [(_clip_pixel(px), _clip_pixel(py)) for px, py in zip(x, y, strict=True)]
-
-
-def _clip_pixel(value: float) -> float:
-    return float(min(max(value, 1.0), roman.SCA_PIXELS))
+    """Where the SCA's aberrations are given: its centre and four corners (``roman.field_points``)."""
+    return roman.field_points(sca)
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:

@@ -39,6 +39,32 @@ def test_read_noise_is_the_cds_noise_of_one_read():
         assert 0 < backgrounds.dark_rate(sca) < 0.05  # the requirement the summary table counts against
 
 
+@pytest.mark.parametrize(
+    ("name", "column"),
+    [
+        ("WFI_CDS_Noise_summary.ecsv", "CDS Noise - Median"),
+        ("WFI_Dark_current_summary.ecsv", "Dark Current - Median"),
+        ("WFI_Total_noise.ecsv", "Total noise - median"),
+    ],
+)
+def test_per_sca_summaries_read_as_astropys_ecsv_reader_reads_them(name, column):
+    # The per-SCA tables are read with the standard library (no astropy import for a ramp's read
+    # noise); astropy's ECSV reader is the independent reading.
+    from astropy.table import Table
+
+    table = Table.read(roman.official_data_dir() / name, format="ascii.ecsv")
+    by_scu = {int(str(u)): float(v) for u, v in zip(table[table.colnames[0]], table[column], strict=True) if str(u).isdigit()}
+    assert backgrounds._per_sca(name, column) == tuple(by_scu[s] for s in range(1, 19))
+
+
+def test_a_ramps_default_read_noise_imports_no_astropy():
+    import subprocess
+    import sys
+
+    code = "import sys; from nlpsf import ramps; ramps.build(6, fit='optimal', sca=3); print('astropy' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
+
+
 def test_bad_background_input_names_its_field():
     with pytest.raises(InputError, match="background"):
         backgrounds.background("moonlight", "H158", 1, 100.0)

@@ -426,3 +426,57 @@ def test_service_takes_a_ramp_in_solve_and_simulations(tmp_path):
         expected = simulate(config, [19.0], [BETA])[0]
         assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(expected.dR_over_R.mean, rel=1e-12)
         assert job["result"]["conditions"]["ramp"]["ma_table"] == "romanisim-110"
+
+
+# --- read noise: the SCA's official value unless given ------------------------------------------
+
+
+def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_from(capsys, tmp_path):
+    from fastapi.testclient import TestClient
+    from nlpsf.web.main import create_app
+    from nlpsf.web.settings import Settings
+
+    from nlpsf import backgrounds
+
+    # Library: the SCA's median CDS noise / sqrt(2) (backgrounds, checked against the CDS table there).
+    official = {sca: backgrounds.read_noise(sca) for sca in (1, 3, 18)}
+    assert official[1] != official[18]  # so the look-up is per SCA, not one number
+    for sca, value in official.items():
+        ramp, _ = ramps.build(6, fit="optimal", sca=sca)
+        assert ramp.read_noise_e == value
+        source = ramp.conditions(T)["read_noise_source"]
+        assert f"SCA {sca}" in source and "CDS" in source
+        # The optimal fit is the one an explicit, equal read noise gives (same weights).
+        explicit = ramps.Ramp.uniform(6, T, "optimal", value)
+        assert ramp == explicit and explicit.conditions(T)["read_noise_source"] == "given"
+        charge = np.array([1e3, 5e4])
+        kept = np.array([6, 6])
+        np.testing.assert_array_equal(ramps.slope_weights(charge, kept, ramp, T), ramps.slope_weights(charge, kept, explicit, T))
+    given, _ = ramps.build(ma_table="romanisim-109", read_noise_e=7.0, sca=1)
+    assert given.read_noise_e == 7.0 and given.conditions(given.table.duration_s)["read_noise_source"] == "given"
+    with pytest.raises(InputError, match="sca"):
+        ramps.build(6, sca=19)
+    # CLI: --read-noise omitted on SCA 3.
+    code, out, _ = _cli_json(capsys, "solve", "--sca", "3", "--precision", "0.01", "--magnitude", "19", "--ramp", "8", "--json")
+    assert code == 0
+    conditions = json.loads(out)["conditions"]["ramp"]
+    assert conditions["read_noise_e"] == official[3] and "SCA 3" in conditions["read_noise_source"]
+    code, out, _ = _cli_json(
+        capsys, "solve", "--sca", "3", "--precision", "0.01", "--magnitude", "19", "--ramp", "8", "--read-noise", "5", "--json"
+    )
+    assert json.loads(out)["conditions"]["ramp"]["read_noise_source"] == "given"
+    # A batch reads each row's SCA.
+    batch = tmp_path / "rows.csv"
+    batch.write_text("band,sca,magnitude,precision\nH158,1,19,0.01\nH158,3,19,0.01\n")
+    code, out, _ = _cli_json(capsys, "solve", "--batch", str(batch), "--ramp", "8", "--json")
+    assert code == 0
+    assert [row["solution"]["conditions"]["ramp"]["read_noise_e"] for row in json.loads(out)] == [official[1], official[3]]
+    # Web: the same rule in /solve (and the simulation models).
+    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4)
+    with TestClient(create_app(settings)) as client:
+        body = {"band": "H158", "sca": 3, "precision": 0.01, "magnitude": 19.0, "ramp": 8}
+        answer = client.post("/api/v1/solve", json=body)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["conditions"]["ramp"]["read_noise_e"] == official[3]
+        assert client.post("/api/v1/solve", json={**body, "read_noise": 5.0}).json()["conditions"]["ramp"]["read_noise_e"] == 5.0
+        assert client.get("/api/v1/meta").json()["defaults"]["simulation"]["read_noise"] is None

@@ -161,6 +161,35 @@ def test_api_impact(client):
     assert client.post("/api/v1/impact", json={"realizations": 501}).json()["limit"] == "max_realizations"
 
 
+def test_api_impact_is_a_job_not_work_in_the_http_worker(tmp_path):
+    import time
+
+    from nlpsf import impact
+
+    body = {"band": "J129", "sca": 3, "magnitude": 19.5, "realizations": 4, "scene": {"ipc": "roman"}}
+    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=8, solve_wait_s=0.0)
+    with TestClient(create_app(settings)) as test_client:
+        queued = test_client.post("/api/v1/impact", json=body)
+        assert queued.status_code == 202, queued.text
+        job = queued.json()
+        assert job["request"]["kind"] == "impact" and queued.headers["location"].endswith(job["id"])
+        done = test_client.get(f"/api/v1/simulations/{job['id']}")
+        while done.json()["status"] in ("queued", "running"):
+            time.sleep(0.1)
+            done = test_client.get(f"/api/v1/simulations/{job['id']}")
+        report = done.json()["result"]
+        # The job's report is the library's, computed in the worker.
+        direct = impact.impact("J129", 3, 19.5, scene=scenes.from_request(body["scene"]), realizations=4)
+        assert [e["impact"] for e in report["effects"]] == [e["impact"] for e in direct["effects"]]
+        assert next(e for e in report["effects"] if e["name"] == "ipc")["on"]
+        # The same request again is answered from the stored result.
+        again = test_client.post("/api/v1/impact", json=body)
+        assert again.status_code == 200 and again.json()["effects"] == report["effects"]
+        # Bad input is refused before anything is queued.
+        refused = test_client.post("/api/v1/impact", json={**body, "magnitude": 99.0})
+        assert refused.status_code == 422 and refused.json()["field"] == "magnitude"
+
+
 def test_cli_over_field_and_sca_all(capsys):
     code, out, _ = run_cli(
         capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"

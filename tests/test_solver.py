@@ -252,7 +252,11 @@ def test_answers_carry_the_optical_model_uncertainty_in_quadrature():
     d = solver.solve("Y106", 18, magnitude=20.0, tolerance=1e-4).to_dict()
     model = roman.optical_model_uncertainty("Y106", "size")
     assert d["uncertainty_optical_model"] == pytest.approx(d["precision"] * model, rel=1e-12)
-    parts = (d["uncertainty_statistical"], d["uncertainty_fidelity"], d["uncertainty_optical_model"])
+    # Beside the scene's model part (effects left out, pupil-scale rule): the pupil rule and the
+    # official-PSF comparison both measure the optics, so the larger of the two counts.
+    effects, pupil = (d["precision"] * d["model"][k] for k in ("effects_relative", "pupil_scale_relative"))
+    assert d["uncertainty_model"] == pytest.approx(math.hypot(effects, pupil), rel=1e-12)
+    parts = (d["uncertainty_statistical"], d["uncertainty_fidelity"], effects, max(d["uncertainty_optical_model"], pupil))
     assert d["uncertainty"] == pytest.approx(math.hypot(*parts), rel=1e-12)
     assert d["conditions"]["throughput"] == TABLES.meta["settings"]["throughput"]
     # One ellipticity component's share is stated against |c_e|: relative to e1 alone it is larger.

@@ -85,9 +85,9 @@ def add_ramp_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--read-noise",
         type=float,
-        default=defaults.READ_NOISE_E,
+        default=None,
         metavar="E",
-        help=f"read noise per read [e-] for --ramp-fit optimal (default {defaults.READ_NOISE_E:g})",
+        help="read noise per read [e-] for --ramp-fit optimal (default: the SCA's official value, its median CDS noise / sqrt 2)",
     )
 
 
@@ -95,7 +95,15 @@ def ramp_from(args: argparse.Namespace):
     """(ramps.Ramp or None, exposure time [s]) for these options."""
     from ..ramps import build
 
-    return build(args.ramp, args.ma_table, args.ramp_fit, args.read_noise, args.exptime if args.exptime_given else None)
+    sca = getattr(args, "sca", None)
+    return build(
+        args.ramp,
+        args.ma_table,
+        args.ramp_fit,
+        args.read_noise,
+        args.exptime if args.exptime_given else None,
+        sca=sca if isinstance(sca, int) else defaults.SCA,  # the official read noise of this SCA unless given
+    )
 
 
 def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = True) -> None:

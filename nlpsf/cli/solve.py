@@ -213,17 +213,24 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     if solution.model:
-        included = ", ".join(f"{e['name']} {100 * e['impact']:+.2g} %" for e in solution.model["included"]) or "none"
-        print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
-        left = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["left_out"])
+        included = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["included"]) or "none"
+        if "accuracy" in solution.model:
+            print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
+        elif solution.model["included"]:
+            print(f"  effects simulated by the scene: {', '.join(e['name'] for e in solution.model['included'])}")
+        # Measured at the point (accuracy): signed; from the shipped worst cases: a magnitude only.
+        signed = "accuracy" in solution.model
+        left = ", ".join(f"{e['name']} {_percent(e['impact'], signed)}" for e in solution.model["left_out"])
         print(f"  left out (in the model uncertainty): {left}")
     for flag in solution.flags:
         print(f"  ! {flag}")
     return 0
 
 
-def _percent(value: float | None) -> str:
-    return "n/a" if value is None else f"{100 * value:+.2g} %"
+def _percent(value: float | None, signed: bool = True) -> str:
+    if value is None:
+        return "n/a"
+    return f"{100 * value:+.2g} %" if signed else f"±{100 * value:.2g} %"
 
 
 def _scene(args: argparse.Namespace):
@@ -306,7 +313,12 @@ def run_batch(args: argparse.Namespace) -> int:
     answers: list[dict] = []
     for index, row in enumerate(rows):
         try:
-            solution = solve(**_batch_arguments(args, row, exptime), ramp=ramp)
+            arguments = _batch_arguments(args, row, exptime)
+            row_ramp = ramp
+            if ramp is not None and args.read_noise is None and arguments["sca"] != args.sca:
+                # No read noise given: each row's ramp fit uses its own SCA's official value.
+                row_ramp = ramp_from(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}))[0]
+            solution = solve(**arguments, ramp=row_ramp)
             answers.append({"index": index, "ok": True, "solution": solution.to_dict()})
         except (InputError, SimulationError) as error:
             field = getattr(error, "argument", None)
