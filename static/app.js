@@ -40,7 +40,27 @@ async function api(path, options = {}) {
       : `the server answered ${response.status}`;
     throw new ApiError(message, body ? body.field : null, response.status, (body && Array.isArray(body.errors)) ? body.errors : []);
   }
+  if (response.status === 202 && body && body.id) {
+    // A solve or impact report that needs a simulation became a job: follow it to its answer.
+    return waitForJob(response.headers.get("Location") || `${API}/simulations/${body.id}`);
+  }
   return body;
+}
+
+async function waitForJob(location) {
+  for (;;) {
+    await new Promise((resolve) => setTimeout(resolve, 500));
+    const response = await fetch(location);
+    const job = await response.json().catch(() => null);
+    if (!response.ok || !job) {
+      throw new ApiError((job && job.detail) || `the server answered ${response.status}`, null, response.status, []);
+    }
+    if (job.status === "done") return job.result;
+    if (["failed", "cancelled", "interrupted"].includes(job.status)) {
+      const error = job.error || {};
+      throw new ApiError(error.message || `the simulation was ${job.status}`, error.field || null, 500, []);
+    }
+  }
 }
 
 // ---- formatting -------------------------------------------------------------------------

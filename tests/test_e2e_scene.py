@@ -6,7 +6,7 @@ import pytest
 
 from .test_e2e_browser import ARTIFACTS, page, server  # noqa: F401  (fixtures)
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 
 def test_impact_bar_chart_and_scene_errors(page):  # noqa: F811
