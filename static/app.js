@@ -25,9 +25,10 @@ class ApiError extends Error {
 }
 
 async function api(path, options = {}) {
+  const { followJob: follow = false, ...fetchOptions } = options;
   const response = await fetch(`${API}${path}`, {
-    ...options,
-    headers: { "Content-Type": "application/json", ...(options.headers || {}) },
+    ...fetchOptions,
+    headers: { "Content-Type": "application/json", ...(fetchOptions.headers || {}) },
   });
   let body = null;
   try {
@@ -40,7 +41,7 @@ async function api(path, options = {}) {
       : `the server answered ${response.status}`;
     throw new ApiError(message, body ? body.field : null, response.status, (body && Array.isArray(body.errors)) ? body.errors : []);
   }
-  if (response.status === 202 && body && body.id) {
+  if (follow && response.status === 202 && body && body.id) {
     // A solve or impact report that needs a simulation became a job: follow it to its answer.
     return waitForJob(response.headers.get("Location") || `${API}/simulations/${body.id}`);
   }
@@ -589,7 +590,7 @@ async function solve(event) {
     ...readoutFields("solve"),
   };
   try {
-    const s = await api("/solve", { method: "POST", body: JSON.stringify(body) });
+    const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true });
     form.elements[s.solved_for].value = fmt(s[s.solved_for], 5);
     const names = { precision: "precision p", tolerance: `tolerance T (${METRIC_LABEL[s.metric]})`, magnitude: "magnitude m" };
     const uncertaintyParts = [["statistical", s.uncertainty_statistical], ["fidelity", s.uncertainty_fidelity],
@@ -989,7 +990,7 @@ async function measureImpact(event) {
   button.disabled = true;
   button.textContent = "Measuring…";
   try {
-    showImpact(await api("/impact", { method: "POST", body: JSON.stringify(body) }));
+    showImpact(await api("/impact", { method: "POST", body: JSON.stringify(body), followJob: true }));
   } catch (error) {
     showError(box, form, sceneError(error));
   } finally {
