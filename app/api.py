@@ -117,16 +117,20 @@ def meta(request: Request) -> SafeJSONResponse:
     )
 
 
+#: Responses of an endpoint whose answer may need a simulation, which then runs as a job.
+JOB_ANSWER_RESPONSES: dict[int | str, dict[str, Any]] = {
+    **ERRORS,
+    202: {"model": models.Job, "description": "the answer needs a simulation that is still running: poll the Location"},
+    413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
+    429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
+    503: {"model": models.Problem, "description": "the answer needs a simulation and the job store is unavailable"},
+}
+
+
 @router.post(
     "/solve",
     response_model=models.SolveResponse,
-    responses={
-        **ERRORS,
-        202: {"model": models.Job, "description": "the solve needs a simulation that is still running: poll the Location"},
-        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
-        429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
-        503: {"model": models.Problem, "description": "the solve needs a simulation and the job store is unavailable"},
-    },
+    responses=JOB_ANSWER_RESPONSES,
     summary="Two of (precision, tolerance, magnitude) -> the third, with its uncertainty",
 )
 async def solve(body: models.SolveRequest, request: Request) -> Response:
@@ -151,8 +155,6 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     chosen, _ = solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
     if chosen == "table" and plain:
         return SafeJSONResponse(solver.solve(**arguments).to_dict())
-    from .simulations import queue_full_response, submit_job
-
     job_arguments = {**arguments, "band": checked.band, "scene_request": raw["scene"], "over_field": raw["over_field"]}
     if ramp is not None:
         # The worker rebuilds the ramp from the request's own (JSON) fields.
@@ -161,31 +163,13 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
             **{k: raw[k] for k in ramp_keys},
             "exptime_given": "exptime" in body.model_fields_set,
         }
-
-    try:
-        job, status = await submit_job(request, simulation.solve_job(job_arguments), request.app.state.settings.solve_wait_s)
-    except QueueFull as full:
-        return queue_full_response(full)
-    if job.get("status") == "done" and job.get("result") is not None:
-        return SafeJSONResponse(job["result"], headers={"Location": f"/api/v1/simulations/{job['id']}"})
-    if job.get("status") == "failed" and (job.get("error") or {}).get("field"):
-        error = job["error"]
-        return problem(422, f"{error['field']}: {error['message']}", error["field"])
-    from .simulations import job_response
-
-    return job_response(job, status)
+    return await _job_answer(request, simulation.solve_job(job_arguments))
 
 
 @router.post(
     "/impact",
     response_model=models.ImpactReport,
-    responses={
-        **ERRORS,
-        202: {"model": models.Job, "description": "the report is still being simulated: poll the Location"},
-        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
-        429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
-        503: {"model": models.Problem, "description": "the job store is unavailable"},
-    },
+    responses=JOB_ANSWER_RESPONSES,
     summary="What each scene effect changes in the slopes at one point (linear response; a job like any simulation)",
 )
 async def impact(body: models.ImpactRequest, request: Request) -> Response:

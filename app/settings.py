@@ -70,7 +70,7 @@ class Settings(BaseSettings):
     api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
     #: largest request body in bytes; a larger one is answered 413 before it is read
     max_body_bytes: int = Field(65_536, ge=1024, le=64 * 1024**2)
-    #: the page's files; None: the ``static`` folder beside the app
+    #: the page's files; None: the installed package data ``nlpsf.web.static``
     static_dir: str | None = None
 
     # --- simulation jobs ----------------------------------------------------------------------

@@ -690,8 +690,8 @@ def _shipped_model(band: str, sca: int, metric: str, mode: str, scene, fidelity:
     entry = own or entry
     measured_at = conditions["measured_at"]
     on = dict.fromkeys(scenes.EFFECTS, False) if scene is None else scene.effects_on()
-    if fidelity == "polychromatic":
-        on["sed"] = True
+    if fidelity != "table" and levels.simulation_settings(fidelity).n_wavelengths > 1:
+        on["sed"] = True  # a band-integrated PSF simulates the (flat f_nu) SED
     parts = []
     for name in scenes.EFFECTS:
         if on[name]:
