@@ -202,6 +202,8 @@ def test_simulation_progress_reaches_100_percent(page):
     assert seen[-1].startswith("100%"), seen
     assert len(seen) >= 2, f"the progress bar should move: {seen}"
     assert page.eval_on_selector("#sim-progress", "p => p.value") == 1
+    # The worker reports 100 % "done" a moment before the job's result is stored and fetched.
+    page.wait_for_function("() => document.querySelectorAll('#sim-table tbody tr').length > 0", timeout=30_000)
     rows = page.locator("#sim-table tbody tr")
     assert rows.count() == 6
     assert "fresh simulation" in page.inner_text("#sim-conditions")
