@@ -11,13 +11,9 @@ SimulationConfig``); each name is imported on first use, so ``import nlpsf`` sta
 from __future__ import annotations
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
 
-try:
-    __version__ = version("nlpsf")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.0.0+source"
+from ._version import __version__
 
 #: public name -> module that defines it
 _PUBLIC = {

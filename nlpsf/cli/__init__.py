@@ -18,6 +18,8 @@ import re
 import sys
 from collections.abc import Sequence
 
+from .._version import __version__
+
 #: name -> (module, one-line help). The modules are imported only when their command is chosen.
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("nlpsf.cli.simulate", "simulate NL-induced PSF size and ellipticity changes"),
@@ -74,15 +76,6 @@ class Parser(argparse.ArgumentParser):
         self._negative_number_matcher = re.compile(r"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
 
 
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("nlpsf")
-    except PackageNotFoundError:
-        return "0.0.0+source"
-
-
 def _chosen(argv: Sequence[str]) -> str | None:
     for token in argv:
         if token in COMMANDS:
@@ -95,7 +88,7 @@ def _chosen(argv: Sequence[str]) -> str | None:
 def build_parser(argv: Sequence[str] = ()) -> tuple[Parser, dict[str, object]]:
     """The parser, with only the chosen subcommand's options configured (all of them if none)."""
     parser = Parser(prog="nlpsf", description="Detector nonlinearity requirements for Roman PSF modelling.")
-    parser.add_argument("--version", action="version", version=f"nlpsf {_version()}")
+    parser.add_argument("--version", action="version", version=f"nlpsf {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
     chosen = _chosen(argv)
     modules: dict[str, object] = {}
