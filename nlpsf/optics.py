@@ -50,32 +50,59 @@ def noll_to_nm(j: int) -> tuple[int, int]:
     return n, m if m_abs else 0
 
 
+class _PolarBasis:
+    """Powers of rho and cos/sin(m theta) at a set of pupil points, each computed once.
+
+    Every Zernike is a combination of these. Integer powers ``rho ** k`` go through the general
+    float power (slow for k > 2), and a wavefront sums ~20 Zernikes over the whole pupil: the
+    repeated products and the shared trigonometry make it several times cheaper.
+    """
+
+    def __init__(self, rho: np.ndarray, theta: np.ndarray) -> None:
+        self.rho = rho
+        self.theta = theta
+        self._powers = [np.ones_like(rho)]
+        self._angular: dict[int, np.ndarray] = {}
+
+    def power(self, k: int) -> np.ndarray:
+        while len(self._powers) <= k:
+            self._powers.append(self._powers[-1] * self.rho)
+        return self._powers[k]
+
+    def angular(self, m: int) -> np.ndarray:
+        if m not in self._angular:
+            self._angular[m] = np.cos(m * self.theta) if m > 0 else np.sin(-m * self.theta)
+        return self._angular[m]
+
+    def zernike(self, j: int) -> np.ndarray:
+        """Noll-normalised Zernike polynomial Z_j (unit RMS over the unit disc)."""
+        n, m = noll_to_nm(j)
+        m_abs = abs(m)
+        radial = np.zeros_like(self.rho)
+        for k in range((n - m_abs) // 2 + 1):
+            coefficient = (
+                (-1) ** k
+                * math.factorial(n - k)
+                / (math.factorial(k) * math.factorial((n + m_abs) // 2 - k) * math.factorial((n - m_abs) // 2 - k))
+            )
+            radial += coefficient * self.power(n - 2 * k)
+        if m == 0:
+            return math.sqrt(n + 1) * radial
+        return math.sqrt(2 * (n + 1)) * radial * self.angular(m)
+
+
 def zernike(j: int, rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Noll-normalised Zernike polynomial Z_j (unit RMS over the unit disc)."""
-    n, m = noll_to_nm(j)
-    m_abs = abs(m)
-    radial = np.zeros_like(rho)
-    for k in range((n - m_abs) // 2 + 1):
-        coefficient = (
-            (-1) ** k
-            * math.factorial(n - k)
-            / (math.factorial(k) * math.factorial((n + m_abs) // 2 - k) * math.factorial((n - m_abs) // 2 - k))
-        )
-        radial = radial + coefficient * rho ** (n - 2 * k)
-    if m == 0:
-        return math.sqrt(n + 1) * radial
-    angular = np.cos(m_abs * theta) if m > 0 else np.sin(m_abs * theta)
-    return math.sqrt(2 * (n + 1)) * radial * angular
+    return _PolarBasis(np.asarray(rho, dtype=np.float64), np.asarray(theta, dtype=np.float64)).zernike(j)
 
 
 def wavefront_waves(coefficients: np.ndarray, u_m: np.ndarray, v_m: np.ndarray, radius_m: float) -> np.ndarray:
     """Wavefront (in waves) of Noll ``coefficients`` (index 0 unused) at pupil points (u, v)."""
-    rho = np.hypot(u_m, v_m) / radius_m
-    theta = np.arctan2(v_m, u_m)
-    total = np.zeros_like(rho)
+    basis = _PolarBasis(np.hypot(u_m, v_m) / radius_m, np.arctan2(v_m, u_m))
+    total = np.zeros_like(basis.rho)
     for j in range(1, len(coefficients)):
         if coefficients[j] != 0.0:
-            total += coefficients[j] * zernike(j, rho, theta)
+            total += coefficients[j] * basis.zernike(j)
     return total
 
 
