@@ -180,6 +180,16 @@ class Scene:
         return self.stamps if self.unit_charge is None else self.unit_charge
 
     @cached_property
+    def squared_stamps(self) -> np.ndarray:
+        """psi^2 of each unit-flux stamp: the final frame's NL pattern, the same for every magnitude and beta."""
+        return self.stamps**2
+
+    @cached_property
+    def core_margin(self) -> int:
+        """Pixels each side of the stamps can lose for a perturbed fit (``moments.core_margin``)."""
+        return moments.core_margin(self.stamps.shape[-1], self.reference, self.config.weight_cut_rho2)
+
+    @cached_property
     def peak_fraction(self) -> np.ndarray:
         """Largest fine-pixel value of each unit-flux stamp."""
         return self.stamps.max(axis=(1, 2))
@@ -598,7 +608,9 @@ def _zero_flag(d_r: np.ndarray) -> list[str]:
     return []
 
 
-def nl_images(scene: Scene, charge_scale: float, beta, count: int | None = None, effect: RampEffect | None = None):
+def nl_images(
+    scene: Scene, charge_scale: float, beta, count: int | None = None, effect: RampEffect | None = None, margin: int = 0
+):
     """The detector at one flux: (linear image, its reference fit, NL perturbation, d perturbation / d beta).
 
     All per unit flux, for the first ``count`` realizations (all by default). ``beta`` is b2, a
@@ -608,20 +620,51 @@ def nl_images(scene: Scene, charge_scale: float, beta, count: int | None = None,
     background). With brighter-fatter the NL-free image depends on the flux, and its reference fit
     is made here, from the stored one. Up the ramp (``effect``) the NL pattern is psi^2 c_2
     (``_nl_shape``); a ramp with the scene's detector effects is refused by the configuration.
+    ``margin`` trims that many pixels from every side of the images (centre kept; see
+    :func:`_perturbed_fit`); the paper's detector then computes only the core.
     """
     config = scene.config
     model = config.scene
     pick = slice(None) if count is None else slice(0, count)
-    stamps = scene.stamps[pick]
+    n = scene.stamps.shape[-1]
+    core = (Ellipsis, slice(margin, n - margin), slice(margin, n - margin))
     reference = scene.reference if count is None else moments.select(scene.reference, pick)
     if model.plain_detector:
-        shape = _nl_shape(stamps, effect)
-        return stamps, reference, -(beta * charge_scale) * shape, -charge_scale * shape
+        stamps = scene.stamps[pick][core]
+        if effect is None:
+            shape = scene.squared_stamps[pick][core]
+        else:
+            # c_2 is per pixel, or one value broadcast over the stamp (a uniform ramp).
+            factor = effect.factor
+            shape = stamps**2 * (factor[core] if factor.shape[-1] == n else factor)
+        derivative = -charge_scale * shape
+        return stamps, reference, beta * derivative, derivative
+    stamps = scene.stamps[pick]
     shift, perturbation, derivative = scenes.detector_chain(scene.charge[pick], charge_scale, beta, model, config.oversampling)
     if shift is not None:
         reference = moments.fit_perturbed(stamps, shift, reference, config.moment_settings)
         stamps = stamps + shift
-    return stamps, reference, perturbation, derivative
+    return stamps[core], reference, perturbation[core], derivative[core]
+
+
+def _perturbed_fit(
+    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, effect: RampEffect | None = None
+) -> tuple[moments.Moments, moments.Moments, np.ndarray, np.ndarray, np.ndarray]:
+    """Adaptive moments of the NL images: (fit, reference fit, stamps, NL perturbation, d perturbation / d beta).
+
+    The fits are made on the stamps' central core (``Scene.core_margin``), and the images returned
+    are that core: the weight is zero beyond the cut, and a 96 x 96 stamp is mostly outside it,
+    so building and adding the whole images cost more than the fits themselves. If any fit failed
+    or left the core, the whole stamps are fitted instead; otherwise the answer is the one the
+    whole stamps give.
+    """
+    margin = scene.core_margin
+    stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect, margin=margin)
+    fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
+    if margin and not np.all(moments.within(fit, stamps.shape[-1], float(settings.weight_cut_rho2))):
+        stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect)
+        fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
+    return fit, reference, stamps, perturbation, derivative
 
 
 def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
@@ -630,11 +673,11 @@ def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: mom
     effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
     extras: dict = {} if effect is None else dict(effect.extras)
-    stamps, reference, perturbation, _ = nl_images(scene, charge_scale, beta, effect=effect)
     if config.method == "monte_carlo":
-        fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
+        fit, reference, *_ = _perturbed_fit(scene, charge_scale, beta, settings, effect)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
     else:
+        stamps, reference, perturbation, _ = nl_images(scene, charge_scale, beta, effect=effect)
         gradient = moments.pixel_response(stamps, reference, settings)
         if config.scene.plain_detector:
             linear = np.einsum("bkij,bij->bk", gradient, -_nl_shape(stamps, effect)) * (beta * charge_scale)
@@ -932,8 +975,7 @@ def _finite_difference_slopes(
     values = []
     statuses = []
     for factor in (1 - PAPER_BETA_STEP, 1 + PAPER_BETA_STEP):
-        stamps, reference, perturbation, _ = nl_images(scene, charge_scale, beta * factor, effect=effect)
-        fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
+        fit, reference, *_ = _perturbed_fit(scene, charge_scale, beta * factor, settings, effect)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
         values.append(np.stack([d_r, d_e1, d_e2]))
         statuses.append(status)
@@ -986,10 +1028,7 @@ def _linear_slopes(
     # Everything at unit flux: the distorted image is psi - beta s psi^2 (moments ignore scale),
     # and d/d beta of the charge image divided by s is -s psi^2 (times c_2 after a ramp fit; scene
     # effects: ``nl_images``).
-    stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect)
-    if scene.config.scene.plain_detector:
-        perturbation = beta * derivative
-    fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
+    fit, reference, stamps, perturbation, derivative = _perturbed_fit(scene, charge_scale, beta, settings, effect)
     distorted = stamps + perturbation
     bias_values, scatter_values = (v.T.copy() for v in moments.response_to(distorted, fit, derivative, settings))
     ok = fit.ok & reference.ok

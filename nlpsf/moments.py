@@ -175,19 +175,69 @@ def _weights(
     inverse = np.stack([myy / det, -mxy / det, mxx / det], axis=-1)
     dx = coords[None, c0:c1] - x0[:, None]
     dy = coords[None, r0:r1] - y0[:, None]
-    a, b, c = (inverse[:, k, None, None] for k in range(3))
-    rho2 = a * dx[:, None, :] ** 2 + (2.0 * b) * (dy[:, :, None] * dx[:, None, :]) + c * dy[:, :, None] ** 2
+    a, b, c = inverse.T
+    # rho^2 = a dx^2 + 2 b dx dy + c dy^2, built from the two separable terms and one outer
+    # product, in place: this runs at every iteration of every fit.
+    rho2 = (2.0 * b[:, None] * dy)[:, :, None] * dx[:, None, :]
+    rho2 += (a[:, None] * dx * dx)[:, None, :]
+    rho2 += (c[:, None] * dy * dy)[:, :, None]
     weight = np.exp(-0.5 * rho2)
     if math.isfinite(cut):
         weight[rho2 > cut] = 0.0
     return weight, dx, dy, inverse
 
 
+def _powers(d: np.ndarray, order: int) -> np.ndarray:
+    """d^0 .. d^order stacked on a last axis, by repeated products: ``d ** np.arange(K)`` goes
+    through the general float power and costs 30x more, which made it the simulator's hot spot."""
+    out = np.empty((*d.shape, order + 1))
+    out[..., 0] = 1.0
+    for k in range(1, order + 1):
+        np.multiply(out[..., k - 1], d, out=out[..., k])
+    return out
+
+
+def core_margin(n: int, fits: Moments, cut: float, growth: float = 2.0) -> int:
+    """Pixels every side of an n x n stamp can lose, its centre kept, so that the weight window of
+    every fit, grown ``growth`` times in size, still lies inside.
+
+    A perturbed fit started from these fits reads only that core: beyond the cut the weight is
+    zero. Nothing can be trimmed without a finite cut, or when a fit failed.
+    """
+    if not math.isfinite(cut) or len(fits) == 0 or not np.all(fits.ok):
+        return 0
+    params = fits.parameters()
+    extent_x = np.max(np.abs(params[:, 0]) + growth * np.sqrt(cut * params[:, 2]))
+    extent_y = np.max(np.abs(params[:, 1]) + growth * np.sqrt(cut * params[:, 4]))
+    # Pixel centres lie (n - 1) / 2 from the stamp's centre at most; keep one pixel to spare.
+    return max(math.floor((n - 1) / 2.0 - max(extent_x, extent_y) - 1.0), 0)
+
+
+def within(fits: Moments, n: int, cut: float) -> np.ndarray:
+    """Whether each fit converged with its whole weight window (rho^2 <= cut) inside an n x n stamp.
+
+    Such a fit is the same on any larger stamp with the same centre: the pixels it weighs, and
+    their offsets from the centroid, are the same ones.
+    """
+    if not math.isfinite(cut):
+        return np.zeros(len(fits), dtype=bool)
+    params = fits.parameters()
+    centre = (n - 1) / 2.0
+    half_x = np.sqrt(cut * np.maximum(params[:, 2], 0.0))
+    half_y = np.sqrt(cut * np.maximum(params[:, 4], 0.0))
+    inside = (
+        (np.floor(params[:, 0] - half_x + centre) >= 0)
+        & (np.ceil(params[:, 0] + half_x + centre) + 1 <= n)
+        & (np.floor(params[:, 1] - half_y + centre) >= 0)
+        & (np.ceil(params[:, 1] + half_y + centre) + 1 <= n)
+    )
+    return inside & fits.ok
+
+
 def _raw_moments(weighted: np.ndarray, dx: np.ndarray, dy: np.ndarray, order: int) -> np.ndarray:
     """S[b, i, j] = sum weighted * dx^i * dy^j for i + j <= order (returned as a full square)."""
-    powers = np.arange(order + 1)
-    px = dx[:, :, None] ** powers  # (B, n, K)
-    py = dy[:, :, None] ** powers
+    px = _powers(dx, order)  # (B, n, K)
+    py = _powers(dy, order)
     over_x = weighted @ px  # (B, n_y, K): sums over x
     return np.swapaxes(np.swapaxes(py, 1, 2) @ over_x, 1, 2)  # (B, K_x, K_y)
 
@@ -206,37 +256,58 @@ def _residual(S: np.ndarray, params: np.ndarray) -> np.ndarray:
     return out
 
 
-def _weight_derivative_polynomials(inverse: np.ndarray) -> list[dict[tuple[int, int], np.ndarray]]:
-    """-1/2 d(rho^2)/dp as polynomials in (dx, dy), for p = x0, y0, Mxx, Mxy, Myy."""
+# Index tables for the Jacobian. Row g of F is the moment S[i_g, j_g] (``_EQUATIONS``); column p
+# differentiates the weight, -1/2 d(rho^2)/dp, a polynomial in (dx, dy) with the monomials below:
+# first order for the centroid (p = x0, y0), second order for the matrix (p = Mxx, Mxy, Myy).
+_ROW_I = np.array([e[0] for e in _EQUATIONS])
+_ROW_J = np.array([e[1] for e in _EQUATIONS])
+_FIRST = ((1, 0), (0, 1))
+_SECOND = ((2, 0), (1, 1), (0, 2))
+
+
+def _weight_derivative_coefficients(inverse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """-1/2 d(rho^2)/dp as coefficients of the monomials ``_FIRST`` (p = x0, y0), shape (B, 2, 2),
+    and ``_SECOND`` (p = Mxx, Mxy, Myy), shape (B, 3, 3); M^-1 = [[a, b], [b, c]]."""
     a, b, c = inverse[:, 0], inverse[:, 1], inverse[:, 2]
-    return [
-        {(1, 0): a, (0, 1): b},
-        {(1, 0): b, (0, 1): c},
-        {(2, 0): 0.5 * a * a, (1, 1): a * b, (0, 2): 0.5 * b * b},
-        {(2, 0): a * b, (1, 1): a * c + b * b, (0, 2): b * c},
-        {(2, 0): 0.5 * b * b, (1, 1): b * c, (0, 2): 0.5 * c * c},
-    ]
+    first = np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], 1)
+    second = np.stack(
+        [
+            np.stack([0.5 * a * a, a * b, 0.5 * b * b], -1),
+            np.stack([a * b, a * c + b * b, b * c], -1),
+            np.stack([0.5 * b * b, b * c, 0.5 * c * c], -1),
+        ],
+        1,
+    )
+    return first, second
 
 
 def _jacobian(S: np.ndarray, inverse: np.ndarray) -> np.ndarray:
-    """dF/d(x0, y0, Mxx, Mxy, Myy), shape (B, 5, 5), from weighted moments up to order 4."""
-    amplitude = S[:, 0, 0]
-    polys = _weight_derivative_polynomials(inverse)
-    jac = np.zeros((S.shape[0], 5, 5))
+    """dF/d(x0, y0, Mxx, Mxy, Myy), shape (B, 5, 5), from weighted moments up to order 4.
+
+    dF_g/dp = <g h_p> - <g><h_p> (h_p = -1/2 d(rho^2)/dp), less d<g>/dp where g itself moves with
+    the centroid, less 1/2 where g's target is the element p of M. Vectorised over the 5 x 5
+    entries: the per-entry Python loop cost more than the arithmetic.
+    """
+    amplitude = S[:, 0, 0, None]
+    first, second = _weight_derivative_coefficients(inverse)
+    jac = np.empty((S.shape[0], 5, 5))
+    mean_g = S[:, _ROW_I, _ROW_J] / amplitude  # (B, 5)
+    for cols, monomials, coefficients in ((slice(0, 2), _FIRST, first), (slice(2, 5), _SECOND, second)):
+        pi = np.array([m[0] for m in monomials])
+        pj = np.array([m[1] for m in monomials])
+        s_gh = S[:, _ROW_I[:, None] + pi, _ROW_J[:, None] + pj]  # (B, 5 rows, terms)
+        s_h = S[:, pi, pj]  # (B, terms)
+        gh = np.einsum("brt,bct->brc", s_gh, coefficients)
+        h = np.einsum("bt,bct->bc", s_h, coefficients)
+        jac[:, :, cols] = gh / amplitude[:, :, None] - mean_g[:, :, None] * (h / amplitude)[:, None, :]
+    # g is a monomial in dx = x - x0, dy = y - y0: d g / d x0 = -i dx^(i-1) dy^j, likewise y0.
     for row, (i, j, m_index) in enumerate(_EQUATIONS):
-        mean_g = S[:, i, j] / amplitude
-        for col, poly in enumerate(polys):
-            s_gh = sum(coef * S[:, i + pi, j + pj] for (pi, pj), coef in poly.items())
-            s_h = sum(coef * S[:, pi, pj] for (pi, pj), coef in poly.items())
-            value = s_gh / amplitude - mean_g * s_h / amplitude
-            # d g / d x0 and d g / d y0: g is a monomial in dx = x - x0, dy = y - y0.
-            if col == 0 and i > 0:
-                value = value - i * S[:, i - 1, j] / amplitude
-            if col == 1 and j > 0:
-                value = value - j * S[:, i, j - 1] / amplitude
-            if m_index >= 0 and col == m_index:
-                value = value - 0.5
-            jac[:, row, col] = value
+        if i > 0:
+            jac[:, row, 0] -= i * S[:, i - 1, j] / amplitude[:, 0]
+        if j > 0:
+            jac[:, row, 1] -= j * S[:, i, j - 1] / amplitude[:, 0]
+        if m_index >= 0:
+            jac[:, row, m_index] -= 0.5
     return jac
 
 
@@ -449,10 +520,11 @@ def fit_perturbed(
         base, delta, p = images[sl], perturbations[sl], params[sl]
         first = _perturbation_step(base, delta, p, reference.status[sl], float(settings.weight_cut_rho2))
         small = _step_size(np.nan_to_num(first, nan=np.inf), p) < 1e-8
-        fitted = _fit_chunk(base + delta, p, settings, cold=False, first_step=np.nan_to_num(first))
+        total = base + delta
+        fitted = _fit_chunk(total, p, settings, cold=False, first_step=np.nan_to_num(first))
         # Below 1e-8 the second-order term is under 1e-16: the precise first step is the answer,
         # and further iterations would only add the float64 noise of the full image.
-        exact = small & (reference.status[sl] == MomentStatus.OK) & np.all(np.isfinite(base + delta), axis=(1, 2))
+        exact = small & (reference.status[sl] == MomentStatus.OK) & (fitted.status != MomentStatus.NONFINITE_IMAGE)
         delta = fitted.parameters() - p
         if np.any(exact):
             values = p[exact] + first[exact]

@@ -340,3 +340,21 @@ def test_finite_differences_across_the_hard_weight_cut_are_flagged():
     assert any(f.startswith("jumpy finite difference") for f in hard.flags)
     none = slopes(SimulationConfig(realizations=50, weight_cut_rho2=math.inf, throughput=g), [21.5])[0]
     assert not any(f.startswith("jumpy") for f in none.flags)
+
+
+def test_fits_on_the_stamp_core_are_the_whole_stamps_fits(paper_config, paper_scene):
+    """The simulator fits the NL images on the stamps' core (``Scene.core_margin``); the answer must
+    be the one the whole stamps give, and a core too small must fall back to them."""
+    settings = paper_config.moment_settings
+    charge_scale = float(paper_config.electrons(18.3)) * paper_config.oversampling**2
+    stamps, reference, perturbation, _ = experiment.nl_images(paper_scene, charge_scale, 5e-7)
+    whole = moments.fit_perturbed(stamps, perturbation, reference, settings)
+    assert paper_scene.core_margin > 0
+    fit, *_ = experiment._perturbed_fit(paper_scene, charge_scale, 5e-7, settings)
+    np.testing.assert_allclose(fit.delta, whole.delta, rtol=1e-12, atol=1e-18)
+    # A core of 8 x 8 pixels cannot hold the weight window: the whole stamps decide.
+    cramped = experiment.Scene(paper_config, paper_scene.psf, paper_scene.offsets, paper_scene.stamps, paper_scene.reference, 0.0)
+    cramped.__dict__["core_margin"] = (paper_config.stamp - 8) // 2
+    fallback, _, images, *_ = experiment._perturbed_fit(cramped, charge_scale, 5e-7, settings)
+    assert images.shape[-1] == paper_config.stamp
+    np.testing.assert_array_equal(fallback.delta, whole.delta)

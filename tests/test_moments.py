@@ -116,6 +116,32 @@ def test_weight_cut_is_exact_not_a_crop():
     assert b.sigma[0] == pytest.approx(a.sigma[0], rel=1e-14)
 
 
+def test_a_perturbed_fit_on_the_core_is_the_fit_on_the_whole_stamp():
+    # core_margin trims what no weight window (grown 2x in size) reaches; the perturbed fit of the
+    # trimmed stamps must then be the whole stamps' fit, and within() must say so.
+    rng = np.random.default_rng(2)
+    images = np.stack([gaussian(96, 2.0, 1.7, 0.2, x0=rng.uniform(-1, 1), y0=rng.uniform(-1, 1))[0] for _ in range(6)])
+    reference = moments.fit(images)
+    margin = moments.core_margin(96, reference, 25.0)
+    assert 0 < margin < 48
+    delta = -0.2 * images**2 / images.max()
+    whole = moments.fit_perturbed(images, delta, reference)
+    core = (Ellipsis, slice(margin, 96 - margin), slice(margin, 96 - margin))
+    trimmed = moments.fit_perturbed(images[core], delta[core], reference)
+    assert np.all(moments.within(trimmed, 96 - 2 * margin, 25.0))
+    np.testing.assert_allclose(trimmed.parameters(), whole.parameters(), rtol=1e-13, atol=1e-15)
+    # A core smaller than the weight window is caught.
+    tiny = (Ellipsis, slice(44, 52), slice(44, 52))
+    assert not np.any(moments.within(moments.fit_perturbed(images[tiny], delta[tiny], reference), 8, 25.0))
+    # Without a cut every pixel has weight: nothing may be trimmed.
+    assert moments.core_margin(96, reference, math.inf) == 0
+
+
+def test_integer_powers_by_products_equal_numpy_powers():
+    d = np.random.default_rng(3).uniform(-12, 12, (4, 30))
+    np.testing.assert_allclose(moments._powers(d, 4), d[..., None] ** np.arange(5), rtol=1e-14)
+
+
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="weight_cut_rho2"):
         MomentSettings(weight_cut_rho2=1.0)
