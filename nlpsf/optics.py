@@ -60,8 +60,9 @@ class _PolarBasis:
 
     def __init__(self, rho: np.ndarray, theta: np.ndarray) -> None:
         self.rho = rho
-        self.theta = theta
         self._powers = [np.ones_like(rho)]
+        # cos(m theta) + i sin(m theta) = (e^{i theta})^m: one cos and one sin for every m.
+        self._turns = [np.ones_like(rho, dtype=np.complex128), np.cos(theta) + 1j * np.sin(theta)]
         self._angular: dict[int, np.ndarray] = {}
 
     def power(self, k: int) -> np.ndarray:
@@ -70,8 +71,12 @@ class _PolarBasis:
         return self._powers[k]
 
     def angular(self, m: int) -> np.ndarray:
+        """cos(m theta) for m > 0, sin(|m| theta) for m < 0."""
         if m not in self._angular:
-            self._angular[m] = np.cos(m * self.theta) if m > 0 else np.sin(-m * self.theta)
+            while len(self._turns) <= abs(m):
+                self._turns.append(self._turns[-1] * self._turns[1])
+            turn = self._turns[abs(m)]
+            self._angular[m] = turn.real.copy() if m > 0 else turn.imag.copy()
         return self._angular[m]
 
     def zernike(self, j: int) -> np.ndarray:
