@@ -677,12 +677,16 @@ def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: mom
         fit, reference, *_ = _perturbed_fit(scene, charge_scale, beta, settings, effect)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
     else:
-        stamps, reference, perturbation, _ = nl_images(scene, charge_scale, beta, effect=effect)
-        gradient = moments.pixel_response(stamps, reference, settings)
+        # First order at beta = 0: the gradient of the reference fit along the NL perturbation,
+        # on the stamps' core when the reference fits' weight windows lie inside it.
+        margin = scene.core_margin
+        stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect, margin=margin)
+        if margin and not np.all(moments.within(reference, stamps.shape[-1], float(settings.weight_cut_rho2))):
+            stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect)
         if config.scene.plain_detector:
-            linear = np.einsum("bkij,bij->bk", gradient, -_nl_shape(stamps, effect)) * (beta * charge_scale)
+            linear = moments.response_to(stamps, reference, derivative, settings)[0] * beta
         else:
-            linear = np.einsum("bkij,bij->bk", gradient, perturbation)
+            linear = moments.response_to(stamps, reference, perturbation, settings)[0]
         ok = reference.ok
         d_r, d_e1, d_e2 = (np.where(ok, linear[:, k], np.nan) for k in range(3))
         status = reference.status

@@ -358,3 +358,17 @@ def test_fits_on_the_stamp_core_are_the_whole_stamps_fits(paper_config, paper_sc
     fallback, _, images, *_ = experiment._perturbed_fit(cramped, charge_scale, 5e-7, settings)
     assert images.shape[-1] == paper_config.stamp
     np.testing.assert_array_equal(fallback.delta, whole.delta)
+
+
+def test_linear_response_on_the_stamp_core_is_the_whole_stamps():
+    config = SimulationConfig(realizations=10, method="linear")
+    scene = experiment.prepare(config)
+    cramped = experiment.Scene(config, scene.psf, scene.offsets, scene.stamps, scene.reference, 0.0)
+    cramped.__dict__["core_margin"] = (config.stamp - 8) // 2  # too small: the whole stamps decide
+    whole = experiment.Scene(config, scene.psf, scene.offsets, scene.stamps, scene.reference, 0.0)
+    whole.__dict__["core_margin"] = 0
+    core = simulate(config, [18.3, 22.0], [5e-7], scene=scene)
+    for other in (simulate(config, [18.3, 22.0], [5e-7], scene=s) for s in (cramped, whole)):
+        for a, b in zip(core, other, strict=True):
+            for name in ("dR_over_R", "de1", "de2"):
+                assert getattr(a, name).mean == pytest.approx(getattr(b, name).mean, rel=1e-12)
