@@ -10,6 +10,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
+from starlette.concurrency import run_in_threadpool
 
 from nlpsf import __version__, defaults, detector, fidelity, ramps, roman, solver, tables
 from nlpsf.checks import InputError
@@ -148,6 +149,14 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     plain = ramp is None and scene is None and body.over_field is None
     if plain and body.fidelity in (None, "table") and body.accuracy is None:
         return SafeJSONResponse(solver.solve(**arguments).to_dict())
+    tabulated_field = ramp is None and scene is None and body.fidelity in (None, "table") and body.accuracy is None
+    if body.over_field is not None and tabulated_field and solver.field_tables() is not None:
+        # The worst field point from the shipped field-point tables: up to 90 table solves, a few
+        # tens of milliseconds, so off the event loop but not a job.
+        scas = "all" if body.over_field == "focal_plane" else [body.sca]
+        rest = {k: v for k, v in arguments.items() if k not in ("band", "sca")}
+        answer = await run_in_threadpool(solver.solve_over_field, body.band, scas, **rest)
+        return SafeJSONResponse(answer.to_dict())
     # Validate everything else, and find the level, at table cost; a simulating level -- or a ramp,
     # a scene or an over-field answer, whose slopes need fresh simulations -- is a job like any other
     # simulation (queue, limits, idle priority), never work inside this HTTP worker.

@@ -21,7 +21,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.middleware.gzip import GZipMiddleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from nlpsf import __version__, tables
+from nlpsf import __version__, solver, tables
 
 from . import api, errors, models, simulations
 from .jobs import Dispatcher, Notifier
@@ -45,6 +45,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         # Tables first, once, before any connection is accepted (uvicorn listens after the lifespan).
         app.state.tables = tables.load_tables()
+        # The field-point tables (--over-field) too, so the first such request is as fast as the rest.
+        field = solver.field_tables()
+        if field is not None:
+            field.load_all()
         store = Store(settings.db_path)
         if store.state != "ok":
             log.error("starting without simulations: %s; the calculator runs, /health says why", store.reason)

@@ -417,7 +417,12 @@ def solve(
         simulated_scene, model_info = _select_scene(scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy))
     elif scene is not None and not scene.is_paper:
         simulated_scene = scene
-    if simulated_scene is not None and not simulated_scene.is_paper and chosen == "table":
+    scene_needs_simulation = (
+        simulated_scene is not None
+        and not simulated_scene.is_paper
+        and not _tables_hold(simulated_scene, tables_set or tables.load_tables(), band, sca)
+    )
+    if chosen == "table" and scene_needs_simulation:
         flags.append("the tables hold the paper's scene only: the scene's effects are simulated (fidelity linear)")
         chosen = "linear"
     if model_info is None:
@@ -1063,19 +1068,42 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
     return m_nl, "nonlinearity"
 
 
+def _tables_hold(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
+    """Whether the tables already hold the scene: it differs from the paper's by its position alone,
+    and the table of (band, SCA) was built at that position (a field-point table, or the centre's)."""
+    from dataclasses import replace
+
+    if not replace(scene, position=None).is_paper or scene.position is None:
+        return False
+    held = tableset.get(band, sca).position_pixels
+    return all(abs(a - b) < 1e-6 for a, b in zip(held, scene.position, strict=True))
+
+
 def field_points(sca: int) -> list[tuple[float, float]]:
-    """Where the SCA's aberrations are given: its centre and four corners (``roman.field_points``)."""
-    return roman.field_points(sca)
+    """Where ``solve_over_field`` looks on an SCA: its centre and the four corner field points
+    (``roman.field_points`` 1-4). The Zernikes are interpolated bilinearly between the corners, so
+    every coefficient takes its extremes there; the centre is where the SCA-centre tables are."""
+    centre = (roman.SCA_PIXELS / 2, roman.SCA_PIXELS / 2)
+    return [centre, *roman.field_points(sca)[1:]]
+
+
+def field_tables() -> tables.TableSet | None:
+    """The shipped field-point tables, None if this installation has none."""
+    path = tables.field_table_path()
+    return tables.load_tables(str(path)) if path.exists() else None
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:
-    """The answer for the worst position over the field: every field point of the given SCAs
-    (``"all"``: the 18 of the focal plane), each simulated with its own aberrations (linear response).
+    """The answer for the worst position over the field: the centre and four corners of the given
+    SCAs (``"all"``: the 18 of the focal plane), each with its own aberrations.
 
-    Worst means the most demanding answer: the smallest precision, the largest tolerance, or the
-    faintest brightest-usable magnitude. The Solution returned is that point's, with every point's
-    value in ``conditions["over_field"]`` and where the worst lies in a flag. The tables hold SCA
-    centres only, so this always simulates (seconds per point).
+    At the table level (the default) the answer reads the SCA-centre tables and the shipped
+    field-point tables (``field_slopes.ecsv``), milliseconds per point. A scene with other effects,
+    or a simulating fidelity, simulates every point (linear response unless another level is asked
+    for; seconds per point). Worst means the most demanding answer: the smallest precision, the
+    largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that
+    point's, with every point's value in ``conditions["over_field"]`` and where the worst lies in a
+    flag.
     """
     from dataclasses import replace
 
@@ -1085,15 +1113,19 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
     base = scene if scene is not None else scenes.SceneModel()
     if base.position is not None:
         raise InputError("position", "give a position or ask for the worst over the field, not both")
-    request.setdefault("fidelity", "linear")
-    if request["fidelity"] == "table":
+    corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
+    if corners is None and request.get("fidelity") in (None, "table"):
+        # Without field-point tables (or with a scene they do not hold) every point is simulated.
         request["fidelity"] = "linear"
     answers = []
-    points = [(s, p) for s in chosen for p in field_points(s)]
-    for index, (sca, position) in enumerate(points):
+    points = [(s, k, p) for s in chosen for k, p in enumerate(field_points(s))]
+    for index, (sca, point, position) in enumerate(points):
         if progress:
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
-        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
+        here = dict(request)
+        if corners is not None and point:
+            here["tables_set"] = corners.at_point(point)
+        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **here)))
     if progress:
         progress(len(points), len(points), "done")
     solved = answers[0][2].solved_for

@@ -12,7 +12,9 @@ reading side's fast path, ``tables.write_companion``).
 
 from __future__ import annotations
 
+import gzip
 import hashlib
+import io
 import json
 import math
 import time
@@ -26,7 +28,7 @@ from scipy.interpolate import CubicSpline
 
 from . import __version__, cluster, defaults, experiment, photometry, roman
 from .checks import InputError, SimulationError
-from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, write_companion
+from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, table_key, write_companion
 
 FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
 MAGNITUDE_STEP = defaults.TABLE_MAGNITUDE_STEP
@@ -56,7 +58,9 @@ class TableSettings:
     def __post_init__(self) -> None:
         roman.check_throughput(self.throughput)
 
-    def config(self, band: str, sca: int) -> experiment.SimulationConfig:
+    def config(self, band: str, sca: int, point: int | None = None) -> experiment.SimulationConfig:
+        """The simulation of one table; ``point`` (1-4) puts the star at that corner field point of
+        the SCA (``roman.field_points``), None at the SCA's centre."""
         return experiment.SimulationConfig(
             band=band,
             sca=sca,
@@ -70,12 +74,27 @@ class TableSettings:
             pupil_scale=self.pupil_scale,
             method="linear",
             throughput=self.throughput,
+            scene=experiment.scenes.SceneModel(position=field_position(sca, point)) if point else experiment.PAPER_SCENE,
         )
 
     def fingerprint(self) -> str:
         """Identifies the settings and code a table was made with (resuming skips matching ones)."""
         text = json.dumps({**asdict(self), "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+#: The corner field points of every SCA (``roman.field_points`` 1-4): with the SCA centre, the
+#: points ``nlpsf solve --over-field`` answers for. Their tables ship in ``field_slopes.ecsv``.
+FIELD_POINTS = (1, 2, 3, 4)
+
+
+def field_position(sca: int, point: int | None) -> tuple[float, float] | None:
+    """Pixel position of a corner field point (1-4), None for the SCA centre (point None or 0)."""
+    if not point:
+        return None
+    if point not in FIELD_POINTS:
+        raise InputError("point", f"field points are {', '.join(map(str, FIELD_POINTS))} (the corners), got {point!r}")
+    return roman.field_points(sca)[point]
 
 
 def saturation_magnitude(peak_fraction: float, config: experiment.SimulationConfig) -> float:
@@ -98,11 +117,11 @@ def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit:
     return np.round(np.concatenate([bright, faint]), 6)
 
 
-def compute_table(band: str, sca: int, settings: TableSettings | None = None, progress=None) -> Table:
-    """The slope table of one (band, SCA)."""
+def compute_table(band: str, sca: int, settings: TableSettings | None = None, progress=None, point: int | None = None) -> Table:
+    """The slope table of one (band, SCA), at the SCA centre or at a corner field point (1-4)."""
     settings = settings or TableSettings()
     start = time.perf_counter()
-    config = settings.config(band, sca)
+    config = settings.config(band, sca, point)
     scene = experiment.prepare(config)
     m_sat = saturation_magnitude(float(scene.peak_fraction.max()), config)
     magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
@@ -132,6 +151,10 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
     table = Table(columns)
     table.add_column(band, name="band", index=0)
     table.add_column(np.int16(sca), name="sca", index=1)
+    if point:
+        table.add_column(np.int16(point), name="field_point", index=2)
+        table.meta["field_point"] = int(point)
+        table.meta["position"] = list(field_position(sca, point))
     table.meta.update(
         {
             "band": band,
@@ -149,8 +172,8 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
     return table
 
 
-def _partial_path(directory: Path, band: str, sca: int) -> Path:
-    return directory / f"slopes_{band}_SCA{sca:02d}.ecsv"
+def _partial_path(directory: Path, band: str, sca: int, point: int | None = None) -> Path:
+    return directory / (f"slopes_{band}_SCA{sca:02d}" + (f"_P{point}" if point else "") + ".ecsv")
 
 
 def build_tables(
@@ -163,8 +186,10 @@ def build_tables(
     progress: Callable[[int, int, str], None] | None = None,
     scheduler_file: str | None = None,
     retries: int = 1,
+    field: bool = False,
 ) -> list[Path]:
-    """Compute every (band, SCA) table into ``directory``, skipping those already done.
+    """Compute every (band, SCA) table into ``directory``, skipping those already done; with
+    ``field``, the tables at each SCA's four corner field points instead (``FIELD_POINTS``).
 
     Work is spread over ``workers`` local processes, or over a dask.distributed cluster when
     ``dask_address`` ("local" starts a LocalCluster with ``workers`` workers) or ``scheduler_file``
@@ -176,13 +201,14 @@ def build_tables(
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     todo, done = [], []
-    pairs = [(roman.check_band(b), roman.check_sca(s)) for b in bands for s in scas]
-    for band, sca in pairs:
-        path = _partial_path(directory, band, sca)
+    points = FIELD_POINTS if field else (None,)
+    pairs = [(roman.check_band(b), roman.check_sca(s), p) for b in bands for s in scas for p in points]
+    for band, sca, point in pairs:
+        path = _partial_path(directory, band, sca, point)
         if path.exists() and Table.read(path, format="ascii.ecsv").meta.get("fingerprint") == settings.fingerprint():
             done.append(path)
         else:
-            todo.append((band, sca, settings))
+            todo.append((band, sca, settings, None, point))
     total = len(pairs)
     if progress:
         progress(len(done), total, "resumed" if done else "starting")
@@ -191,15 +217,16 @@ def build_tables(
         compute_table, todo, workers=workers, dask_address=dask_address, scheduler_file=scheduler_file, retries=retries
     )
     for index, table, error in finished:
-        band, sca, _ = todo[index]
+        band, sca, _, _, point = todo[index]
+        where = f"{band} SCA {sca}" + (f" point {point}" if point else "")
         if error is not None:
-            failures.append(f"{band} SCA {sca}: {type(error).__name__}: {error}")
+            failures.append(f"{where}: {type(error).__name__}: {error}")
             continue
-        path = _partial_path(directory, band, sca)
+        path = _partial_path(directory, band, sca, point)
         cluster.write_atomic(table, path)
         done.append(path)
         if progress:
-            progress(len(done), total, f"{band} SCA {sca} ({float(table.meta['elapsed_s']):.1f} s)")
+            progress(len(done), total, f"{where} ({float(table.meta['elapsed_s']):.1f} s)")
     if failures:
         raise SimulationError(f"{len(failures)} of {total} tables failed (re-run to retry them): " + "; ".join(failures))
     return done
@@ -213,14 +240,20 @@ def merge_tables(paths: Iterable[Path], destination: Path | str) -> Table:
     fingerprints = {t.meta["fingerprint"] for t in tables}
     if len(fingerprints) != 1:
         raise InputError("tables", f"the partial tables were made with different settings: {sorted(fingerprints)}")
+    points = {t.meta.get("field_point") is not None for t in tables}
+    if len(points) != 1:
+        raise InputError("tables", "centre tables and field-point tables go into separate files")
     per_table = {
-        f"{t.meta['band']} {t.meta['sca']}": {k: t.meta[k] for k in ("saturation_magnitude", "peak_fraction", "elapsed_s")}
+        table_key(t.meta["band"], t.meta["sca"], t.meta.get("field_point")): {
+            k: t.meta[k] for k in ("saturation_magnitude", "peak_fraction", "elapsed_s", "position") if k in t.meta
+        }
         for t in tables
     }
     merged = vstack([Table(t, meta={}) for t in tables], metadata_conflicts="silent")
     merged.meta.update(
         {
-            "description": "nlpsf slope tables: bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta",
+            "description": "nlpsf slope tables: bias slopes d(metric)/dbeta and scatter slopes sigma(metric)/sigma_beta"
+            + (", at each SCA's corner field points (field_point 1-4, positions in per_table)" if points == {True} else ""),
             "settings": tables[0].meta["settings"],
             "fingerprint": tables[0].meta["fingerprint"],
             "method": tables[0].meta["method"],
@@ -236,9 +269,17 @@ def merge_tables(paths: Iterable[Path], destination: Path | str) -> Table:
             },
         }
     )
-    Path(destination).parent.mkdir(parents=True, exist_ok=True)
-    merged.write(destination, format="ascii.ecsv", overwrite=True)
-    write_companion(merged, Path(destination))
+    destination = Path(destination)
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    if destination.name.endswith(".gz"):
+        # Gzipped text (astropy reads it as it is); no time stamp, so equal tables give equal bytes.
+        text = io.StringIO()
+        merged.write(text, format="ascii.ecsv")
+        with open(destination, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as packed:
+            packed.write(text.getvalue().encode())
+    else:
+        merged.write(destination, format="ascii.ecsv", overwrite=True)
+    write_companion(merged, destination)
     return merged
 
 

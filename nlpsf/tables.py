@@ -26,6 +26,7 @@ linear regime exactly (slope proportional to flux); brighter than the grid there
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import re
@@ -58,9 +59,21 @@ def shipped_table_path() -> Path:
     return Path(str(resources.files("nlpsf") / "data" / "tables" / "slopes.ecsv"))
 
 
+def field_table_path() -> Path:
+    """The shipped tables at each SCA's four corner field points (``nlpsf solve --over-field``)."""
+    return Path(str(resources.files("nlpsf") / "data" / "tables" / "field_slopes.ecsv.gz"))
+
+
+def table_key(band: str, sca: int, point: int | None = None) -> str:
+    """How one table is named in a file's metadata: "H158 18", or "H158 18 p2" at field point 2."""
+    return f"{band} {int(sca)}" + (f" p{int(point)}" if point else "")
+
+
 def companion_path(path: Path) -> Path:
-    """The binary companion of an ECSV table file: the same numbers, read without astropy/scipy."""
-    return path.with_suffix(".npz")
+    """The binary companion of an ECSV table file (``.ecsv`` or gzipped ``.ecsv.gz``): the same
+    numbers, read without astropy/scipy."""
+    name = path.name.removesuffix(".gz").removesuffix(".ecsv")
+    return path.with_name(name + ".npz")
 
 
 # --- piecewise cubics: stored coefficients, evaluated with numpy alone ----------------------------
@@ -105,7 +118,15 @@ class SlopeTable:
     peak_fraction: float
     #: (4, n - 1) piecewise-cubic coefficients per slope column, flux ascending (see above).
     splines: dict[str, np.ndarray]
+    #: Corner field point (1-4, ``roman.field_points``) and its pixel position; None: the SCA centre.
+    field_point: int | None = None
+    position: tuple[float, float] | None = None
     _interpolants: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def position_pixels(self) -> tuple[float, float]:
+        """Where on the SCA the table's star is (the centre unless it is a field-point table)."""
+        return self.position if self.position is not None else (roman.SCA_PIXELS / 2, roman.SCA_PIXELS / 2)
 
     @property
     def exptime_s(self) -> float:
@@ -201,22 +222,24 @@ class SlopeTable:
 
 
 class TableSet:
-    """All tables of one file, keyed by (band, SCA); each is read on first use (``load_all`` reads all)."""
+    """All tables of one file, keyed by (band, SCA) -- or (band, SCA, field point) in a file of
+    field-point tables; each is read on first use (``load_all`` reads all)."""
 
-    def __init__(self, keys: list[tuple[str, int]], meta: dict, reader):
-        self._keys = sorted(keys, key=lambda k: (defaults.BANDS.index(k[0]), k[1]))
+    def __init__(self, keys: list[tuple], meta: dict, reader):
+        self._keys = sorted(keys, key=lambda k: (defaults.BANDS.index(k[0]), *k[1:]))
         self.meta = meta
         self._reader = reader
-        self._tables: dict[tuple[str, int], SlopeTable] = {}
+        self._tables: dict[tuple, SlopeTable] = {}
         # Threads of one service worker may ask for the same table at once: read it once.
         self._lock = Lock()
 
-    def get(self, band: str, sca: int) -> SlopeTable:
-        key = (roman.check_band(band), roman.check_sca(sca))
+    def get(self, band: str, sca: int, point: int | None = None) -> SlopeTable:
+        key = (roman.check_band(band), roman.check_sca(sca)) + ((int(point),) if point else ())
         table = self._tables.get(key)
         if table is None:
             if key not in self._keys:
-                raise InputError("band", f"no table for {key[0]} SCA {key[1]} in this table set")
+                where = f"{key[0]} SCA {key[1]}" + (f" field point {point}" if point else "")
+                raise InputError("band", f"no table for {where} in this table set")
             with self._lock:
                 table = self._tables.get(key)
                 if table is None:
@@ -230,17 +253,29 @@ class TableSet:
         return self
 
     @property
-    def tables(self) -> dict[tuple[str, int], SlopeTable]:
+    def tables(self) -> dict[tuple, SlopeTable]:
         """Every table, read now if it was not yet."""
         return {key: self.get(*key) for key in self._keys}
 
     @property
     def bands(self) -> list[str]:
-        return sorted({b for b, _ in self._keys}, key=defaults.BANDS.index)
+        return sorted({k[0] for k in self._keys}, key=defaults.BANDS.index)
 
     @property
     def scas(self) -> list[int]:
-        return sorted({s for _, s in self._keys})
+        return sorted({k[1] for k in self._keys})
+
+    @property
+    def points(self) -> list[int]:
+        """The field points this set holds tables at ([] for SCA-centre tables)."""
+        return sorted({k[2] for k in self._keys if len(k) > 2})
+
+    def at_point(self, point: int) -> TableSet:
+        """The tables at one corner field point, as a set keyed by (band, SCA) like the centre's."""
+        keys = [k[:2] for k in self._keys if len(k) > 2 and k[2] == point]
+        if not keys:
+            raise InputError("point", f"this table set holds no tables at field point {point!r}")
+        return TableSet(keys, {**self.meta, "field_point": int(point)}, lambda key: self.get(key[0], key[1], point))
 
 
 _META_KEYS = ("settings", "fingerprint", "method", "data_version", "code_version")
@@ -253,22 +288,19 @@ def write_companion(table, path: Path) -> Path:
     (band, SCA) ``{band}_{sca}`` (rows x columns, magnitude ascending) and ``{band}_{sca}_spline``
     (slope columns x 4 x rows - 1). The fingerprint ties it to the ECSV it came from.
     """
-    bands = np.asarray(table["band"]).astype(str)
-    scas = np.asarray(table["sca"], dtype=int)
-    names = [n for n in table.colnames if n not in ("band", "sca")]
+    names = [n for n in table.colnames if n not in _KEY_COLUMNS]
     arrays: dict[str, np.ndarray] = {}
     keys = []
-    for band, sca in sorted(set(zip(bands.tolist(), scas.tolist(), strict=True))):
-        rows = (bands == band) & (scas == sca)
+    for key, rows in _groups(table):
         data = np.column_stack([np.asarray(table[n][rows], dtype=np.float64) for n in names])
         data = data[np.argsort(data[:, names.index("magnitude")])]
         flux = data[:, names.index("flux_electrons")]
         order = np.argsort(flux)
-        arrays[f"{band}_{sca}"] = data
-        arrays[f"{band}_{sca}_spline"] = np.stack(
+        arrays[_array_name(key)] = data
+        arrays[f"{_array_name(key)}_spline"] = np.stack(
             [_spline_coefficients(flux[order], data[order, names.index(c)]) for c in SLOPE_COLUMNS]
         )
-        keys.append([band, int(sca)])
+        keys.append(list(key))
     meta = {k: table.meta[k] for k in (*_META_KEYS, "per_table") if k in table.meta}
     meta.update(columns=names, spline_columns=list(SLOPE_COLUMNS), keys=keys, companion_format=COMPANION_FORMAT)
     destination = companion_path(Path(path))
@@ -278,10 +310,27 @@ def write_companion(table, path: Path) -> Path:
     return destination
 
 
-def _table_from_arrays(key: tuple[str, int], data: np.ndarray, splines: np.ndarray, meta: dict) -> SlopeTable:
+#: Columns that say which table a row belongs to.
+_KEY_COLUMNS = ("band", "sca", "field_point")
+
+
+def _groups(table) -> list[tuple[tuple, np.ndarray]]:
+    """(key, row mask) of every table in a merged file: (band, SCA) or (band, SCA, field point)."""
+    columns = [np.asarray(table["band"]).astype(str).tolist(), np.asarray(table["sca"], dtype=int).tolist()]
+    if "field_point" in table.colnames:
+        columns.append(np.asarray(table["field_point"], dtype=int).tolist())
+    labels = list(zip(*columns, strict=True))
+    return [(key, np.array([label == key for label in labels])) for key in sorted(set(labels))]
+
+
+def _array_name(key: tuple) -> str:
+    return "_".join(str(part) if k < 2 else f"p{part}" for k, part in enumerate(key))
+
+
+def _table_from_arrays(key: tuple, data: np.ndarray, splines: np.ndarray, meta: dict) -> SlopeTable:
     names = meta["columns"]
-    column = {name: data[:, k].copy() for k, name in enumerate(names)}
-    info = meta["per_table"][f"{key[0]} {key[1]}"]
+    column = {name: data[:, k].copy() for k, name in enumerate(names) if name not in _KEY_COLUMNS}
+    info = meta["per_table"][table_key(*key)]
     return SlopeTable(
         band=key[0],
         sca=key[1],
@@ -293,6 +342,8 @@ def _table_from_arrays(key: tuple[str, int], data: np.ndarray, splines: np.ndarr
         saturation_magnitude=float(info["saturation_magnitude"]),
         peak_fraction=float(info["peak_fraction"]),
         splines=dict(zip(meta["spline_columns"], splines, strict=True)),
+        field_point=int(key[2]) if len(key) > 2 else None,
+        position=tuple(float(v) for v in info["position"]) if "position" in info else None,
     )
 
 
@@ -318,10 +369,10 @@ def load_tables(path: str | None = None) -> TableSet:
         archive = np.load(companion, allow_pickle=False)
         meta = json.loads(str(archive["meta"]))
         if meta.get("companion_format") == COMPANION_FORMAT and _ecsv_fingerprint(source) == meta.get("fingerprint"):
-            keys = [(str(b), int(s)) for b, s in meta["keys"]]
+            keys = [(str(k[0]), *map(int, k[1:])) for k in meta["keys"]]
 
-            def read(key: tuple[str, int]) -> SlopeTable:
-                name = f"{key[0]}_{key[1]}"
+            def read(key: tuple) -> SlopeTable:
+                name = _array_name(key)
                 return _table_from_arrays(key, archive[name], archive[f"{name}_spline"], meta)
 
             return TableSet(keys, _public_meta(meta, source), read)
@@ -331,7 +382,8 @@ def load_tables(path: str | None = None) -> TableSet:
 def _ecsv_fingerprint(path: Path) -> str | None:
     """The ``fingerprint`` in an ECSV file's YAML header, read without parsing the file."""
     pattern = re.compile(r"^#\s*-?\s*\{?\s*fingerprint:\s*['\"]?([0-9a-f]+)")
-    with path.open() as handle:
+    opener = gzip.open if path.name.endswith(".gz") else open
+    with opener(path, "rt") as handle:
         for line in handle:
             if not line.startswith("#"):
                 break
@@ -346,20 +398,18 @@ def _load_ecsv(source: Path) -> TableSet:
 
     table = Table.read(source, format="ascii.ecsv")
     per_table = table.meta["per_table"]
-    bands = np.asarray(table["band"]).astype(str)
-    scas = np.asarray(table["sca"], dtype=int)
-    names = [n for n in table.colnames if n not in ("band", "sca")]
+    names = [n for n in table.colnames if n not in _KEY_COLUMNS]
     meta: dict[str, Any] = {k: table.meta[k] for k in _META_KEYS if k in table.meta}
     meta.update(columns=names, spline_columns=list(SLOPE_COLUMNS), per_table=per_table)
     out = {}
-    for key in sorted(set(zip(bands.tolist(), scas.tolist(), strict=True))):
-        rows = (bands == key[0]) & (scas == key[1])
+    for key, rows in _groups(table):
+        key = (str(key[0]), *map(int, key[1:]))
         data = np.column_stack([np.asarray(table[n][rows], dtype=np.float64) for n in names])
         data = data[np.argsort(data[:, names.index("magnitude")])]
         flux = data[:, names.index("flux_electrons")]
         order = np.argsort(flux)
         splines = np.stack([_spline_coefficients(flux[order], data[order, names.index(c)]) for c in SLOPE_COLUMNS])
-        out[(str(key[0]), int(key[1]))] = _table_from_arrays((str(key[0]), int(key[1])), data, splines, meta)
+        out[key] = _table_from_arrays(key, data, splines, meta)
     return TableSet(list(out), _public_meta(meta, source), out.__getitem__)
 
 

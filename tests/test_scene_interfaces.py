@@ -206,6 +206,10 @@ def test_api_solve_over_field_and_with_scene(client):
     response = client.post("/api/v1/solve", json=body)
     assert response.status_code == 200, response.text
     assert len(response.json()["conditions"]["over_field"]) == 5
+    # From the shipped field-point tables, answered at once (not a job).
+    assert response.json()["conditions"]["fidelity"] == "table"
+    focal_plane = client.post("/api/v1/solve", json={**body, "over_field": "focal_plane"})
+    assert focal_plane.status_code == 200 and len(focal_plane.json()["conditions"]["over_field"]) == 90
     with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
     assert with_scene["fidelity"] == "linear" and with_scene["conditions"]["scene"]["jitter_arcsec"] == 0.014
     assert client.post("/api/v1/solve", json={**body, "over_field": "everywhere"}).status_code == 422

@@ -27,8 +27,14 @@ def fresh(table: tables.SlopeTable, magnitude: float, exptime: float | None = No
         weight_cut_rho2=s["weight_cut_rho2"],
         method="linear",
         throughput=table.throughput,
+        scene=experiment.scenes.SceneModel(position=table.position) if table.position else experiment.PAPER_SCENE,
     )
     return experiment.slopes(config, [magnitude], beta0=beta0 or s["beta0"])[0]
+
+
+@pytest.fixture(scope="module")
+def field_set():
+    return tables.load_tables(str(tables.field_table_path()))
 
 
 def test_every_band_and_sca_is_tabulated_from_saturation_to_beyond_26(tableset):
@@ -62,6 +68,30 @@ def test_table_entries_are_the_simulation_they_claim(tableset):
     result = fresh(table, float(table.magnitudes[k]))
     assert table.columns["bias_size"][k] == pytest.approx(result.bias["dR_over_R"].mean, rel=1e-9)
     assert table.columns["scatter_e2"][k] == pytest.approx(result.scatter["de2"]["value"], rel=1e-9)
+
+
+def test_field_point_tables_cover_every_band_sca_and_corner(field_set, tableset):
+    assert field_set.bands == list(roman.BANDS) and field_set.scas == list(range(1, 19)) and field_set.points == [1, 2, 3, 4]
+    # Made with the centre tables' settings, on the same magnitude grid rule.
+    assert field_set.meta["fingerprint"] == tableset.meta["fingerprint"]
+    for sca in (1, 9, 18):
+        for point in field_set.points:
+            table = field_set.get("H158", sca, point)
+            assert table.field_point == point and table.position == roman.field_points(sca)[point]
+            assert field_set.at_point(point).get("H158", sca) is table
+
+
+def test_field_point_table_entries_are_simulations_at_their_corner(field_set, tableset):
+    table = field_set.get("J129", 7, 3)
+    k = int(np.argmin(np.abs(table.magnitudes - 20.0)))
+    result = fresh(table, float(table.magnitudes[k]))
+    assert table.columns["bias_e1"][k] == pytest.approx(result.bias["de1"].mean, rel=1e-9)
+    assert table.columns["scatter_size"][k] == pytest.approx(result.scatter["dR_over_R"]["value"], rel=1e-9)
+    # The corner is not the centre: its e slopes differ by far more than their errors.
+    centre = tableset.get("J129", 7)
+    corner_e, corner_err, _ = table.slope("e", "bias", 20.0)
+    centre_e, centre_err, _ = centre.slope("e", "bias", 20.0)
+    assert abs(corner_e[0] - centre_e[0]) > 10 * math.hypot(corner_err[0], centre_err[0])
 
 
 @pytest.mark.parametrize(
@@ -201,18 +231,22 @@ def test_build_fans_out_over_dask(tmp_path):
     assert tablebuild.merge_tables(paths, tmp_path / "m.ecsv")["band"][0] == "F184"
 
 
-def test_binary_companion_matches_the_ecsv_and_scipys_spline():
+@pytest.mark.parametrize("which", ["centre", "field"])
+def test_binary_companion_matches_the_ecsv_and_scipys_spline(which):
     """The shipped .npz holds the ECSV's numbers, and evaluating its stored cubics gives scipy's
-    CubicSpline (the interpolant the tables are defined by) on every table and slope column."""
+    CubicSpline (the interpolant the tables are defined by), for the centre and the field-point
+    tables (gzipped ECSV)."""
     from astropy.table import Table
     from scipy.interpolate import CubicSpline
 
-    path = tables.shipped_table_path()
-    fast = tables.load_tables()
+    path = tables.shipped_table_path() if which == "centre" else tables.field_table_path()
+    fast = tables.load_tables(str(path))
     assert fast.meta["fingerprint"] == Table.read(path, format="ascii.ecsv").meta["fingerprint"]
     slow = tables._load_ecsv(path)
-    for band, sca in [("H158", 18), ("R062", 1), ("K213", 17), ("W146", 6)]:
-        a, b = fast.get(band, sca), slow.get(band, sca)
+    keys = [("H158", 18), ("R062", 1), ("K213", 17), ("W146", 6)]
+    for key in keys if which == "centre" else [(b, s, p) for (b, s), p in zip(keys, (1, 2, 3, 4), strict=True)]:
+        a, b = fast.get(*key), slow.get(*key)
+        assert (a.field_point, a.position) == (b.field_point, b.position)
         np.testing.assert_array_equal(a.magnitudes, b.magnitudes)
         for name in tables.SLOPE_COLUMNS:
             np.testing.assert_array_equal(a.columns[name], b.columns[name])

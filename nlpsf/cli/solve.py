@@ -217,7 +217,8 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
         if "accuracy" in solution.model:
             print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
         elif solution.model["included"]:
-            print(f"  effects simulated by the scene: {', '.join(e['name'] for e in solution.model['included'])}")
+            how = "held by the tables" if solution.conditions.get("fidelity") == "table" else "simulated by the scene"
+            print(f"  effects {how}: {', '.join(e['name'] for e in solution.model['included'])}")
         # Measured at the point (accuracy): signed; from the shipped worst cases: a magnitude only.
         signed = "accuracy" in solution.model
         left = ", ".join(f"{e['name']} {_percent(e['impact'], signed)}" for e in solution.model["left_out"])

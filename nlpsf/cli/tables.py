@@ -20,6 +20,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="also merge into this file (and its .npz companion)",
     )
+    build.add_argument(
+        "--field",
+        action="store_true",
+        help="the tables at each SCA's four corner field points (what --over-field reads) instead of the centres",
+    )
     build.add_argument("--band", action="append", help="only these bands (repeat); default all")
     build.add_argument("--sca", action="append", type=int, help="only these SCAs (repeat); default all")
     build.add_argument("--workers", type=int, default=1, help="local worker processes")
@@ -72,6 +77,7 @@ def _build(args) -> int:
         scheduler_file=args.scheduler_file,
         retries=args.retries,
         progress=progress_printer(not args.quiet),
+        field=args.field,
     )
     print(f"{len(paths)} tables in {args.output} ({time.perf_counter() - start:.1f} s)", file=sys.stderr)
     if args.merge_to:
