@@ -1098,7 +1098,7 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
     SCAs (``"all"``: the 18 of the focal plane), each with its own aberrations.
 
     At the table level (the default) the answer reads the SCA-centre tables and the shipped
-    field-point tables (``field_slopes.ecsv``), milliseconds per point. A scene with other effects,
+    field-point tables (``field_slopes.ecsv.gz``), milliseconds per point. A scene with other effects,
     or a simulating fidelity, simulates every point (linear response unless another level is asked
     for; seconds per point). Worst means the most demanding answer: the smallest precision, the
     largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that

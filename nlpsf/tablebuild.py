@@ -84,7 +84,7 @@ class TableSettings:
 
 
 #: The corner field points of every SCA (``roman.field_points`` 1-4): with the SCA centre, the
-#: points ``nlpsf solve --over-field`` answers for. Their tables ship in ``field_slopes.ecsv``.
+#: points ``nlpsf solve --over-field`` answers for. Their tables ship in ``field_slopes.ecsv.gz``.
 FIELD_POINTS = (1, 2, 3, 4)
 
 

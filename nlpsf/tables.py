@@ -22,6 +22,10 @@ grid points slope / flux is interpolated with a cubic spline (it is smooth and n
 the faint end); the interpolation error, measured by leaving every other grid point out, is stored
 with the table and added to the stated uncertainty. Fainter than the grid the slopes follow the
 linear regime exactly (slope proportional to flux); brighter than the grid there is no answer.
+
+A second file (``field_slopes.ecsv.gz``, ``nlpsf tables build --field``) holds the same tables at
+each SCA's four corner field points, keyed (band, SCA, field point): ``TableSet.at_point`` gives the
+tables at one corner keyed like the centre's, which is how ``solver.solve_over_field`` reads them.
 """
 
 from __future__ import annotations
