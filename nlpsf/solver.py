@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -417,6 +417,9 @@ def solve(
         simulated_scene, model_info = _select_scene(scene, band, sca, float(point), metric, mode, beta0, exptime, float(accuracy))
     elif scene is not None and not scene.is_paper:
         simulated_scene = scene
+    if tables_set is None and simulated_scene is not None:
+        # A star at a corner field point: its own shipped table holds it.
+        tables_set = _corner_tables(simulated_scene, sca)
     scene_needs_simulation = (
         simulated_scene is not None
         and not simulated_scene.is_paper
@@ -608,7 +611,6 @@ def _select_scene(scene, band, sca, magnitude, metric, mode, beta0, exptime, acc
     the SCA the star is when no position is given (centre vs corner) and the pupil-mask scale rule
     (``galsim`` vs ``header``, measured here).
     """
-    from dataclasses import replace
 
     from . import experiment, impact
     from . import scene as scenes
@@ -744,7 +746,6 @@ def _model_at(info: dict, slopes: _Slopes, magnitude: float) -> dict:
 
 def _with_effect(target, source, name: str):
     """``target`` with effect ``name`` set as in ``source``."""
-    from dataclasses import replace
 
     fields_of = {
         "position": ("position",),
@@ -1071,12 +1072,22 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
 def _tables_hold(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
     """Whether the tables already hold the scene: it differs from the paper's by its position alone,
     and the table of (band, SCA) was built at that position (a field-point table, or the centre's)."""
-    from dataclasses import replace
-
     if not replace(scene, position=None).is_paper or scene.position is None:
         return False
     held = tableset.get(band, sca).position_pixels
     return all(abs(a - b) < 1e-6 for a, b in zip(held, scene.position, strict=True))
+
+
+def _corner_tables(scene, sca: int) -> tables.TableSet | None:
+    """The field-point tables at the scene's position, if it is one of the SCA's corner field points
+    and the scene has no other effect; None otherwise (or where no field-point tables are installed)."""
+    if scene.position is None or not replace(scene, position=None).is_paper:
+        return None
+    for point, position in enumerate(roman.field_points(sca)):
+        if point and all(abs(a - b) < 1e-6 for a, b in zip(position, scene.position, strict=True)):
+            corners = field_tables()
+            return None if corners is None else corners.at_point(point)
+    return None
 
 
 def field_points(sca: int) -> list[tuple[float, float]]:
@@ -1105,7 +1116,6 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
     point's, with every point's value in ``conditions["over_field"]`` and where the worst lies in a
     flag.
     """
-    from dataclasses import replace
 
     from . import scene as scenes
 
@@ -1113,19 +1123,17 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
     base = scene if scene is not None else scenes.SceneModel()
     if base.position is not None:
         raise InputError("position", "give a position or ask for the worst over the field, not both")
+    # Each corner's own table is found by ``solve`` from the position (``_corner_tables``).
     corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
     if corners is None and request.get("fidelity") in (None, "table"):
         # Without field-point tables (or with a scene they do not hold) every point is simulated.
         request["fidelity"] = "linear"
     answers = []
-    points = [(s, k, p) for s in chosen for k, p in enumerate(field_points(s))]
-    for index, (sca, point, position) in enumerate(points):
+    points = [(s, p) for s in chosen for p in field_points(s)]
+    for index, (sca, position) in enumerate(points):
         if progress:
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
-        here = dict(request)
-        if corners is not None and point:
-            here["tables_set"] = corners.at_point(point)
-        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **here)))
+        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
     if progress:
         progress(len(points), len(points), "done")
     solved = answers[0][2].solved_for
