@@ -180,11 +180,6 @@ class Scene:
         return self.stamps if self.unit_charge is None else self.unit_charge
 
     @cached_property
-    def squared_stamps(self) -> np.ndarray:
-        """psi^2 of each unit-flux stamp: the final frame's NL pattern, the same for every magnitude and beta."""
-        return self.stamps**2
-
-    @cached_property
     def core_margin(self) -> int:
         """Pixels each side of the stamps can lose for a perturbed fit (``moments.core_margin``)."""
         return moments.core_margin(self.stamps.shape[-1], self.reference, self.config.weight_cut_rho2)
@@ -529,9 +524,10 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> 
     return RampEffect(factors[0], usable, used_peak, flags, {"ramp": summary})
 
 
-def _nl_shape(stamps: np.ndarray, effect: RampEffect | None) -> np.ndarray:
-    """psi^2 for the final frame, psi^2 c_2 after a ramp fit: the pattern that -beta s multiplies."""
-    return stamps**2 if effect is None else stamps**2 * effect.factor
+def _nl_shape(stamps: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
+    """psi^2 for the final frame, psi^2 c_2 after a ramp fit (``factor``, the ramp effect's c_2 on
+    the same pixels): the pattern that -beta s multiplies."""
+    return stamps**2 if factor is None else stamps**2 * factor
 
 
 def simulate(
@@ -615,7 +611,7 @@ def nl_images(
 
     All per unit flux, for the first ``count`` realizations (all by default). ``beta`` is b2, a
     scalar or per-pixel values. This is the one place the NL meets the stamps: the paper's scene
-    keeps its plain expressions (-beta s psi^2, bit for bit as before scenes existed); any other
+    keeps its plain expression (beta times the derivative -s psi^2); any other
     scene goes through ``scene.detector_chain`` (brighter-fatter, IPC before/after, polynomial NL,
     background). With brighter-fatter the NL-free image depends on the flux, and its reference fit
     is made here, from the stored one. Up the ramp (``effect``) the NL pattern is psi^2 c_2
@@ -631,12 +627,11 @@ def nl_images(
     reference = scene.reference if count is None else moments.select(scene.reference, pick)
     if model.plain_detector:
         stamps = scene.stamps[pick][core]
-        if effect is None:
-            shape = scene.squared_stamps[pick][core]
-        else:
-            # c_2 is per pixel, or one value broadcast over the stamp (a uniform ramp).
-            factor = effect.factor
-            shape = stamps**2 * (factor[core] if factor.shape[-1] == n else factor)
+        # c_2 is per pixel (trimmed like the stamps), or one value broadcast over the stamp (a uniform ramp).
+        factor = None if effect is None else effect.factor
+        if factor is not None and factor.shape[-1] == n:
+            factor = factor[core]
+        shape = _nl_shape(stamps, factor)
         derivative = -charge_scale * shape
         return stamps, reference, beta * derivative, derivative
     stamps = scene.stamps[pick]
@@ -720,7 +715,7 @@ def _simulate_scatter(
     flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
     extras: dict = {} if effect is None else dict(effect.extras)
-    shape = stamp**2 if effect is None else stamp**2 * effect.factor[0]
+    shape = _nl_shape(stamp, None if effect is None else effect.factor[0])
     model = config.scene
     stamp_ref, reference0, _, _ = nl_images(scene, charge_scale, beta, count=1)
     stamp = stamp_ref[0]
@@ -858,6 +853,25 @@ class SlopeResult:
     flags: list[str]
     elapsed_s: float
     extras: dict = field(default_factory=dict)
+
+    def slope(self, mode: str, parts: Sequence[str]) -> tuple[float | None, float | None]:
+        """(slope, its standard error) of one metric (``parts`` one of METRICS) or of |e| (parts
+        ``("de1", "de2")``, combined in quadrature); (None, None) where the simulation failed."""
+        values, errors = [], []
+        for part in parts:
+            if mode == "bias":
+                values.append(self.bias[part].mean)
+                errors.append(self.bias[part].stderr or 0.0)
+            else:
+                values.append(self.scatter[part]["value"])
+                errors.append(self.scatter[part]["uncertainty"] or 0.0)
+        if any(v is None for v in values):
+            return None, None
+        if len(values) == 1:
+            return float(values[0]), float(errors[0])
+        value = math.hypot(*values)
+        error = math.hypot(values[0] * errors[0], values[1] * errors[1]) / value if value > 0 else math.hypot(*errors)
+        return value, error
 
     def to_dict(self) -> dict:
         c = self.conditions

@@ -39,26 +39,7 @@ MODES = ("bias", "scatter")
 
 def _slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
     """(slope, its standard error) per impact metric; |e| combines e1 and e2 in quadrature."""
-    out = {}
-    for name, parts in IMPACT_METRICS.items():
-        values, errors = [], []
-        for part in parts:
-            if mode == "bias":
-                stat = result.bias[part]
-                values.append(stat.mean)
-                errors.append(stat.stderr)
-            else:
-                values.append(result.scatter[part]["value"])
-                errors.append(result.scatter[part]["uncertainty"])
-        if any(v is None for v in values):
-            out[name] = (None, None)
-        elif len(values) == 1:
-            out[name] = (float(values[0]), float(errors[0] or 0.0))
-        else:
-            value = math.hypot(*values)
-            error = math.hypot(values[0] * (errors[0] or 0), values[1] * (errors[1] or 0)) / value if value else 0.0
-            out[name] = (value, error)
-    return out
+    return {name: result.slope(mode, parts) for name, parts in IMPACT_METRICS.items()}
 
 
 def _ratio(with_value, without_value):
@@ -70,15 +51,15 @@ def _ratio(with_value, without_value):
 
 
 def check_request(
-    band: str = "H158",
-    sca: int = 18,
-    magnitude: float = 18.3,
+    band: str = defaults.BAND,
+    sca: int = defaults.SCA,
+    magnitude: float = defaults.MAGNITUDE,
     metric: str = "size",
     mode: str = "bias",
-    beta0: float = 5e-7,
+    beta0: float = defaults.BETA0,
     exptime: float = defaults.EXPTIME_S,
-    realizations: int = 100,
-    seed: int = 1,
+    realizations: int = defaults.REALIZATIONS,
+    seed: int = defaults.SEED,
 ) -> dict:
     """An impact request's point, validated (InputError naming the field) and normalised, without
     simulating anything: what a caller checks before queueing the report as a job."""
@@ -100,16 +81,16 @@ def check_request(
 
 
 def impact(
-    band: str = "H158",
-    sca: int = 18,
-    magnitude: float = 18.3,
+    band: str = defaults.BAND,
+    sca: int = defaults.SCA,
+    magnitude: float = defaults.MAGNITUDE,
     scene: scenes.SceneModel | None = None,
     metric: str = "size",
     mode: str = "bias",
-    beta0: float = 5e-7,
+    beta0: float = defaults.BETA0,
     exptime: float = defaults.EXPTIME_S,
-    realizations: int = 100,
-    seed: int = 1,
+    realizations: int = defaults.REALIZATIONS,
+    seed: int = defaults.SEED,
     max_wavelengths: int = 64,
     progress=None,
 ) -> dict:
@@ -147,12 +128,12 @@ def impact(
             progress(index, total, name)
         on = scene.effects_on()[name]
         with_scene = scene if on else scene.with_nominal(name)
+        capped = False
         if name == "sed" and not on and with_scene is not None:
             # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
             wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
             with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
             capped = wanted > max_wavelengths
-        capped = False
         entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
         if with_scene is None:
             entry.update(

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from functools import cache
+from functools import cache, partial
 
 import numpy as np
-from astropy import constants as const
 from scipy.optimize import curve_fit
 
 from . import optics, render, roman
+from . import scene as scenes
 from .checks import InputError
 
 #: K0V effective temperature [K] (Pecaut & Mamajek 2013) for the blackbody stand-in SED.
@@ -54,14 +54,9 @@ class PSFStatistics:
 
 
 def blackbody_flambda(temperature_k: float):
-    """f_lambda of a blackbody (arbitrary normalisation) as a function of wavelength in nm."""
-    hc_over_k = (const.h * const.c / const.k_B).to_value("nm K")
-
-    def flambda(wavelength_nm: np.ndarray) -> np.ndarray:
-        wavelength_nm = np.asarray(wavelength_nm, dtype=np.float64)
-        return wavelength_nm**-5 / np.expm1(hc_over_k / (wavelength_nm * temperature_k))
-
-    return flambda
+    """f_lambda of a blackbody (arbitrary normalisation) as a function of wavelength in nm
+    (``scene.planck_flambda`` at this temperature)."""
+    return partial(scenes.planck_flambda, temperature_k=temperature_k)
 
 
 @cache
@@ -91,11 +86,8 @@ def official_statistics() -> dict[tuple[int, str, str], PSFStatistics]:
 
 
 def _gaussian_blur(psf: optics.EffectivePSF, fwhm_arcsec: float) -> optics.EffectivePSF:
-    """The PSF convolved with a round Gaussian: its Fourier coefficients times the Gaussian's."""
-    sigma = fwhm_arcsec / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-    f = psf.frequencies
-    transfer = np.exp(-2.0 * math.pi**2 * sigma**2 * (f[:, None] ** 2 + f[None, :] ** 2))
-    return optics.EffectivePSF(psf.optics, psf.field_arcsec, f, psf.coefficients * transfer, psf.wavelengths_nm, psf.weights)
+    """The PSF convolved with a round Gaussian of this FWHM (``scene.blur``, which takes the rms)."""
+    return scenes.blur(psf, fwhm_arcsec / (2.0 * math.sqrt(2.0 * math.log(2.0))))
 
 
 def fwhm_gaussian_fit(image: np.ndarray, scale_arcsec: float, threshold: float = FWHM_FIT_THRESHOLD) -> float:

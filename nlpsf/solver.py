@@ -265,21 +265,9 @@ class _Slopes:
             self._scene = experiment.prepare(config)  # magnitude-independent: once per request
         result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene)[0]
         names = ("de1", "de2") if self.metric == "e" else (_TABLE_METRIC_NAMES[self.metric],)
-        values, errors = [], []
-        for name in names:
-            if self.mode == "bias":
-                stat = result.bias[name]
-                values.append(stat.mean)
-                errors.append(stat.stderr)
-            else:
-                values.append(result.scatter[name]["value"])
-                errors.append(result.scatter[name]["uncertainty"])
-        if any(v is None for v in values):
+        value, error = result.slope(self.mode, names)
+        if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
-        if len(values) == 1:
-            return float(values[0]), float(errors[0])
-        value = math.hypot(*values)
-        error = math.hypot(values[0] * errors[0], values[1] * errors[1]) / value if value > 0 else math.hypot(*errors)
         return value, error
 
 
@@ -426,7 +414,10 @@ def solve(
         and not _tables_hold(simulated_scene, tables_set or tables.load_tables(), band, sca)
     )
     if chosen == "table" and scene_needs_simulation:
-        flags.append("the tables hold the paper's scene only: the scene's effects are simulated (fidelity linear)")
+        flags.append(
+            "the tables hold the paper's scene only (at the SCA centre and its corner field points): "
+            "the scene's effects are simulated (fidelity linear)"
+        )
         chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
@@ -1102,6 +1093,14 @@ def field_tables() -> tables.TableSet | None:
     """The shipped field-point tables, None if this installation has none."""
     path = tables.field_table_path()
     return tables.load_tables(str(path)) if path.exists() else None
+
+
+def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: float | None = None, ramp=None) -> bool:
+    """Whether ``solve_over_field`` answers such a request from the tables alone (milliseconds, no
+    simulation): the paper's scene, the table level, no accuracy to measure, no ramp, and the
+    field-point tables installed."""
+    plain = (scene is None or scene.is_paper) and ramp is None and accuracy is None
+    return plain and fidelity in (None, "table") and field_tables() is not None
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:

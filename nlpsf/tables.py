@@ -1,8 +1,9 @@
 """Precomputed slope tables: what the calculator reads instead of simulating.
 
 For every SCA (1-18) and imaging band, on a magnitude grid from 1.5 mag brighter than saturation
-to m = 28 in steps of 0.25 mag, the table holds at the paper's defaults (168.1 s, beta0 = 5e-7,
-N = 3, 96 x 96, 100 centroid realizations, seed 1, weight cut rho^2 = 25):
+to m = 28 in steps of 0.25 mag (0.125 mag up to a magnitude fainter than saturation), the table
+holds at the paper's defaults (168.1 s, beta0 = 5e-7, N = 3, 96 x 96, 100 centroid realizations,
+seed 1, weight cut rho^2 = 25):
 
 - bias slopes d(Delta R/R)/d beta, d(Delta e1)/d beta, d(Delta e2)/d beta at beta0 (paper Fig. 3),
 - scatter slopes sigma(metric)/sigma_beta for independent per-pixel beta (paper Fig. 5),
@@ -19,13 +20,15 @@ and flux only through beta * flux, so for exposure t and beta0
 
 and the same for the scatter slopes; the full well only moves the saturation magnitude. Between
 grid points slope / flux is interpolated with a cubic spline (it is smooth and nearly constant at
-the faint end); the interpolation error, measured by leaving every other grid point out, is stored
-with the table and added to the stated uncertainty. Fainter than the grid the slopes follow the
-linear regime exactly (slope proportional to flux); brighter than the grid there is no answer.
+the faint end); the interpolation error, estimated by leaving each grid point out in turn
+(``tablebuild.interpolation_error_estimate``), is stored with the table and added to the stated
+uncertainty. Fainter than the grid the slopes follow the linear regime exactly (slope
+proportional to flux); brighter than the grid there is no answer.
 
 A second file (``field_slopes.ecsv.gz``, ``nlpsf tables build --field``) holds the same tables at
 each SCA's four corner field points, keyed (band, SCA, field point): ``TableSet.at_point`` gives the
-tables at one corner keyed like the centre's, which is how ``solver.solve_over_field`` reads them.
+tables at one corner keyed like the centre's, which is how ``solver.solve`` reads them for a star at
+a corner (``solve_over_field`` asks for every corner).
 """
 
 from __future__ import annotations
@@ -290,7 +293,8 @@ def write_companion(table, path: Path) -> Path:
 
     Layout: ``meta`` (JSON text: the ECSV's metadata, column names, spline columns), and per
     (band, SCA) ``{band}_{sca}`` (rows x columns, magnitude ascending) and ``{band}_{sca}_spline``
-    (slope columns x 4 x rows - 1). The fingerprint ties it to the ECSV it came from.
+    (slope columns x 4 x rows - 1); in a field-point file ``{band}_{sca}_p{point}`` and its
+    ``_spline``. The fingerprint ties it to the ECSV it came from.
     """
     names = [n for n in table.colnames if n not in _KEY_COLUMNS]
     arrays: dict[str, np.ndarray] = {}
@@ -320,11 +324,13 @@ _KEY_COLUMNS = ("band", "sca", "field_point")
 
 def _groups(table) -> list[tuple[tuple, np.ndarray]]:
     """(key, row mask) of every table in a merged file: (band, SCA) or (band, SCA, field point)."""
-    columns = [np.asarray(table["band"]).astype(str).tolist(), np.asarray(table["sca"], dtype=int).tolist()]
+    columns = [np.asarray(table["band"]).astype(str), np.asarray(table["sca"], dtype=int)]
     if "field_point" in table.colnames:
-        columns.append(np.asarray(table["field_point"], dtype=int).tolist())
-    labels = list(zip(*columns, strict=True))
-    return [(key, np.array([label == key for label in labels])) for key in sorted(set(labels))]
+        columns.append(np.asarray(table["field_point"], dtype=int))
+    labels = np.rec.fromarrays(columns)
+    keys, inverse = np.unique(labels, return_inverse=True)
+    out = [((str(key[0]), *(int(v) for v in tuple(key)[1:])), inverse.ravel() == k) for k, key in enumerate(keys)]
+    return sorted(out, key=lambda item: item[0])
 
 
 def _array_name(key: tuple) -> str:
@@ -526,13 +532,15 @@ def table_rows(band: str | None = None, sca: int | None = None, tables: TableSet
     """Flat rows of the shipped tables (for JSON or CSV download), optionally one band/SCA."""
     tables = tables or load_tables()
     rows = []
-    for (b, s), table in tables.tables.items():
+    for key, table in tables.tables.items():
+        b, s = key[:2]
         if (band is not None and b != roman.check_band(band)) or (sca is not None and s != roman.check_sca(sca)):
             continue
         for k, m in enumerate(table.magnitudes):
             row = {
                 "band": b,
                 "sca": s,
+                **({"field_point": table.field_point} if table.field_point else {}),
                 "magnitude": float(m),
                 "flux_electrons": float(table.flux_electrons[k]),
                 "peak_electrons": float(table.peak_electrons[k]),

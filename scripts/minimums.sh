@@ -9,7 +9,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-python3 -m venv .venv-min
+python3 -m venv --clear .venv-min
 .venv-min/bin/python -m pip install -q --upgrade pip
 .venv-min/bin/python - > .venv-min/constraints.txt <<'PY'
 import re, tomllib

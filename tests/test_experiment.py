@@ -363,6 +363,7 @@ def test_fits_on_the_stamp_core_are_the_whole_stamps_fits(paper_config, paper_sc
 def test_linear_response_on_the_stamp_core_is_the_whole_stamps():
     config = SimulationConfig(realizations=10, method="linear")
     scene = experiment.prepare(config)
+    assert scene.core_margin > 0  # else "core" and "whole" below would be the same run
     cramped = experiment.Scene(config, scene.psf, scene.offsets, scene.stamps, scene.reference, 0.0)
     cramped.__dict__["core_margin"] = (config.stamp - 8) // 2  # too small: the whole stamps decide
     whole = experiment.Scene(config, scene.psf, scene.offsets, scene.stamps, scene.reference, 0.0)

@@ -155,3 +155,17 @@ def test_background_moves_the_saturation_limit_and_stops_the_table_rescaling():
     assert any("background adds a flux dependence" in f for f in with_background.flags)
     with pytest.raises(InputError, match="background"):
         solver.solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=2e5))
+
+
+def test_a_capped_sed_says_it_has_fewer_wavelengths_than_its_accuracy_needs():
+    from nlpsf import impact as impact_module
+
+    wanted = scenes.SceneModel().with_nominal("sed").wavelengths("H158", 1, 18)
+    assert wanted > 2
+    report = impact_module.impact("H158", realizations=4, max_wavelengths=2)
+    sed = next(e for e in report["effects"] if e["name"] == "sed")
+    assert f"with 2 wavelengths, fewer than the {wanted} its accuracy needs" in sed["note"]
+    # Only the SED is capped.
+    assert all("fewer than" not in e["note"] for e in report["effects"] if e["name"] != "sed")
+    uncapped = impact_module.impact("H158", realizations=4)["effects"]
+    assert "fewer than" not in next(e for e in uncapped if e["name"] == "sed")["note"]

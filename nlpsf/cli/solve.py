@@ -27,7 +27,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--over-field",
         action="store_true",
-        help="answer for the worst position over the SCA's field points (all 18 SCAs with --sca all); simulates",
+        help="answer for the worst of the SCA's centre and four corner field points (all 18 SCAs with --sca all); "
+        "from the field-point tables, simulated with a scene or a simulating --fidelity",
     )
     parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
     parser.add_argument(
@@ -145,6 +146,11 @@ def run(args: argparse.Namespace) -> int:
             full_well=args.full_well,
             fidelity=args.fidelity,
             accuracy=args.accuracy,
+            throughput=args.throughput,
+            shear_m=args.shear_m,
+            shear_c=args.shear_c,
+            size_ratio=args.size_ratio,
+            stars=args.stars,
         )
         return _report(solution, args)
     if args.sca == "all":
