@@ -124,7 +124,14 @@ JOB_ANSWER_RESPONSES: dict[int | str, dict[str, Any]] = {
     202: {"model": models.Job, "description": "the answer needs a simulation that is still running: poll the Location"},
     413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
     429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
-    503: {"model": models.Problem, "description": "the answer needs a simulation and the job store is unavailable"},
+    500: {
+        "model": models.Problem,
+        "description": "the simulation the answer needed failed (the message says why; Location names the job)",
+    },
+    503: {
+        "model": models.Problem,
+        "description": "the answer needs a simulation and the job store is unavailable, or the job was cancelled or interrupted",
+    },
 }
 
 
@@ -149,21 +156,19 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     plain = ramp is None and scene is None and body.over_field is None
     if plain and body.fidelity in (None, "table") and body.accuracy is None:
         return SafeJSONResponse(solver.solve(**arguments).to_dict())
-    tabulated_field = ramp is None and scene is None and body.fidelity in (None, "table") and body.accuracy is None
-    if body.over_field is not None and tabulated_field and solver.field_tables() is not None:
+    if body.over_field is not None and solver.over_field_from_tables(scene, body.fidelity, body.accuracy, ramp):
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
         # tens of milliseconds, so off the event loop but not a job.
         scas = "all" if body.over_field == "focal_plane" else [body.sca]
         rest = {k: v for k, v in arguments.items() if k not in ("band", "sca")}
         answer = await run_in_threadpool(solver.solve_over_field, body.band, scas, **rest)
         return SafeJSONResponse(answer.to_dict())
-    # Validate everything else, and find the level, at table cost; a simulating level -- or a ramp,
-    # a scene or an over-field answer, whose slopes need fresh simulations -- is a job like any other
-    # simulation (queue, limits, idle priority), never work inside this HTTP worker.
+    # Validate everything else at table cost; what remains -- a simulating level, an accuracy (its
+    # effects are measured by simulation even when the table level meets it), a ramp, a scene, or an
+    # over-field answer the field-point tables do not hold -- is a job like any other simulation
+    # (queue, limits, idle priority), never work inside this HTTP worker.
     checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None})
-    chosen, _ = solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
-    if chosen == "table" and plain:
-        return SafeJSONResponse(solver.solve(**arguments).to_dict())
+    solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
     job_arguments = {**arguments, "band": checked.band, "scene_request": raw["scene"], "over_field": raw["over_field"]}
     if ramp is not None:
         # The worker rebuilds the ramp from the request's own (JSON) fields.
@@ -211,7 +216,7 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
 
 async def _job_answer(request: Request, job_request: dict[str, Any]) -> Response:
     """Submit a job and answer with its result when it finishes within ``solve_wait_s`` (200), with
-    its input error (422), or with the job to poll (202)."""
+    its input error (422), its failure (500) or its cancellation (503), or with the job to poll (202)."""
     from .simulations import job_response, queue_full_response, submit_job
 
     try:
@@ -220,9 +225,14 @@ async def _job_answer(request: Request, job_request: dict[str, Any]) -> Response
         return queue_full_response(full)
     if job.get("status") == "done" and job.get("result") is not None:
         return SafeJSONResponse(job["result"], headers={"Location": f"/api/v1/simulations/{job['id']}"})
+    location = {"Location": f"/api/v1/simulations/{job['id']}"}
     if job.get("status") == "failed" and (job.get("error") or {}).get("field"):
         error = job["error"]
-        return problem(422, f"{error['field']}: {error['message']}", error["field"])
+        return problem(422, f"{error['field']}: {error['message']}", error["field"], limit=error.get("limit"), headers=location)
+    if job.get("status") == "failed":
+        return problem(500, f"the simulation failed: {job.get('message') or 'no reason given'}", headers=location)
+    if job.get("status") in ("cancelled", "interrupted"):
+        return problem(503, f"the simulation was {job['status']}: {job.get('message') or ''}".rstrip(": "), headers=location)
     return job_response(job, status)
 
 
@@ -283,7 +293,8 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
     except InputError as error:
         return {"index": index, "ok": False, "error": input_error_body(error)}
     except SimulationError as error:
-        return {"index": index, "ok": False, "error": problem_body(422, str(error))}
+        # Not the request's fault (e.g. missing shipped data): a server error for this item.
+        return {"index": index, "ok": False, "error": problem_body(500, str(error))}
 
 
 @router.get(

@@ -154,8 +154,9 @@ class SolveRequest(RampFields):
     )
     over_field: Literal["sca", "focal_plane"] | None = Field(
         None,
-        description="(no unit) answer for the worst position: over the SCA's five field points (sca) or all 18 SCAs' "
-        "(focal_plane); simulates (seconds per point)",
+        description="(no unit) answer for the worst position: over the SCA's centre and four corner field points (sca) "
+        "or all 18 SCAs' 90 points (focal_plane); from the shipped field-point tables at table fidelity (milliseconds), "
+        "simulated (seconds per point, a job) with a scene, a simulating level or an accuracy",
     )
     throughput: Throughput | None = Field(
         None, description="photometry of the magnitude (no unit): null for the tables' own (roman-2024), or galsim-2021"
@@ -204,6 +205,12 @@ class SolveResponse(BaseModel):
     uncertainty_statistical: float | None = _f("statistical part of the uncertainty, in the solved quantity's unit", None)
     uncertainty_fidelity: float | None = _f("fidelity (method) part of the uncertainty, in the solved quantity's unit", None)
     uncertainty_optical_model: float | None = _f("optical-model part of the uncertainty, in the solved quantity's unit", None)
+    uncertainty_model: float | None = _f(
+        "scene-model part of the uncertainty (effects left out and the pupil-scale rule), in the solved quantity's unit", None
+    )
+    model: dict[str, Any] | None = _f(
+        "the scene effects the answer includes and leaves out, each with its relative impact on the slope and why", None
+    )
     slope: float | None = _f("slope c(m) = d(metric)/d(beta) or sigma(metric)/sigma_beta, in e- (metric per 1/e-)")
     slope_uncertainty: float | None = _f("1-sigma uncertainty of the slope in e-", None)
     saturation_magnitude: float | None = _f("magnitude (AB mag) brighter than which the brightest pixel saturates")

@@ -28,24 +28,33 @@ def _default_db_path() -> str:
     return str(Path(state) / "nlpsf" / "jobs.sqlite3")
 
 
+# The limits' ranges, shared by ``Limits`` (code) and ``Settings`` (the flat environment fields).
+_Realizations = Annotated[int, Field(ge=1, le=100_000)]
+_Stamp = Annotated[int, Field(ge=16, le=512)]
+_Grid = Annotated[int, Field(ge=1, le=100_000)]
+_Wavelengths = Annotated[int, Field(ge=1, le=64)]
+_StampPixels = Annotated[int, Field(ge=256, le=10**11)]
+_Work = Annotated[int, Field(ge=256, le=10**15)]
+
+
 class Limits(BaseModel):
     """Caps on the work of one simulation request (each named in the 422 that enforces it)."""
 
     model_config = ConfigDict(frozen=True)
 
     #: centroid realizations (or beta-map draws) per request
-    max_realizations: int = Field(2000, ge=1, le=100_000)
+    max_realizations: _Realizations = 2000
     #: stamp side in fine pixels
-    max_stamp: int = Field(256, ge=16, le=512)
+    max_stamp: _Stamp = 256
     #: cells of the request's grid: magnitudes x betas x sigma_betas
-    max_grid: int = Field(200, ge=1, le=100_000)
+    max_grid: _Grid = 200
     #: wavelengths of a polychromatic PSF
-    max_wavelengths: int = Field(16, ge=1, le=64)
+    max_wavelengths: _Wavelengths = 16
     #: realizations x stamp^2: the stamps a job holds in memory; at JOB_BYTES_PER_STAMP_PIXEL (measured)
     #: 40 million pixels need about 1.6 GB, inside the default job_memory_mb
-    max_stamp_pixels: int = Field(40_000_000, ge=256, le=10**11)
+    max_stamp_pixels: _StampPixels = 40_000_000
     #: realizations x stamp^2 x (wavelengths + grid cells): a proxy for CPU time
-    max_work: int = Field(4_000_000_000, ge=256, le=10**15)
+    max_work: _Work = 4_000_000_000
 
     def to_dict(self) -> dict[str, int]:
         return self.model_dump()
@@ -101,12 +110,13 @@ class Settings(BaseSettings):
     max_stored_results: int = Field(5000, ge=1, le=10**7)
 
     # --- limits per request (flat in the environment: NLPSF_MAX_REALIZATIONS, ...) -------------
-    max_realizations: int = Field(2000, ge=1, le=100_000)
-    max_stamp: int = Field(256, ge=16, le=512)
-    max_grid: int = Field(200, ge=1, le=100_000)
-    max_wavelengths: int = Field(16, ge=1, le=64)
-    max_stamp_pixels: int = Field(40_000_000, ge=256, le=10**11)
-    max_work: int = Field(4_000_000_000, ge=256, le=10**15)
+    # (ranges and defaults: ``Limits``, their one owner)
+    max_realizations: _Realizations = Limits.model_fields["max_realizations"].default
+    max_stamp: _Stamp = Limits.model_fields["max_stamp"].default
+    max_grid: _Grid = Limits.model_fields["max_grid"].default
+    max_wavelengths: _Wavelengths = Limits.model_fields["max_wavelengths"].default
+    max_stamp_pixels: _StampPixels = Limits.model_fields["max_stamp_pixels"].default
+    max_work: _Work = Limits.model_fields["max_work"].default
 
     @model_validator(mode="before")
     @classmethod

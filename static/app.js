@@ -594,7 +594,7 @@ async function solve(event) {
     form.elements[s.solved_for].value = fmt(s[s.solved_for], 5);
     const names = { precision: "precision p", tolerance: `tolerance T (${METRIC_LABEL[s.metric]})`, magnitude: "magnitude m" };
     const uncertaintyParts = [["statistical", s.uncertainty_statistical], ["fidelity", s.uncertainty_fidelity],
-      ["optical model", s.uncertainty_optical_model]].filter(([, v]) => v !== null && v !== undefined);
+      ["optical model", s.uncertainty_optical_model], ["model", s.uncertainty_model]].filter(([, v]) => v !== null && v !== undefined);
     resultBox.innerHTML = `
       <div class="answer" data-testid="solve-answer">${escapeHtml(names[s.solved_for])} = ${escapeHtml(plusMinus(s[s.solved_for], s.uncertainty))}</div>
       ${s.binding_limit ? `<div class="binding" data-testid="binding-limit">brightest usable star m = ${fmt(s.brightest_usable_magnitude)}:

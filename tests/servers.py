@@ -27,6 +27,16 @@ def wait_for(predicate: Callable[[], T], timeout: float = 60.0, interval: float 
     raise AssertionError(f"timed out after {timeout} s waiting for {predicate}")
 
 
+def finished_job(client, job_id: str, timeout: float = 120.0):
+    """GET /simulations/ID until the job has finished (any final status); fails after ``timeout`` s."""
+
+    def poll():
+        response = client.get(f"/api/v1/simulations/{job_id}")
+        return response if response.json()["status"] not in ("queued", "running") else None
+
+    return wait_for(poll, timeout=timeout, interval=0.1)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -9,22 +9,8 @@ import math
 
 import pytest
 from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
-from nlpsf.web.settings import Limits, Settings
 
 from nlpsf import cli, defaults, experiment, roman, solver, tables
-
-
-@pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    settings = Settings(
-        db_path=str(tmp_path_factory.mktemp("db") / "jobs.sqlite3"),
-        job_workers=1,
-        max_queue=8,
-        limits=Limits(max_realizations=500, max_stamp=128, max_grid=50),
-    )
-    with TestClient(create_app(settings)) as test_client:
-        yield test_client
 
 
 def post_raw(client: TestClient, path: str, text: str):

@@ -18,7 +18,7 @@ from nlpsf.web.store import Store
 from nlpsf import defaults, solver
 from nlpsf.checks import InputError
 
-from .servers import ROOT
+from .servers import ROOT, finished_job
 
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
 
@@ -195,10 +195,7 @@ def test_a_simulating_solve_is_a_job_not_work_in_the_http_worker(tmp_path):
         assert queued.status_code == 202, queued.text
         job = queued.json()
         assert job["request"]["kind"] == "solve" and queued.headers["location"].endswith(job["id"])
-        done = client.get(f"/api/v1/simulations/{job['id']}")
-        while done.json()["status"] in ("queued", "running"):
-            time.sleep(0.1)
-            done = client.get(f"/api/v1/simulations/{job['id']}")
+        done = finished_job(client, job["id"])
         result = done.json()["result"]
         assert result["fidelity"] == "linear" and result["solved_for"] == "tolerance"
         # The same solve, waited for, is the same answer (from stored results).
@@ -303,3 +300,13 @@ def test_waiters_share_one_poll(tmp_path):
         assert max(calls) > 1, "the waiters should have been polled together"
         for answer in [first, *(a.json() for a in answers)]:
             client.delete(f"/api/v1/simulations/{answer['id']}")
+
+
+def test_a_solve_with_an_accuracy_is_a_job_even_when_the_tables_meet_it(tmp_path):
+    # The accuracy's effects are measured by simulation (nlpsf.impact), never inside the HTTP worker.
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5}
+    with TestClient(create_app(settings_for(tmp_path, solve_wait_s=0.0))) as client:
+        queued = client.post("/api/v1/solve", json=body)
+        assert queued.status_code == 202, queued.text
+        result = finished_job(client, queued.json()["id"]).json()["result"]
+        assert result["fidelity"] == "table" and result["model"]["accuracy"] == 0.5

@@ -7,22 +7,12 @@ import json
 import pytest
 from fastapi.testclient import TestClient
 from nlpsf.web.main import create_app
-from nlpsf.web.settings import Limits, Settings
+from nlpsf.web.settings import Settings
 
-from nlpsf import cli, experiment
+from nlpsf import cli, experiment, solver
 from nlpsf import scene as scenes
 
-
-@pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    settings = Settings(
-        db_path=str(tmp_path_factory.mktemp("db") / "jobs.sqlite3"),
-        job_workers=1,
-        max_queue=8,
-        limits=Limits(max_realizations=500, max_stamp=128, max_grid=50),
-    )
-    with TestClient(create_app(settings)) as test_client:
-        yield test_client
+from .servers import finished_job
 
 
 def run_cli(capsys, *argv):
@@ -162,7 +152,6 @@ def test_api_impact(client):
 
 
 def test_api_impact_is_a_job_not_work_in_the_http_worker(tmp_path):
-    import time
 
     from nlpsf import impact
 
@@ -173,10 +162,7 @@ def test_api_impact_is_a_job_not_work_in_the_http_worker(tmp_path):
         assert queued.status_code == 202, queued.text
         job = queued.json()
         assert job["request"]["kind"] == "impact" and queued.headers["location"].endswith(job["id"])
-        done = test_client.get(f"/api/v1/simulations/{job['id']}")
-        while done.json()["status"] in ("queued", "running"):
-            time.sleep(0.1)
-            done = test_client.get(f"/api/v1/simulations/{job['id']}")
+        done = finished_job(test_client, job["id"])
         report = done.json()["result"]
         # The job's report is the library's, computed in the worker.
         direct = impact.impact("J129", 3, 19.5, scene=scenes.from_request(body["scene"]), realizations=4)
@@ -199,6 +185,16 @@ def test_cli_over_field_and_sca_all(capsys):
     assert len(got["conditions"]["over_field"]) == 5 and got["flags"][0].startswith("worst over 5 field points (SCA 3)")
     code, _, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "all", "--magnitude", "19", "--tolerance", "1e-4")
     assert code == 2 and "--sca" in err
+    # The options the plain solve takes reach the over-field answer too (they were once dropped).
+    options = ["--magnitude", "19", "--tolerance", "1e-4", "--mode", "scatter", "--stars", "16", "--throughput", "galsim-2021"]
+    code, out, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json")
+    assert code == 0, err
+    got = json.loads(out)
+    library = solver.solve_over_field(
+        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4
+    )
+    assert got["precision"] == pytest.approx(library.precision, rel=1e-12)
+    assert got["conditions"]["throughput"] == "galsim-2021" and got["conditions"]["stars"] == 16
 
 
 def test_api_solve_over_field_and_with_scene(client):
@@ -206,8 +202,9 @@ def test_api_solve_over_field_and_with_scene(client):
     response = client.post("/api/v1/solve", json=body)
     assert response.status_code == 200, response.text
     assert len(response.json()["conditions"]["over_field"]) == 5
-    # From the shipped field-point tables, answered at once (not a job).
+    # From the shipped field-point tables, answered at once (not a job): the library's answer.
     assert response.json()["conditions"]["fidelity"] == "table"
+    assert response.json()["precision"] == solver.solve_over_field("J129", [3], magnitude=19.0, tolerance=1e-4).precision
     focal_plane = client.post("/api/v1/solve", json={**body, "over_field": "focal_plane"})
     assert focal_plane.status_code == 200 and len(focal_plane.json()["conditions"]["over_field"]) == 90
     with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
