@@ -28,7 +28,7 @@ from scipy.interpolate import CubicSpline
 
 from . import __version__, cluster, defaults, experiment, photometry, roman
 from .checks import InputError, SimulationError
-from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, _ecsv_fingerprint, table_key, write_companion
+from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion
 
 FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
 MAGNITUDE_STEP = defaults.TABLE_MAGNITUDE_STEP
@@ -205,7 +205,7 @@ def build_tables(
     pairs = [(roman.check_band(b), roman.check_sca(s), p) for b in bands for s in scas for p in points]
     for band, sca, point in pairs:
         path = _partial_path(directory, band, sca, point)
-        if path.exists() and _ecsv_fingerprint(path) == settings.fingerprint():
+        if path.exists() and ecsv_fingerprint(path) == settings.fingerprint():
             done.append(path)
         else:
             todo.append((band, sca, settings, None, point))

@@ -5,13 +5,30 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import nlpsf
 
 PACKAGE = Path(nlpsf.__file__).resolve().parent
-#: Modules of the physics library: everything in nlpsf/ except the command line.
-LIBRARY = sorted(p for p in PACKAGE.glob("*.py") if p.name not in ("__main__.py",))
+ROOT = PACKAGE.parent
+#: Modules of the physics library: everything in nlpsf/ and its code subpackages (nlpsf.tables, ...)
+#: except the command line.
+LIBRARY = sorted(
+    p for p in PACKAGE.rglob("*.py") if p.name != "__main__.py" and p.relative_to(PACKAGE).parts[0] not in ("cli", "data")
+)
+
+
+def _module_name(path: Path) -> str:
+    """``nlpsf/tables/model.py`` -> ``nlpsf.tables.model``; a package's ``__init__.py`` -> the package."""
+    parts = ("nlpsf", *path.relative_to(PACKAGE).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _package_of(path: Path) -> str:
+    """The package relative imports in this file start from."""
+    name = _module_name(path)
+    return name if path.name == "__init__.py" else name.rpartition(".")[0]
 
 
 def _ours(name: str) -> bool:
@@ -38,19 +55,31 @@ def _imports(path: Path, package: str) -> set[str]:
     return found
 
 
+def test_relative_imports_resolve_from_each_files_own_package():
+    # The layering and cycle tests below read imports by name; a wrong base would hide edges.
+    assert _module_name(PACKAGE / "tables" / "model.py") == "nlpsf.tables.model"
+    assert _package_of(PACKAGE / "tables" / "model.py") == "nlpsf.tables"
+    assert _package_of(PACKAGE / "tables" / "__init__.py") == "nlpsf.tables"
+    imported = _imports(PACKAGE / "tables" / "model.py", "nlpsf.tables")
+    assert {"nlpsf.defaults", "nlpsf.tables.splines"} <= imported
+
+
 def test_the_library_never_imports_the_cli_or_the_web_layer():
     for path in LIBRARY:
-        imported = _imports(path, "nlpsf")
+        imported = _imports(path, _package_of(path))
         bad = sorted(m for m in imported if m.startswith(("nlpsf.cli", "nlpsf.web")) or m == "app" or m.startswith("app."))
         assert not bad, f"{path.name} imports {bad}"
 
 
 def test_library_modules_import_without_cycles():
+    modules = {_module_name(p) for p in LIBRARY}
     graph = {}
     for path in LIBRARY:
-        name = f"nlpsf.{path.stem}" if path.stem != "__init__" else "nlpsf"
-        modules = {p.stem for p in LIBRARY}
-        graph[name] = {m for m in _imports(path, "nlpsf") if m.count(".") == 1 and m.split(".")[1] in modules and m != name}
+        name = _module_name(path)
+        # A module's own packages are being imported already when it runs (``from . import x`` in
+        # nlpsf/tables/model.py is no edge to nlpsf.tables), and the top package re-exports lazily.
+        ancestors = {name.rsplit(".", k)[0] for k in range(1, name.count(".") + 1)} | {"nlpsf"}
+        graph[name] = {m for m in _imports(path, _package_of(path)) if m in modules and m != name and m not in ancestors}
     # Depth-first search for a back edge.
     state: dict[str, int] = {}
 
@@ -96,3 +125,57 @@ def test_public_api_is_importable_from_the_package():
     assert callable(solve) and callable(simulate) and callable(slopes) and callable(load_tables)
     assert SimulationConfig().band == "H158"
     assert (PACKAGE / "py.typed").exists()
+
+
+def test_every_code_package_ships_in_the_wheel():
+    # setuptools installs only the packages pyproject lists: a new subpackage left out of the list
+    # works in the checkout and is missing from every installed copy.
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    packages = {_module_name(p) for p in PACKAGE.rglob("__init__.py") if "data" not in p.relative_to(PACKAGE).parts}
+    assert packages <= listed, packages - listed
+
+
+def test_the_table_path_reads_curves_and_rows_without_scipy_or_astropy():
+    # What the service's calculator and its curve and download endpoints read at start and per request.
+    heavy = {"scipy", "astropy", "nlpsf.experiment", "nlpsf.optics", "nlpsf.tablebuild"}
+    code = (
+        "from nlpsf import tables; t = tables.load_tables(); t.get('K213', 3).slope('e', 'scatter', [20.0], 100.0, 1e-6);"
+        " tables.curve('H158', 18, 'e1', 'bias', tables=t); tables.table_rows('J129', 7, tables=t);"
+        " tables.load_tables(str(tables.field_table_path())).at_point(2).get('H158', 18).values('size', 'bias', [19.0])"
+    )
+    loaded = _modules_after(code)
+    assert not heavy & loaded, heavy & loaded
+
+
+#: Private functions one module still calls in another. Each is a concept with two owners; make the
+#: function public where it lives (issue 16) and delete its line here. New entries fail the test.
+KNOWN_PRIVATE_CALLS = {
+    ("nlpsf.solver", "tables._conditions"),
+    ("nlpsf.solver", "impact._slope_values"),
+    ("nlpsf.web.api", "solver._fidelity_error"),
+}
+
+
+def _private_calls(path: Path) -> set[str]:
+    """``module._name`` attribute reads on names bound by importing an nlpsf module."""
+    tree = ast.parse(path.read_text())
+    bound = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("nlpsf")):
+            bound |= {a.asname or a.name for a in node.names}
+    return {
+        f"{node.value.id}.{node.attr}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute)
+        and isinstance(node.value, ast.Name)
+        and node.value.id in bound
+        and node.attr.startswith("_")
+        and not node.attr.startswith("__")
+    }
+
+
+def test_modules_call_each_others_public_names_only():
+    web = sorted((ROOT / "app").glob("*.py")) if (ROOT / "app").is_dir() else []
+    found = {(_module_name(p), call) for p in LIBRARY for call in _private_calls(p)}
+    found |= {(f"nlpsf.web.{p.stem}", call) for p in web for call in _private_calls(p)}
+    assert found <= KNOWN_PRIVATE_CALLS, sorted(found - KNOWN_PRIVATE_CALLS)

@@ -242,7 +242,7 @@ def test_binary_companion_matches_the_ecsv_and_scipys_spline(which):
     path = tables.shipped_table_path() if which == "centre" else tables.field_table_path()
     fast = tables.load_tables(str(path))
     assert fast.meta["fingerprint"] == Table.read(path, format="ascii.ecsv").meta["fingerprint"]
-    slow = tables._load_ecsv(path)
+    slow = tables.load_ecsv(path)
     keys = [("H158", 18), ("R062", 1), ("K213", 17), ("W146", 6)]
     for key in keys if which == "centre" else [(b, s, p) for (b, s), p in zip(keys, (1, 2, 3, 4), strict=True)]:
         a, b = fast.get(*key), slow.get(*key)
@@ -267,7 +267,7 @@ def test_a_stale_companion_is_ignored(tmp_path):
     shutil.copy(source, copy)
     shutil.copy(tables.companion_path(source), tables.companion_path(copy))
     text = copy.read_text()
-    fingerprint = tables._ecsv_fingerprint(copy)
+    fingerprint = tables.ecsv_fingerprint(copy)
     copy.write_text(text.replace(fingerprint, "feedfacefeedface", 1))
     loaded = tables.load_tables(str(copy))
     assert loaded.meta["fingerprint"] == "feedfacefeedface"
