@@ -39,6 +39,7 @@ from . import __version__, defaults, detector, moments, optics, photometry, ramp
 from . import scene as scenes
 from .checks import InputError, check_choice, check_exptime, check_full_well, check_integer, check_number, check_numbers
 from .fidelity import level_name
+from .threads import single_blas
 
 METHODS = defaults.METHODS
 PAPER_SCENE = scenes.SceneModel()
@@ -200,6 +201,7 @@ class Scene:
         return np.where(self.weighted_region, self.stamps, 0.0).max(axis=(1, 2))
 
 
+@single_blas
 def prepare(config: SimulationConfig, progress: Progress | None = None) -> Scene:
     """Optics, stamps for every centroid realization, and their reference moments."""
     start = time.perf_counter()
@@ -530,6 +532,7 @@ def _nl_shape(stamps: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
     return stamps**2 if factor is None else stamps**2 * factor
 
 
+@single_blas
 def simulate(
     config: SimulationConfig,
     magnitudes: Sequence[float] | float,
@@ -896,6 +899,7 @@ class SlopeResult:
         }
 
 
+@single_blas
 def slopes(
     config: SimulationConfig,
     magnitudes: Sequence[float] | float,

@@ -109,7 +109,7 @@ def _modules_after(code: str) -> set[str]:
 
 def test_help_and_solve_import_nothing_heavy():
     # `nlpsf --help`, and a table solve, must not pay for scipy, astropy or the simulator.
-    heavy = {"scipy", "astropy", "nlpsf.experiment", "nlpsf.moments", "nlpsf.optics", "fastapi", "uvicorn"}
+    heavy = {"scipy", "astropy", "nlpsf.experiment", "nlpsf.moments", "nlpsf.optics", "fastapi", "uvicorn", "threadpoolctl"}
     helped = _modules_after("from nlpsf.cli import build_parser; build_parser(['--help'])")
     assert not heavy & helped
     solved = _modules_after("from nlpsf import solve; solve('H158', magnitude=18.3, tolerance=1e-4)")
