@@ -21,12 +21,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import time
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 MAGNITUDES = (16.0, 17.0, 18.3, 20.0, 22.0)
 BETA0 = 5e-7
