@@ -546,7 +546,11 @@ def solve(
             flags.append(shear.CROSS_TERM_NOTE)
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
-        conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
+        # What the optics evaluated (a scene's SED integrates the band even at linear fidelity).
+        simulated = slopes._scene  # the prepared simulation, None where none ran
+        conditions["n_wavelengths"] = (
+            int(simulated.psf.wavelengths_nm.size) if simulated is not None else levels.simulation_settings(chosen).n_wavelengths
+        )
     if simulated_scene is not None:
         conditions["scene"] = simulated_scene.to_dict()
         conditions["scene_description"] = simulated_scene.describe()
