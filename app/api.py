@@ -153,10 +153,12 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     scene = build_scene(raw["scene"]) if raw["scene"] is not None else None  # validates the scene
     if scene is not None and ramp is not None:
         raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
-    plain = ramp is None and scene is None and body.over_field is None
+    # Another pupil-scale rule than the tables' is simulated: a job, like a scene or a ramp.
+    tables_pupil = body.pupil_scale in (None, defaults.PUPIL_SCALE)
+    plain = ramp is None and scene is None and body.over_field is None and tables_pupil
     if plain and body.fidelity in (None, "table") and body.accuracy is None:
         return SafeJSONResponse(solver.solve(**arguments).to_dict())
-    if body.over_field is not None and solver.over_field_from_tables(scene, body.fidelity, body.accuracy, ramp):
+    if tables_pupil and body.over_field is not None and solver.over_field_from_tables(scene, body.fidelity, body.accuracy, ramp):
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
         # tens of milliseconds, so off the event loop but not a job.
         scas = "all" if body.over_field == "focal_plane" else [body.sca]
@@ -167,7 +169,7 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     # effects are measured by simulation even when the table level meets it), a ramp, a scene, or an
     # over-field answer the field-point tables do not hold -- is a job like any other simulation
     # (queue, limits, idle priority), never work inside this HTTP worker.
-    checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None})
+    checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None, "pupil_scale": None})
     solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
     job_arguments = {**arguments, "band": checked.band, "scene_request": raw["scene"], "over_field": raw["over_field"]}
     if ramp is not None:
@@ -286,7 +288,8 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
         for name in ("scene", "over_field"):
             if raw[name] is not None:
                 raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
-        if ramp is not None or request.fidelity not in (None, "table") or request.accuracy is not None:
+        simulating = request.fidelity not in (None, "table") or request.pupil_scale not in (None, defaults.PUPIL_SCALE)
+        if ramp is not None or simulating or request.accuracy is not None:
             # A batch answers at table cost; a simulating solve is a job (POST /solve), one at a time.
             raise InputError("fidelity", "a batch solves from the tables only: send ramps and simulating levels to POST /solve")
         return {"index": index, "ok": True, "solution": json_safe(solver.solve(**arguments).to_dict())}

@@ -161,6 +161,11 @@ class SolveRequest(RampFields):
     throughput: Throughput | None = Field(
         None, description="photometry of the magnitude (no unit): null for the tables' own (roman-2024), or galsim-2021"
     )
+    pupil_scale: PupilScale | None = Field(
+        None,
+        description="pupil mask scale rule of fresh simulations (no unit): null for the tables' own (galsim); "
+        "header or official simulates the slopes (a job)",
+    )
     shear_m: float | None = Field(
         None,
         description="multiplicative shear-bias budget |m|, dimensionless (size metric); with size_ratio, in place of tolerance",

@@ -83,7 +83,7 @@ BETA_CONVENTIONS: tuple[str, ...] = ("paper", "galsim")
 #: Ramp slope fits: ordinary least squares, or optimally weighted for read + Poisson noise.
 RAMP_FITS: tuple[str, ...] = ("ols", "optimal")
 #: How the pupil mask's pixel scale is set (see ``roman.pupil``).
-PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header")
+PUPIL_SCALE_RULES: tuple[str, ...] = ("galsim", "header", "official")
 PUPIL_SCALE = "galsim"
 #: Throughput (effective-area) data, newest first: the official per-SCA curves of
 #: roman-technical-information 1.5.0, and GalSim 2.8.5's 2021 table (one curve for every SCA).

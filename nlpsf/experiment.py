@@ -151,6 +151,10 @@ class SimulationConfig:
         if not math.isfinite(self.weight_cut_rho2):
             out["weight_cut_rho2"] = None  # no cut (JSON has no infinity)
         out["scene"] = self.scene.to_dict()
+        # The field holds the request (1 unless --n-wavelengths); a SED makes the optics integrate
+        # the band anyway, so the conditions say how many wavelengths were actually evaluated.
+        out["n_wavelengths_requested"] = self.n_wavelengths
+        out["n_wavelengths"] = self.optics.n_wavelengths
         out.update(
             scene_description=self.scene.describe(),
             wavelengths_used=self.optics.n_wavelengths,
@@ -187,8 +191,20 @@ class Scene:
 
     @cached_property
     def peak_fraction(self) -> np.ndarray:
-        """Largest fine-pixel value of each unit-flux stamp."""
+        """Largest fine-pixel value of each unit-flux stamp (of the centroids drawn)."""
         return self.stamps.max(axis=(1, 2))
+
+    @cached_property
+    def star_peak(self) -> tuple[float, tuple[float, float]]:
+        """The star's brightest fine pixel (unit flux) over *every* sub-pixel centroid, and where
+        the PSF peaks (x, y) [arcsec]: the maximum of the effective PSF (``optics.peak_value``),
+        which does not depend on the centroids drawn. ``peak_fraction`` never exceeds it."""
+        value, position = optics.peak_value(self.psf)
+        return value * self.config.grid.scale_arcsec**2, position
+
+    @property
+    def star_peak_fraction(self) -> float:
+        return self.star_peak[0]
 
     @cached_property
     def weighted_region(self) -> np.ndarray:
@@ -267,6 +283,7 @@ class SimulationResult:
     sigma_beta: float
     realizations: int
     flux_electrons: float
+    #: The star's brightest pixel before the NL [e-], over every sub-pixel centroid (``star_peak_electrons``).
     peak_electrons: float
     reference: dict
     dR_over_R: Statistic
@@ -342,13 +359,16 @@ def _validity_flags(
     flags: list[str] = []
     config = scene.config
     over = peak_electrons > config.full_well_e
+    star_peak = star_peak_electrons(scene, charge_scale)
     if ramp_effect is not None:
         flags += ramp_effect.flags
-    elif np.any(over):
+    elif star_peak > config.full_well_e:
+        # Judged on the star (its brightest pixel over every sub-pixel centroid), so that the flag
+        # does not depend on which centroids were drawn.
         flags.append(
-            f"saturated: the brightest pixel holds up to {peak_electrons.max():.4g} e-, above the full well "
-            f"of {config.full_well_e:.4g} e-, in {int(over.sum())} of {over.size} realizations; "
-            "a real detector would clip this star, so the numbers describe an unphysical case"
+            f"saturated: the star's brightest pixel reaches {star_peak:.4g} e- (the maximum over sub-pixel centroids), "
+            f"above the full well of {config.full_well_e:.4g} e-, and passes it in {int(over.sum())} of the {over.size} "
+            "realizations drawn; a real detector would clip this star, so the numbers describe an unphysical case"
         )
     model = config.scene
     if ramp_effect is not None:
@@ -688,7 +708,27 @@ def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: mom
         ok = reference.ok
         d_r, d_e1, d_e2 = (np.where(ok, linear[:, k], np.nan) for k in range(3))
         status = reference.status
-    return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene), None, extras
+    return d_r, d_e1, d_e2, status, flags, star_peak_electrons(scene, charge_scale), _reference_summary(scene), None, extras
+
+
+def star_peak_electrons(scene: Scene, charge_scale: float) -> float:
+    """The star's brightest pixel before the NL [e-], over every sub-pixel centroid (background included).
+
+    Plain detector: charge_scale times ``Scene.star_peak_fraction``, exact. With detector effects
+    the charge before the NL is computed on one stamp whose fine-pixel centre sits on the PSF's
+    peak: exact for a background and for IPC after the NL (neither moves the peak); with IPC
+    before the NL or brighter-fatter it is the charge at the optical peak's centring.
+    """
+    model = scene.config.scene
+    if model.plain_detector:
+        return charge_scale * scene.star_peak_fraction
+    grid = scene.config.grid
+    centres = grid.pixel_centres_arcsec()
+    x, y = scene.star_peak[1]
+    # A fine-pixel centre c sees the PSF at c - offset: put the nearest centre on the peak.
+    offset = np.array([[(centres[np.argmin(np.abs(centres - v))] - v) / grid.scale_arcsec for v in (x, y)]])
+    stamp = render.draw(scene.psf, grid, offset)
+    return float(scenes.charge_before_nl(stamp, charge_scale, model, scene.config.oversampling).max())
 
 
 def _peak_electrons(scene: Scene, charge_scale: float, count: int | None = None) -> np.ndarray:
@@ -779,7 +819,7 @@ def _simulate_scatter(
     if config.method == "monte_carlo":
         spread = np.array([np.nanstd(v) for v in (d_r, d_e1, d_e2)])
         flags += _noise_floor_flag(scene, charge_scale, beta, sigma_beta, settings, spread, shape)
-    return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
+    return d_r, d_e1, d_e2, status, flags, star_peak_electrons(scene, charge_scale), _reference_summary(scene, 0), offset, extras
 
 
 def _per_pixel_beta_response(scene: Scene, gradient: np.ndarray, charge_scale: float) -> np.ndarray:
@@ -848,6 +888,7 @@ class SlopeResult:
     beta0: float
     beta_convention: str
     flux_electrons: float
+    #: The star's brightest pixel before the NL [e-], over every sub-pixel centroid (``star_peak_electrons``).
     peak_electrons: float
     bias: dict[str, Statistic]
     scatter: dict[str, dict[str, float | None]]
@@ -976,7 +1017,7 @@ def slopes(
                 beta0=beta0,
                 beta_convention=beta_convention,
                 flux_electrons=flux,
-                peak_electrons=float(peak.max()),
+                peak_electrons=star_peak_electrons(scene, charge_scale),
                 bias=bias,
                 scatter=scatter,
                 scatter_basis=basis,

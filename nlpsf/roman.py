@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import math
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
@@ -220,8 +221,56 @@ class Pupil:
 #: ``Image.flip_ud`` drops the scale read from the FITS header, and ``Aperture`` then falls back
 #: to this rule). "header": the header's entrance-pupil scale (``CDELT`` x ``PUPIL SCALE FACTOR``),
 #: which puts the pupil edge of SCA 1 at 2.37 m but lets the short-wavelength mask of SCA 18 reach
-#: 2.49 m. The two differ by 0.5-5.4 % in pupil size depending on the SCA and mask.
+#: 2.49 m. The two differ by 0.5-5.4 % in pupil size depending on the SCA and mask. "official":
+#: the scale at which the pupil *as simulated* (the mask binned by ``pupil_bin``, a binned pixel
+#: open if any of its sub-pixels is) has the official clear area of that mask and SCA
+#: (:func:`official_clear_area_m2`); see ``nlpsf/data/SOURCES.md``.
 PUPIL_SCALE_RULES = defaults.PUPIL_SCALE_RULES
+#: Where each rule's scale comes from (quoted in docs and conditions).
+PUPIL_SCALE_SOURCES: dict[str, str] = {
+    "galsim": "GalSim 2.8.5 roman.getPSF: farthest open pixel of the binned mask on the 2.36 m disc",
+    "header": "pupil FITS header: CDELT x PUPIL SCALE FACTOR (entrance pupil), times the binning",
+    "official": (
+        "roman-technical-information PupilMasks (RST-PYLD-ANYS-0511, 2022): the binned mask's open area "
+        "equals the official clear area per mask and SCA"
+    ),
+}
+#: The official clear-area files (``nlpsf/data/rti_pupil_masks``), by mask kind.
+OFFICIAL_PUPIL_FILES: dict[str, str] = {
+    "short": "pupilmask_obsc_skinny_mask.ecsv",
+    "long": "pupilmask_obsc_F184_mask.ecsv",
+}
+
+
+def official_pupil_dir() -> Path:
+    """The vendored official pupil-mask clear areas (see ``nlpsf/data/SOURCES.md``)."""
+    return Path(str(resources.files("nlpsf") / "data" / "rti_pupil_masks"))
+
+
+@cache
+def _official_clear_areas(kind: str) -> dict[int, float]:
+    """``exit_pupil_clear`` [m^2] per SCA of one mask: the clear (open) area of the projected pupil
+    in entrance-pupil units. Read as plain CSV under the ECSV header (numpy only, so the simulator
+    does not import astropy); the summary rows (Min, Max, avg, std) are skipped."""
+    lines = [
+        line
+        for line in (official_pupil_dir() / OFFICIAL_PUPIL_FILES[kind]).read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
+    names = [name.strip() for name in lines[0].split(",")]
+    sca_column, area_column = names.index("sca"), names.index("exit_pupil_clear")
+    areas = {}
+    for line in lines[1:]:
+        values = [v.strip() for v in line.split(",")]
+        if values[sca_column].isdigit():
+            areas[int(values[sca_column])] = float(values[area_column])
+    return areas
+
+
+def official_clear_area_m2(sca: int, band: str) -> float:
+    """The official clear area [m^2] of the pupil mask ``band`` uses on ``sca`` (entrance-pupil units)."""
+    kind = "long" if check_band(band) in LONG_WAVELENGTH_BANDS else "short"
+    return _official_clear_areas(kind)[check_sca(sca)]
 
 
 #: The binning whose masks are also shipped packed (``pupils_bin4.npz``): the one every simulation
@@ -306,6 +355,11 @@ def pupil(sca: int, band: str, pupil_bin: int = 4, scale_rule: str = "galsim") -
         offsets = np.arange(n) - n // 2
         radius = np.hypot(offsets[None, :], offsets[:, None])
         binned_scale_m = DIAMETER_M / (2.0 * radius[transmission > 0].max())
+    elif scale_rule == "official":
+        # Matched on the binned mask the optics actually use: binning keeps a pixel open if any
+        # sub-pixel is, which adds 1.2-1.4 % of open area along every edge, so a scale matched on
+        # the unbinned mask would leave the simulated pupil that much too large.
+        binned_scale_m = math.sqrt(official_clear_area_m2(sca, band) / float(transmission.sum()))
     else:
         binned_scale_m = scale_m * pupil_bin
     return Pupil(sca, kind, transmission, binned_scale_m)

@@ -179,6 +179,10 @@ class SceneModel:
             object.__setattr__(self, "sed", _check_sed(self.sed, self.sed_table))
         if self.sed_units not in SED_UNITS:
             raise InputError("sed_units", f"must be one of {', '.join(SED_UNITS)}, got {self.sed_units!r}")
+        if self.sed is not None and not self.sed.startswith("file"):
+            # The units of a named SED are its definition's, not a file column's: a flat star is
+            # flat in f_nu, a blackbody is tabulated as f_lambda (``spectrum``).
+            object.__setattr__(self, "sed_units", "fnu" if self.sed == "flat" else "flambda")
         if self.sed_table is not None:
             if self.sed is None or not self.sed.startswith("file"):
                 raise InputError("sed", "a tabulated SED needs sed='file:NAME'")

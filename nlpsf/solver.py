@@ -61,6 +61,7 @@ from .checks import (
     InputError,
     SimulationError,
     check_beta0,
+    check_choice,
     check_exptime,
     check_full_well,
     check_integer,
@@ -179,8 +180,10 @@ class _Slopes:
         full_well: float = defaults.FULL_WELL_E,
         throughput: str | None = None,
         scene=None,
+        pupil_scale: str | None = None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
+        self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
         self.ramp, self.full_well = ramp, full_well
         self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
@@ -254,7 +257,7 @@ class _Slopes:
             stamp=int(settings["stamp"]),
             exptime_s=self.exptime,
             weight_cut_rho2=float(settings["weight_cut_rho2"]),
-            pupil_scale=str(settings["pupil_scale"]),
+            pupil_scale=self.pupil_scale or str(settings["pupil_scale"]),
             throughput=self.table.throughput,
             method=level.method,
             n_wavelengths=level.n_wavelengths,
@@ -301,6 +304,7 @@ def solve(
     ramp: ramps.Ramp | None = None,
     throughput: str | None = None,
     scene=None,
+    pupil_scale: str | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
@@ -321,6 +325,10 @@ def solve(
     ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
     answer models only the effects whose measured impact at the point exceeds it (see
     :func:`_select_scene`) and its uncertainty gains a ``model`` part for those left out.
+
+    ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``) is the pupil-mask scale rule of fresh
+    simulations; None is the tables' own (galsim). Another rule is not in the tables, so a table
+    solve is then simulated (fidelity linear).
     """
     start = time.perf_counter()
     band = roman.check_band(band)
@@ -372,6 +380,8 @@ def solve(
     chosen, flags = choose_fidelity(fidelity, accuracy, band, metric, mode)
     if throughput is not None:
         roman.check_throughput(throughput)
+    if pupil_scale is not None:
+        check_choice(pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
     model_info, simulated_scene = None, None
     if scene is not None and not isinstance(scene, _scene_type()):
         raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
@@ -419,6 +429,13 @@ def solve(
             "the scene's effects are simulated (fidelity linear)"
         )
         chosen = "linear"
+    table_rule = str((tables_set or tables.load_tables()).get(band, sca).settings["pupil_scale"])
+    if pupil_scale is not None and pupil_scale != table_rule and chosen == "table":
+        flags.append(
+            f"the tables hold the {table_rule} pupil scale: the slopes are simulated with pupil scale {pupil_scale} "
+            "(fidelity linear)"
+        )
+        chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
         model_info = _shipped_model(band, sca, metric, mode, simulated_scene, chosen)
@@ -442,6 +459,7 @@ def solve(
         full_well,
         throughput=throughput,
         scene=simulated_scene,
+        pupil_scale=pupil_scale,
     )
     table = slopes.table
     if "relabelled_from" in table.settings:
@@ -544,9 +562,15 @@ def solve(
         shear_answer = _shear_answer(metric, budget, ratio, tolerance, statistical if solved_for == "tolerance" else None)
         if metric != "size":
             flags.append(shear.CROSS_TERM_NOTE)
+    if slopes.pupil_scale is not None and chosen != "table":
+        conditions["pupil_scale"] = slopes.pupil_scale
     if chosen != "table":
         conditions["realizations"] = int(table.settings["realizations"])
-        conditions["n_wavelengths"] = levels.simulation_settings(chosen).n_wavelengths
+        # What the optics evaluated (a scene's SED integrates the band even at linear fidelity).
+        simulated = slopes._scene  # the prepared simulation, None where none ran
+        conditions["n_wavelengths"] = (
+            int(simulated.psf.wavelengths_nm.size) if simulated is not None else levels.simulation_settings(chosen).n_wavelengths
+        )
     if simulated_scene is not None:
         conditions["scene"] = simulated_scene.to_dict()
         conditions["scene_description"] = simulated_scene.describe()

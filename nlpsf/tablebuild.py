@@ -123,7 +123,7 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
     start = time.perf_counter()
     config = settings.config(band, sca, point)
     scene = experiment.prepare(config)
-    m_sat = saturation_magnitude(float(scene.peak_fraction.max()), config)
+    m_sat = saturation_magnitude(float(scene.star_peak_fraction), config)
     magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
     results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
@@ -160,7 +160,7 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
             "band": band,
             "sca": int(sca),
             "saturation_magnitude": m_sat,
-            "peak_fraction": float(scene.peak_fraction.max()),
+            "peak_fraction": float(scene.star_peak_fraction),
             "settings": asdict(settings),
             "fingerprint": settings.fingerprint(),
             "method": "linear response at beta0, mean over centroid realizations",

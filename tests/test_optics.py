@@ -208,3 +208,52 @@ def test_polychromatic_weights_follow_the_sca_s_own_throughput_and_the_sed():
     flat = mean_wavelength(*optics.band_wavelengths_and_weights(curve, 8))
     k0v = mean_wavelength(*optics.band_wavelengths_and_weights(curve, 8, psfstats.blackbody_flambda(5270.0)))
     assert k0v < flat - 20.0
+
+
+def _brute_force_peak(psf: optics.EffectivePSF, oversampling: int, steps: int) -> tuple[float, np.ndarray]:
+    """The brightest fine pixel over a dense scan of sub-pixel centroids (three passes: one fine
+    pixel at 1/steps, then twice the best cell's neighbourhood again), rendered as a simulation renders."""
+    grid = render.Grid(oversampling, 16)
+    best, centre, width = -np.inf, np.zeros(2), 1.0
+    for _ in range(3):
+        axis = (
+            centre[0] + np.linspace(-width / 2, width / 2, steps + 1),
+            centre[1] + np.linspace(-width / 2, width / 2, steps + 1),
+        )
+        offsets = np.array([(x, y) for x in axis[0] for y in axis[1]])
+        stamps = render.draw(psf, grid, offsets)
+        k = int(np.argmax(stamps.max(axis=(1, 2))))
+        best, centre, width = float(stamps[k].max()), offsets[k], 2 * width / steps
+    return best, centre
+
+
+@pytest.mark.parametrize(("band", "sca"), [("H158", 18), ("F184", 1), ("Y106", 7)])
+def test_peak_value_is_the_brightest_pixel_over_a_dense_centroid_scan(band, sca):
+    grid = render.Grid(3, 96)
+    psf = optics.effective_psf(optics.OpticsConfig(band, sca), grid.field_arcsec())
+    value, _position = optics.peak_value(psf)
+    analytic = value * grid.scale_arcsec**2
+    brute, _ = _brute_force_peak(psf, 3, 16)
+    # A scan can only fall short of the true maximum, by ~ (cell / 2)^2 / (2 sigma^2) (1e-7 at most here).
+    assert analytic >= brute * (1 - 1e-12)
+    assert analytic == pytest.approx(brute, rel=3e-7)
+
+
+def test_peak_value_follows_a_known_shift_and_the_airy_peak():
+    # Unaberrated circular pupil, no pixel: the peak is A / lambda^2 per steradian, on axis; a
+    # phase ramp on the coefficients moves it by exactly that shift.
+    pupil = circular_pupil(200)
+    wavelength = 1200.0
+    psf = optics.psf_from_pupil(pupil, np.zeros(23), [wavelength], [1.0], 4.0, pixel_response=False)
+    value, (x, y) = optics.peak_value(psf)
+    area = pupil.transmission.sum() * pupil.scale_m**2
+    airy = area / (wavelength * 1e-9 * optics.ARCSEC_PER_RADIAN) ** 2
+    assert value == pytest.approx(airy, rel=2e-3)  # the field cut leaves the core
+    assert abs(x) < 1e-9 and abs(y) < 1e-9
+    dx, dy = 0.013, -0.021
+    f = psf.frequencies
+    phase = np.exp(-2j * np.pi * (dy * f[:, None] + dx * f[None, :]))
+    shifted = optics.EffectivePSF(None, psf.field_arcsec, f, psf.coefficients * phase, psf.wavelengths_nm, psf.weights)
+    value2, (x2, y2) = optics.peak_value(shifted)
+    assert value2 == pytest.approx(value, rel=1e-10)
+    assert (x2, y2) == pytest.approx((dx, dy), abs=1e-9)

@@ -255,9 +255,11 @@ def test_any_ols_table_maps_exactly_onto_the_final_frame(paper_config, paper_sce
 def test_the_ramp_saturation_magnitude_moves_by_the_first_resultant_time(paper_config, paper_scene):
     ramp_cfg = uniform(8)
     config, scene = _with(paper_config, paper_scene, ramp=ramp_cfg)
-    peak = float(paper_scene.peak_fraction.max())
-    final_frame = tablebuild.saturation_magnitude(peak, config)  # its exposure T and full well FULL_WELL
-    predicted = final_frame - 2.5 * math.log10(T / (T / 8))
+    # The final frame's flag is judged on the star (brightest pixel over every sub-pixel centroid),
+    # the ramp's first-resultant saturation on the centroids drawn (``ramp_effect``).
+    final_frame = tablebuild.saturation_magnitude(paper_scene.star_peak_fraction, config)  # exposure T, full well
+    drawn = tablebuild.saturation_magnitude(float(paper_scene.peak_fraction.max()), config)
+    predicted = drawn - 2.5 * math.log10(T / (T / 8))
     step = 0.05
     grid = np.round(np.arange(final_frame + 0.5, predicted - 0.5, -step), 6)
     results = simulate(config, list(grid), [BETA], scene=scene)
@@ -271,7 +273,7 @@ def test_the_ramp_saturation_magnitude_moves_by_the_first_resultant_time(paper_c
     assert abs(ramp_limit - predicted) <= step and abs(frame_limit - final_frame) <= step
     assert ramp_limit - frame_limit == pytest.approx(-2.5 * math.log10(8), abs=2 * step)
     # Stars between the two limits get answers, flagged as fitted on the early resultants.
-    between = (grid < frame_limit) & (grid > ramp_limit)
+    between = (grid < drawn) & (grid > ramp_limit)  # a drawn centroid's final frame passes the full well
     assert between.sum() > 10
     for r, d in zip(np.array(results)[between], dropped[between], strict=True):
         assert d and r.dR_over_R.mean is not None and any(f.startswith("ramp:") for f in r.flags)

@@ -332,6 +332,52 @@ def test_conditions_name_the_scene():
     assert SimulationConfig().conditions()["scene"]["effects_on"] == dict.fromkeys(scenes.EFFECTS, False)
 
 
+def test_n_wavelengths_in_the_conditions_is_what_the_optics_evaluate(monkeypatch):
+    # Count the monochromatic PSFs the integrator actually computes (a wrapper around the real
+    # function, not a mock): a SED makes even a linear-fidelity run integrate the band.
+    calls = []
+    real = optics._intensity_coefficients
+
+    def counting(pupil, coefficients, wavelength_nm, *args):
+        calls.append(wavelength_nm)
+        return real(pupil, coefficients, wavelength_nm, *args)
+
+    monkeypatch.setattr(optics, "_intensity_coefficients", counting)
+    for scene, n_wavelengths in (
+        (scenes.preset("roman"), 1),
+        (scenes.SceneModel(sed="blackbody:5270"), 1),
+        (scenes.SceneModel(), 3),
+    ):
+        config = SimulationConfig(
+            band="W146", realizations=2, stamp=32, method="linear", scene=scene, n_wavelengths=n_wavelengths
+        )
+        optics.effective_psf.cache_clear()
+        calls.clear()
+        experiment.prepare(config)
+        conditions = config.conditions()
+        assert conditions["n_wavelengths"] == len(calls) == conditions["wavelengths_used"]
+        assert conditions["n_wavelengths_requested"] == n_wavelengths
+    assert len(calls) == 3
+    optics.effective_psf.cache_clear()
+
+
+def test_a_named_sed_is_saved_with_the_units_it_is_defined_in(tmp_path):
+    flat = scenes.from_options(sed="flat")
+    assert flat.to_dict()["sed_units"] == "fnu"
+    scenes.save(flat, tmp_path / "flat.json")
+    assert json.loads((tmp_path / "flat.json").read_text())["sed_units"] == "fnu"
+    assert scenes.load(str(tmp_path / "flat.json")) == flat
+    assert scenes.from_options(flat, sed="blackbody:5000").sed_units == "flambda"
+    # The label is the truth: a table of constant f_nu read as f_nu weighs the band as "flat" does.
+    wave = np.linspace(300.0, 2600.0, 2301)  # 1 nm: linear interpolation of f_lambda ~ 1/lambda^2 to ~1e-7
+    table = scenes.SceneModel(sed="file:fnu", sed_table=(tuple(wave), tuple(np.ones_like(wave))), sed_units="fnu")
+    curve = roman.throughput("W146", sca=18)
+    flat_weights = optics.band_wavelengths_and_weights(curve, 6)
+    table_weights = optics.band_wavelengths_and_weights(curve, 6, optics.tabulated_sed(curve, table.spectrum()))
+    for ours, theirs in zip(table_weights, flat_weights, strict=True):
+        assert ours == pytest.approx(theirs, rel=1e-6)
+
+
 # --- GalSim at the same settings -----------------------------------------------------------------
 
 GALSIM_REALIZATIONS = 4

@@ -210,3 +210,20 @@ def test_api_solve_over_field_and_with_scene(client):
     with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
     assert with_scene["fidelity"] == "linear" and with_scene["conditions"]["scene"]["jitter_arcsec"] == 0.014
     assert client.post("/api/v1/solve", json={**body, "over_field": "everywhere"}).status_code == 422
+
+
+@pytest.mark.slow
+def test_api_solve_with_another_pupil_scale_is_a_job_and_a_batch_refuses_it(tmp_path):
+    body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "pupil_scale": "official"}
+    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=8, solve_wait_s=0.0)
+    with TestClient(create_app(settings)) as test_client:
+        queued = test_client.post("/api/v1/solve", json=body)
+        assert queued.status_code == 202, queued.text
+        result = finished_job(test_client, queued.json()["id"]).json()["result"]
+        direct = solver.solve("H158", magnitude=20.0, precision=0.01, pupil_scale="official")
+        assert result["conditions"]["pupil_scale"] == "official" and result["tolerance"] == pytest.approx(direct.tolerance)
+        # The tables' own rule stays an instant table answer.
+        plain = test_client.post("/api/v1/solve", json={**body, "pupil_scale": "galsim"})
+        assert plain.status_code == 200 and plain.json()["conditions"]["fidelity"] == "table"
+        batch = test_client.post("/api/v1/solve/batch", json={"requests": [body]})
+        assert batch.status_code == 200 and batch.json()["results"][0]["ok"] is False

@@ -283,3 +283,37 @@ def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulati
     fresh = solver.solve("J129", 11, magnitude=19.0, tolerance=1e-4, throughput="galsim-2021", fidelity="linear")
     assert fresh.precision == pytest.approx(galsim.precision, rel=tables.RELABEL_ERROR["J129"][0] + 1e-3)
     assert galsim.uncertainty_optical_model > default.uncertainty_optical_model * galsim.precision / default.precision
+
+
+@pytest.mark.slow
+def test_another_pupil_scale_rule_is_simulated_with_that_rule_and_says_so(capsys):
+    from nlpsf import experiment
+
+    request = {"band": "H158", "sca": 18, "magnitude": 18.3, "precision": 0.01}
+    official = solver.solve(**request, pupil_scale="official")
+    assert official.conditions["pupil_scale"] == "official" and official.conditions["fidelity"] == "linear"
+    assert any("pupil scale official" in f for f in official.flags)
+    # The slope is the simulator's with that rule at the tables' settings, not the tables' galsim one.
+    settings = TABLES.get("H158", 18).settings
+    config = experiment.SimulationConfig(
+        band="H158",
+        sca=18,
+        realizations=int(settings["realizations"]),
+        seed=int(settings["seed"]),
+        method="linear",
+        weight_cut_rho2=float(settings["weight_cut_rho2"]),
+        pupil_scale="official",
+    )
+    direct = experiment.slopes(config, [18.3])[0].slope("bias", ("dR_over_R",))[0]
+    assert official.slope == pytest.approx(direct, rel=1e-12)
+    galsim = solver.solve(**request, fidelity="linear")
+    assert abs(official.slope / galsim.slope - 1) > 0.01
+    # The tables' own rule asks for no simulation.
+    assert solver.solve(**request, pupil_scale="galsim").conditions["fidelity"] == "table"
+    with pytest.raises(InputError, match="pupil_scale"):
+        solver.solve(**request, pupil_scale="hubble")
+    code = cli.main(
+        ["solve", "--band", "H158", "--magnitude", "18.3", "--precision", "0.01", "--pupil-scale", "official", "--json"]
+    )
+    assert code == 0
+    assert json.loads(capsys.readouterr().out)["slope"] == pytest.approx(official.slope, rel=1e-12)

@@ -73,6 +73,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"photometry of the magnitude: default the tables' own ({defaults.THROUGHPUT}); another relabels them",
     )
+    parser.add_argument(
+        "--pupil-scale",
+        choices=defaults.PUPIL_SCALE_RULES,
+        default=None,
+        help=f"pupil mask scale rule of fresh simulations: default the tables' own ({defaults.PUPIL_SCALE}); "
+        "another one simulates (fidelity linear); see nlpsf/data/SOURCES.md",
+    )
     add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
     parser.add_argument(
@@ -151,6 +158,7 @@ def run(args: argparse.Namespace) -> int:
             shear_c=args.shear_c,
             size_ratio=args.size_ratio,
             stars=args.stars,
+            pupil_scale=args.pupil_scale,
         )
         return _report(solution, args)
     if args.sca == "all":
@@ -177,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
         size_ratio=args.size_ratio,
         stars=args.stars,
         ramp=ramp,
+        pupil_scale=args.pupil_scale,
     )
     return _report(solution, args, ramp)
 
@@ -325,7 +334,7 @@ def run_batch(args: argparse.Namespace) -> int:
             if ramp is not None and args.read_noise is None and arguments["sca"] != args.sca:
                 # No read noise given: each row's ramp fit uses its own SCA's official value.
                 row_ramp = ramp_from(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}))[0]
-            solution = solve(**arguments, ramp=row_ramp)
+            solution = solve(**arguments, ramp=row_ramp, pupil_scale=args.pupil_scale)
             answers.append({"index": index, "ok": True, "solution": solution.to_dict()})
         except (InputError, SimulationError) as error:
             field = getattr(error, "argument", None)

@@ -39,6 +39,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     build.add_argument(
         "--throughput", choices=defaults.THROUGHPUTS, default=defaults.THROUGHPUT, help="effective-area data the tables use"
     )
+    build.add_argument(
+        "--pupil-scale",
+        choices=defaults.PUPIL_SCALE_RULES,
+        default=defaults.PUPIL_SCALE,
+        help="pupil mask scale rule the tables use (see nlpsf/data/SOURCES.md)",
+    )
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     show = sub.add_parser("show", help="print one table", formatter_class=parser.formatter_class)
     show.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
@@ -64,7 +70,11 @@ def _build(args) -> int:
 
     check_integer(args.workers, "workers", 1, 256)
     settings = tablebuild.TableSettings(
-        realizations=args.realizations, faint_limit=args.faint_limit, magnitude_step=args.step, throughput=args.throughput
+        realizations=args.realizations,
+        faint_limit=args.faint_limit,
+        magnitude_step=args.step,
+        throughput=args.throughput,
+        pupil_scale=args.pupil_scale,
     )
     start = time.perf_counter()
     paths = tablebuild.build_tables(
