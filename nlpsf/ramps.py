@@ -210,8 +210,10 @@ def load_ma_table(spec: str | Path) -> MATable:
         return MATable.from_dict(data, name=path.stem)
     key = str(spec).strip().lower()
     for name in shipped_table_names():
-        if name.lower() == key:
-            return MATable.from_dict(json.loads((shipped_table_dir() / f"{name}.json").read_text()), name=name)
+        data = json.loads((shipped_table_dir() / f"{name}.json").read_text())
+        # A shipped table answers to its file name and to the names its source gives it (C2A_IMG_HLWAS).
+        if key in {name.lower(), *(alias.lower() for alias in data.get("aliases", ()))}:
+            return MATable.from_dict(data, name=name)
     raise InputError("ma_table", f"no file and no shipped MA table named {spec!r}; shipped: {', '.join(shipped_table_names())}")
 
 
