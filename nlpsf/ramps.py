@@ -82,6 +82,16 @@ MAX_READS = defaults.MAX_RAMP_READS
 _TIME_SLACK = 1e-9
 #: Pixels per block in the per-pixel weight computation (bounds memory for long tables).
 _BLOCK = 1 << 16
+#: How a resultant is judged saturated. "charge": the charge at its last read passed the full well
+#: (nlpsf's original rule). "signal": romancal's saturation step (stcal ``flag_saturated_pixels``
+#: with the read pattern, no flag growth): the resultant's *signal* (the mean of the reads' S) against
+#: the per-pixel threshold, with stcal's dilution and second-resultant passes (see ``signal_usable``).
+SATURATION_RULES: tuple[str, ...] = ("charge", "signal")
+#: A pixel left with one usable resultant. "through_zero": slope S_1 / tau_1 (the reset level taken
+#: as zero; nlpsf's original rule). "unusable": no slope, as romancal's ramp fits do (stcal's
+#: likelihood fit has no resultant difference to fit and ols_cas22 returns NaN for a one-resultant
+#: ramp), so the pixel is flagged do-not-use.
+SINGLE_RESULTANT_RULES: tuple[str, ...] = ("through_zero", "unusable")
 
 
 def shipped_table_dir() -> Path:
@@ -230,8 +240,25 @@ class Ramp:
     read_noise_e: float | None = None
     #: Where the read noise came from, said in the conditions ("given" when the caller chose it).
     read_noise_source: str = field(default="", compare=False)
+    #: :data:`SATURATION_RULES`; the threshold is the full well, read as the saturation level in
+    #: signal e- for "signal" (romanisim: 55000 DN at 2 e-/DN = 1.1e5 e-, the paper's full well).
+    saturation: str = "charge"
+    #: :data:`SINGLE_RESULTANT_RULES`.
+    single_resultant: str = "through_zero"
+    #: The raw detector's quadratic NL (paper convention, 1/e-) that the saturation step sees under
+    #: the "signal" rule (it runs before the linearity correction); None: the NL being simulated.
+    saturation_beta: float | None = None
 
     def __post_init__(self) -> None:
+        if self.saturation not in SATURATION_RULES:
+            raise InputError("ramp_saturation", f"must be one of {', '.join(SATURATION_RULES)}, got {self.saturation!r}")
+        if self.single_resultant not in SINGLE_RESULTANT_RULES:
+            raise InputError(
+                "ramp_single_resultant", f"must be one of {', '.join(SINGLE_RESULTANT_RULES)}, got {self.single_resultant!r}"
+            )
+        if self.saturation_beta is not None:
+            limit = defaults.MAX_ABS_BETA
+            object.__setattr__(self, "saturation_beta", check_number(self.saturation_beta, "saturation_beta", -limit, limit))
         if self.read_noise_e is None:
             object.__setattr__(self, "read_noise_e", DEFAULT_READ_NOISE_E)
             object.__setattr__(
@@ -279,12 +306,15 @@ class Ramp:
         return float(_ols_factors(self.table, exptime_s, (2,))[-1, 0])
 
     def first_usable_fraction(self, exptime_s: float) -> float:
-        """tau of the last read of the first resultant: the charge there must stay under the full well."""
-        return float(self.table.last_read_fractions(exptime_s)[0])
+        """tau of the last read of the last resultant a slope needs (the first; the second when one
+        resultant gives no slope): the charge there must stay under the full well. Exact for the
+        "charge" rule; for "signal" the limit of a linear detector (the NL lowers the signal, so a
+        star with beta > 0 keeps its resultants slightly longer)."""
+        return float(self.table.last_read_fractions(exptime_s)[min(self.min_usable, self.table.n_resultants) - 1])
 
     def saturation_shift_mag(self, exptime_s: float) -> float:
         """How much brighter the ramp rule's saturation magnitude is than the final frame's:
-        2.5 log10(T / t_1) with t_1 the last read of the first resultant."""
+        2.5 log10(T / t_k) with t_k the last read of the last resultant a slope needs."""
         return 2.5 * math.log10(1.0 / self.first_usable_fraction(exptime_s))
 
     def describe(self) -> str:
@@ -293,6 +323,26 @@ class Ramp:
             f"{t.name}: {t.n_resultants} resultants of {t.n_reads} reads, last read at {t.duration_s:.4g} s, "
             f"{self.fit.upper() if self.fit == 'ols' else 'optimally weighted'} slope fit"
         )
+
+    def saturation_rule(self) -> str:
+        if self.saturation == "charge":
+            rule = "resultants whose last read's charge passes the full well are dropped"
+        else:
+            rule = (
+                "resultants flagged as romancal's saturation step does (stcal flag_saturated_pixels, read pattern, no growth): "
+                "signal >= the saturation level, and the dilution and second-resultant passes"
+            )
+        single = (
+            "a pixel with one usable resultant is fitted through zero (S_1 / t_1)"
+            if self.single_resultant == "through_zero"
+            else "a pixel with fewer than two usable resultants has no slope (romancal) and is unusable"
+        )
+        return f"{rule}; {single}; a pixel saturated in its first resultant is unusable"
+
+    @property
+    def min_usable(self) -> int:
+        """Fewest usable resultants that give a slope."""
+        return 1 if self.single_resultant == "through_zero" else 2
 
     def conditions(self, exptime_s: float) -> dict:
         out = {
@@ -307,8 +357,12 @@ class Ramp:
             "read_noise_e": self.read_noise_e,
             "read_noise_source": self.read_noise_source,
             "description": self.describe(),
-            "saturation_rule": "resultants past the full well are dropped; a pixel saturated in its first resultant is unusable",
+            "saturation_rule": self.saturation_rule(),
+            "saturation": self.saturation,
+            "single_resultant": self.single_resultant,
         }
+        if self.saturation_beta is not None:
+            out["saturation_beta"] = self.saturation_beta
         if self.fit == "ols":
             out["quadratic_beta_factor"] = self.quadratic_factor(exptime_s)
         if self.table.name not in {"custom"} and not self.table.name.startswith("uniform-"):
@@ -335,12 +389,70 @@ def polynomial_response(coefficients: Sequence[float]) -> Callable[[np.ndarray],
     return lambda charge: charge + polynomial_perturbation(charge, coefficients)
 
 
-def usable_resultants(total_charge: np.ndarray, ramp: Ramp, exptime_s: float, full_well_e: float) -> np.ndarray:
-    """Number k of leading resultants whose last read stays within the full well (0: unusable)."""
-    last = ramp.table.last_read_fractions(exptime_s)
-    with np.errstate(divide="ignore"):
-        limit = np.where(total_charge > 0, full_well_e / np.asarray(total_charge, dtype=np.float64), np.inf)
-    return np.searchsorted(last, limit, side="right").astype(np.int32)
+def usable_resultants(
+    total_charge: np.ndarray,
+    ramp: Ramp,
+    exptime_s: float,
+    full_well_e: float,
+    state: Sequence[float] = (),
+) -> np.ndarray:
+    """Number k of leading resultants the fit uses (0: unusable), by ``ramp.saturation``.
+
+    "charge": the last read's charge stays within the full well. "signal": :func:`signal_usable` on
+    the resultants of the response S = Q - b2 Q^2 - ... with ``state`` = (b2, b3, ...), the NL the
+    saturation step sees (``ramp.saturation_beta`` replaces b2 when set). With
+    ``single_resultant="unusable"`` a pixel left with one resultant is unusable too (k = 0)."""
+    total = np.asarray(total_charge, dtype=np.float64)
+    if ramp.saturation == "charge":
+        last = ramp.table.last_read_fractions(exptime_s)
+        with np.errstate(divide="ignore"):
+            limit = np.where(total > 0, full_well_e / total, np.inf)
+        usable = np.searchsorted(last, limit, side="right").astype(np.int32)
+    else:
+        state = tuple(state)
+        if ramp.saturation_beta is not None:
+            state = (ramp.saturation_beta, *state[1:])
+        signal = resultant_means(total, ramp, exptime_s, polynomial_response(state))
+        usable = signal_usable(signal, ramp.table, full_well_e)
+    if ramp.single_resultant == "unusable":
+        usable = np.where(usable == 1, 0, usable).astype(np.int32)
+    return usable
+
+
+def signal_usable(resultants: np.ndarray, table: MATable, threshold: float) -> np.ndarray:
+    """Leading resultants left unflagged by romancal's saturation step, (..., K) -> (...).
+
+    romancal calls stcal's ``flag_saturated_pixels`` with the read pattern and ``n_pix_grow_sat=0``
+    (romancal/saturation/saturation.py); for one pixel's noiseless resultants R_j that is:
+
+    1. R_j >= threshold flags resultant j and every later one SATURATED;
+    2. going backwards, resultant j (not yet flagged, the next one SATURATED) is flagged DO_NOT_USE
+       when R_j >= threshold * mean(reads of j) / last(read of j) (its last reads may have saturated
+       while the mean stayed below; skipped when the dilution factor is 1);
+    3. with more than two resultants, the second is flagged DO_NOT_USE when the first, extrapolated
+       to the end of the third, stays below the threshold, R_2 - R_1 > (threshold - R_1) / n_2, and
+       the third is SATURATED but the second is not (no bias: romancal passes none).
+
+    Flags only ever cover a tail of the ramp, so the usable resultants are the leading unflagged ones.
+    (The A/D-floor flag, R <= 0, is not applied: a real ramp sits on a reset level far above zero.)
+    """
+    R = np.asarray(resultants, dtype=np.float64)
+    K = table.n_resultants
+    saturated = np.maximum.accumulate(threshold <= R, axis=-1)
+    flagged = saturated.copy()
+    for j in range(K - 2, -1, -1):
+        reads = table.resultants[j]
+        dilution = float(np.mean(reads)) / reads[-1]
+        if dilution == 1:
+            continue
+        flagged[..., j] |= (R[..., j] >= threshold * dilution) & ~flagged[..., j] & saturated[..., j + 1]
+    if K > 2:
+        first, second = table.resultants[0], table.resultants[1]
+        extrapolated = R[..., 0] / np.mean(first) * table.resultants[2][-1] < threshold
+        jumped = R[..., 1] - R[..., 0] > (threshold - R[..., 0]) / len(second)
+        flagged[..., 1] |= extrapolated & jumped & saturated[..., 2] & ~saturated[..., 1]
+    # k = index of the first flagged resultant (K when none is).
+    return np.where(flagged.any(axis=-1), np.argmax(flagged, axis=-1), K).astype(np.int32)
 
 
 def _resultant_fractions(table: MATable, exptime_s: float) -> np.ndarray:
@@ -489,7 +601,7 @@ def simulate_pixels(
     the saturation, and is not subtracted here."""
     response = response or polynomial_response(coefficients)
     total = np.asarray(charge, dtype=np.float64) + background_e
-    usable = usable_resultants(total, ramp, exptime_s, full_well_e)
+    usable = usable_resultants(total, ramp, exptime_s, full_well_e, coefficients)
     weights = slope_weights(total, usable, ramp, exptime_s)
     resultants = resultant_means(total, ramp, exptime_s, response)
     return RampImage(np.sum(weights * resultants, axis=-1), usable, ramp.table.n_resultants)
@@ -502,12 +614,15 @@ def order_factors(
     full_well_e: float,
     orders: Sequence[int] = (2,),
     background_e: float = 0.0,
+    state: Sequence[float] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
     """(c_n per pixel, shape (orders, ...), usable resultants per pixel): see the module docstring.
 
-    A pixel's NL term of order n in the fitted image is -b_n (q + b)^n c_n."""
+    A pixel's NL term of order n in the fitted image is -b_n (q + b)^n c_n. ``state``: the NL
+    coefficients (b2, b3, ...) the "signal" saturation rule sees (:func:`usable_resultants`); the
+    factors themselves do not depend on them."""
     total = np.asarray(charge, dtype=np.float64) + background_e
-    usable = usable_resultants(total, ramp, exptime_s, full_well_e)
+    usable = usable_resultants(total, ramp, exptime_s, full_well_e, state)
     powers = ramp.table.mean_powers(exptime_s, orders)  # (orders, K)
     if ramp.fit == "ols":
         per_k = _ols_factors(ramp.table, exptime_s, orders)  # (K, orders)
@@ -535,13 +650,13 @@ def nonlinearity_perturbation(
     after the ramp fit is ``charge`` + this. A background is fitted with the star and its own
     fitted level (a star-free pixel's, what a sky estimate subtracts) is removed."""
     orders = tuple(range(2, 2 + len(coefficients)))
-    factors, usable = order_factors(charge, ramp, exptime_s, full_well_e, orders, background_e)
+    factors, usable = order_factors(charge, ramp, exptime_s, full_well_e, orders, background_e, coefficients)
     total = np.asarray(charge, dtype=np.float64) + background_e
     out = np.zeros_like(total)
     for b, n, c in zip(coefficients, orders, factors, strict=True):
         out -= b * total**n * c
     if background_e:
-        sky, _ = order_factors(np.zeros(1), ramp, exptime_s, full_well_e, orders, background_e)
+        sky, _ = order_factors(np.zeros(1), ramp, exptime_s, full_well_e, orders, background_e, coefficients)
         out += sum(b * background_e**n * c[0] for b, n, c in zip(coefficients, orders, sky, strict=True))
     return out, usable
 
