@@ -478,17 +478,21 @@ class RampEffect:
     extras: dict
 
 
-def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> RampEffect:
-    """Per-pixel ramp factors, resultants used, and the flags, for all realizations (or one)."""
+def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, beta: float = 0.0) -> RampEffect:
+    """Per-pixel ramp factors, resultants used, and the flags, for all realizations (or one).
+
+    ``beta``: the quadratic NL the ramp's "signal" saturation rule sees (``ramps.usable_resultants``;
+    the ramp's own ``saturation_beta`` wins when set); the factors do not depend on it."""
     config = scene.config
     ramp = config.ramp
     assert ramp is not None
+    state = (beta, *config.scene.nl_coefficients)
     stamps = scene.stamps if index is None else scene.stamps[index : index + 1]
     weighted = scene.weighted_region if index is None else scene.weighted_region[index : index + 1]
     K = ramp.table.n_resultants
     last = ramp.table.last_read_fractions(config.exptime_s)
     peak = charge_scale * float(stamps.max())
-    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e:
+    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e and (ramp.saturation == "charge" or beta >= 0):
         # Every pixel keeps every resultant and OLS weights do not depend on the charge: one factor
         # (the same number order_factors gives each pixel), no per-pixel work.
         factor, _ = ramps.order_factors(np.zeros(1), ramp, config.exptime_s, config.full_well_e, (2,))
@@ -499,20 +503,22 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> 
         used_peak = charge_scale * float(weighted_peak.max()) * last[-1]
         return RampEffect(factor.reshape(1, 1, 1), np.full(1, K), used_peak, [], {"ramp": summary})
     charge = charge_scale * stamps
-    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,))
+    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,), state=state)
     used_charge = charge * last[np.maximum(usable, 1) - 1]
     used_peak = float(np.where(weighted, used_charge, 0.0).max())
     summary = ramps.usage_summary(usable, K, weighted)
     summary["stamp_unusable"] = int(np.sum(usable == 0))
     summary["description"] = ramp.describe()
     flags = []
-    first_end = ramp.table.resultants[0][-1] * ramp.table.frame_time_s
+    needed = min(ramp.min_usable, K)
+    first_end = ramp.table.resultants[needed - 1][-1] * ramp.table.frame_time_s
     if summary["unusable"]:
         hit = int(np.sum(np.any(weighted & (usable == 0), axis=(1, 2))))
+        where = "in the first resultant" if needed == 1 else "by the second resultant (one gives no slope, as in romancal)"
         flags.append(
-            f"saturated in the first resultant: {summary['unusable']} pixels that carry weight in the moments (in {hit} of "
-            f"{len(stamps)} realizations) pass the full well of {config.full_well_e:.4g} e- by t = {first_end:.4g} s; they are "
-            "unusable (their value here is the first resultant's), so the numbers describe an unphysical case"
+            f"saturated {where}: {summary['unusable']} pixels that carry weight in the moments (in {hit} of "
+            f"{len(stamps)} realizations) pass the saturation level of {config.full_well_e:.4g} e- by t = {first_end:.4g} s; "
+            "they are unusable (their value here is the first resultant's), so the numbers describe an unphysical case"
         )
     if summary["fitted_on_fewer"]:
         final_peak = float(charge.max())
@@ -665,7 +671,7 @@ def _perturbed_fit(
 def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
     config = scene.config
     peak = _peak_electrons(scene, charge_scale)
-    effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
+    effect = ramp_effect(scene, charge_scale, beta=beta) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
     extras: dict = {} if effect is None else dict(effect.extras)
     if config.method == "monte_carlo":
@@ -711,7 +717,7 @@ def _simulate_scatter(
     rng = np.random.default_rng([config.seed, 1, stream])
     betas = detector.draw_pixel_betas(rng, beta, sigma_beta, (draws, *stamp.shape))
     peak = np.full(draws, float(_peak_electrons(scene, charge_scale, 1)[0]))
-    effect = ramp_effect(scene, charge_scale, index=0) if config.ramp is not None else None
+    effect = ramp_effect(scene, charge_scale, index=0, beta=beta) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
     extras: dict = {} if effect is None else dict(effect.extras)
@@ -941,7 +947,7 @@ def slopes(
         flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         peak = _peak_electrons(scene, charge_scale)
-        effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
+        effect = ramp_effect(scene, charge_scale, beta=beta) if config.ramp is not None else None
         flags = scene_flags + _validity_flags(
             scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
         )

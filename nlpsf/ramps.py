@@ -412,8 +412,15 @@ def usable_resultants(
         state = tuple(state)
         if ramp.saturation_beta is not None:
             state = (ramp.saturation_beta, *state[1:])
-        signal = resultant_means(total, ramp, exptime_s, polynomial_response(state))
-        usable = signal_usable(signal, ramp.table, full_well_e)
+        usable = np.full(total.shape, ramp.table.n_resultants, dtype=np.int32)
+        # Only pixels whose signal can reach the threshold need their reads: while S(Q) rises, the
+        # largest read is the last (S at the full charge); Q itself bounds S where beta >= 0, and a
+        # falling S (past 1 - 2 beta Q = 0) only happens far above any threshold a well allows.
+        response = polynomial_response(state)
+        candidates = (total >= full_well_e) | (response(total) >= full_well_e)
+        if np.any(candidates):
+            signal = resultant_means(total[candidates], ramp, exptime_s, response)
+            usable[candidates] = signal_usable(signal, ramp.table, full_well_e)
     if ramp.single_resultant == "unusable":
         usable = np.where(usable == 1, 0, usable).astype(np.int32)
     return usable
