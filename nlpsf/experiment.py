@@ -103,13 +103,7 @@ class SimulationConfig:
             if not isinstance(self.ramp, ramps.Ramp):
                 raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
             self.ramp.check_exposure(self.exptime_s)
-            if not self.scene.plain_detector:
-                # The ramp's per-pixel factor c_2 is derived for the quadratic on the plain charge.
-                raise InputError(
-                    "scene",
-                    "the scene's detector effects (IPC, polynomial NL, brighter-fatter, background) and a ramp "
-                    "cannot be combined yet; optical effects (position, SED, jitter, diffusion) can",
-                )
+            ramps.check_scene(self.scene)  # the one rule of what a ramp combines with
 
     @property
     def optics(self) -> optics.OpticsConfig:
@@ -476,6 +470,9 @@ class RampEffect:
     used_peak_e: float
     flags: list[str]
     extras: dict
+    #: A scene with detector effects (IPC, background, polynomial NL): every order's factor and the
+    #: charge the NL acts on (``ramps.scene_factors``); None for the paper's detector.
+    scene_ramp: ramps.SceneRamp | None = None
 
 
 def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, beta: float = 0.0) -> RampEffect:
@@ -491,6 +488,8 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, bet
     weighted = scene.weighted_region if index is None else scene.weighted_region[index : index + 1]
     K = ramp.table.n_resultants
     last = ramp.table.last_read_fractions(config.exptime_s)
+    if not config.scene.plain_detector:
+        return _scene_ramp_effect(scene, charge_scale, index, state)
     peak = charge_scale * float(stamps.max())
     if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e and (ramp.saturation == "charge" or beta >= 0):
         # Every pixel keeps every resultant and OLS weights do not depend on the charge: one factor
@@ -504,6 +503,29 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, bet
         return RampEffect(factor.reshape(1, 1, 1), np.full(1, K), used_peak, [], {"ramp": summary})
     charge = charge_scale * stamps
     factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,), state=state)
+    return _ramp_summary(scene, charge, factors[0], usable, weighted, None)
+
+
+def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, state: tuple[float, ...]) -> RampEffect:
+    """The ramp inside a scene with detector effects: ``ramps.scene_factors`` on Q = s psi + B."""
+    config = scene.config
+    model = config.scene
+    pick = slice(None) if index is None else slice(index, index + 1)
+    weighted = scene.weighted_region[pick]
+    charge = charge_scale * scene.charge[pick] + model.background_e
+    orders = tuple(range(2, 3 + len(model.nl_coefficients)))
+    sr = ramps.scene_factors(
+        charge, config.ramp, config.exptime_s, config.full_well_e, state, orders, model.ipc, model.ipc_order, config.oversampling
+    )
+    return _ramp_summary(scene, sr.charge, sr.factors[0], sr.usable, weighted, sr)
+
+
+def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) -> RampEffect:
+    config = scene.config
+    ramp = config.ramp
+    K = ramp.table.n_resultants
+    last = ramp.table.last_read_fractions(config.exptime_s)
+    stamps = charge
     used_charge = charge * last[np.maximum(usable, 1) - 1]
     used_peak = float(np.where(weighted, used_charge, 0.0).max())
     summary = ramps.usage_summary(usable, K, weighted)
@@ -527,7 +549,7 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, bet
             f"{K} resultants (down to {summary['fewest_resultants']}; saturated resultants dropped, as the ground pipeline "
             f"does); a single final frame would be saturated (peak {final_peak:.4g} e- > full well {config.full_well_e:.4g} e-)"
         )
-    return RampEffect(factors[0], usable, used_peak, flags, {"ramp": summary})
+    return RampEffect(factor, usable, used_peak, flags, {"ramp": summary}, scene_ramp)
 
 
 def _nl_shape(stamps: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
@@ -641,6 +663,15 @@ def nl_images(
         derivative = -charge_scale * shape
         return stamps, reference, beta * derivative, derivative
     stamps = scene.stamps[pick]
+    if effect is not None and effect.scene_ramp is not None:
+        # Up the ramp in a scene: each order's NL term times the measuring pixel's factor (ramps.scene_factors).
+        sr = effect.scene_ramp
+        if count is not None and sr.charge.shape[0] > count:
+            sr = ramps.SceneRamp(sr.factors[:, :count], sr.usable[:count], sr.charge[:count], sr.orders)
+        perturbation, derivative = ramps.scene_perturbation(
+            sr, beta, model.nl_coefficients, model.ipc, model.ipc_order, config.oversampling
+        )
+        return stamps[core], reference, perturbation[core] / charge_scale, derivative[core] / charge_scale
     shift, perturbation, derivative = scenes.detector_chain(scene.charge[pick], charge_scale, beta, model, config.oversampling)
     if shift is not None:
         reference = moments.fit_perturbed(stamps, shift, reference, config.moment_settings)
@@ -772,7 +803,7 @@ def _simulate_scatter(
             base = np.array(moments.differences(fit_beta, reference0))[:, 0]
             gradient = moments.pixel_response(stamps1 + uniform, fit_beta, settings)[0]
             gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
-            response = _per_pixel_beta_response(scene, gradient, charge_scale)
+            response = _per_pixel_beta_response(scene, gradient, charge_scale, effect)
         linear = base[None, :] + np.einsum("kij,bij->bk", response, betas - beta)
         ok = bool(reference0.ok[0] and fit_beta.ok[0])
         d_r, d_e1, d_e2 = (np.full(draws, np.nan) if not ok else linear[:, k] for k in range(3))
@@ -785,17 +816,22 @@ def _simulate_scatter(
     return d_r, d_e1, d_e2, status, flags, float(peak.max()), _reference_summary(scene, 0), offset, extras
 
 
-def _per_pixel_beta_response(scene: Scene, gradient: np.ndarray, charge_scale: float) -> np.ndarray:
+def _per_pixel_beta_response(
+    scene: Scene, gradient: np.ndarray, charge_scale: float, effect: RampEffect | None = None
+) -> np.ndarray:
     """d metric / d beta_k for the per-pixel beta of pixel k, (3, n, n), at the first centroid.
 
     The NL of pixel k changes it by -Q_k^2 (Q the charge it acts on); IPC after the NL then spreads
-    that change to the neighbours, so the gradient is carried back through IPC's transpose.
+    that change to the neighbours, so the gradient is carried back through IPC's transpose. Up the
+    ramp the measuring pixel's factor c_2 multiplies the gradient first (``ramps.scene_factors``).
     """
     model = scene.config.scene
     charge = scenes.charge_before_nl(scene.charge[:1], charge_scale, model, scene.config.oversampling)[0]
     pulled = gradient
+    if effect is not None and effect.scene_ramp is not None:
+        pulled = gradient * effect.scene_ramp.factors[0][0]
     if model.ipc is not None and model.ipc_order == "after":
-        pulled = scenes.apply_ipc_adjoint(gradient, model.ipc, scene.config.oversampling)
+        pulled = scenes.apply_ipc_adjoint(pulled, model.ipc, scene.config.oversampling)
     return pulled * (-(charge**2) / charge_scale)
 
 

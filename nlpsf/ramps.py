@@ -735,3 +735,141 @@ def _read_noise(given: float | None, sca: int) -> tuple[float | None, str]:
     return backgrounds.read_noise(sca), (
         f"official read noise of SCA {sca}: median CDS noise / sqrt(2), WFI_CDS_Noise_summary.ecsv ({backgrounds.SOURCE_VERSION})"
     )
+
+
+# --- ramps inside a scene (IPC, background, polynomial NL) -------------------------------------
+
+#: Scene effects an up-the-ramp readout does not combine with yet, and why (the one place that says so).
+RAMP_REFUSES: dict[str, str] = {
+    "brighter_fatter": (
+        "brighter-fatter moves charge by an amount that grows as the square of the charge collected so far, so up "
+        "the ramp it is one more flux-dependent term per read, and its NL-free reference image would change with "
+        "each pixel's saturated resultants; the published kernel form is for a final frame and is not derived here"
+    ),
+}
+
+
+def check_scene(scene) -> None:
+    """Refuse a scene a ramp cannot take (:data:`RAMP_REFUSES`); every other effect combines
+    (optical ones trivially, IPC, background and polynomial NL by :func:`scene_factors`)."""
+    on = scene.effects_on()
+    refused = [name for name in RAMP_REFUSES if on.get(name)]
+    if refused:
+        raise InputError(
+            "scene", "an up-the-ramp readout cannot take " + "; ".join(f"{name}: {RAMP_REFUSES[name]}" for name in refused)
+        )
+
+
+@dataclass(frozen=True)
+class SceneRamp:
+    """A ramp's per-pixel factors inside a scene, at one flux (see :func:`scene_factors`)."""
+
+    factors: np.ndarray  # (orders, ...) c_n of the pixel that measures (its weights)
+    usable: np.ndarray  # resultants in each pixel's fit
+    charge: np.ndarray  # the charge the NL acts on (after IPC when IPC comes first)
+    orders: tuple[int, ...]
+
+
+def _ipc(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
+    from .scene import apply_ipc  # scene effects have one owner
+
+    return apply_ipc(images, kernel, oversampling)
+
+
+def scene_factors(
+    charge: np.ndarray,
+    ramp: Ramp,
+    exptime_s: float,
+    full_well_e: float,
+    state: Sequence[float],
+    orders: Sequence[int],
+    ipc=None,
+    ipc_order: str = "after",
+    oversampling: int = 1,
+) -> SceneRamp:
+    """Ramp factors of a scene's pixels: ``charge`` is the final-frame charge per fine pixel, star plus
+    background (Q = s psi + B), before IPC; ``state`` the NL coefficients the saturation step sees.
+
+    Derivation (docs/ramps.md). Every read i of pixel p measures D_p(tau_i) = sum_k K_k S_{p+k}(tau_i)
+    (IPC after the NL: coupling of the read voltages, linear and the same at every read) with
+    S(Q tau) = Q tau - sum_n b_n Q^n tau^n; resultants average reads, the fit is image_p = sum_j w_pj R_pj
+    with sum_j w_pj <tau>_j = 1. So
+
+        image_p = IPC(Q)_p - sum_n b_n IPC(Q^n)_p c_{n,p},     c_{n,p} = sum_j w_pj <tau^n>_j,
+
+    the factor of the *measuring* pixel p (its usable resultants and, for ``optimal``, its measured rate
+    IPC(Q)_p). IPC before the NL couples the charge instead: Q -> IPC(Q) first, then the plain form.
+    Saturation: "charge" judges the charge collected in the pixel (Q, or IPC(Q) when IPC comes first);
+    "signal" the resultants the pipeline receives, D (romancal flags the read data, after IPC).
+    """
+    total = np.asarray(charge, dtype=np.float64)
+    after = ipc is not None and ipc_order == "after"
+    if ipc is not None and not after:
+        total = _ipc(total, ipc, oversampling)
+    measured = _ipc(total, ipc, oversampling) if after else total
+    orders = tuple(orders)
+    if not after or ramp.saturation == "charge":
+        usable = usable_resultants(total, ramp, exptime_s, full_well_e, state)
+    else:
+        usable = _usable_after_ipc(total, measured, ramp, exptime_s, full_well_e, state, ipc, oversampling)
+    factors = _factors_for(measured, usable, ramp, exptime_s, orders)
+    return SceneRamp(factors, usable, total, orders)
+
+
+def _usable_after_ipc(total, measured, ramp: Ramp, exptime_s: float, threshold: float, state, kernel, oversampling: int):
+    """The "signal" rule on IPC-coupled reads: each read's S is coupled, then averaged into resultants."""
+    state = tuple(state)
+    if ramp.saturation_beta is not None:
+        state = (ramp.saturation_beta, *state[1:])
+    response = polynomial_response(state)
+    usable = np.full(total.shape, ramp.table.n_resultants, dtype=np.int32)
+    # As in usable_resultants: only pixels whose measured signal can reach the threshold need their reads.
+    candidates = (measured >= threshold) | (_ipc(response(total), kernel, oversampling) >= threshold)
+    if np.any(candidates):
+        tau = ramp.table.read_fractions(exptime_s)
+        sizes = [len(r) for r in ramp.table.resultants]
+        sums = np.zeros((int(candidates.sum()), len(sizes)))
+        which = np.repeat(np.arange(len(sizes)), sizes)
+        for i, t in enumerate(tau):
+            sums[:, which[i]] += _ipc(response(total * t), kernel, oversampling)[candidates]
+        usable[candidates] = signal_usable(sums / np.array(sizes, dtype=np.float64), ramp.table, threshold)
+    if ramp.single_resultant == "unusable":
+        usable = np.where(usable == 1, 0, usable).astype(np.int32)
+    return usable
+
+
+def _factors_for(rate_charge: np.ndarray, usable: np.ndarray, ramp: Ramp, exptime_s: float, orders: tuple[int, ...]):
+    """c_n (orders, ...) for given usable resultants; the optimal weights at ``rate_charge``."""
+    powers = ramp.table.mean_powers(exptime_s, orders)
+    if ramp.fit == "ols":
+        per_k = _ols_factors(ramp.table, exptime_s, orders)
+        return np.moveaxis(per_k[np.maximum(usable, 1) - 1], -1, 0)
+    flat_total, flat_k = np.asarray(rate_charge, dtype=np.float64).ravel(), np.maximum(usable, 1).ravel()
+    out = np.empty((len(orders), flat_total.size))
+    single = flat_k == 1
+    out[:, single] = (powers[:, 0] / _resultant_fractions(ramp.table, exptime_s)[0])[:, None]
+    for pick, k, h, U in _optimal_groups(flat_total, flat_k, ramp, exptime_s):
+        out[:, pick] = (h @ (U @ powers[:, :k].T)).T
+    return out.reshape(len(orders), *np.shape(rate_charge))
+
+
+def scene_perturbation(
+    sr: SceneRamp, beta, higher: Sequence[float], ipc=None, ipc_order: str = "after", oversampling: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """(fitted image - NL-free image, d it / d b2) in e-, from :func:`scene_factors` (``beta`` = b2,
+    scalar or per pixel; ``higher`` = (b3, ...)). Term by term, never a difference of images."""
+    after = ipc is not None and ipc_order == "after"
+    q = sr.charge
+    coefficients = (beta, *higher)
+    perturbation = np.zeros(np.shape(q))
+    power = q * q
+    derivative = None
+    for n, b in zip(range(2, 2 + len(coefficients)), coefficients, strict=True):
+        c = sr.factors[sr.orders.index(n)]
+        term = _ipc(power, ipc, oversampling) if after else power
+        if n == 2:
+            derivative = -c * term
+        if np.any(b != 0):
+            perturbation = perturbation - c * (_ipc(b * power, ipc, oversampling) if after else b * power)
+        power = power * q
+    return perturbation, derivative

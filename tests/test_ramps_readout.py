@@ -189,3 +189,167 @@ def test_romancal_second_resultant_pass_is_exercised():
     assert ramps.signal_usable(R, table, FULL_WELL)[0] == 1
     hand = _romancal_flags(list(R[0]), table.resultants, FULL_WELL)
     assert hand == [False, True, True, True]
+
+
+# --- ramps inside a scene: IPC, background, polynomial NL -------------------------------------------
+
+
+def _ipc_loops(image, kernel, n):
+    """IPC by explicit loops: pixel (y, x) takes K[1+dy, 1+dx] of the pixel (y + dy n, x + dx n); beyond the
+    edge the nearest pixel (the simulator's convention: a uniform field stays uniform)."""
+    out = np.zeros_like(image)
+    H, W = image.shape
+    for y in range(H):
+        for x in range(W):
+            acc = 0.0
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    yy, xx = min(max(y + dy * n, 0), H - 1), min(max(x + dx * n, 0), W - 1)
+                    acc += kernel[1 + dy][1 + dx] * image[yy, xx]
+            out[y, x] = acc
+    return out
+
+
+def _scene_brute_force(Q, table, T, coefficients, kernel, order, n, fit, saturation, single, read_noise=10.0):
+    """Fitted image of a small stamp, read by read: every read's S coupled by IPC (after) or the charge
+    coupled first (before), resultants per pixel, each pixel's flags and fit as in ``brute_force``."""
+    if order == "before":
+        Q = _ipc_loops(Q, kernel, n)
+    reads = [i for r in table.resultants for i in r]
+    data = {}
+    for i in reads:
+        tau = i * table.frame_time_s / T
+        s = _signal(Q * tau, coefficients)
+        data[i] = _ipc_loops(s, kernel, n) if order == "after" else s
+    measured = _ipc_loops(Q, kernel, n) if order == "after" else Q
+    image = np.zeros_like(Q)
+    usable = np.zeros(Q.shape, dtype=int)
+    tbar = np.array([np.mean(r) * table.frame_time_s / T for r in table.resultants])
+    for y in range(Q.shape[0]):
+        for x in range(Q.shape[1]):
+            R = [np.mean([data[i][y, x] for i in r]) for r in table.resultants]
+            if saturation == "charge":
+                last = [Q[y, x] * r[-1] * table.frame_time_s / T for r in table.resultants]
+                flags = [any(c > FULL_WELL for c in last[: j + 1]) for j in range(len(last))]
+            else:
+                flags = _romancal_flags(R, table.resultants, FULL_WELL)
+            k = next((j for j, f in enumerate(flags) if f), len(flags))
+            if single == "unusable" and k == 1:
+                k = 0
+            usable[y, x] = k
+            if k <= 1:
+                image[y, x] = R[0] / tbar[0]
+                continue
+            X = np.stack([np.ones(k), tbar[:k]], axis=1)
+            yv = np.array(R[:k])
+            if fit == "ols":
+                image[y, x] = np.linalg.lstsq(X, yv, rcond=None)[0][1]
+            else:
+                C = np.zeros((k, k))
+                for a_, ra in enumerate(table.resultants[:k]):
+                    for b_, rb in enumerate(table.resultants[:k]):
+                        C[a_, b_] = sum(
+                            measured[y, x] * min(a, b) * table.frame_time_s / T + (read_noise**2 if a == b else 0.0)
+                            for a in ra
+                            for b in rb
+                        ) / (len(ra) * len(rb))
+                Ci = np.linalg.inv(C)
+                image[y, x] = np.linalg.solve(X.T @ Ci @ X, X.T @ Ci @ yv)[1]
+    return image - measured, usable
+
+
+@pytest.mark.parametrize("order", ["after", "before"])
+@pytest.mark.parametrize("fit", ["ols", "optimal"])
+@pytest.mark.parametrize("rule", [("charge", "through_zero"), ("signal", "unusable")])
+def test_ramp_with_ipc_background_and_polynomial_nl_equals_the_brute_force(order, fit, rule):
+    from nlpsf.scene import ROMAN_IPC_KERNEL
+
+    rng = np.random.default_rng(7)
+    n = 3
+    table = ramps.load_ma_table("romanisim-109")
+    T = table.duration_s
+    ramp = ramps.Ramp(table, fit, 10.0, saturation=rule[0], single_resultant=rule[1])
+    yy, xx = np.mgrid[0:12, 0:12]
+    star = 2.5e6 * np.exp(-((yy - 5.3) ** 2 + (xx - 6.1) ** 2) / 6.0) * (1 + 0.05 * rng.standard_normal((12, 12)))
+    Q = np.abs(star) + 150.0  # background 150 e-
+    coefficients = (BETA, 3e-12, -1e-17)
+    kernel = np.asarray(ROMAN_IPC_KERNEL) * 8  # a strong coupling, so that it matters at the test's precision
+    kernel[1, 1] = 0.0
+    kernel[1, 1] = 1.0 - kernel.sum()
+    sr = ramps.scene_factors(Q, ramp, T, FULL_WELL, coefficients, (2, 3, 4), kernel, order, n)
+    perturbation, derivative = ramps.scene_perturbation(sr, coefficients[0], coefficients[1:], kernel, order, n)
+    expected, usable = _scene_brute_force(Q, table, T, coefficients, kernel, order, n, fit, *rule)
+    assert np.all(sr.usable == usable)
+    assert np.sum(usable < table.n_resultants) > 0  # some pixels drop resultants
+    scale = np.abs(expected).max()
+    assert np.allclose(perturbation, expected, rtol=1e-10, atol=1e-12 * scale)
+    # d/d b2: the brute force's finite difference in b2 (the fit is linear in the coefficients at fixed flags)
+    step = 1e-3 * BETA
+    plus = ramps.scene_perturbation(sr, BETA + step, coefficients[1:], kernel, order, n)[0]
+    assert np.allclose(derivative, (plus - perturbation) / step, rtol=1e-6, atol=1e-9 * np.abs(derivative).max())
+
+
+def test_a_ramp_refuses_brighter_fatter_and_says_why():
+    from nlpsf.checks import InputError as Error
+    from nlpsf.scene import SceneModel
+
+    ramps.check_scene(
+        SceneModel(ipc=((0, 0.02, 0), (0.02, 0.92, 0.02), (0, 0.02, 0)), background_e=100.0, nl_coefficients=(1e-12,))
+    )
+    with pytest.raises(Error, match="brighter-fatter"):
+        ramps.check_scene(SceneModel(bfe_coefficient=1e-7))
+
+
+@pytest.fixture(scope="module")
+def detector_scene():
+    from nlpsf import experiment
+    from nlpsf.scene import ROMAN_IPC_KERNEL, SceneModel
+
+    model = SceneModel(ipc=ROMAN_IPC_KERNEL, ipc_label="roman", background_e=300.0, nl_coefficients=(2e-12,))
+    config = experiment.SimulationConfig(realizations=6, scene=model, exptime_s=168.1)
+    return config, experiment.prepare(config)
+
+
+def _with_ramp(config, prepared, **changes):
+    from nlpsf import experiment
+
+    other = experiment.SimulationConfig(**{**{k: getattr(config, k) for k in config.__dataclass_fields__}, **changes})
+    return other, experiment.Scene(other, prepared.psf, prepared.offsets, prepared.stamps, prepared.reference, 0.0)
+
+
+@pytest.mark.parametrize("method", ["monte_carlo", "linear"])
+def test_a_one_read_ramp_in_a_detector_scene_is_the_final_frame(detector_scene, method):
+    # One read at the end of the exposure: every factor c_n = 1, so IPC, background and the cubic NL
+    # come out exactly as the final frame's detector chain computes them.
+    from nlpsf.experiment import simulate, slopes
+
+    config, scene = detector_scene
+    frame, frame_scene = _with_ramp(config, scene, method=method)
+    ramp, ramp_scene = _with_ramp(config, scene, method=method, ramp=ramps.Ramp.uniform(1, 168.1))
+    for magnitude in (18.3, 20.0):
+        a = simulate(ramp, [magnitude], [BETA], scene=ramp_scene)[0]
+        b = simulate(frame, [magnitude], [BETA], scene=frame_scene)[0]
+        for metric in ("dR_over_R", "de1", "de2"):
+            assert getattr(a, metric).mean == pytest.approx(getattr(b, metric).mean, rel=1e-9, abs=1e-15)
+    a = slopes(ramp, [19.0], scene=ramp_scene)[0]
+    b = slopes(frame, [19.0], scene=frame_scene)[0]
+    for metric in ("dR_over_R", "de1", "de2"):
+        assert a.bias[metric].mean == pytest.approx(b.bias[metric].mean, rel=1e-8)
+        assert a.scatter[metric]["value"] == pytest.approx(b.scatter[metric]["value"], rel=1e-6)
+
+
+def test_uniform_ols_ramp_with_ipc_and_background_is_the_final_frame_at_beta_eff(detector_scene):
+    # Quadratic NL only, no resultant saturated: every NL term (star, sky, their cross term, IPC after)
+    # carries the same c_2 = 1 + 1/N, so the ramp is the final frame at beta (1 + 1/N).
+    from nlpsf.experiment import simulate
+    from nlpsf.scene import ROMAN_IPC_KERNEL, SceneModel
+
+    config, scene = detector_scene
+    model = SceneModel(ipc=ROMAN_IPC_KERNEL, ipc_label="roman", background_e=300.0)
+    n = 6
+    frame, frame_scene = _with_ramp(config, scene, scene=model, method="linear")
+    ramp, ramp_scene = _with_ramp(config, scene, scene=model, method="linear", ramp=ramps.Ramp.uniform(n, 168.1))
+    a = simulate(ramp, [19.0], [BETA], scene=ramp_scene)[0]
+    b = simulate(frame, [19.0], [BETA * (1 + 1 / n)], scene=frame_scene)[0]
+    for metric in ("dR_over_R", "de1", "de2"):
+        assert getattr(a, metric).mean == pytest.approx(getattr(b, metric).mean, rel=1e-9, abs=1e-15)
