@@ -46,6 +46,13 @@ MAX_REALIZATIONS = defaults.MAX_REALIZATIONS
 #: The rendered stamps of a scene are kept in memory; this bounds them (realizations x stamp^2).
 MAX_STAMP_BYTES = 1_500_000_000
 PAPER_BETA_STEP = defaults.PAPER_BETA_STEP
+#: Where a slope is taken (``slopes(linearise_at=...)``): "beta0", the uncorrected detector (the
+#: paper's finite difference about beta0); "corrected", the detector after the pipeline's linearity
+#: correction, where a calibration error acts on a residual NL of CORRECTED_RESIDUAL x beta0 while the
+#: saturation flags stay those of the raw beta0 (romancal flags saturation before it corrects the NL).
+LINEARISE_STATES: tuple[str, ...] = ("beta0", "corrected")
+#: The residual NL of the "corrected" state, as a fraction of beta0: a 1 % calibration.
+CORRECTED_RESIDUAL = 1e-2
 
 #: progress(done, total, message); ``done`` may be fractional within a long step.
 Progress = Callable[[float, int, str], None]
@@ -566,8 +573,12 @@ def simulate(
     beta_convention: str = "paper",
     scene: Scene | None = None,
     progress: Progress | None = None,
+    saturation_beta: float | None = None,
 ) -> list[SimulationResult]:
     """Change of ΔR/R, Δe1, Δe2 for every (magnitude, beta) pair, magnitude outermost.
+
+    ``saturation_beta``: the raw detector's beta (paper convention) a ramp's "signal" saturation rule
+    sees, when it is not the beta simulated (a residual NL after the linearity correction).
 
     With ``sigma_beta`` > 0 each fine pixel gets its own beta ~ N(beta, sigma_beta^2) and, as in
     the paper, the centroid is fixed (the first realization's) while the ``realizations`` are
@@ -594,9 +605,11 @@ def simulate(
             if progress:
                 progress(m_index * len(paper_betas) + b_index, total, f"m={magnitude:g} beta={beta_given:g}")
             if sigma_beta > 0:
-                result = _simulate_scatter(scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index)
+                result = _simulate_scatter(
+                    scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index, saturation_beta
+                )
             else:
-                result = _simulate_bias(scene, charge_scale, beta, settings)
+                result = _simulate_bias(scene, charge_scale, beta, settings, saturation_beta)
             d_r, d_e1, d_e2, status, flags, peak, reference, offset, extras = result
             results.append(
                 SimulationResult(
@@ -699,10 +712,13 @@ def _perturbed_fit(
     return fit, reference, stamps, perturbation, derivative
 
 
-def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
+def _simulate_bias(
+    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, saturation_beta: float | None = None
+):
     config = scene.config
     peak = _peak_electrons(scene, charge_scale)
-    effect = ramp_effect(scene, charge_scale, beta=beta) if config.ramp is not None else None
+    state = beta if saturation_beta is None else saturation_beta
+    effect = ramp_effect(scene, charge_scale, beta=state) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
     extras: dict = {} if effect is None else dict(effect.extras)
     if config.method == "monte_carlo":
@@ -740,7 +756,13 @@ _SCATTER_CHUNK = 256
 
 
 def _simulate_scatter(
-    scene: Scene, charge_scale: float, beta: float, sigma_beta: float, settings: moments.MomentSettings, stream: int
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    sigma_beta: float,
+    settings: moments.MomentSettings,
+    stream: int,
+    saturation_beta: float | None = None,
 ):
     config = scene.config
     draws = config.realizations
@@ -748,7 +770,8 @@ def _simulate_scatter(
     rng = np.random.default_rng([config.seed, 1, stream])
     betas = detector.draw_pixel_betas(rng, beta, sigma_beta, (draws, *stamp.shape))
     peak = np.full(draws, float(_peak_electrons(scene, charge_scale, 1)[0]))
-    effect = ramp_effect(scene, charge_scale, index=0, beta=beta) if config.ramp is not None else None
+    state = beta if saturation_beta is None else saturation_beta
+    effect = ramp_effect(scene, charge_scale, index=0, beta=state) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
     extras: dict = {} if effect is None else dict(effect.extras)
@@ -946,8 +969,14 @@ def slopes(
     beta_convention: str = "paper",
     scene: Scene | None = None,
     progress: Progress | None = None,
+    linearise_at: str = "beta0",
 ) -> list[SlopeResult]:
     """Bias and scatter slopes at ``beta0`` for each magnitude (paper Figs. 3 and 5).
+
+    ``linearise_at`` (:data:`LINEARISE_STATES`): "beta0", the paper's, the slope of the uncorrected
+    detector at beta0; "corrected", the slope a calibration error acts through once the pipeline has
+    corrected the NL: taken at the residual CORRECTED_RESIDUAL x beta0, with a ramp's saturation flags
+    those of the raw beta0 (docs/ramps.md). The scatter keeps sigma_beta (a per-pixel calibration error).
 
     ``monte_carlo``: the paper's method. The bias slope is the finite difference over
     beta0 * {0.99, 1.01} (identical to its 3-point linear fit) for each centroid; the scatter slope
@@ -960,11 +989,14 @@ def slopes(
     centroid realizations (uncertainty: their standard error).
     """
     mags = check_magnitudes(magnitudes)
-    beta = detector.to_paper_beta(beta0, beta_convention)
-    if beta == 0:
+    check_choice(linearise_at, "linearise_at", LINEARISE_STATES)
+    raw = detector.to_paper_beta(beta0, beta_convention)
+    if raw == 0:
         raise InputError("beta0", "slopes are taken at beta0, which must not be zero")
+    # The beta the slope is taken at; the raw beta0 still sets what saturates.
+    beta = raw if linearise_at == "beta0" else CORRECTED_RESIDUAL * raw
     if sigma_beta is None:
-        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(beta)
+        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(raw)
     sigma_beta = check_sigma_beta(sigma_beta)
     if sigma_beta == 0:
         raise InputError("sigma_beta", "the scatter slope needs sigma_beta > 0")
@@ -972,6 +1004,8 @@ def slopes(
     if scene.config != config:
         raise InputError("scene", "the scene was prepared for a different configuration")
     conditions = config.conditions()
+    if linearise_at != "beta0":
+        conditions["linearised_at"] = {"state": linearise_at, "beta": beta, "saturation_beta": raw}
     settings = config.moment_settings
     scene_flags = _scene_flags(scene)
     out: list[SlopeResult] = []
@@ -983,14 +1017,14 @@ def slopes(
         flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         peak = _peak_electrons(scene, charge_scale)
-        effect = ramp_effect(scene, charge_scale, beta=beta) if config.ramp is not None else None
+        effect = ramp_effect(scene, charge_scale, beta=raw) if config.ramp is not None else None
         flags = scene_flags + _validity_flags(
-            scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
+            scene, charge_scale, np.full(1, raw * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
         )
         if config.method == "monte_carlo":
             bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect)
             flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
-            scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene)[0]
+            scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene, saturation_beta=raw)[0]
             scatter = {}
             for name in METRICS:
                 stat: Statistic = getattr(scatter_runs, name)
