@@ -30,7 +30,7 @@ def test_the_corrected_state_is_the_first_order_slope_at_vanishing_nl(h158):
 
 
 def test_a_ramp_keeps_the_raw_saturation_flags_in_the_corrected_state(h158):
-    config, scene = h158
+    _config, scene = h158
     table = ramps.load_ma_table("romanisim-110")
     ramp = ramps.Ramp(table, "ols", 10.0, saturation="signal", single_resultant="unusable")
     cfg = SimulationConfig(band="H158", realizations=12, exptime_s=table.duration_s, ramp=ramp)
