@@ -47,6 +47,13 @@ MAX_REALIZATIONS = defaults.MAX_REALIZATIONS
 #: The rendered stamps of a scene are kept in memory; this bounds them (realizations x stamp^2).
 MAX_STAMP_BYTES = 1_500_000_000
 PAPER_BETA_STEP = defaults.PAPER_BETA_STEP
+#: Where a slope is taken (``slopes(linearise_at=...)``): "beta0", the uncorrected detector (the
+#: paper's finite difference about beta0); "corrected", the detector after the pipeline's linearity
+#: correction, where a calibration error acts on a residual NL of CORRECTED_RESIDUAL x beta0 while the
+#: saturation flags stay those of the raw beta0 (romancal flags saturation before it corrects the NL).
+LINEARISE_STATES: tuple[str, ...] = ("beta0", "corrected")
+#: The residual NL of the "corrected" state, as a fraction of beta0: a 1 % calibration.
+CORRECTED_RESIDUAL = 1e-2
 
 #: progress(done, total, message); ``done`` may be fractional within a long step.
 Progress = Callable[[float, int, str], None]
@@ -104,13 +111,7 @@ class SimulationConfig:
             if not isinstance(self.ramp, ramps.Ramp):
                 raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
             self.ramp.check_exposure(self.exptime_s)
-            if not self.scene.plain_detector:
-                # The ramp's per-pixel factor c_2 is derived for the quadratic on the plain charge.
-                raise InputError(
-                    "scene",
-                    "the scene's detector effects (IPC, polynomial NL, brighter-fatter, background) and a ramp "
-                    "cannot be combined yet; optical effects (position, SED, jitter, diffusion) can",
-                )
+            ramps.check_scene(self.scene)  # the one rule of what a ramp combines with
 
     @property
     def optics(self) -> optics.OpticsConfig:
@@ -498,19 +499,28 @@ class RampEffect:
     used_peak_e: float
     flags: list[str]
     extras: dict
+    #: A scene with detector effects (IPC, background, polynomial NL): every order's factor and the
+    #: charge the NL acts on (``ramps.scene_factors``); None for the paper's detector.
+    scene_ramp: ramps.SceneRamp | None = None
 
 
-def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> RampEffect:
-    """Per-pixel ramp factors, resultants used, and the flags, for all realizations (or one)."""
+def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, beta: float = 0.0) -> RampEffect:
+    """Per-pixel ramp factors, resultants used, and the flags, for all realizations (or one).
+
+    ``beta``: the quadratic NL the ramp's "signal" saturation rule sees (``ramps.usable_resultants``;
+    the ramp's own ``saturation_beta`` wins when set); the factors do not depend on it."""
     config = scene.config
     ramp = config.ramp
     assert ramp is not None
+    state = (beta, *config.scene.nl_coefficients)
     stamps = scene.stamps if index is None else scene.stamps[index : index + 1]
     weighted = scene.weighted_region if index is None else scene.weighted_region[index : index + 1]
     K = ramp.table.n_resultants
     last = ramp.table.last_read_fractions(config.exptime_s)
+    if not config.scene.plain_detector:
+        return _scene_ramp_effect(scene, charge_scale, index, state)
     peak = charge_scale * float(stamps.max())
-    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e:
+    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e and (ramp.saturation == "charge" or beta >= 0):
         # Every pixel keeps every resultant and OLS weights do not depend on the charge: one factor
         # (the same number order_factors gives each pixel), no per-pixel work.
         factor, _ = ramps.order_factors(np.zeros(1), ramp, config.exptime_s, config.full_well_e, (2,))
@@ -521,20 +531,45 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> 
         used_peak = charge_scale * float(weighted_peak.max()) * last[-1]
         return RampEffect(factor.reshape(1, 1, 1), np.full(1, K), used_peak, [], {"ramp": summary})
     charge = charge_scale * stamps
-    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,))
+    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,), state=state)
+    return _ramp_summary(scene, charge, factors[0], usable, weighted, None)
+
+
+def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, state: tuple[float, ...]) -> RampEffect:
+    """The ramp inside a scene with detector effects: ``ramps.scene_factors`` on Q = s psi + B."""
+    config = scene.config
+    model = config.scene
+    pick = slice(None) if index is None else slice(index, index + 1)
+    weighted = scene.weighted_region[pick]
+    charge = charge_scale * scene.charge[pick] + model.background_e
+    orders = tuple(range(2, 3 + len(model.nl_coefficients)))
+    sr = ramps.scene_factors(
+        charge, config.ramp, config.exptime_s, config.full_well_e, state, orders, model.ipc, model.ipc_order, config.oversampling
+    )
+    return _ramp_summary(scene, sr.charge, sr.factors[0], sr.usable, weighted, sr)
+
+
+def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) -> RampEffect:
+    config = scene.config
+    ramp = config.ramp
+    K = ramp.table.n_resultants
+    last = ramp.table.last_read_fractions(config.exptime_s)
+    stamps = charge
     used_charge = charge * last[np.maximum(usable, 1) - 1]
     used_peak = float(np.where(weighted, used_charge, 0.0).max())
     summary = ramps.usage_summary(usable, K, weighted)
     summary["stamp_unusable"] = int(np.sum(usable == 0))
     summary["description"] = ramp.describe()
     flags = []
-    first_end = ramp.table.resultants[0][-1] * ramp.table.frame_time_s
+    needed = min(ramp.min_usable, K)
+    first_end = ramp.table.resultants[needed - 1][-1] * ramp.table.frame_time_s
     if summary["unusable"]:
         hit = int(np.sum(np.any(weighted & (usable == 0), axis=(1, 2))))
+        where = "in the first resultant" if needed == 1 else "by the second resultant (one gives no slope, as in romancal)"
         flags.append(
-            f"saturated in the first resultant: {summary['unusable']} pixels that carry weight in the moments (in {hit} of "
-            f"{len(stamps)} realizations) pass the full well of {config.full_well_e:.4g} e- by t = {first_end:.4g} s; they are "
-            "unusable (their value here is the first resultant's), so the numbers describe an unphysical case"
+            f"saturated {where}: {summary['unusable']} pixels that carry weight in the moments (in {hit} of "
+            f"{len(stamps)} realizations) pass the saturation level of {config.full_well_e:.4g} e- by t = {first_end:.4g} s; "
+            "they are unusable (their value here is the first resultant's), so the numbers describe an unphysical case"
         )
     if summary["fitted_on_fewer"]:
         final_peak = float(charge.max())
@@ -543,7 +578,7 @@ def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None) -> 
             f"{K} resultants (down to {summary['fewest_resultants']}; saturated resultants dropped, as the ground pipeline "
             f"does); a single final frame would be saturated (peak {final_peak:.4g} e- > full well {config.full_well_e:.4g} e-)"
         )
-    return RampEffect(factors[0], usable, used_peak, flags, {"ramp": summary})
+    return RampEffect(factor, usable, used_peak, flags, {"ramp": summary}, scene_ramp)
 
 
 def _nl_shape(stamps: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
@@ -561,8 +596,12 @@ def simulate(
     beta_convention: str = "paper",
     scene: Scene | None = None,
     progress: Progress | None = None,
+    saturation_beta: float | None = None,
 ) -> list[SimulationResult]:
     """Change of ΔR/R, Δe1, Δe2 for every (magnitude, beta) pair, magnitude outermost.
+
+    ``saturation_beta``: the raw detector's beta (paper convention) a ramp's "signal" saturation rule
+    sees, when it is not the beta simulated (a residual NL after the linearity correction).
 
     With ``sigma_beta`` > 0 each fine pixel gets its own beta ~ N(beta, sigma_beta^2) and, as in
     the paper, the centroid is fixed (the first realization's) while the ``realizations`` are
@@ -589,9 +628,11 @@ def simulate(
             if progress:
                 progress(m_index * len(paper_betas) + b_index, total, f"m={magnitude:g} beta={beta_given:g}")
             if sigma_beta > 0:
-                result = _simulate_scatter(scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index)
+                result = _simulate_scatter(
+                    scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index, saturation_beta
+                )
             else:
-                result = _simulate_bias(scene, charge_scale, beta, settings)
+                result = _simulate_bias(scene, charge_scale, beta, settings, saturation_beta)
             d_r, d_e1, d_e2, status, flags, peak, reference, offset, extras = result
             results.append(
                 SimulationResult(
@@ -658,6 +699,15 @@ def nl_images(
         derivative = -charge_scale * shape
         return stamps, reference, beta * derivative, derivative
     stamps = scene.stamps[pick]
+    if effect is not None and effect.scene_ramp is not None:
+        # Up the ramp in a scene: each order's NL term times the measuring pixel's factor (ramps.scene_factors).
+        sr = effect.scene_ramp
+        if count is not None and sr.charge.shape[0] > count:
+            sr = ramps.SceneRamp(sr.factors[:, :count], sr.usable[:count], sr.charge[:count], sr.orders)
+        perturbation, derivative = ramps.scene_perturbation(
+            sr, beta, model.nl_coefficients, model.ipc, model.ipc_order, config.oversampling
+        )
+        return stamps[core], reference, perturbation[core] / charge_scale, derivative[core] / charge_scale
     shift, perturbation, derivative = scenes.detector_chain(scene.charge[pick], charge_scale, beta, model, config.oversampling)
     if shift is not None:
         reference = moments.fit_perturbed(stamps, shift, reference, config.moment_settings)
@@ -685,10 +735,13 @@ def _perturbed_fit(
     return fit, reference, stamps, perturbation, derivative
 
 
-def _simulate_bias(scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings):
+def _simulate_bias(
+    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, saturation_beta: float | None = None
+):
     config = scene.config
     peak = _peak_electrons(scene, charge_scale)
-    effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
+    state = beta if saturation_beta is None else saturation_beta
+    effect = ramp_effect(scene, charge_scale, beta=state) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
     extras: dict = {} if effect is None else dict(effect.extras)
     if config.method == "monte_carlo":
@@ -746,7 +799,13 @@ _SCATTER_CHUNK = 256
 
 
 def _simulate_scatter(
-    scene: Scene, charge_scale: float, beta: float, sigma_beta: float, settings: moments.MomentSettings, stream: int
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    sigma_beta: float,
+    settings: moments.MomentSettings,
+    stream: int,
+    saturation_beta: float | None = None,
 ):
     config = scene.config
     draws = config.realizations
@@ -754,7 +813,8 @@ def _simulate_scatter(
     rng = np.random.default_rng([config.seed, 1, stream])
     betas = detector.draw_pixel_betas(rng, beta, sigma_beta, (draws, *stamp.shape))
     peak = np.full(draws, float(_peak_electrons(scene, charge_scale, 1)[0]))
-    effect = ramp_effect(scene, charge_scale, index=0) if config.ramp is not None else None
+    state = beta if saturation_beta is None else saturation_beta
+    effect = ramp_effect(scene, charge_scale, index=0, beta=state) if config.ramp is not None else None
     flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
     extras: dict = {} if effect is None else dict(effect.extras)
@@ -809,7 +869,7 @@ def _simulate_scatter(
             base = np.array(moments.differences(fit_beta, reference0))[:, 0]
             gradient = moments.pixel_response(stamps1 + uniform, fit_beta, settings)[0]
             gradient[0] *= float(fit_beta.sigma[0] / reference0.sigma[0])
-            response = _per_pixel_beta_response(scene, gradient, charge_scale)
+            response = _per_pixel_beta_response(scene, gradient, charge_scale, effect)
         linear = base[None, :] + np.einsum("kij,bij->bk", response, betas - beta)
         ok = bool(reference0.ok[0] and fit_beta.ok[0])
         d_r, d_e1, d_e2 = (np.full(draws, np.nan) if not ok else linear[:, k] for k in range(3))
@@ -822,17 +882,22 @@ def _simulate_scatter(
     return d_r, d_e1, d_e2, status, flags, star_peak_electrons(scene, charge_scale), _reference_summary(scene, 0), offset, extras
 
 
-def _per_pixel_beta_response(scene: Scene, gradient: np.ndarray, charge_scale: float) -> np.ndarray:
+def _per_pixel_beta_response(
+    scene: Scene, gradient: np.ndarray, charge_scale: float, effect: RampEffect | None = None
+) -> np.ndarray:
     """d metric / d beta_k for the per-pixel beta of pixel k, (3, n, n), at the first centroid.
 
     The NL of pixel k changes it by -Q_k^2 (Q the charge it acts on); IPC after the NL then spreads
-    that change to the neighbours, so the gradient is carried back through IPC's transpose.
+    that change to the neighbours, so the gradient is carried back through IPC's transpose. Up the
+    ramp the measuring pixel's factor c_2 multiplies the gradient first (``ramps.scene_factors``).
     """
     model = scene.config.scene
     charge = scenes.charge_before_nl(scene.charge[:1], charge_scale, model, scene.config.oversampling)[0]
     pulled = gradient
+    if effect is not None and effect.scene_ramp is not None:
+        pulled = gradient * effect.scene_ramp.factors[0][0]
     if model.ipc is not None and model.ipc_order == "after":
-        pulled = scenes.apply_ipc_adjoint(gradient, model.ipc, scene.config.oversampling)
+        pulled = scenes.apply_ipc_adjoint(pulled, model.ipc, scene.config.oversampling)
     return pulled * (-(charge**2) / charge_scale)
 
 
@@ -949,8 +1014,14 @@ def slopes(
     beta_convention: str = "paper",
     scene: Scene | None = None,
     progress: Progress | None = None,
+    linearise_at: str = "beta0",
 ) -> list[SlopeResult]:
     """Bias and scatter slopes at ``beta0`` for each magnitude (paper Figs. 3 and 5).
+
+    ``linearise_at`` (:data:`LINEARISE_STATES`): "beta0", the paper's, the slope of the uncorrected
+    detector at beta0; "corrected", the slope a calibration error acts through once the pipeline has
+    corrected the NL: taken at the residual CORRECTED_RESIDUAL x beta0, with a ramp's saturation flags
+    those of the raw beta0 (docs/ramps.md). The scatter keeps sigma_beta (a per-pixel calibration error).
 
     ``monte_carlo``: the paper's method. The bias slope is the finite difference over
     beta0 * {0.99, 1.01} (identical to its 3-point linear fit) for each centroid; the scatter slope
@@ -963,11 +1034,14 @@ def slopes(
     centroid realizations (uncertainty: their standard error).
     """
     mags = check_magnitudes(magnitudes)
-    beta = detector.to_paper_beta(beta0, beta_convention)
-    if beta == 0:
+    check_choice(linearise_at, "linearise_at", LINEARISE_STATES)
+    raw = detector.to_paper_beta(beta0, beta_convention)
+    if raw == 0:
         raise InputError("beta0", "slopes are taken at beta0, which must not be zero")
+    # The beta the slope is taken at; the raw beta0 still sets what saturates.
+    beta = raw if linearise_at == "beta0" else CORRECTED_RESIDUAL * raw
     if sigma_beta is None:
-        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(beta)
+        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(raw)
     sigma_beta = check_sigma_beta(sigma_beta)
     if sigma_beta == 0:
         raise InputError("sigma_beta", "the scatter slope needs sigma_beta > 0")
@@ -975,6 +1049,8 @@ def slopes(
     if scene.config != config:
         raise InputError("scene", "the scene was prepared for a different configuration")
     conditions = config.conditions()
+    if linearise_at != "beta0":
+        conditions["linearised_at"] = {"state": linearise_at, "beta": beta, "saturation_beta": raw}
     settings = config.moment_settings
     scene_flags = _scene_flags(scene)
     out: list[SlopeResult] = []
@@ -986,14 +1062,14 @@ def slopes(
         flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
         peak = _peak_electrons(scene, charge_scale)
-        effect = ramp_effect(scene, charge_scale) if config.ramp is not None else None
+        effect = ramp_effect(scene, charge_scale, beta=raw) if config.ramp is not None else None
         flags = scene_flags + _validity_flags(
-            scene, charge_scale, np.full(1, beta * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
+            scene, charge_scale, np.full(1, raw * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
         )
         if config.method == "monte_carlo":
             bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect)
             flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
-            scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene)[0]
+            scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene, saturation_beta=raw)[0]
             scatter = {}
             for name in METRICS:
                 stat: Statistic = getattr(scatter_runs, name)

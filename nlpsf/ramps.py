@@ -82,6 +82,16 @@ MAX_READS = defaults.MAX_RAMP_READS
 _TIME_SLACK = 1e-9
 #: Pixels per block in the per-pixel weight computation (bounds memory for long tables).
 _BLOCK = 1 << 16
+#: How a resultant is judged saturated. "charge": the charge at its last read passed the full well
+#: (nlpsf's original rule). "signal": romancal's saturation step (stcal ``flag_saturated_pixels``
+#: with the read pattern, no flag growth): the resultant's *signal* (the mean of the reads' S) against
+#: the per-pixel threshold, with stcal's dilution and second-resultant passes (see ``signal_usable``).
+SATURATION_RULES: tuple[str, ...] = ("charge", "signal")
+#: A pixel left with one usable resultant. "through_zero": slope S_1 / tau_1 (the reset level taken
+#: as zero; nlpsf's original rule). "unusable": no slope, as romancal's ramp fits do (stcal's
+#: likelihood fit has no resultant difference to fit and ols_cas22 returns NaN for a one-resultant
+#: ramp), so the pixel is flagged do-not-use.
+SINGLE_RESULTANT_RULES: tuple[str, ...] = ("through_zero", "unusable")
 
 
 def shipped_table_dir() -> Path:
@@ -210,8 +220,10 @@ def load_ma_table(spec: str | Path) -> MATable:
         return MATable.from_dict(data, name=path.stem)
     key = str(spec).strip().lower()
     for name in shipped_table_names():
-        if name.lower() == key:
-            return MATable.from_dict(json.loads((shipped_table_dir() / f"{name}.json").read_text()), name=name)
+        data = json.loads((shipped_table_dir() / f"{name}.json").read_text())
+        # A shipped table answers to its file name and to the names its source gives it (C2A_IMG_HLWAS).
+        if key in {name.lower(), *(alias.lower() for alias in data.get("aliases", ()))}:
+            return MATable.from_dict(data, name=name)
     raise InputError("ma_table", f"no file and no shipped MA table named {spec!r}; shipped: {', '.join(shipped_table_names())}")
 
 
@@ -228,8 +240,25 @@ class Ramp:
     read_noise_e: float | None = None
     #: Where the read noise came from, said in the conditions ("given" when the caller chose it).
     read_noise_source: str = field(default="", compare=False)
+    #: :data:`SATURATION_RULES`; the threshold is the full well, read as the saturation level in
+    #: signal e- for "signal" (romanisim: 55000 DN at 2 e-/DN = 1.1e5 e-, the paper's full well).
+    saturation: str = "charge"
+    #: :data:`SINGLE_RESULTANT_RULES`.
+    single_resultant: str = "through_zero"
+    #: The raw detector's quadratic NL (paper convention, 1/e-) that the saturation step sees under
+    #: the "signal" rule (it runs before the linearity correction); None: the NL being simulated.
+    saturation_beta: float | None = None
 
     def __post_init__(self) -> None:
+        if self.saturation not in SATURATION_RULES:
+            raise InputError("ramp_saturation", f"must be one of {', '.join(SATURATION_RULES)}, got {self.saturation!r}")
+        if self.single_resultant not in SINGLE_RESULTANT_RULES:
+            raise InputError(
+                "ramp_single_resultant", f"must be one of {', '.join(SINGLE_RESULTANT_RULES)}, got {self.single_resultant!r}"
+            )
+        if self.saturation_beta is not None:
+            limit = defaults.MAX_ABS_BETA
+            object.__setattr__(self, "saturation_beta", check_number(self.saturation_beta, "saturation_beta", -limit, limit))
         if self.read_noise_e is None:
             object.__setattr__(self, "read_noise_e", DEFAULT_READ_NOISE_E)
             object.__setattr__(
@@ -277,12 +306,15 @@ class Ramp:
         return float(_ols_factors(self.table, exptime_s, (2,))[-1, 0])
 
     def first_usable_fraction(self, exptime_s: float) -> float:
-        """tau of the last read of the first resultant: the charge there must stay under the full well."""
-        return float(self.table.last_read_fractions(exptime_s)[0])
+        """tau of the last read of the last resultant a slope needs (the first; the second when one
+        resultant gives no slope): the charge there must stay under the full well. Exact for the
+        "charge" rule; for "signal" the limit of a linear detector (the NL lowers the signal, so a
+        star with beta > 0 keeps its resultants slightly longer)."""
+        return float(self.table.last_read_fractions(exptime_s)[min(self.min_usable, self.table.n_resultants) - 1])
 
     def saturation_shift_mag(self, exptime_s: float) -> float:
         """How much brighter the ramp rule's saturation magnitude is than the final frame's:
-        2.5 log10(T / t_1) with t_1 the last read of the first resultant."""
+        2.5 log10(T / t_k) with t_k the last read of the last resultant a slope needs."""
         return 2.5 * math.log10(1.0 / self.first_usable_fraction(exptime_s))
 
     def describe(self) -> str:
@@ -291,6 +323,26 @@ class Ramp:
             f"{t.name}: {t.n_resultants} resultants of {t.n_reads} reads, last read at {t.duration_s:.4g} s, "
             f"{self.fit.upper() if self.fit == 'ols' else 'optimally weighted'} slope fit"
         )
+
+    def saturation_rule(self) -> str:
+        if self.saturation == "charge":
+            rule = "resultants whose last read's charge passes the full well are dropped"
+        else:
+            rule = (
+                "resultants flagged as romancal's saturation step does (stcal flag_saturated_pixels, read pattern, no growth): "
+                "signal >= the saturation level, and the dilution and second-resultant passes"
+            )
+        single = (
+            "a pixel with one usable resultant is fitted through zero (S_1 / t_1)"
+            if self.single_resultant == "through_zero"
+            else "a pixel with fewer than two usable resultants has no slope (romancal) and is unusable"
+        )
+        return f"{rule}; {single}; a pixel saturated in its first resultant is unusable"
+
+    @property
+    def min_usable(self) -> int:
+        """Fewest usable resultants that give a slope."""
+        return 1 if self.single_resultant == "through_zero" else 2
 
     def conditions(self, exptime_s: float) -> dict:
         out = {
@@ -305,8 +357,12 @@ class Ramp:
             "read_noise_e": self.read_noise_e,
             "read_noise_source": self.read_noise_source,
             "description": self.describe(),
-            "saturation_rule": "resultants past the full well are dropped; a pixel saturated in its first resultant is unusable",
+            "saturation_rule": self.saturation_rule(),
+            "saturation": self.saturation,
+            "single_resultant": self.single_resultant,
         }
+        if self.saturation_beta is not None:
+            out["saturation_beta"] = self.saturation_beta
         if self.fit == "ols":
             out["quadratic_beta_factor"] = self.quadratic_factor(exptime_s)
         if self.table.name not in {"custom"} and not self.table.name.startswith("uniform-"):
@@ -333,12 +389,77 @@ def polynomial_response(coefficients: Sequence[float]) -> Callable[[np.ndarray],
     return lambda charge: charge + polynomial_perturbation(charge, coefficients)
 
 
-def usable_resultants(total_charge: np.ndarray, ramp: Ramp, exptime_s: float, full_well_e: float) -> np.ndarray:
-    """Number k of leading resultants whose last read stays within the full well (0: unusable)."""
-    last = ramp.table.last_read_fractions(exptime_s)
-    with np.errstate(divide="ignore"):
-        limit = np.where(total_charge > 0, full_well_e / np.asarray(total_charge, dtype=np.float64), np.inf)
-    return np.searchsorted(last, limit, side="right").astype(np.int32)
+def usable_resultants(
+    total_charge: np.ndarray,
+    ramp: Ramp,
+    exptime_s: float,
+    full_well_e: float,
+    state: Sequence[float] = (),
+) -> np.ndarray:
+    """Number k of leading resultants the fit uses (0: unusable), by ``ramp.saturation``.
+
+    "charge": the last read's charge stays within the full well. "signal": :func:`signal_usable` on
+    the resultants of the response S = Q - b2 Q^2 - ... with ``state`` = (b2, b3, ...), the NL the
+    saturation step sees (``ramp.saturation_beta`` replaces b2 when set). With
+    ``single_resultant="unusable"`` a pixel left with one resultant is unusable too (k = 0)."""
+    total = np.asarray(total_charge, dtype=np.float64)
+    if ramp.saturation == "charge":
+        last = ramp.table.last_read_fractions(exptime_s)
+        with np.errstate(divide="ignore"):
+            limit = np.where(total > 0, full_well_e / total, np.inf)
+        usable = np.searchsorted(last, limit, side="right").astype(np.int32)
+    else:
+        state = tuple(state)
+        if ramp.saturation_beta is not None:
+            state = (ramp.saturation_beta, *state[1:])
+        usable = np.full(total.shape, ramp.table.n_resultants, dtype=np.int32)
+        # Only pixels whose signal can reach the threshold need their reads: while S(Q) rises, the
+        # largest read is the last (S at the full charge); Q itself bounds S where beta >= 0, and a
+        # falling S (past 1 - 2 beta Q = 0) only happens far above any threshold a well allows.
+        response = polynomial_response(state)
+        candidates = (total >= full_well_e) | (response(total) >= full_well_e)
+        if np.any(candidates):
+            signal = resultant_means(total[candidates], ramp, exptime_s, response)
+            usable[candidates] = signal_usable(signal, ramp.table, full_well_e)
+    if ramp.single_resultant == "unusable":
+        usable = np.where(usable == 1, 0, usable).astype(np.int32)
+    return usable
+
+
+def signal_usable(resultants: np.ndarray, table: MATable, threshold: float) -> np.ndarray:
+    """Leading resultants left unflagged by romancal's saturation step, (..., K) -> (...).
+
+    romancal calls stcal's ``flag_saturated_pixels`` with the read pattern and ``n_pix_grow_sat=0``
+    (romancal/saturation/saturation.py); for one pixel's noiseless resultants R_j that is:
+
+    1. R_j >= threshold flags resultant j and every later one SATURATED;
+    2. going backwards, resultant j (not yet flagged, the next one SATURATED) is flagged DO_NOT_USE
+       when R_j >= threshold * mean(reads of j) / last(read of j) (its last reads may have saturated
+       while the mean stayed below; skipped when the dilution factor is 1);
+    3. with more than two resultants, the second is flagged DO_NOT_USE when the first, extrapolated
+       to the end of the third, stays below the threshold, R_2 - R_1 > (threshold - R_1) / n_2, and
+       the third is SATURATED but the second is not (no bias: romancal passes none).
+
+    Flags only ever cover a tail of the ramp, so the usable resultants are the leading unflagged ones.
+    (The A/D-floor flag, R <= 0, is not applied: a real ramp sits on a reset level far above zero.)
+    """
+    R = np.asarray(resultants, dtype=np.float64)
+    K = table.n_resultants
+    saturated = np.maximum.accumulate(threshold <= R, axis=-1)
+    flagged = saturated.copy()
+    for j in range(K - 2, -1, -1):
+        reads = table.resultants[j]
+        dilution = float(np.mean(reads)) / reads[-1]
+        if dilution == 1:
+            continue
+        flagged[..., j] |= (R[..., j] >= threshold * dilution) & ~flagged[..., j] & saturated[..., j + 1]
+    if K > 2:
+        first, second = table.resultants[0], table.resultants[1]
+        extrapolated = R[..., 0] / np.mean(first) * table.resultants[2][-1] < threshold
+        jumped = R[..., 1] - R[..., 0] > (threshold - R[..., 0]) / len(second)
+        flagged[..., 1] |= extrapolated & jumped & saturated[..., 2] & ~saturated[..., 1]
+    # k = index of the first flagged resultant (K when none is).
+    return np.where(flagged.any(axis=-1), np.argmax(flagged, axis=-1), K).astype(np.int32)
 
 
 def _resultant_fractions(table: MATable, exptime_s: float) -> np.ndarray:
@@ -487,7 +608,7 @@ def simulate_pixels(
     the saturation, and is not subtracted here."""
     response = response or polynomial_response(coefficients)
     total = np.asarray(charge, dtype=np.float64) + background_e
-    usable = usable_resultants(total, ramp, exptime_s, full_well_e)
+    usable = usable_resultants(total, ramp, exptime_s, full_well_e, coefficients)
     weights = slope_weights(total, usable, ramp, exptime_s)
     resultants = resultant_means(total, ramp, exptime_s, response)
     return RampImage(np.sum(weights * resultants, axis=-1), usable, ramp.table.n_resultants)
@@ -500,12 +621,15 @@ def order_factors(
     full_well_e: float,
     orders: Sequence[int] = (2,),
     background_e: float = 0.0,
+    state: Sequence[float] = (),
 ) -> tuple[np.ndarray, np.ndarray]:
     """(c_n per pixel, shape (orders, ...), usable resultants per pixel): see the module docstring.
 
-    A pixel's NL term of order n in the fitted image is -b_n (q + b)^n c_n."""
+    A pixel's NL term of order n in the fitted image is -b_n (q + b)^n c_n. ``state``: the NL
+    coefficients (b2, b3, ...) the "signal" saturation rule sees (:func:`usable_resultants`); the
+    factors themselves do not depend on them."""
     total = np.asarray(charge, dtype=np.float64) + background_e
-    usable = usable_resultants(total, ramp, exptime_s, full_well_e)
+    usable = usable_resultants(total, ramp, exptime_s, full_well_e, state)
     powers = ramp.table.mean_powers(exptime_s, orders)  # (orders, K)
     if ramp.fit == "ols":
         per_k = _ols_factors(ramp.table, exptime_s, orders)  # (K, orders)
@@ -533,13 +657,13 @@ def nonlinearity_perturbation(
     after the ramp fit is ``charge`` + this. A background is fitted with the star and its own
     fitted level (a star-free pixel's, what a sky estimate subtracts) is removed."""
     orders = tuple(range(2, 2 + len(coefficients)))
-    factors, usable = order_factors(charge, ramp, exptime_s, full_well_e, orders, background_e)
+    factors, usable = order_factors(charge, ramp, exptime_s, full_well_e, orders, background_e, coefficients)
     total = np.asarray(charge, dtype=np.float64) + background_e
     out = np.zeros_like(total)
     for b, n, c in zip(coefficients, orders, factors, strict=True):
         out -= b * total**n * c
     if background_e:
-        sky, _ = order_factors(np.zeros(1), ramp, exptime_s, full_well_e, orders, background_e)
+        sky, _ = order_factors(np.zeros(1), ramp, exptime_s, full_well_e, orders, background_e, coefficients)
         out += sum(b * background_e**n * c[0] for b, n, c in zip(coefficients, orders, sky, strict=True))
     return out, usable
 
@@ -611,3 +735,141 @@ def _read_noise(given: float | None, sca: int) -> tuple[float | None, str]:
     return backgrounds.read_noise(sca), (
         f"official read noise of SCA {sca}: median CDS noise / sqrt(2), WFI_CDS_Noise_summary.ecsv ({backgrounds.SOURCE_VERSION})"
     )
+
+
+# --- ramps inside a scene (IPC, background, polynomial NL) -------------------------------------
+
+#: Scene effects an up-the-ramp readout does not combine with yet, and why (the one place that says so).
+RAMP_REFUSES: dict[str, str] = {
+    "brighter_fatter": (
+        "brighter-fatter moves charge by an amount that grows as the square of the charge collected so far, so up "
+        "the ramp it is one more flux-dependent term per read, and its NL-free reference image would change with "
+        "each pixel's saturated resultants; the published kernel form is for a final frame and is not derived here"
+    ),
+}
+
+
+def check_scene(scene) -> None:
+    """Refuse a scene a ramp cannot take (:data:`RAMP_REFUSES`); every other effect combines
+    (optical ones trivially, IPC, background and polynomial NL by :func:`scene_factors`)."""
+    on = scene.effects_on()
+    refused = [name for name in RAMP_REFUSES if on.get(name)]
+    if refused:
+        raise InputError(
+            "scene", "an up-the-ramp readout cannot take " + "; ".join(f"{name}: {RAMP_REFUSES[name]}" for name in refused)
+        )
+
+
+@dataclass(frozen=True)
+class SceneRamp:
+    """A ramp's per-pixel factors inside a scene, at one flux (see :func:`scene_factors`)."""
+
+    factors: np.ndarray  # (orders, ...) c_n of the pixel that measures (its weights)
+    usable: np.ndarray  # resultants in each pixel's fit
+    charge: np.ndarray  # the charge the NL acts on (after IPC when IPC comes first)
+    orders: tuple[int, ...]
+
+
+def _ipc(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
+    from .scene import apply_ipc  # scene effects have one owner
+
+    return apply_ipc(images, kernel, oversampling)
+
+
+def scene_factors(
+    charge: np.ndarray,
+    ramp: Ramp,
+    exptime_s: float,
+    full_well_e: float,
+    state: Sequence[float],
+    orders: Sequence[int],
+    ipc=None,
+    ipc_order: str = "after",
+    oversampling: int = 1,
+) -> SceneRamp:
+    """Ramp factors of a scene's pixels: ``charge`` is the final-frame charge per fine pixel, star plus
+    background (Q = s psi + B), before IPC; ``state`` the NL coefficients the saturation step sees.
+
+    Derivation (docs/ramps.md). Every read i of pixel p measures D_p(tau_i) = sum_k K_k S_{p+k}(tau_i)
+    (IPC after the NL: coupling of the read voltages, linear and the same at every read) with
+    S(Q tau) = Q tau - sum_n b_n Q^n tau^n; resultants average reads, the fit is image_p = sum_j w_pj R_pj
+    with sum_j w_pj <tau>_j = 1. So
+
+        image_p = IPC(Q)_p - sum_n b_n IPC(Q^n)_p c_{n,p},     c_{n,p} = sum_j w_pj <tau^n>_j,
+
+    the factor of the *measuring* pixel p (its usable resultants and, for ``optimal``, its measured rate
+    IPC(Q)_p). IPC before the NL couples the charge instead: Q -> IPC(Q) first, then the plain form.
+    Saturation: "charge" judges the charge collected in the pixel (Q, or IPC(Q) when IPC comes first);
+    "signal" the resultants the pipeline receives, D (romancal flags the read data, after IPC).
+    """
+    total = np.asarray(charge, dtype=np.float64)
+    after = ipc is not None and ipc_order == "after"
+    if ipc is not None and not after:
+        total = _ipc(total, ipc, oversampling)
+    measured = _ipc(total, ipc, oversampling) if after else total
+    orders = tuple(orders)
+    if not after or ramp.saturation == "charge":
+        usable = usable_resultants(total, ramp, exptime_s, full_well_e, state)
+    else:
+        usable = _usable_after_ipc(total, measured, ramp, exptime_s, full_well_e, state, ipc, oversampling)
+    factors = _factors_for(measured, usable, ramp, exptime_s, orders)
+    return SceneRamp(factors, usable, total, orders)
+
+
+def _usable_after_ipc(total, measured, ramp: Ramp, exptime_s: float, threshold: float, state, kernel, oversampling: int):
+    """The "signal" rule on IPC-coupled reads: each read's S is coupled, then averaged into resultants."""
+    state = tuple(state)
+    if ramp.saturation_beta is not None:
+        state = (ramp.saturation_beta, *state[1:])
+    response = polynomial_response(state)
+    usable = np.full(total.shape, ramp.table.n_resultants, dtype=np.int32)
+    # As in usable_resultants: only pixels whose measured signal can reach the threshold need their reads.
+    candidates = (measured >= threshold) | (_ipc(response(total), kernel, oversampling) >= threshold)
+    if np.any(candidates):
+        tau = ramp.table.read_fractions(exptime_s)
+        sizes = [len(r) for r in ramp.table.resultants]
+        sums = np.zeros((int(candidates.sum()), len(sizes)))
+        which = np.repeat(np.arange(len(sizes)), sizes)
+        for i, t in enumerate(tau):
+            sums[:, which[i]] += _ipc(response(total * t), kernel, oversampling)[candidates]
+        usable[candidates] = signal_usable(sums / np.array(sizes, dtype=np.float64), ramp.table, threshold)
+    if ramp.single_resultant == "unusable":
+        usable = np.where(usable == 1, 0, usable).astype(np.int32)
+    return usable
+
+
+def _factors_for(rate_charge: np.ndarray, usable: np.ndarray, ramp: Ramp, exptime_s: float, orders: tuple[int, ...]):
+    """c_n (orders, ...) for given usable resultants; the optimal weights at ``rate_charge``."""
+    powers = ramp.table.mean_powers(exptime_s, orders)
+    if ramp.fit == "ols":
+        per_k = _ols_factors(ramp.table, exptime_s, orders)
+        return np.moveaxis(per_k[np.maximum(usable, 1) - 1], -1, 0)
+    flat_total, flat_k = np.asarray(rate_charge, dtype=np.float64).ravel(), np.maximum(usable, 1).ravel()
+    out = np.empty((len(orders), flat_total.size))
+    single = flat_k == 1
+    out[:, single] = (powers[:, 0] / _resultant_fractions(ramp.table, exptime_s)[0])[:, None]
+    for pick, k, h, U in _optimal_groups(flat_total, flat_k, ramp, exptime_s):
+        out[:, pick] = (h @ (U @ powers[:, :k].T)).T
+    return out.reshape(len(orders), *np.shape(rate_charge))
+
+
+def scene_perturbation(
+    sr: SceneRamp, beta, higher: Sequence[float], ipc=None, ipc_order: str = "after", oversampling: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """(fitted image - NL-free image, d it / d b2) in e-, from :func:`scene_factors` (``beta`` = b2,
+    scalar or per pixel; ``higher`` = (b3, ...)). Term by term, never a difference of images."""
+    after = ipc is not None and ipc_order == "after"
+    q = sr.charge
+    coefficients = (beta, *higher)
+    perturbation = np.zeros(np.shape(q))
+    power = q * q
+    derivative = None
+    for n, b in zip(range(2, 2 + len(coefficients)), coefficients, strict=True):
+        c = sr.factors[sr.orders.index(n)]
+        term = _ipc(power, ipc, oversampling) if after else power
+        if n == 2:
+            derivative = -c * term
+        if np.any(b != 0):
+            perturbation = perturbation - c * (_ipc(b * power, ipc, oversampling) if after else b * power)
+        power = power * q
+    return perturbation, derivative
