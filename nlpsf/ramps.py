@@ -242,9 +242,10 @@ class Ramp:
     read_noise_source: str = field(default="", compare=False)
     #: :data:`SATURATION_RULES`; the threshold is the full well, read as the saturation level in
     #: signal e- for "signal" (romanisim: 55000 DN at 2 e-/DN = 1.1e5 e-, the paper's full well).
-    saturation: str = "charge"
-    #: :data:`SINGLE_RESULTANT_RULES`.
-    single_resultant: str = "through_zero"
+    #: The default follows romancal; "charge" is nlpsf's rule before it.
+    saturation: str = "signal"
+    #: :data:`SINGLE_RESULTANT_RULES`; the default follows romancal, "through_zero" is nlpsf's rule before it.
+    single_resultant: str = "unusable"
     #: The raw detector's quadratic NL (paper convention, 1/e-) that the saturation step sees under
     #: the "signal" rule (it runs before the linearity correction); None: the NL being simulated.
     saturation_beta: float | None = None
@@ -284,9 +285,16 @@ class Ramp:
 
     @classmethod
     def uniform(
-        cls, n: int, exptime_s: float, fit: str = "ols", read_noise_e: float | None = None, read_noise_source: str = ""
+        cls,
+        n: int,
+        exptime_s: float,
+        fit: str = "ols",
+        read_noise_e: float | None = None,
+        read_noise_source: str = "",
+        **rules,
     ) -> Ramp:
-        return cls(MATable.uniform(n, exptime_s), fit, read_noise_e, read_noise_source)
+        """``rules``: ``saturation``, ``single_resultant``, ``saturation_beta`` (the fields)."""
+        return cls(MATable.uniform(n, exptime_s), fit, read_noise_e, read_noise_source, **rules)
 
     def check_exposure(self, exptime_s: float) -> None:
         self.table.check_exposure(exptime_s, "ramp" if self.table.name.startswith("uniform-") else "ma_table")
@@ -353,6 +361,10 @@ class Ramp:
             "frame_time_s": self.table.frame_time_s,
             "last_read_s": self.table.duration_s,
             "first_resultant_end_s": self.table.resultants[0][-1] * self.table.frame_time_s,
+            # The resultant a slope needs (the first, or the second where one resultant gives no slope)
+            # and when it ends: a star is usable until its brightest pixel saturates there.
+            "limit_resultant": min(self.min_usable, self.table.n_resultants),
+            "limit_resultant_end_s": self.first_usable_fraction(1.0),
             "fit": self.fit,
             "read_noise_e": self.read_noise_e,
             "read_noise_source": self.read_noise_source,
