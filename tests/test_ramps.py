@@ -510,3 +510,22 @@ def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_f
         assert answer.json()["conditions"]["ramp"]["read_noise_e"] == official[3]
         assert client.post("/api/v1/solve", json={**body, "read_noise": 5.0}).json()["conditions"]["ramp"]["read_noise_e"] == 5.0
         assert client.get("/api/v1/meta").json()["defaults"]["simulation"]["read_noise"] is None
+
+
+@pytest.mark.parametrize("beta", [0.0, BETA, 2e-6])
+def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(beta):
+    # Uniform reads (one per resultant: no dilution): the second resultant's signal q t2 - beta (q t2)^2
+    # reaches the threshold W at q t2 = (1 - sqrt(1 - 4 beta W)) / (2 beta) (W for beta = 0).
+    n = 8
+    ramp = uniform(n)
+    tau2 = 2 / n
+    x = FULL_WELL if beta == 0 else (1 - math.sqrt(1 - 4 * beta * FULL_WELL)) / (2 * beta)
+    assert ramp.limit_charge(T, FULL_WELL, beta) == pytest.approx(x / tau2, rel=1e-12)
+    shift = ramp.saturation_shift_mag(T, FULL_WELL, beta)
+    assert shift == pytest.approx(2.5 * math.log10(x / tau2 / FULL_WELL), rel=1e-12)
+    # A background fills part of the well: the star's own limit drops by it.
+    assert ramp.limit_charge(T, FULL_WELL, beta, 500.0) == pytest.approx(x / tau2 - 500.0, rel=1e-12)
+    # The linear estimate (no full well given) is the charge rule's, exact at beta = 0.
+    assert ramp.saturation_shift_mag(T) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
+    charge_rule = uniform(n, saturation="charge")
+    assert charge_rule.saturation_shift_mag(T, FULL_WELL, beta) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
