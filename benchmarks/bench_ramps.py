@@ -5,7 +5,8 @@ Work: H158, SCA 18, the paper's grid settings (N = 3, 96 x 96, R centroid realiz
 model), then for each exposure model the paper's 5 magnitudes x 1 beta (beta0 = 5e-7), with both
 methods (``monte_carlo``: every realization fitted; ``linear``: first-order response). Exposure
 models: the final frame; ``--ramp 55`` (uniform, OLS); the shipped MA table romanisim-110 with the
-OLS and with the optimal fit. The magnitudes include two brighter than the final frame's
+OLS (romancal's saturation rules, the default, and nlpsf's older charge rule) and with the optimal
+fit. The magnitudes include two brighter than the final frame's
 saturation, where pixels drop resultants.
 
 Also timed: the ramp's pixel step alone for the whole scene (per-pixel ramp factors, the vectorised
@@ -52,6 +53,12 @@ def main() -> None:
         "final frame": (None, exptime),
         "uniform-55 OLS": (ramps.Ramp.uniform(55, exptime), exptime),
         "romanisim-110 OLS": (ramps.Ramp(table), table.duration_s),
+        # nlpsf's rules before romancal's (charge saturation, one-resultant fit through zero): the
+        # cost of judging saturation on the resultants' signal.
+        "romanisim-110 OLS, charge rule": (
+            ramps.Ramp(table, saturation="charge", single_resultant="through_zero"),
+            table.duration_s,
+        ),
         "romanisim-110 optimal": (ramps.Ramp(table, fit="optimal"), table.duration_s),
     }
     base = experiment.SimulationConfig(realizations=args.realizations)
@@ -93,7 +100,7 @@ def main() -> None:
         reference = out["simulate_s"][f"{method} | final frame"]
         for name in models:
             seconds = out["simulate_s"][f"{method} | {name}"]
-            print(f"  {method:<11} {name:<22} {seconds:8.3f} s   x{seconds / reference:5.2f} of the final frame")
+            print(f"  {method:<11} {name:<30} {seconds:8.3f} s   x{seconds / reference:5.2f} of the final frame")
     fast, slow = out["pixel_step_s"].values()
     print(f"ramp pixel step, whole scene, romanisim-110 optimal: factors {fast:.3f} s, explicit reads {slow:.3f} s", end="")
     print(f" (x{slow / fast:.1f})")

@@ -242,9 +242,10 @@ class Ramp:
     read_noise_source: str = field(default="", compare=False)
     #: :data:`SATURATION_RULES`; the threshold is the full well, read as the saturation level in
     #: signal e- for "signal" (romanisim: 55000 DN at 2 e-/DN = 1.1e5 e-, the paper's full well).
-    saturation: str = "charge"
-    #: :data:`SINGLE_RESULTANT_RULES`.
-    single_resultant: str = "through_zero"
+    #: The default follows romancal; "charge" is nlpsf's rule before it.
+    saturation: str = "signal"
+    #: :data:`SINGLE_RESULTANT_RULES`; the default follows romancal, "through_zero" is nlpsf's rule before it.
+    single_resultant: str = "unusable"
     #: The raw detector's quadratic NL (paper convention, 1/e-) that the saturation step sees under
     #: the "signal" rule (it runs before the linearity correction); None: the NL being simulated.
     saturation_beta: float | None = None
@@ -284,9 +285,16 @@ class Ramp:
 
     @classmethod
     def uniform(
-        cls, n: int, exptime_s: float, fit: str = "ols", read_noise_e: float | None = None, read_noise_source: str = ""
+        cls,
+        n: int,
+        exptime_s: float,
+        fit: str = "ols",
+        read_noise_e: float | None = None,
+        read_noise_source: str = "",
+        **rules,
     ) -> Ramp:
-        return cls(MATable.uniform(n, exptime_s), fit, read_noise_e, read_noise_source)
+        """``rules``: ``saturation``, ``single_resultant``, ``saturation_beta`` (the fields)."""
+        return cls(MATable.uniform(n, exptime_s), fit, read_noise_e, read_noise_source, **rules)
 
     def check_exposure(self, exptime_s: float) -> None:
         self.table.check_exposure(exptime_s, "ramp" if self.table.name.startswith("uniform-") else "ma_table")
@@ -312,9 +320,40 @@ class Ramp:
         star with beta > 0 keeps its resultants slightly longer)."""
         return float(self.table.last_read_fractions(exptime_s)[min(self.min_usable, self.table.n_resultants) - 1])
 
-    def saturation_shift_mag(self, exptime_s: float) -> float:
-        """How much brighter the ramp rule's saturation magnitude is than the final frame's:
-        2.5 log10(T / t_k) with t_k the last read of the last resultant a slope needs."""
+    def limit_charge(self, exptime_s: float, full_well_e: float, beta: float = 0.0, background_e: float = 0.0) -> float:
+        """The star's final-frame charge [e-] in a pixel (background ``background_e`` on top) above which
+        that pixel keeps fewer resultants than a slope needs, under this ramp's rules with the raw
+        quadratic NL ``beta`` (``saturation_beta`` wins when set). Exact for either rule (bisection on
+        :func:`usable_resultants`, which only ever loses resultants as the charge grows)."""
+        needed = min(self.min_usable, self.table.n_resultants)
+
+        def keeps(q: float) -> bool:
+            return bool(usable_resultants(np.array([q + background_e]), self, exptime_s, full_well_e, (beta,))[0] >= needed)
+
+        low = 0.0
+        high = max(full_well_e, 1.0) / self.first_usable_fraction(exptime_s)
+        while keeps(high):
+            low, high = high, 2 * high
+        for _ in range(200):
+            middle = 0.5 * (low + high)
+            if middle in (low, high):
+                break
+            low, high = (middle, high) if keeps(middle) else (low, middle)
+        return low
+
+    def saturation_shift_mag(
+        self, exptime_s: float, full_well_e: float | None = None, beta: float = 0.0, background_e: float = 0.0
+    ) -> float:
+        """How much brighter the ramp rule's saturation magnitude is than the final frame's.
+
+        Without ``full_well_e``: 2.5 log10(T / t_k) with t_k the last read of the last resultant a
+        slope needs, the limit of a linear detector judged by its charge. With it: exact for this
+        ramp's rules, 2.5 log10(:meth:`limit_charge` / (full well - background)), the final frame's
+        limit being a peak charge of full well - background (the "signal" rule's NL lowers the signal,
+        so that star is a little brighter than the linear estimate)."""
+        if full_well_e is not None:
+            limit = self.limit_charge(exptime_s, full_well_e, beta, background_e)
+            return 2.5 * math.log10(limit / (full_well_e - background_e))
         return 2.5 * math.log10(1.0 / self.first_usable_fraction(exptime_s))
 
     def describe(self) -> str:
@@ -353,6 +392,10 @@ class Ramp:
             "frame_time_s": self.table.frame_time_s,
             "last_read_s": self.table.duration_s,
             "first_resultant_end_s": self.table.resultants[0][-1] * self.table.frame_time_s,
+            # The resultant a slope needs (the first, or the second where one resultant gives no slope)
+            # and when it ends: a star is usable until its brightest pixel saturates there.
+            "limit_resultant": min(self.min_usable, self.table.n_resultants),
+            "limit_resultant_end_s": self.first_usable_fraction(1.0),
             "fit": self.fit,
             "read_noise_e": self.read_noise_e,
             "read_noise_source": self.read_noise_source,
@@ -691,6 +734,8 @@ def build(
     exptime_s: float | None = None,
     allow_files: bool = True,
     sca: int = defaults.SCA,
+    saturation: str = "signal",
+    single_resultant: str = "unusable",
 ) -> tuple[Ramp | None, float]:
     """The ramp a request asks for and the exposure time to use with it (one rule for every entry point).
 
@@ -701,15 +746,18 @@ def build(
     Neither given: (None, exposure) -- the paper's single final frame.
 
     ``read_noise_e`` None (not given): the official read noise of ``sca`` (its median CDS noise /
-    sqrt 2, ``backgrounds.read_noise``), named in the ramp's conditions.
+    sqrt 2, ``backgrounds.read_noise``), named in the ramp's conditions. ``saturation`` and
+    ``single_resultant``: the ramp's rules (:data:`SATURATION_RULES`, :data:`SINGLE_RESULTANT_RULES`;
+    romancal's by default).
     """
+    rules = {"saturation": saturation, "single_resultant": single_resultant}
     if reads is not None and ma_table is not None:
         raise InputError("ma_table", "give either a uniform ramp (ramp = N reads) or an MA table, not both")
     if ma_table is None:
         exptime = defaults.EXPTIME_S if exptime_s is None else exptime_s
         if reads is None:
             return None, exptime
-        ramp = Ramp.uniform(reads, exptime, fit, *_read_noise(read_noise_e, sca))
+        ramp = Ramp.uniform(reads, exptime, fit, *_read_noise(read_noise_e, sca), **rules)
         return ramp, exptime
     if isinstance(ma_table, MATable):
         table = ma_table
@@ -719,7 +767,7 @@ def build(
         raise InputError("ma_table", f"give a shipped table's name ({', '.join(shipped_table_names())}) or the table itself")
     else:
         table = load_ma_table(ma_table)
-    ramp = Ramp(table, fit, *_read_noise(read_noise_e, sca))
+    ramp = Ramp(table, fit, *_read_noise(read_noise_e, sca), **rules)
     exptime = table.duration_s if exptime_s is None else exptime_s
     check_number(exptime, "exptime", *defaults.EXPTIME_RANGE_S)
     ramp.check_exposure(exptime)

@@ -24,6 +24,11 @@ def uniform(n, fit="ols", **kw):
     return ramps.Ramp.uniform(n, T, fit=fit, **kw)
 
 
+#: nlpsf's rules before romancal's (saturation by the charge, one resultant fitted through zero):
+#: the analytic checks of those rules keep them explicitly.
+CHARGE_RULES = {"saturation": "charge", "single_resultant": "through_zero"}
+
+
 # --- the MA table -----------------------------------------------------------------------------
 
 
@@ -73,7 +78,7 @@ def test_shipped_tables_load_fit_the_paper_exposure_and_are_documented():
 
 def test_the_longest_uniform_ramp_is_cheap_and_exact():
     # 10^4 reads: O(K) running sums, no K x K matrix; still beta (1 + 1/N) to rounding.
-    ramp = uniform(ramps.MAX_READS)
+    ramp = uniform(ramps.MAX_READS, **CHARGE_RULES)
     assert ramp.quadratic_factor(T) == pytest.approx(1 + 1 / ramps.MAX_READS, rel=1e-12)
     factors, usable = ramps.order_factors(np.array([1e3, 2e5]), ramp, T, FULL_WELL)
     assert usable[0] == ramps.MAX_READS and factors[0, 0] == pytest.approx(1 + 1 / ramps.MAX_READS, rel=1e-12)
@@ -109,7 +114,7 @@ def test_one_pixel_with_saturated_resultants_dropped_has_the_analytic_slope():
     # Four uniform reads at tau = 1/4 .. 1. With the full well between 2/4 and 3/4 of q the pixel
     # keeps two resultants, and the line through two points has slope
     # (S2 - S1) / (tau2 - tau1) = q - beta q^2 (tau1 + tau2) = q - (3/4) beta q^2.
-    ramp = uniform(4)
+    ramp = uniform(4, **CHARGE_RULES)
     q = 1.8e5  # q/2 = 0.9e5 <= 1.1e5 < 3q/4 = 1.35e5
     fitted = ramps.simulate_pixels(np.array([q]), ramp, T, FULL_WELL, (BETA,))
     assert fitted.usable[0] == 2
@@ -120,6 +125,21 @@ def test_one_pixel_with_saturated_resultants_dropped_has_the_analytic_slope():
     assert fitted.usable[0] == 1 and fitted.image[0] == pytest.approx(q - 0.25 * BETA * q**2, rel=1e-12)
     # Saturated already at the first read: unusable.
     fitted = ramps.simulate_pixels(np.array([5e5]), ramp, T, FULL_WELL, (BETA,))
+    assert fitted.usable[0] == 0 and fitted.unusable[0]
+
+
+def test_romancal_rules_judge_the_signal_and_need_two_resultants():
+    # The default rules (romancal's): a resultant is saturated when its *signal* S = Q - beta Q^2 reaches
+    # the threshold, so q/2 = 1.15e5 e- of charge (signal 1.084e5 < 1.1e5) keeps its second read; and a
+    # pixel left with one resultant has no slope (unusable).
+    ramp = uniform(4)
+    q = 2.3e5
+    assert q / 2 > FULL_WELL > q / 2 - BETA * (q / 2) ** 2
+    fitted = ramps.simulate_pixels(np.array([q]), ramp, T, FULL_WELL, (BETA,))
+    assert fitted.usable[0] == 2
+    assert fitted.image[0] == pytest.approx(q - 0.75 * BETA * q**2, rel=1e-12)
+    assert ramps.simulate_pixels(np.array([q]), uniform(4, **CHARGE_RULES), T, FULL_WELL, (BETA,)).usable[0] == 1
+    fitted = ramps.simulate_pixels(np.array([4e5]), ramp, T, FULL_WELL, (BETA,))  # one resultant left
     assert fitted.usable[0] == 0 and fitted.unusable[0]
 
 
@@ -257,14 +277,18 @@ def test_any_ols_table_maps_exactly_onto_the_final_frame(paper_config, paper_sce
     assert a.dR_over_R.mean == pytest.approx(b.dR_over_R.mean, rel=1e-12)
 
 
-def test_the_ramp_saturation_magnitude_moves_by_the_first_resultant_time(paper_config, paper_scene):
-    ramp_cfg = uniform(8)
+@pytest.mark.parametrize(("rules", "needed"), [(CHARGE_RULES, 1), ({"saturation": "charge", "single_resultant": "unusable"}, 2)])
+def test_the_ramp_saturation_magnitude_moves_by_the_time_of_the_resultant_a_slope_needs(paper_config, paper_scene, rules, needed):
+    # The charge rule makes the limit exact: the brightest pixel's charge at the last read of the
+    # resultant a slope needs (the first, or the second where one resultant gives no slope) is the full well.
+    ramp_cfg = uniform(8, **rules)
     config, scene = _with(paper_config, paper_scene, ramp=ramp_cfg)
     # The final frame's flag is judged on the star (brightest pixel over every sub-pixel centroid),
-    # the ramp's first-resultant saturation on the centroids drawn (``ramp_effect``).
+    # the ramp's saturation on the centroids drawn (``ramp_effect``).
     final_frame = tablebuild.saturation_magnitude(paper_scene.star_peak_fraction, config)  # exposure T, full well
     drawn = tablebuild.saturation_magnitude(float(paper_scene.peak_fraction.max()), config)
-    predicted = drawn - 2.5 * math.log10(T / (T / 8))
+    predicted = drawn - 2.5 * math.log10(T / (needed * T / 8))
+    assert ramp_cfg.saturation_shift_mag(T) == pytest.approx(drawn - predicted, rel=1e-12)
     step = 0.05
     grid = np.round(np.arange(final_frame + 0.5, predicted - 0.5, -step), 6)
     results = simulate(config, list(grid), [BETA], scene=scene)
@@ -276,7 +300,7 @@ def test_the_ramp_saturation_magnitude_moves_by_the_first_resultant_time(paper_c
     ramp_limit = grid[np.argmax(unusable) - 1]
     frame_limit = grid[np.argmax(frame_saturated) - 1]
     assert abs(ramp_limit - predicted) <= step and abs(frame_limit - final_frame) <= step
-    assert ramp_limit - frame_limit == pytest.approx(-2.5 * math.log10(8), abs=2 * step)
+    assert ramp_limit - frame_limit == pytest.approx(-2.5 * math.log10(8 / needed), abs=2 * step)
     # Stars between the two limits get answers, flagged as fitted on the early resultants.
     between = (grid < drawn) & (grid > ramp_limit)  # a drawn centroid's final frame passes the full well
     assert between.sum() > 10
@@ -334,8 +358,9 @@ def test_solver_saturation_rules_and_stars_between_them():
     ramp = solver.solve("H158", precision=0.01, magnitude=17.0, ramp=uniform(n))
     payload = json.loads(json.dumps(ramp.to_dict()))
     assert payload["final_frame_saturation_magnitude"] == pytest.approx(plain.saturation_magnitude)
-    # First resultant = first read at T/n: the ramp limit is 2.5 log10(n) brighter.
-    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n), abs=1e-12)
+    # A slope needs two resultants (romancal); the second ends at 2T/n: the ramp limit is 2.5 log10(n / 2)
+    # brighter (for a linear detector: the NL lowers the signal, so the signal rule's own limit is a little brighter still).
+    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-12)
     assert "ramp" in ramp.conditions["saturation_rule"] and "final frame" in plain.conditions["saturation_rule"]
     # m = 17 lies between the two limits: an answer from a fresh simulation, flagged as such.
     assert any(f.startswith("saturated:") for f in plain.flags)
@@ -346,7 +371,7 @@ def test_solver_saturation_rules_and_stars_between_them():
     loose = solver.solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
     assert loose.binding_limit == "saturation"
     assert loose.brightest_usable_magnitude == pytest.approx(loose.saturation_magnitude)
-    assert loose.brightest_usable_magnitude < loose.final_frame_saturation_magnitude - 2.0
+    assert loose.brightest_usable_magnitude == pytest.approx(loose.final_frame_saturation_magnitude - 2.5 * math.log10(n / 2))
     with pytest.raises(InputError) as error:
         solver.solve("H158", precision=0.01, magnitude=10.0, ramp=uniform(n))
     assert error.value.argument == "magnitude"
@@ -374,7 +399,7 @@ def test_cli_solve_with_a_ramp_reports_both_saturation_rules(capsys):
     payload = json.loads(out)
     library = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8))
     assert payload["tolerance"] == library.tolerance
-    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - 2.5 * math.log10(8))
+    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - 2.5 * math.log10(4))
     # An MA table's exposure defaults to its last read.
     code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ma-table", "romanisim-109", "--json")
     assert code == 0 and json.loads(out)["exptime"] == pytest.approx(ramps.load_ma_table("romanisim-109").duration_s)
@@ -487,3 +512,22 @@ def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_f
         assert answer.json()["conditions"]["ramp"]["read_noise_e"] == official[3]
         assert client.post("/api/v1/solve", json={**body, "read_noise": 5.0}).json()["conditions"]["ramp"]["read_noise_e"] == 5.0
         assert client.get("/api/v1/meta").json()["defaults"]["simulation"]["read_noise"] is None
+
+
+@pytest.mark.parametrize("beta", [0.0, BETA, 2e-6])
+def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(beta):
+    # Uniform reads (one per resultant: no dilution): the second resultant's signal q t2 - beta (q t2)^2
+    # reaches the threshold W at q t2 = (1 - sqrt(1 - 4 beta W)) / (2 beta) (W for beta = 0).
+    n = 8
+    ramp = uniform(n)
+    tau2 = 2 / n
+    x = FULL_WELL if beta == 0 else (1 - math.sqrt(1 - 4 * beta * FULL_WELL)) / (2 * beta)
+    assert ramp.limit_charge(T, FULL_WELL, beta) == pytest.approx(x / tau2, rel=1e-12)
+    shift = ramp.saturation_shift_mag(T, FULL_WELL, beta)
+    assert shift == pytest.approx(2.5 * math.log10(x / tau2 / FULL_WELL), rel=1e-12)
+    # A background fills part of the well: the star's own limit drops by it.
+    assert ramp.limit_charge(T, FULL_WELL, beta, 500.0) == pytest.approx(x / tau2 - 500.0, rel=1e-12)
+    # The linear estimate (no full well given) is the charge rule's, exact at beta = 0.
+    assert ramp.saturation_shift_mag(T) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
+    charge_rule = uniform(n, saturation="charge")
+    assert charge_rule.saturation_shift_mag(T, FULL_WELL, beta) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)

@@ -353,3 +353,28 @@ def test_uniform_ols_ramp_with_ipc_and_background_is_the_final_frame_at_beta_eff
     b = simulate(frame, [19.0], [BETA * (1 + 1 / n)], scene=frame_scene)[0]
     for metric in ("dR_over_R", "de1", "de2"):
         assert getattr(a, metric).mean == pytest.approx(getattr(b, metric).mean, rel=1e-9, abs=1e-15)
+
+
+@pytest.mark.slow
+def test_a_star_between_the_saturation_limits_matches_the_brute_force_image():
+    # The whole chain at the metric level: every pixel of two H158 stamps read by read (brute_force),
+    # the fitted images measured, against the simulator's answer at a magnitude where the core keeps
+    # only some resultants (romancal's rules, romanisim-110: between its limit m = 15.12 and 17.73).
+    from nlpsf import experiment, moments
+    from nlpsf.experiment import SimulationConfig, simulate
+
+    table = ramps.load_ma_table("romanisim-110")
+    T = table.duration_s
+    config = SimulationConfig(band="H158", realizations=2, exptime_s=T, ramp=ramps.Ramp(table))
+    scene = experiment.prepare(config)
+    magnitude = 16.5
+    result = simulate(config, [magnitude], [BETA], scene=scene)[0]
+    assert result.extras["ramp"]["fitted_on_fewer"] > 0 and result.extras["ramp"]["unusable"] == 0
+    scale = float(config.electrons(magnitude)) * config.oversampling**2
+    images = np.empty_like(scene.stamps)
+    for index in np.ndindex(scene.stamps.shape):
+        images[index] = brute_force(scale * scene.stamps[index], table, T, (BETA,), saturation="signal", single="unusable")[0]
+    fitted = moments.fit(images / scale, config.moment_settings, start=scene.reference.parameters())
+    d_r, d_e1, d_e2 = moments.differences(fitted, scene.reference)
+    for got, expected in ((result.dR_over_R, d_r), (result.de1, d_e1), (result.de2, d_e2)):
+        assert got.mean == pytest.approx(float(np.mean(expected)), rel=1e-6, abs=1e-12)
