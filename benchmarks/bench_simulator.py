@@ -47,6 +47,15 @@ SHELL_TARGET = 300
 
 def run_nlpsf(realizations: int, method: str = "monte_carlo") -> dict:
     """The whole grid with nlpsf, cold (optics computed here), with a time breakdown."""
+    from nlpsf import threads
+
+    # The library's entry points run their kernels on NLPSF_BLAS_THREADS threads; this timing calls
+    # the kernels one by one, so it applies the same limit around them.
+    with threads.limited_blas():
+        return _run_nlpsf(realizations, method)
+
+
+def _run_nlpsf(realizations: int, method: str) -> dict:
     from nlpsf import experiment, moments, optics, render
 
     optics.effective_psf.cache_clear()

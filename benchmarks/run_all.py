@@ -53,13 +53,13 @@ BENCHMARKS = (
         "scene",
         "Cost of each scene effect relative to the plain simulation",
         ("benchmarks/bench_scene.py",),
-        r"^\S.*\d",
+        r"^(configuration|plain|roman preset|everything)\b",
     ),
     Benchmark(
         "ramps",
         "Up the ramp against the final frame",
         ("benchmarks/bench_ramps.py",),
-        r"×|x\b|ratio",
+        r"\bx ?\d",
     ),
     Benchmark(
         "job_memory",
