@@ -162,6 +162,7 @@ class SimulationConfig:
             fidelity=self.fidelity,
             pixel_scale_arcsec=roman.PIXEL_SCALE_ARCSEC,
             throughput_version=roman.THROUGHPUT_VERSIONS[self.throughput],
+            pupil_scale_source=roman.PUPIL_SCALE_SOURCES[self.pupil_scale],
             data_version=roman.DATA_VERSION,
             code_version=__version__,
         )

@@ -40,7 +40,7 @@ DESCRIPTIONS = {
     "beta_paper": "NL coefficient in the paper's convention S = Q - beta Q^2 [1/e-]",
     "sigma_beta": "per-pixel scatter of beta [1/e-]; > 0: rows are statistics over beta maps at a fixed centroid",
     "flux_electrons": "star flux over the exposure [e-]",
-    "peak_electrons": "brightest fine pixel, scaled to native-pixel charge [e-]",
+    "peak_electrons": "the star's brightest fine pixel over every sub-pixel centroid, as native-pixel charge [e-]",
     "dR_over_R": "mean fractional size change over realizations",
     "de1": "mean change of e1 = (Mxx - Myy)/(Mxx + Myy)",
     "de2": "mean change of e2 = 2 Mxy/(Mxx + Myy)",

@@ -294,6 +294,20 @@ def test_simulation_throughput_is_a_request_field_named_in_the_conditions(client
     assert refused.status_code == 422
 
 
+def test_simulation_pupil_scale_official_is_a_request_field(client):
+    # The API's simulation is the library's: same rule, same numbers; an unknown rule is a 422.
+    from nlpsf import experiment
+
+    body = {"band": "F184", "sca": 9, "magnitudes": [20.0], "realizations": 2, "fidelity": "linear", "pupil_scale": "official"}
+    job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
+    assert job["status"] == "done", job
+    assert job["result"]["conditions"]["pupil_scale"] == "official"
+    config = experiment.SimulationConfig(band="F184", sca=9, realizations=2, method="linear", pupil_scale="official")
+    direct = experiment.simulate(config, [20.0], [5e-7])[0]
+    assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(direct.dR_over_R.mean, rel=1e-12)
+    assert client.post("/api/v1/simulations", json={**body, "pupil_scale": "cycle-5"}).status_code == 422
+
+
 def test_sigma_beta_simulation_gives_the_scatter(client):
     body = {"magnitudes": [20.0], "betas": [5e-7], "sigma_betas": [5e-8, 1e-7], "realizations": 16, "fidelity": "linear"}
     job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
