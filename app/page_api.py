@@ -377,7 +377,7 @@ def _answers_csv(results: list[dict[str, Any]]) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     units = "precision is a fraction of beta0, tolerance dimensionless, magnitudes AB"
-    writer.writerow([f"# nlpsf batch answers; table fidelity; {units}"])
+    out.write(f"# nlpsf batch answers; table fidelity; {units}\n")
     writer.writerow(["row", "ok", *_ANSWER_COLUMNS, "flags", "error"])
     for item in results:
         s = item.get("solution") or {}

@@ -10,7 +10,7 @@ const BAND_COLORS = {
   H158: "#D55E00", F184: "#CC79A7", W146: "#000000", K213: "#8C6D00",
 };
 const BAND_DASH = {
-  R062: [], Z087: [10, 4], Y106: [2, 3], J129: [12, 3, 2, 3], H158: [], F184: [6, 6], W146: [1, 2], K213: [14, 4, 2, 4, 2, 4],
+  R062: [3, 3, 8, 3], Z087: [10, 4], Y106: [2, 3], J129: [12, 3, 2, 3], H158: [], F184: [6, 6], W146: [1, 2], K213: [14, 4, 2, 4, 2, 4],
 };
 const SERIES_COLORS = ["#c00000", "#0072B2", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000", "#8C6D00"];
 const METRIC_LABEL = { size: "ΔR/R", e1: "Δe₁", e2: "Δe₂", e: "|Δe|" };
@@ -702,7 +702,7 @@ function exportCsv(name) {
     c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]},${c.err && c.err[i] != null ? c.err[i] : ""}`));
   }
   for (const m of plot.markers || []) lines.push(`"${m.label.replace(/"/g, "'")}",${m.x},,`);
-  download(`${plotFileName(name)}.csv`, "data:text/csv;charset=utf-8," + encodeURIComponent(lines.join("\n") + "\n"));
+  downloadText(`${plotFileName(name)}.csv`, lines.join("\n") + "\n", "text/csv");
 }
 
 // Distinct names: which plot, and the choices that made it.
@@ -773,7 +773,7 @@ function exportPng(name) {
     ctx.fillStyle = "#1d2330";
     ctx.fillText(e.label, x + 36 * scale, y);
   });
-  download(`${plotFileName(name)}.png`, canvas.toDataURL("image/png"));
+  canvas.toBlob((blob) => downloadBlob(`${plotFileName(name)}.png`, blob), "image/png");
 }
 
 function download(filename, url) {
@@ -785,8 +785,15 @@ function download(filename, url) {
   a.remove();
 }
 
+// Blob URLs, not data: URLs: no size limit, and released once the download has started.
+function downloadBlob(filename, blob) {
+  const url = URL.createObjectURL(blob);
+  download(filename, url);
+  setTimeout(() => URL.revokeObjectURL(url), 10_000);
+}
+
 function downloadText(filename, text, type) {
-  download(filename, `data:${type};charset=utf-8,${encodeURIComponent(text)}`);
+  downloadBlob(filename, new Blob([text], { type: `${type};charset=utf-8` }));
 }
 
 // A wide table scrolls sideways; a shadow at its edge and a line of text say so.
@@ -968,6 +975,9 @@ function fillPresets() {
 function applyPreset(preset) {
   const form = document.getElementById("solve-form");
   for (const name of ["shear_m", "shear_c", "size_ratio"]) form.elements[name].value = "";
+  // The preset's tolerance replaces whatever was typed before a budget greyed the box.
+  delete form.elements.tolerance.dataset.typed;
+  delete form.elements.tolerance.dataset.shown;
   for (const [name, value] of Object.entries(preset.fields)) {
     if (name === "tolerance") {
       form.elements.tolerance.value = String(value);
@@ -1762,16 +1772,21 @@ async function showImpact(report) {
       const change = v === null ? "" : `slope ${v > 0 ? "+" : ""}${fmt(100 * v, 3)} %`;
       const inAnswer = modelled.has(e.name) ? "in the answer" : e.on ? "on in this scene" : "not in the answer";
       const label = v === null
-        ? `not measured: ${e.note || "no value given"}`
+        ? `not measured: ${plainNote(e.note || "no value given")}`
         : p ? `p ${fmt(100 * p, 3)} % → ${fmt(100 * shifted[k], 3)} % (${change})` : change;
       return `<div class="bar-row" data-effect="${escapeHtml(e.name)}">` +
         `<span class="bar-name">${escapeHtml(plain)}${e.on ? " (on)" : ""}<span class="muted small"> · ${escapeHtml(inAnswer)}</span></span>` +
         `<span class="bar-track" aria-hidden="true"><span class="bar ${side}" style="width:${width}%"></span></span>` +
         `<span class="bar-value">${escapeHtml(label)}</span>` +
-        `<span class="bar-about muted">${escapeHtml(about)}${e.note && v !== null ? ` (${escapeHtml(e.note)})` : ""}</span></div>`;
+        `<span class="bar-about muted">${escapeHtml(about)}${e.note && v !== null ? ` (${escapeHtml(plainNote(e.note))})` : ""}</span></div>`;
     })
     .join("");
   document.getElementById("impact-result").hidden = false;
+}
+
+// "measured at galsim.roman.ipc_kernel" in a reader's words.
+function plainNote(note) {
+  return plainWords(String(note).replace(/galsim\.roman\.\w+/g, "GalSim's Roman value"));
 }
 
 function fillExplanations() {
