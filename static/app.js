@@ -1095,6 +1095,9 @@ async function solve(event) {
   const button = document.getElementById("solve-button");
   button.disabled = true;
   button.textContent = "Solving…";
+  // Until the new answer comes, the old one is greyed: it answers another question.
+  resultBox.classList.add("stale");
+  resultBox.setAttribute("aria-busy", "true");
   try {
     const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true,
       onJob: () => { button.textContent = "Simulating…"; } });
@@ -1154,6 +1157,7 @@ function showAnswer(s) {
       · ${escapeHtml(MODE_NAME[s.mode] || s.mode)} · ${escapeHtml(METRIC_NAME[s.metric] || s.metric)}</p>`;
   resultBox.hidden = false;
   resultBox.classList.remove("stale");
+  resultBox.removeAttribute("aria-busy");
   state.lastSolution = s;
   const paperButton = document.getElementById("use-paper-scene");
   if (paperButton) paperButton.addEventListener("click", usePaperScene);
@@ -1233,6 +1237,8 @@ async function failAnswer(error, shortReason = null, body = null) {
   state.lastSolution = null;
   for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = true;
   resultBox.hidden = true;
+  resultBox.classList.remove("stale");
+  resultBox.removeAttribute("aria-busy");
   let plain = plainWords(error.message);
   const field = error.field ? String(error.field).replace(/^scene\./, "") : null;
   let short = null;

@@ -26,9 +26,9 @@ def percent_value(text: str) -> float:
     return float(text.split("%")[0].split("=")[-1].strip()) / 100
 
 
-def download(page, selector: str):
-    with page.expect_download() as info:
-        page.click(selector)
+def download(tab, selector: str):
+    with tab.expect_download() as info:
+        tab.click(selector)
     value = info.value
     data = Path(value.path()).read_bytes()
     return value.suggested_filename, data.decode() if not value.suggested_filename.endswith(".png") else data
@@ -314,7 +314,8 @@ def test_the_page_on_a_phone(page, server):  # noqa: F811
         )
         assert small == [], f"touch targets under 24 px: {small}"
         wrap = page.locator("#comparison .table-wrap")
-        if page.evaluate("() => { const w = document.querySelector('#comparison .table-wrap'); return w.scrollWidth > w.clientWidth; }"):
+        wider = "() => { const w = document.querySelector('#comparison .table-wrap'); return w.scrollWidth > w.clientWidth; }"
+        if page.evaluate(wider):
             assert "scroll sideways" in page.inner_text("#comparison .scroll-cue")
         assert wrap.count() == 1
         page.screenshot(path=str(ARTIFACTS / "e2e-phone.png"), full_page=False)
