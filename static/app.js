@@ -773,7 +773,12 @@ function exportPng(name) {
     ctx.fillStyle = "#1d2330";
     ctx.fillText(e.label, x + 36 * scale, y);
   });
-  canvas.toBlob((blob) => downloadBlob(`${plotFileName(name)}.png`, blob), "image/png");
+  // Synchronously (not canvas.toBlob): the download must start within the click, or the browser
+  // counts it as an automatic download and may block it.
+  const bytes = atob(canvas.toDataURL("image/png").split(",")[1]);
+  const buffer = new Uint8Array(bytes.length);
+  for (let i = 0; i < bytes.length; i++) buffer[i] = bytes.charCodeAt(i);
+  downloadBlob(`${plotFileName(name)}.png`, new Blob([buffer], { type: "image/png" }));
 }
 
 function download(filename, url) {
@@ -1156,6 +1161,8 @@ function showAnswer(s) {
     <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
       · ${escapeHtml(MODE_NAME[s.mode] || s.mode)} · ${escapeHtml(METRIC_NAME[s.metric] || s.metric)}</p>`;
   resultBox.hidden = false;
+  // The answer in one sentence at the top, so the first view says what it answers and for which scene.
+  document.getElementById("top-answer").innerHTML = `<a href="#calc-title">Answer</a>: ${escapeHtml(answerSentence(s))}`;
   resultBox.classList.remove("stale");
   resultBox.removeAttribute("aria-busy");
   state.lastSolution = s;
@@ -1210,7 +1217,8 @@ function answerSentence(s) {
       `${what} within ${withUncertainty(s.tolerance, s.uncertainty)}.`;
   }
   return `With ${beta} ${known} ${fmt(100 * s.precision, 3)} % and ${what} ≤ ${fmt(s.tolerance)}, ${stars} ${where} ` +
-    `can be used down to m = ${magnitudeText(s.magnitude, s.uncertainty)}${s.binding_limit ? ` (${s.binding_limit} sets the limit)` : ""}.`;
+    `can be used as bright as m = ${magnitudeText(s.magnitude, s.uncertainty)}${s.binding_limit ? ` (${s.binding_limit} sets the limit)` : ""}; ` +
+    "brighter stars exceed the tolerance.";
 }
 
 function shearText(shear) {
@@ -1239,6 +1247,7 @@ async function failAnswer(error, shortReason = null, body = null) {
   resultBox.hidden = true;
   resultBox.classList.remove("stale");
   resultBox.removeAttribute("aria-busy");
+  document.getElementById("top-answer").textContent = "No answer: see the calculator below.";
   let plain = plainWords(error.message);
   const field = error.field ? String(error.field).replace(/^scene\./, "") : null;
   let short = null;
