@@ -1110,7 +1110,8 @@ async function solve(event) {
     showAnswer(s);
     stateToUrl();
     await Promise.all([drawRequirementPlot(s), drawCalculatorPlot(s)]);
-    drawSlopes().catch(() => {});
+    // The slopes' legend reads at the answer's magnitude: redraw only when that moved.
+    if (state.slopesAt !== s.magnitude) drawSlopes().catch(() => {});
   } catch (error) {
     if (error.unreachable) connection.lost("solve", () => solve(null));
     await failAnswer(error, null, body);
@@ -1426,6 +1427,7 @@ async function drawSlopes() {
   const metric = document.getElementById("slopes-metric").value;
   const mode = document.getElementById("slopes-mode").value;
   const at = state.lastSolution ? state.lastSolution.magnitude : 18.3;
+  state.slopesAt = at;
   const data = await api(`/page/slopes?${query({ metric, mode, ...c, at })}`);
   const columns = data.curves.map((curve) => ({
     label: curve.band,

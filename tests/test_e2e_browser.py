@@ -171,6 +171,7 @@ def test_curves_paper_overlay_and_exports(page, tmp_path):
     legend = page.inner_text("#plot-slopes")
     assert "H158 (paper)" in legend and "F184" in legend
     # Hovering shows values in the legend.
+    page.wait_for_selector("#plot-slopes .u-over")
     box = page.locator("#plot-slopes .u-over").bounding_box()
     page.mouse.move(box["x"] + box["width"] * 0.3, box["y"] + box["height"] * 0.5)
     legend = page.inner_text("#plot-slopes .u-legend")

@@ -135,3 +135,20 @@ def test_server_stopped_mid_solve_and_started_again(page, restartable):  # noqa:
         assert page.input_value("#solve-precision") == ""
     wait_for(lambda: not banner(page).startswith("The nlpsf server"), timeout=30)
     page.select_option("#solve-fidelity", "table")
+
+
+def test_a_reload_follows_the_same_simulation(page, restartable):  # noqa: F811
+    page.fill("#sim-magnitudes", "18, 18.5, 19, 19.5")
+    page.fill("#sim-betas", "2.5e-7, 5e-7, 1e-6")
+    page.fill("#sim-realizations", "150")
+    page.fill("#sim-seed", "29")
+    with page.expect_response(lambda r: r.url.endswith("/api/v1/simulations") and r.request.method == "POST") as response:
+        page.click("#sim-button")
+    job_id = response.value.json()["id"]
+    page.wait_for_function("() => document.getElementById('sim-progress-text').dataset.status === 'running'", timeout=60_000)
+    page.reload()
+    page.wait_for_selector("body[data-ready='true']")
+    page.wait_for_function(ENDED, timeout=300_000)
+    record = job_record(restartable, job_id)
+    assert page.get_attribute("[data-testid=sim-progress-text]", "data-status") == record["status"] == "done"
+    page.wait_for_function("() => document.querySelectorAll('#sim-table tbody tr').length === 12", timeout=30_000)
