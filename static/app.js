@@ -512,6 +512,14 @@ function drawDirectLabels(u, columns) {
   });
   labels.sort((a, b) => a.y - b.y);
   const gap = 13 * ratio;
+  const top = u.bbox.top + 6 * ratio;
+  const bottom = u.bbox.top + u.bbox.height - 6 * ratio;
+  for (let k = 1; k < labels.length; k++) {
+    if (labels[k].y - labels[k - 1].y < gap) labels[k].y = labels[k - 1].y + gap;
+  }
+  // A stack pushed past the bottom of the plot moves up as a whole, and stays below its top.
+  const overflow = labels.length ? labels[labels.length - 1].y - bottom : 0;
+  if (overflow > 0) labels.forEach((l) => { l.y = Math.max(top, l.y - overflow); });
   for (let k = 1; k < labels.length; k++) {
     if (labels[k].y - labels[k - 1].y < gap) labels[k].y = labels[k - 1].y + gap;
   }
