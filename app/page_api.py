@@ -27,7 +27,9 @@ from nlpsf.checks import InputError
 from . import api, models
 from .errors import SafeJSONResponse, json_safe
 
-router = APIRouter(prefix="/api/v1/page", tags=["page"])
+# The page's own endpoints: outside the versioned public schema (/openapi.json), which they would
+# otherwise have to follow (typed models, units on every field); docs/page.md lists them.
+router = APIRouter(prefix="/api/v1/page", tags=["page"], include_in_schema=False)
 
 Positive = Annotated[float, Query(allow_inf_nan=False, gt=0)]
 Tolerance = Annotated[float, Query(allow_inf_nan=False, gt=0, description="the chosen tolerance T (dimensionless)")]
