@@ -1835,7 +1835,27 @@ function pinAnswer() {
   renderComparison();
 }
 
+// The pinned answers survive a reload (this browser's local storage; the link carries the inputs).
+function savePinned() {
+  try {
+    localStorage.setItem("nlpsf-pinned", JSON.stringify(state.pinned));
+  } catch (_) {
+    // storage full or disabled: the table still works for this page load
+  }
+}
+
+function loadPinned() {
+  try {
+    const saved = JSON.parse(localStorage.getItem("nlpsf-pinned") || "[]");
+    state.pinned = Array.isArray(saved) ? saved.filter((s) => s && s.band && s.solved_for) : [];
+  } catch (_) {
+    state.pinned = [];
+  }
+  renderComparison();
+}
+
 function renderComparison() {
+  savePinned();
   const section = document.getElementById("comparison");
   section.hidden = state.pinned.length === 0;
   const table = document.getElementById("compare-table");
@@ -2049,6 +2069,7 @@ async function init() {
     }, 150);
   });
   stateFromUrl();
+  loadPinned();
   if (document.getElementById("paper-overlay").checked) state.paper = await api("/paper");
   updateUnknown();
   await Promise.allSettled([solve(null), drawCurves()]);

@@ -40,6 +40,7 @@ def download(tab, selector: str):
 def reset(page, server):  # noqa: F811
     page.goto(server)
     page.wait_for_selector("body[data-ready='true']", timeout=30_000)
+    page.evaluate("() => { localStorage.removeItem('nlpsf-pinned'); state.pinned = []; renderComparison(); }")
 
 
 def test_url_round_trip_restores_every_input_and_the_answer(page, server):  # noqa: F811
@@ -168,6 +169,9 @@ def test_comparison_table_and_every_download(page, server, tmp_path):  # noqa: F
     page.click("#pin-answer")
     assert page.locator("#compare-table tbody tr").count() == 2
     assert "J129" in page.inner_text("#compare-table") and "H158" in page.inner_text("#compare-table")
+    page.reload()
+    page.wait_for_selector("body[data-ready='true']")
+    assert page.locator("#compare-table tbody tr").count() == 2, "pinned answers survive a reload"
     names = {}
     name, text = download(page, "#compare-csv")
     names["comparison"] = name
