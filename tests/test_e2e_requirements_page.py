@@ -354,3 +354,14 @@ def test_axe_core_finds_no_violations(page, server):  # noqa: F811
     page.wait_for_selector("#solve-error:not([hidden])")
     results = axe.Axe().run(page)
     assert results.violations_count == 0, results.generate_report()
+
+
+def test_simulation_refusals_in_plain_words(page, server):  # noqa: F811
+    reset(page, server)
+    page.fill("#sim-betas", "abc")
+    page.click("#sim-button")
+    error = page.wait_for_selector("#sim-error:not([hidden])")
+    text = error.inner_text()
+    assert "β values" in text and "must be a number" in text and "Input should" not in text and "betas" not in text
+    assert page.get_attribute("#sim-betas", "aria-invalid") == "true"
+    page.fill("#sim-betas", "5e-7")
