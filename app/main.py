@@ -23,7 +23,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from nlpsf import __version__, solver, tables
 
-from . import api, errors, models, simulations
+from . import api, errors, models, page_api, simulations
 from .jobs import Dispatcher, Notifier
 from .security import ApiKey, BodyLimit, SecurityHeaders
 from .settings import Settings
@@ -80,6 +80,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     errors.install(app)
     app.include_router(api.router)
     app.include_router(simulations.router)
+    app.include_router(page_api.router)
     directory = static_dir(settings)
 
     @app.get("/docs", include_in_schema=False)

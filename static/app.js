@@ -1,35 +1,126 @@
-// The nlpsf page: calculator, curves and fresh simulations over the REST API (/api/v1).
+// The nlpsf page: calculator, curves, fresh simulations, impact and batch over the REST API (/api/v1).
 // Plain JavaScript and the vendored uPlot; no build step, no network beyond this server.
+// The page draws and formats: every number it draws comes from the API (api/v1/page/* for the plots).
 "use strict";
 
 const API = "api/v1";
-// Okabe & Ito's colour-blind-safe palette: the paper's four bands get four far-apart hues.
+// Okabe & Ito's colour-blind-safe palette, and a dash pattern per band so that no two bands rely on hue.
 const BAND_COLORS = {
   R062: "#E69F00", Z087: "#56B4E9", Y106: "#0072B2", J129: "#009E73",
   H158: "#D55E00", F184: "#CC79A7", W146: "#000000", K213: "#8C6D00",
 };
-// Several fresh simulations (one per β) on one plot.
+const BAND_DASH = {
+  R062: [3, 3, 8, 3], Z087: [10, 4], Y106: [2, 3], J129: [12, 3, 2, 3], H158: [], F184: [6, 6], W146: [1, 2], K213: [14, 4, 2, 4, 2, 4],
+};
 const SERIES_COLORS = ["#c00000", "#0072B2", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000", "#8C6D00"];
 const METRIC_LABEL = { size: "ΔR/R", e1: "Δe₁", e2: "Δe₂", e: "|Δe|" };
+const METRIC_NAME = { size: "size ΔR/R", e1: "ellipticity Δe₁", e2: "ellipticity Δe₂", e: "ellipticity |Δe|" };
 const METRIC_KEY = { size: "dR_over_R", e1: "de1", e2: "de2" };
-const state = { meta: null, paper: null, plots: {}, exports: {}, lastSimulation: null, polling: null };
+const MODE_NAME = { bias: "bias (mean β off)", scatter: "scatter (pixel to pixel)" };
+// Plain names for every request field the server may name in a refusal.
+const FIELD_NAMES = {
+  band: "band", sca: "detector (SCA)", metric: "PSF quantity", mode: "kind of error", beta0: "nonlinearity β₀",
+  exptime: "exposure", full_well: "full well", fidelity: "method", accuracy: "accuracy", ma_table: "readout",
+  ramp: "number of reads", ramp_fit: "ramp fit", read_noise: "read noise", stars: "stars averaged",
+  shear_m: "shear budget |m|", shear_c: "shear budget |c|", size_ratio: "galaxy-to-PSF size ratio",
+  precision: "precision", tolerance: "tolerance", magnitude: "magnitude", magnitudes: "magnitudes", betas: "β values",
+  sigma_betas: "σβ values", realizations: "realizations", seed: "seed", oversampling: "oversampling", stamp: "stamp size",
+  position: "position on the detector", sed: "star colour (SED)", jitter: "pointing jitter",
+  charge_diffusion: "charge diffusion", ipc: "interpixel capacitance", ipc_order: "interpixel capacitance order",
+  nl_coefficients: "NL beyond the quadratic", bfe: "brighter-fatter coefficient", background: "sky background",
+  scene: "scene", csv: "CSV", over_field: "over the field", throughput: "throughput",
+};
+const EFFECTS = {
+  position: ["position on the detector", "the optics change across a detector: the PSF at a corner differs from the centre the tables hold"],
+  sed: ["star colour (SED)", "a real star spans the band's wavelengths; the tables use one wavelength"],
+  jitter: ["pointing jitter", "the telescope's pointing wanders during the exposure and blurs the PSF (Roman: 0.014″ rms)"],
+  charge_diffusion: ["charge diffusion", "charge spreads to neighbouring pixels before it is collected (Roman: 0.1 px rms)"],
+  ipc: ["interpixel capacitance", "a pixel's signal leaks capacitively into its neighbours (a few per cent for Roman's detectors)"],
+  nl_polynomial: ["NL beyond the quadratic", "the detector's response has cubic and higher terms besides S = Q − βQ²"],
+  brighter_fatter: ["brighter-fatter effect", "collected charge repels new charge, so bright stars look bigger; no Roman value is public, so it is measured only when you give a coefficient"],
+  background: ["sky background", "sky and dark current add charge under the star and move it up the nonlinear curve"],
+  pupil_scale: ["pupil-mask scale rule", "two readings of how the pupil mask is scaled; the difference measures the optical model's own uncertainty"],
+};
+const FIDELITIES = {
+  table: ["tables", "the shipped slope tables, interpolated: instant; the uncertainty includes their measured error"],
+  linear: ["linear response", "a fresh simulation of the first-order response to β: seconds"],
+  monte_carlo: ["Monte Carlo", "a fresh simulation with random centroids and the full nonlinearity: slower, the reference"],
+  monte_carlo_polychromatic: ["Monte Carlo, all wavelengths", "Monte Carlo over the band's wavelengths: the slowest"],
+};
+const PAPER_SCENE = "the paper's scene (detector centre, one wavelength, quadratic NL only)";
+
+const state = {
+  meta: null, paper: null, presets: null, plots: {}, exports: {}, lastSimulation: null, polling: null,
+  lastSolution: null, lastRequest: null, pinned: [], batch: null, kbIdx: {},
+};
 
 class ApiError extends Error {
   // errors: [{field, msg}] -- every bad field the server (or the page's own check) found.
-  constructor(message, field, status, errors = []) {
+  constructor(message, field, status, errors = [], extra = {}) {
     super(message);
     this.field = field;
     this.status = status;
     this.errors = errors;
+    Object.assign(this, extra);
   }
 }
 
+// ---- the connection: an unreachable server is named and retried -------------------------------
+
+const connection = {
+  down: false,
+  attempt: 0,
+  timer: null,
+  retries: new Map(),
+  // Remember what to do again once the server answers (one action per key, the latest wins).
+  lost(key, retry) {
+    if (key && retry) this.retries.set(key, retry);
+    if (this.down) return;
+    this.down = true;
+    this.attempt = 0;
+    this.poll();
+  },
+  show(text, kind) {
+    const box = document.getElementById("connection");
+    box.textContent = text;
+    box.dataset.state = kind;
+    box.hidden = !text;
+  },
+  async poll() {
+    this.attempt += 1;
+    const where = new URL(".", location.href).href;
+    this.show(`The nlpsf server at ${where} cannot be reached. Retrying every 3 s (attempt ${this.attempt}); ` +
+      "what you asked for is redone when it answers.", "down");
+    try {
+      const response = await fetch(`${API}/health`, { cache: "no-store" });
+      if (response.ok) return this.back();
+    } catch (_) {
+      // still down
+    }
+    this.timer = setTimeout(() => this.poll(), 3000);
+  },
+  back() {
+    this.down = false;
+    this.show("Connected to the server again.", "up");
+    setTimeout(() => { if (!this.down) this.show("", "up"); }, 4000);
+    const pending = [...this.retries.values()];
+    this.retries.clear();
+    pending.forEach((retry) => retry());
+  },
+};
+
 async function api(path, options = {}) {
-  const { followJob: follow = false, ...fetchOptions } = options;
-  const response = await fetch(`${API}${path}`, {
-    ...fetchOptions,
-    headers: { "Content-Type": "application/json", ...(fetchOptions.headers || {}) },
-  });
+  const { followJob: follow = false, raw = false, onJob = null, ...fetchOptions } = options;
+  let response;
+  try {
+    response = await fetch(`${API}${path}`, {
+      ...fetchOptions,
+      headers: { "Content-Type": "application/json", ...(fetchOptions.headers || {}) },
+    });
+  } catch (_) {
+    throw unreachable();
+  }
+  if (raw && response.ok) return response.text();
   let body = null;
   try {
     body = await response.json();
@@ -43,15 +134,29 @@ async function api(path, options = {}) {
   }
   if (follow && response.status === 202 && body && body.id) {
     // A solve or impact report that needs a simulation became a job: follow it to its answer.
-    return waitForJob(response.headers.get("Location") || `${API}/simulations/${body.id}`);
+    const location = response.headers.get("Location") || `${API}/simulations/${body.id}`;
+    if (onJob) onJob(location);
+    return waitForJob(location);
   }
   return body;
 }
 
+function unreachable() {
+  return new ApiError(`the nlpsf server at ${new URL(".", location.href).href} cannot be reached`, null, 0, [], { unreachable: true });
+}
+
+// Follows a job to its end; a lost connection waits for the server and asks again (the job's record
+// in the server's store says how it really ended, even across a restart).
 async function waitForJob(location) {
   for (;;) {
     await new Promise((resolve) => setTimeout(resolve, 500));
-    const response = await fetch(location);
+    let response;
+    try {
+      response = await fetch(location, { cache: "no-store" });
+    } catch (_) {
+      await new Promise((resolve) => connection.lost(`wait:${location}`, resolve));
+      continue;
+    }
     const job = await response.json().catch(() => null);
     if (!response.ok || !job) {
       throw new ApiError((job && job.detail) || `the server answered ${response.status}`, null, response.status, []);
@@ -59,9 +164,16 @@ async function waitForJob(location) {
     if (job.status === "done") return job.result;
     if (["failed", "cancelled", "interrupted"].includes(job.status)) {
       const error = job.error || {};
-      throw new ApiError(error.message || `the simulation was ${job.status}`, error.field || null, 500, []);
+      throw new ApiError(jobEnding(job), error.field || null, 500, [], { jobStatus: job.status });
     }
   }
+}
+
+function jobEnding(job) {
+  const error = job.error || {};
+  const why = error.message || job.message || "";
+  const words = { failed: "failed", cancelled: "was cancelled", interrupted: "was interrupted (the server stopped while it ran)" };
+  return `the simulation ${words[job.status] || job.status}${why ? `: ${why}` : ""}`;
 }
 
 // ---- formatting -------------------------------------------------------------------------
@@ -70,46 +182,76 @@ function fmt(x, digits = 4) {
   if (x === null || x === undefined || Number.isNaN(x)) return "n/a";
   const a = Math.abs(x);
   if (a !== 0 && (a >= 1e5 || a < 1e-3)) {
-    // "1e-4", "2.5e-7": no trailing zeros, the same short form as the axes.
     const [mantissa, exponent] = x.toExponential(digits - 1).split("e");
-    return `${Number(mantissa)}e${exponent}`;
+    return `${Number(mantissa)}e${Number(exponent)}`;
   }
   return Number(x.toPrecision(digits)).toString();
 }
 
-// One format per axis: plain decimals where they read well, otherwise the same short exponent
-// form everywhere ("2.5e-7", "1e+4"), never a mix of 10000 and 1.00e+6 on one axis.
-function shortExp(x) {
-  if (x === 0) return "0";
-  const [mantissa, exponent] = x.toExponential(2).split("e");
-  return `${Number(mantissa)}e${exponent}`;
+const SUPERSCRIPT = { "-": "⁻", 0: "⁰", 1: "¹", 2: "²", 3: "³", 4: "⁴", 5: "⁵", 6: "⁶", 7: "⁷", 8: "⁸", 9: "⁹" };
+function pow10(n) {
+  return `10${String(n).split("").map((ch) => SUPERSCRIPT[ch] || ch).join("")}`;
 }
 
+// A value with its uncertainty, the value's digits set by the uncertainty's first two.
+function withUncertainty(value, error, unit = "") {
+  const u = unit ? ` ${unit}` : "";
+  if (value === null || value === undefined || !Number.isFinite(value)) return "n/a";
+  if (error === null || error === undefined || !Number.isFinite(error) || error <= 0) return `${fmt(value)}${u}`;
+  const place = Math.floor(Math.log10(error)) - 1; // the uncertainty's second digit
+  const a = Math.abs(value);
+  if (a >= 1e-3 && a < 1e5 && place >= -8) {
+    const decimals = Math.max(0, -place);
+    return `${value.toFixed(decimals)}${u} ± ${error.toFixed(decimals)}${u}`;
+  }
+  const exponent = Math.floor(Math.log10(a || error));
+  const scale = 10 ** exponent;
+  const decimals = Math.max(0, exponent - place);
+  return `(${(value / scale).toFixed(decimals)} ± ${(error / scale).toFixed(decimals)}) × ${pow10(exponent)}${u}`;
+}
+
+function percent(fraction, error) {
+  if (fraction === null || fraction === undefined) return "n/a";
+  return withUncertainty(100 * fraction, error === null || error === undefined ? null : 100 * error, "%");
+}
+
+function magnitudeText(m, error) {
+  if (error !== null && error !== undefined && error < 0.005) return `${m.toFixed(2)} (uncertainty below 0.01 mag)`;
+  return withUncertainty(m, error);
+}
+
+// Log-axis labels as powers of ten: 10⁻³ at a decade, 2×10⁻³ and 5×10⁻³ between over a short range.
 function axisFormatter(logScale) {
   return (u, splits) => {
     const finite = splits.filter((v) => v !== null && Number.isFinite(v));
+    if (logScale) {
+      const positive = finite.filter((v) => v > 0);
+      const decades = positive.length ? Math.log10(Math.max(...positive) / Math.min(...positive)) : 0;
+      return splits.map((v) => {
+        if (v === null || !(v > 0)) return "";
+        const exponent = Math.floor(Math.log10(v) + 1e-9);
+        const mantissa = Math.round(v / 10 ** exponent);
+        if (mantissa === 1) return pow10(exponent);
+        return decades > 2.5 || ![2, 5].includes(mantissa) ? "" : `${mantissa}×${pow10(exponent)}`;
+      });
+    }
     const big = Math.max(...finite.map(Math.abs));
     const small = Math.min(...finite.filter((v) => v !== 0).map(Math.abs));
-    const exponent = big >= 1e4 || (small < 1e-2 && small > 0);
-    // On a log axis label 1, 2 and 5 per decade over a short range, only the decades over a long one.
-    const decades = finite.length ? Math.log10(big / (small || big)) : 0;
-    const keep = (v) => {
-      if (!logScale) return true;
-      const mantissa = Math.round(v / 10 ** Math.floor(Math.log10(Math.abs(v)) + 1e-9));
-      return decades > 2.5 ? mantissa === 1 : [1, 2, 5].includes(mantissa);
-    };
+    const exponentForm = big >= 1e4 || (small < 1e-2 && small > 0);
     const decimals = Math.max(0, ...finite.map((v) => {
       const text = String(Number(v.toPrecision(6)));
       return text.includes(".") ? text.split(".")[1].length : 0;
     }));
     return splits.map((v) => {
-      if (v === null || !Number.isFinite(v) || !keep(v)) return "";
-      return exponent ? shortExp(v) : v.toFixed(Math.min(decimals, 4));
+      if (v === null || !Number.isFinite(v)) return "";
+      if (!exponentForm || v === 0) return v.toFixed(Math.min(decimals, 4));
+      const exponent = Math.floor(Math.log10(Math.abs(v)) + 1e-9);
+      const mantissa = Number((v / 10 ** exponent).toPrecision(3));
+      return mantissa === 1 ? pow10(exponent) : `${mantissa}×${pow10(exponent)}`;
     });
   };
 }
 
-// On a log axis, ticks and grid lines at 1, 2, 5 per decade over a short range, only decades over a long one.
 function logFilter(logScale) {
   if (!logScale) return undefined;
   return (u, splits) => {
@@ -123,7 +265,6 @@ function logFilter(logScale) {
   };
 }
 
-// The same choice for the labels, the ticks and the grid lines (uPlot filters each on its own).
 function logSplits(logScale) {
   const filter = logFilter(logScale);
   return filter ? { filter, ticks: { filter }, grid: { filter } } : {};
@@ -133,16 +274,20 @@ function plusMinus(value, error) {
   return error === null || error === undefined ? fmt(value) : `${fmt(value)} ± ${fmt(error, 2)}`;
 }
 
+function fidelityName(level) {
+  return (FIDELITIES[level] || [String(level).replace(/_/g, " ")])[0];
+}
+
 function conditionsText(c, extra = {}) {
   if (!c) return "";
   const parts = [
-    `${c.band} · SCA ${c.sca}`,
+    `${c.band} · detector ${c.sca}`,
     `exposure ${fmt(c.exptime_s ?? c.exptime)} s`,
     c.beta0 !== undefined ? `β₀ = ${fmt(c.beta0)} /e⁻` : null,
     c.full_well_e !== undefined ? `full well ${fmt(c.full_well_e)} e⁻` : null,
-    `fidelity ${c.fidelity}`,
-    c.realizations !== undefined ? `${c.realizations} realizations` : null,
-    c.oversampling !== undefined ? `N = ${c.oversampling}, ${c.stamp}×${c.stamp}` : null,
+    `method: ${fidelityName(c.fidelity)}`,
+    c.realizations !== undefined ? `${c.realizations} random centroids` : null,
+    c.oversampling !== undefined ? `${c.oversampling}× oversampled, ${c.stamp}×${c.stamp} fine pixels` : null,
     c.ramp ? `up the ramp: ${c.ramp.description}` : null,
     ...Object.entries(extra).map(([k, v]) => `${k} ${v}`),
   ];
@@ -153,12 +298,44 @@ function escapeHtml(text) {
   return String(text).replace(/[&<>"']/g, (ch) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[ch]);
 }
 
+// The server's words in the user's: plain field names, no library phrasing.
+function plainWords(text) {
+  let out = String(text)
+    .replace(/Input should be a valid number(, unable to parse string as a number)?/g, "must be a number")
+    .replace(/Input should be a valid integer(, unable to parse string as an integer)?/g, "must be a whole number")
+    .replace(/Input should be a valid list/g, "must be a list of numbers")
+    .replace(/Input should be/g, "must be")
+    .replace(/Extra inputs are not permitted/g, "is not a field the server knows");
+  for (const [key, name] of Object.entries(FIELD_NAMES)) {
+    if (key.includes("_") || ["sca", "beta0", "exptime", "stars", "betas", "ipc", "bfe", "sed"].includes(key)) {
+      out = out.replace(new RegExp(`\\b(scene\\.)?${key}\\b`, "g"), name);
+    }
+  }
+  return out;
+}
+
+function fieldName(field) {
+  if (!field) return "";
+  const key = String(field).replace(/^scene\./, "").replace(/\.\d+$/, "");
+  return FIELD_NAMES[key] || key.replace(/_/g, " ");
+}
+
 // A number typed by the user, or the raw text so that the server names the field it cannot read.
 function numberOrText(text) {
   const trimmed = String(text).trim();
   if (trimmed === "") return null;
   const value = Number(trimmed);
   return Number.isFinite(value) ? value : trimmed;
+}
+
+// Precision in the user's terms: "1 %" or "1%" is a percent, a plain number a fraction (0.01).
+function readPrecision(text) {
+  const trimmed = String(text).trim();
+  const match = trimmed.match(/^([-+]?[0-9.]+(?:e[-+]?\d+)?)\s*%$/i);
+  if (match) return { value: Number(match[1]) / 100, percent: true };
+  if (trimmed === "") return { value: null };
+  const value = Number(trimmed);
+  return Number.isFinite(value) ? { value, percent: false } : { value: null, error: `"${trimmed.slice(0, 40)}" is not a number or a percent` };
 }
 
 function listOf(text) {
@@ -170,20 +347,21 @@ function fillSelect(select, values, chosen, label = (v) => v) {
   select.value = String(chosen);
 }
 
-// Shows every bad field at once (the server's errors list, or the page's own check) and marks each input.
+// Shows every bad field at once, in plain words, and marks each input (and its own message line).
 function showError(box, form, error) {
   const errors = (error.errors || []).filter((e) => e && (e.field || e.msg));
   if (errors.length > 1) {
     box.innerHTML = `<div>${errors.length} fields need a look:</div><ul>${errors.map((e) =>
-      `<li data-field="${escapeHtml(e.field || "")}">${escapeHtml(e.field ? `${e.field}: ${e.msg}` : e.msg)}</li>`).join("")}</ul>`;
+      `<li data-field="${escapeHtml(e.field || "")}">${escapeHtml(e.field ? `${fieldName(e.field)}: ${plainWords(e.msg)}` : plainWords(e.msg))}</li>`).join("")}</ul>`;
   } else {
-    box.textContent = error.message;
+    box.textContent = error.plain || plainWords(error.message);
   }
   box.hidden = false;
   if (form) {
     form.querySelectorAll("[aria-invalid]").forEach((el) => el.removeAttribute("aria-invalid"));
     for (const field of [error.field, ...errors.map((e) => e.field)]) {
-      if (field && form.elements[field] && form.elements[field].setAttribute) form.elements[field].setAttribute("aria-invalid", "true");
+      const name = field ? String(field).replace(/^scene\./, "") : null;
+      if (name && form.elements[name] && form.elements[name].setAttribute) form.elements[name].setAttribute("aria-invalid", "true");
     }
   }
 }
@@ -194,76 +372,82 @@ function clearError(box, form) {
   if (form) form.querySelectorAll("[aria-invalid]").forEach((el) => el.removeAttribute("aria-invalid"));
 }
 
+function setFieldMessage(name, text) {
+  const el = document.getElementById(`msg-${name}`);
+  if (el) el.textContent = text || "";
+}
+
 // ---- plots --------------------------------------------------------------------------------
 
-function lineSeries(label, color, dash) {
-  return { label, stroke: color, width: 2, spanGaps: true, dash, points: { show: false } };
+function lineSeries(label, color, dash, width = 2) {
+  return { label, stroke: color, width, spanGaps: false, dash, points: { show: false } };
 }
 
 function pointSeries(label, color, size = 8) {
   return { label, stroke: color, fill: color, width: 0, paths: () => null, points: { show: true, size, fill: color } };
 }
 
-// Draw (or redraw) plot `name` in its container. `columns` = [{label, x, y, err, fid, series}], joined on x;
-// err: 1σ statistical uncertainty per point, fid: relative fidelity uncertainty (both drawn as a band).
-// `markers` = [{x, label, color}]: dashed vertical lines (e.g. saturation limits), kept in view.
-// `shades` = [{from, to, label, color, hatch}]: x ranges shaded behind the curves.
-function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, title, markers = [], shades = [], cursorAt = null }) {
+// Draw (or redraw) plot `name`. `columns` = [{label, x, y, err, fid, series, tag}], joined on x;
+// err: 1σ statistical uncertainty per point, fid: relative method uncertainty (both drawn as a band);
+// tag: the direct label written at the curve's end. `markers` = [{x, label, color}]: dashed vertical
+// lines; `shades` = [{from, to, label, color, hatch}]: x ranges behind the curves. Their names go in
+// the key under the plot (never on the canvas, where they covered the answer).
+function drawPlot(name, opts) {
+  const { xLabel, yLabel, columns, logX = false, logY = false, markers = [], shades = [], cursorAt = null } = opts;
   const el = document.getElementById(`plot-${name}`);
   const usable = columns.map((c) => {
-    const keep = c.x.map((x, i) => x !== null && c.y[i] !== null && (!logX || x > 0) && (!logY || c.y[i] > 0));
+    const keep = c.x.map((x, i) => x !== null && c.y[i] !== null && c.y[i] !== undefined && (!logX || x > 0) && (!logY || c.y[i] > 0));
     const err = c.err ? c.err.filter((_, i) => keep[i]) : null;
     return { ...c, x: c.x.filter((_, i) => keep[i]), y: c.y.filter((_, i) => keep[i]), err };
   }).filter((c) => c.x.length > 0);
-  state.exports[name] = { title, xLabel, yLabel, columns: usable, markers, shades };
+  state.exports[name] = { ...opts, columns: usable };
   if (state.plots[name]) {
     state.plots[name].destroy();
     delete state.plots[name];
   }
   el.innerHTML = "";
+  drawKey(name, markers, shades);
   if (usable.length === 0) {
     el.innerHTML = '<p class="muted">nothing to plot for these conditions</p>';
+    renderTable(name);
     return;
   }
   const data = uPlot.join(usable.map((c) => {
     const order = c.x.map((_, i) => i).sort((a, b) => c.x[a] - c.x[b]);
     return [order.map((i) => c.x[i]), order.map((i) => c.y[i])];
   }));
-  // Each series' 1σ half-width at each joined x (statistical and fidelity in quadrature), for the bands.
   const halfWidths = usable.map((c) => {
     const byX = new Map(c.x.map((x, i) => [x, total(c, i)]));
     return data[0].map((x) => (byX.has(x) ? byX.get(x) : null));
   });
-  // Without a cursor the legend shows the values at this x (the answer, or the middle of the data).
   const xs = data[0];
   const target = cursorAt ?? xs[Math.floor(xs.length / 2)];
   const defaultIdx = xs.reduce((best, x, i) => (Math.abs(x - target) < Math.abs(xs[best] - target) ? i : best), 0);
-  const rangeWith = markers.length || shades.length;
-  // Limits stay in view; a shade reaches as far as the data (it is clipped to the plot).
   const edges = [...markers.map((m) => m.x), ...shades.map((s) => s.to)].filter(Number.isFinite);
+  const rangeWith = edges.length;
   const options = {
     width: Math.max(280, el.clientWidth || 800),
     height: 320,
     scales: {
       x: { time: false, distr: logX ? 3 : 1,
-        ...(rangeWith && !logX ? { range: (u, lo, hi) => [Math.min(lo, ...edges.map((x) => x - 0.25)),
-          Math.max(hi, ...markers.map((m) => m.x + 0.25))] } : {}) },
+        ...(rangeWith && !logX ? { range: (u, lo, hi) => [Math.min(lo, ...edges.map((x) => x - 0.5)), hi + 0.9] }
+          : (!logX ? { range: (u, lo, hi) => [lo, hi + (hi - lo) * 0.12] } : {})) },
       y: { distr: logY ? 3 : 1 },
     },
-    // Before the series, so that a point on a limit stays visible.
-    hooks: { drawClear: [(u) => { drawShades(u, shades); drawMarkers(u, markers); drawBands(u, usable, halfWidths); }] },
+    hooks: {
+      drawClear: [(u) => { drawShades(u, shades); drawMarkers(u, markers); drawBands(u, usable, halfWidths); }],
+      draw: [(u) => drawDirectLabels(u, usable)],
+    },
     axes: [
       { label: xLabel, values: axisFormatter(logX), space: 60, ...logSplits(logX) },
       { label: yLabel, values: axisFormatter(logY), size: 72, space: 36, ...logSplits(logY) },
     ],
     series: [{ label: xLabel, value: (u, v, si, i) => fmt(i == null ? u.data[0][defaultIdx] : v) },
-      ...usable.map((c, k) => {
-        // Hover shows each value with its uncertainty, looked up by x (the joined data has gaps).
+      ...usable.map((c) => {
         const index = new Map(c.x.map((x, i) => [x, i]));
         return { ...c.series, value: (u, v, si, i) => {
           let where = "";
           if (i == null) {
-            // No cursor: this series' value nearest the default x (the joined data has gaps).
             i = nearestDefined(u.data[si], defaultIdx);
             if (i == null) return "–";
             v = u.data[si][i];
@@ -277,9 +461,12 @@ function drawPlot(name, { xLabel, yLabel, columns, logX = false, logY = false, t
     legend: { live: true },
     cursor: { points: { size: 8 } },
   };
-  state.plots[name] = new uPlot(options, data, el);
-  state.plots[name].defaultIdx = defaultIdx;
-  state.plots[name].halfWidths = halfWidths;
+  const u = new uPlot(options, data, el);
+  state.plots[name] = u;
+  u.defaultIdx = defaultIdx;
+  u.halfWidths = halfWidths;
+  keyboard(name, el);
+  renderTable(name);
 }
 
 function nearestDefined(values, start) {
@@ -296,7 +483,6 @@ function total(c, i) {
   return stat || fid ? Math.hypot(stat, fid) : null;
 }
 
-// "value ± stat (stat) ± fid (fidelity)": the same two parts the calculator quotes.
 function describeValue(c, v, j) {
   const stat = j != null && c.err ? c.err[j] : null;
   const fid = c.fid != null ? Math.abs(v) * c.fid : null;
@@ -305,6 +491,60 @@ function describeValue(c, v, j) {
   if (stat != null) parts.push(`± ${fmt(stat, 2)} stat`);
   if (fid != null) parts.push(`± ${fmt(fid, 2)} fidelity`);
   return `${fmt(v)} ${parts.join(" ")}`;
+}
+
+// Each curve's name written at its faint end, nudged apart so that no two labels overlap.
+function drawDirectLabels(u, columns) {
+  const ctx = u.ctx;
+  const ratio = window.devicePixelRatio || 1;
+  const labels = [];
+  columns.forEach((c, k) => {
+    if (!c.tag) return;
+    const si = k + 1;
+    const ys = u.data[si];
+    let i = ys.length - 1;
+    while (i >= 0 && ys[i] == null) i--;
+    if (i < 0) return;
+    const x = u.valToPos(u.data[0][i], "x", true);
+    const y = u.valToPos(ys[i], "y", true);
+    if (!Number.isFinite(x) || !Number.isFinite(y)) return;
+    labels.push({ x, y, text: c.tag, color: c.series.stroke || "#333" });
+  });
+  labels.sort((a, b) => a.y - b.y);
+  const gap = 13 * ratio;
+  const top = u.bbox.top + 6 * ratio;
+  const bottom = u.bbox.top + u.bbox.height - 6 * ratio;
+  for (let k = 1; k < labels.length; k++) {
+    if (labels[k].y - labels[k - 1].y < gap) labels[k].y = labels[k - 1].y + gap;
+  }
+  // A stack pushed past the bottom of the plot moves up as a whole, and stays below its top.
+  const overflow = labels.length ? labels[labels.length - 1].y - bottom : 0;
+  if (overflow > 0) labels.forEach((l) => { l.y = Math.max(top, l.y - overflow); });
+  for (let k = 1; k < labels.length; k++) {
+    if (labels[k].y - labels[k - 1].y < gap) labels[k].y = labels[k - 1].y + gap;
+  }
+  ctx.save();
+  ctx.font = `${11 * ratio}px sans-serif`;
+  ctx.textBaseline = "middle";
+  for (const l of labels) {
+    const width = ctx.measureText(l.text).width;
+    const right = u.bbox.left + u.bbox.width;
+    const x = Math.min(l.x + 4 * ratio, right - width - 2 * ratio);
+    ctx.fillStyle = "rgba(255,255,255,0.8)";
+    ctx.fillRect(x - 1, l.y - 6 * ratio, width + 2, 12 * ratio);
+    ctx.fillStyle = darker(l.color);
+    ctx.fillText(l.text, x, l.y);
+  }
+  ctx.restore();
+}
+
+// Labels in a colour dark enough to read on white (the Okabe-Ito yellow and sky blue are not).
+function darker(color) {
+  const m = String(color).match(/^#([0-9a-f]{6})$/i);
+  if (!m) return "#1d2330";
+  const n = parseInt(m[1], 16);
+  const channel = (shift) => Math.round(((n >> shift) & 255) * 0.6);
+  return `rgb(${channel(16)},${channel(8)},${channel(0)})`;
 }
 
 function drawBands(u, columns, halfWidths) {
@@ -338,7 +578,7 @@ function drawBands(u, columns, halfWidths) {
 function drawShades(u, shades) {
   const ctx = u.ctx;
   const ratio = window.devicePixelRatio || 1;
-  shades.forEach((s, i) => {
+  shades.forEach((s) => {
     const lo = Math.max(u.bbox.left, u.valToPos(s.from, "x", true));
     const hi = Math.min(u.bbox.left + u.bbox.width, u.valToPos(s.to, "x", true));
     if (!(hi > lo)) return;
@@ -359,50 +599,134 @@ function drawShades(u, shades) {
       }
     }
     ctx.restore();
-    // The label outside the clip: a narrow range still names itself.
-    ctx.save();
-    ctx.fillStyle = "#333";
-    ctx.font = `${11 * ratio}px sans-serif`;
-    ctx.fillText(s.label, lo + 4 * ratio, u.bbox.top + u.bbox.height - (8 + 14 * i) * ratio);
-    ctx.restore();
   });
 }
 
 function drawMarkers(u, markers) {
   const ctx = u.ctx;
   const ratio = window.devicePixelRatio || 1;
-  markers.forEach((m, i) => {
+  markers.forEach((m) => {
     const x = u.valToPos(m.x, "x", true);
     if (!Number.isFinite(x)) return;
     ctx.save();
     ctx.strokeStyle = m.color;
-    ctx.fillStyle = m.color;
     ctx.lineWidth = 1.5 * ratio;
-    ctx.setLineDash([6 * ratio, 4 * ratio]);
+    ctx.setLineDash((m.dash || [6, 4]).map((d) => d * ratio));
     ctx.beginPath();
     ctx.moveTo(x, u.bbox.top);
     ctx.lineTo(x, u.bbox.top + u.bbox.height);
     ctx.stroke();
-    ctx.font = `${11 * ratio}px sans-serif`;
-    ctx.fillText(m.label, x + 4 * ratio, u.bbox.top + (12 + 14 * i) * ratio);
     ctx.restore();
   });
+}
+
+// The key under a plot: shaded ranges and limit lines, named in HTML (wraps on a phone).
+function drawKey(name, markers, shades) {
+  const el = document.getElementById(`key-${name}`);
+  if (!el) return;
+  const items = [
+    ...shades.map((s) => `<span class="key-item"><span class="swatch${s.hatch ? " hatch" : ""}" style="background-color:${s.color}"></span>${escapeHtml(s.label)}</span>`),
+    ...markers.map((m) => `<span class="key-item"><span class="swatch line" style="border-color:${m.color}"></span>${escapeHtml(m.label)}: m = ${fmt(m.x, 4)}</span>`),
+  ];
+  el.innerHTML = items.join("");
+}
+
+// "no answer" over a plot that keeps its axes and curves.
+function setNoAnswer(name, reason) {
+  const el = document.getElementById(`plot-${name}`);
+  el.querySelectorAll(".no-answer").forEach((n) => n.remove());
+  el.dataset.answer = reason ? "none" : el.dataset.answer;
+  if (!reason) return;
+  const note = document.createElement("div");
+  note.className = "no-answer";
+  note.dataset.testid = "no-answer";
+  note.textContent = `no answer: ${reason}`;
+  el.appendChild(note);
+}
+
+// Arrow keys move the reading along the x axis (Shift: five steps); Home and End jump to the ends.
+function keyboard(name, el) {
+  el.tabIndex = 0;
+  el.setAttribute("role", "group");
+  el.setAttribute("aria-label", `${document.getElementById(`plot-${name}`).closest("figure").querySelector("h3")?.textContent || name} plot: arrow keys read values`);
+  if (el.dataset.keys) return;
+  el.dataset.keys = "on";
+  el.addEventListener("keydown", (event) => {
+    const u = state.plots[name];
+    if (!u) return;
+    const n = u.data[0].length;
+    let idx = state.kbIdx[name] ?? u.defaultIdx;
+    const step = event.shiftKey ? 5 : 1;
+    if (event.key === "ArrowRight") idx = Math.min(n - 1, idx + step);
+    else if (event.key === "ArrowLeft") idx = Math.max(0, idx - step);
+    else if (event.key === "Home") idx = 0;
+    else if (event.key === "End") idx = n - 1;
+    else return;
+    event.preventDefault();
+    state.kbIdx[name] = idx;
+    let si = 1;
+    while (si < u.data.length && u.data[si][idx] == null) si++;
+    const y = si < u.data.length ? u.data[si][idx] : null;
+    const left = u.valToPos(u.data[0][idx], "x");
+    const top = y == null ? u.bbox.height / 2 / (window.devicePixelRatio || 1) : u.valToPos(y, "y");
+    u.setCursor({ left, top });
+  });
+  el.addEventListener("blur", () => { delete state.kbIdx[name]; });
+}
+
+// A table of every plotted value under the plot, folded away until asked for.
+function renderTable(name) {
+  const plot = state.exports[name];
+  const figure = document.getElementById(`plot-${name}`).closest("figure");
+  let details = figure.querySelector("details.table-view");
+  if (!details) {
+    details = document.createElement("details");
+    details.className = "table-view";
+    details.innerHTML = `<summary>Table of values</summary><div class="table-wrap" tabindex="0" aria-label="table of the plotted values (scrolls sideways)"></div>`;
+    const key = document.getElementById(`key-${name}`);
+    (key || document.getElementById(`plot-${name}`)).after(details);
+  }
+  const wrap = details.querySelector(".table-wrap");
+  if (!plot || !plot.columns.length) {
+    wrap.innerHTML = '<p class="muted">no values</p>';
+    return;
+  }
+  const xs = [...new Set(plot.columns.flatMap((c) => c.x))].sort((a, b) => a - b);
+  const lookup = plot.columns.map((c) => new Map(c.x.map((x, i) => [x, [c.y[i], c.err ? c.err[i] : null]])));
+  const head = `<tr><th scope="col">${escapeHtml(plot.xLabel)}</th>${plot.columns.map((c) => `<th scope="col">${escapeHtml(c.label)}</th>`).join("")}</tr>`;
+  const rows = xs.map((x) => `<tr><th scope="row">${fmt(x)}</th>${lookup.map((m) => {
+    const v = m.get(x);
+    return `<td>${v ? escapeHtml(v[1] != null ? plusMinus(v[0], v[1]) : fmt(v[0])) : ""}</td>`;
+  }).join("")}</tr>`).join("");
+  wrap.innerHTML = `<table><caption>${escapeHtml(plot.yLabel)} (± statistical 1σ)</caption><thead>${head}</thead><tbody>${rows}</tbody></table>`;
+  markScrollable(wrap);
 }
 
 function exportCsv(name) {
   const plot = state.exports[name];
   if (!plot) return;
-  const lines = [`# ${plot.title.replace(/\n/g, " ")}`, ""];
-  lines[1] = `series,${plot.xLabel},${plot.yLabel},uncertainty`;
+  const lines = [`# ${plot.title.replace(/\n/g, " ")}`, `series,${plot.xLabel},${plot.yLabel},uncertainty`];
   for (const c of plot.columns) {
     c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]},${c.err && c.err[i] != null ? c.err[i] : ""}`));
   }
   for (const m of plot.markers || []) lines.push(`"${m.label.replace(/"/g, "'")}",${m.x},,`);
-  download(`nlpsf-${name}.csv`, "data:text/csv;charset=utf-8," + encodeURIComponent(lines.join("\n") + "\n"));
+  downloadText(`${plotFileName(name)}.csv`, lines.join("\n") + "\n", "text/csv");
 }
 
-// The plot with its title and a legend a reader can use: a line sample in each series' colour and
-// dash, at a size that stays readable when the image is scaled down into a document.
+// Distinct names: which plot, and the choices that made it.
+function plotFileName(name) {
+  const v = (id) => (document.getElementById(id) ? document.getElementById(id).value : "");
+  const s = state.lastSolution;
+  const parts = {
+    req: s ? [s.band, `sca${s.sca}`, s.metric, s.mode] : [],
+    calc: s ? [s.band, `sca${s.sca}`, s.metric, s.mode] : [],
+    slopes: [v("slopes-metric"), v("slopes-mode"), `sca${v("solve-sca")}`],
+    beta: [v("beta-band"), v("beta-metric"), `m${v("beta-magnitude")}`],
+    sigma: [v("sigma-band"), v("sigma-metric"), `m${v("sigma-magnitude")}`],
+  }[name] || [];
+  return ["nlpsf-plot", name, ...parts].filter(Boolean).join("-").replace(/[^A-Za-z0-9._-]/g, "");
+}
+
 function exportPng(name) {
   const u = state.plots[name];
   const plot = state.exports[name];
@@ -457,7 +781,12 @@ function exportPng(name) {
     ctx.fillStyle = "#1d2330";
     ctx.fillText(e.label, x + 36 * scale, y);
   });
-  download(`nlpsf-${name}.png`, canvas.toDataURL("image/png"));
+  // Synchronously (not canvas.toBlob): the download must start within the click, or the browser
+  // counts it as an automatic download and may block it.
+  const bytes = atob(canvas.toDataURL("image/png").split(",")[1]);
+  const buffer = new Uint8Array(bytes.length);
+  for (let i = 0; i < bytes.length; i++) buffer[i] = bytes.charCodeAt(i);
+  downloadBlob(`${plotFileName(name)}.png`, new Blob([buffer], { type: "image/png" }));
 }
 
 function download(filename, url) {
@@ -467,6 +796,40 @@ function download(filename, url) {
   document.body.appendChild(a);
   a.click();
   a.remove();
+}
+
+// Blob URLs, not data: URLs: no size limit, and released once the download has started.
+function downloadBlob(filename, blob) {
+  const url = URL.createObjectURL(blob);
+  download(filename, url);
+  setTimeout(() => URL.revokeObjectURL(url), 10_000);
+}
+
+function downloadText(filename, text, type) {
+  downloadBlob(filename, new Blob([text], { type: `${type};charset=utf-8` }));
+}
+
+// A wide table scrolls sideways; a shadow at its edge and a line of text say so.
+function markScrollable(wrap) {
+  const update = () => {
+    const more = wrap.scrollWidth - wrap.clientWidth - wrap.scrollLeft > 2;
+    wrap.classList.toggle("more-right", more);
+    wrap.classList.toggle("more-left", wrap.scrollLeft > 2);
+    let cue = wrap.previousElementSibling;
+    if (!cue || !cue.classList.contains("scroll-cue")) {
+      cue = document.createElement("p");
+      cue.className = "scroll-cue";
+      cue.setAttribute("aria-hidden", "true");
+      wrap.before(cue);
+    }
+    cue.textContent = wrap.scrollWidth > wrap.clientWidth + 2 ? "scroll sideways for more columns →" : "";
+  };
+  if (!wrap.dataset.cue) {
+    wrap.dataset.cue = "on";
+    wrap.addEventListener("scroll", update, { passive: true });
+    window.addEventListener("resize", update);
+  }
+  requestAnimationFrame(update);
 }
 
 // ---- conditions shared by the calculator and the curves ----------------------------------------
@@ -490,6 +853,87 @@ function query(params) {
   return q.toString();
 }
 
+// ---- state in the URL -------------------------------------------------------------------------
+
+const URL_FIELDS = {
+  "solve-form": ["band", "sca", "metric", "mode", "beta0", "exptime", "full_well", "fidelity", "ma_table", "ramp", "ramp_fit",
+    "stars", "shear_m", "shear_c", "size_ratio", "precision", "tolerance", "magnitude"],
+  "scene-form": ["preset", "position", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background"],
+};
+const URL_CONTROLS = ["slopes-metric", "slopes-mode", "beta-band", "beta-metric", "beta-magnitude", "sigma-band", "sigma-metric",
+  "sigma-magnitude", "req-preset"];
+
+function stateToUrl() {
+  const q = new URLSearchParams();
+  const solveForm = document.getElementById("solve-form");
+  const unknown = solveForm.elements.solve_for.value;
+  q.set("solve_for", unknown);
+  for (const [formId, names] of Object.entries(URL_FIELDS)) {
+    const form = document.getElementById(formId);
+    const prefix = formId === "scene-form" ? "scene." : "";
+    for (const name of names) {
+      const input = form.elements[name];
+      if (!input || (formId === "solve-form" && name === unknown)) continue;
+      if (formId === "solve-form" && name === "tolerance" && input.dataset.derived === "true") continue;
+      const value = String(input.value).trim();
+      if (value !== "") q.set(prefix + name, value);
+    }
+  }
+  for (const id of URL_CONTROLS) {
+    const el = document.getElementById(id);
+    if (el && el.value !== "") q.set(id, el.value);
+  }
+  for (const id of ["beta-log", "sigma-log", "paper-overlay", "scene-use"]) {
+    if (document.getElementById(id).checked) q.set(id, "1");
+  }
+  history.replaceState(null, "", `${location.pathname}?${q.toString()}`);
+}
+
+function stateFromUrl() {
+  const q = new URLSearchParams(location.search);
+  if (![...q.keys()].length) return false;
+  const solveForm = document.getElementById("solve-form");
+  const unknown = q.get("solve_for");
+  if (["precision", "tolerance", "magnitude"].includes(unknown)) solveForm.elements.solve_for.value = unknown;
+  for (const [formId, names] of Object.entries(URL_FIELDS)) {
+    const form = document.getElementById(formId);
+    const prefix = formId === "scene-form" ? "scene." : "";
+    for (const name of names) {
+      const input = form.elements[name];
+      if (!input) continue;
+      if (q.has(prefix + name)) input.value = q.get(prefix + name);
+      else if (formId === "solve-form" && ["shear_m", "shear_c", "size_ratio"].includes(name)) input.value = "";
+    }
+  }
+  // The readout select restores its own inputs (reads, fit).
+  const readout = solveForm.elements.ma_table;
+  if (q.has("ma_table")) readout.value = q.get("ma_table");
+  readoutChanged("solve", false);
+  if (q.has("ramp")) solveForm.elements.ramp.value = q.get("ramp");
+  if (q.has("ramp_fit")) solveForm.elements.ramp_fit.value = q.get("ramp_fit");
+  for (const id of URL_CONTROLS) {
+    const el = document.getElementById(id);
+    if (el && q.has(id)) el.value = q.get(id);
+  }
+  for (const id of ["beta-log", "sigma-log", "paper-overlay", "scene-use"]) document.getElementById(id).checked = q.get(id) === "1";
+  showPresetSource();
+  return true;
+}
+
+async function copyLink() {
+  stateToUrl();
+  const status = document.getElementById("link-status");
+  try {
+    await navigator.clipboard.writeText(location.href);
+    status.textContent = "link copied";
+  } catch (_) {
+    // No clipboard (an insecure origin or a denied permission): show the link to copy by hand.
+    status.innerHTML = `copy this link: <input class="link-text" readonly value="${escapeHtml(location.href)}" aria-label="link to this view">`;
+    status.querySelector("input").select();
+  }
+  status.dataset.link = location.href;
+}
+
 // ---- readout: final frame, uniform ramp or an MA table ------------------------------------------
 
 function fillReadout(group) {
@@ -499,14 +943,15 @@ function fillReadout(group) {
       `MA table ${t.name} (${t.resultants} resultants, ${fmt(t.last_read_s)} s)`])];
   select.innerHTML = options.map(([v, l]) => `<option value="${escapeHtml(v)}">${escapeHtml(l)}</option>`).join("");
   fillSelect(document.getElementById(`${group}-ramp_fit`), state.meta.ramp_fits || ["ols"], "ols",
-    (f) => (f === "ols" ? "OLS" : "optimal (read + Poisson)"));
+    (f) => (f === "ols" ? "ordinary least squares" : "optimal (read + Poisson noise weights)"));
   select.addEventListener("change", () => readoutChanged(group));
 }
 
-function readoutChanged(group) {
+function readoutChanged(group, setExposure = true) {
   const choice = document.getElementById(`${group}-readout`).value;
   document.getElementById(`${group}-ramp`).disabled = choice !== "uniform";
   document.getElementById(`${group}-ramp_fit`).disabled = choice === "final";
+  if (!setExposure) return;
   // An MA table's exposure is its last read; leaving a table restores the paper's exposure.
   const exposure = document.getElementById(`${group}-exptime`);
   const durations = (state.meta.ma_tables || []).map((t) => String(t.last_read_s));
@@ -515,7 +960,6 @@ function readoutChanged(group) {
   else if (durations.includes(exposure.value.trim())) exposure.value = String(state.meta.defaults.solve.exptime);
 }
 
-// The request fields of the chosen readout (none for the paper's final frame).
 function readoutFields(group) {
   const choice = document.getElementById(`${group}-readout`).value;
   const fit = document.getElementById(`${group}-ramp_fit`).value;
@@ -524,19 +968,88 @@ function readoutFields(group) {
   return {};
 }
 
+// ---- requirement presets ------------------------------------------------------------------------
+
+function fillPresets() {
+  const select = document.getElementById("req-preset");
+  for (const p of state.presets.presets) {
+    const option = document.createElement("option");
+    option.value = p.id;
+    option.textContent = p.name;
+    select.appendChild(option);
+  }
+  select.addEventListener("change", () => {
+    const preset = state.presets.presets.find((p) => p.id === select.value);
+    if (preset) applyPreset(preset);
+    showPresetSource();
+  });
+}
+
+function applyPreset(preset) {
+  const form = document.getElementById("solve-form");
+  for (const name of ["shear_m", "shear_c", "size_ratio"]) form.elements[name].value = "";
+  // The preset's tolerance replaces whatever was typed before a budget greyed the box.
+  delete form.elements.tolerance.dataset.typed;
+  delete form.elements.tolerance.dataset.shown;
+  for (const [name, value] of Object.entries(preset.fields)) {
+    if (name === "tolerance") {
+      form.elements.tolerance.value = String(value);
+      form.elements.tolerance.dataset.derived = "false";
+    } else {
+      form.elements[name].value = String(value);
+    }
+  }
+  if (form.elements.solve_for.value === "tolerance") form.elements.solve_for.value = "precision";
+  updateUnknown();
+}
+
+function showPresetSource() {
+  const preset = (state.presets ? state.presets.presets : []).find((p) => p.id === document.getElementById("req-preset").value);
+  document.getElementById("preset-source").textContent = preset ? `Source: ${preset.source}. NL's share: ${preset.share}.` : "";
+}
+
 // ---- calculator -------------------------------------------------------------------------------
+
+function shearGiven() {
+  const form = document.getElementById("solve-form");
+  return ["shear_m", "shear_c"].some((n) => form.elements[n].value.trim() !== "");
+}
 
 function updateUnknown() {
   const form = document.getElementById("solve-form");
   const unknown = form.elements.solve_for.value;
+  const derived = shearGiven();
   for (const name of ["precision", "tolerance", "magnitude"]) {
     const input = form.elements[name];
-    input.disabled = name === unknown;
-    if (name === unknown) input.value = "";
+    const solved = name === unknown;
+    // A shear budget sets T: the box shows the T it implies, greyed, and is not a given.
+    const fromBudget = name === "tolerance" && derived && !solved;
+    input.disabled = solved || fromBudget;
+    input.classList.toggle("derived", fromBudget);
+    input.dataset.derived = fromBudget ? "true" : "false";
+    if (solved) input.value = "";
+    if (fromBudget && !input.dataset.typed) input.dataset.typed = input.value;
+    if (!fromBudget && input.dataset.typed !== undefined && name === "tolerance") {
+      if (input.value === "" || input.dataset.shown === "budget") input.value = input.dataset.typed;
+      delete input.dataset.typed;
+      delete input.dataset.shown;
+    }
+    setFieldMessage(name, fromBudget ? "set by the shear budget" : "");
   }
+  precisionHint();
 }
 
-// Reads every number field of a form at once: [values, errors]; `optional` fields may stay empty.
+function precisionHint() {
+  const input = document.getElementById("solve-precision");
+  const hint = document.getElementById("hint-precision");
+  if (input.disabled) {
+    hint.textContent = "";
+    return;
+  }
+  const read = readPrecision(input.value);
+  hint.textContent = read.value === null ? "" : `read as ${fmt(100 * read.value, 4)} % (fraction ${fmt(read.value, 4)})`;
+}
+
 function readNumbers(form, names, optional = []) {
   const values = {};
   const errors = [];
@@ -546,6 +1059,12 @@ function readNumbers(form, names, optional = []) {
     const text = input.value.trim();
     if (text === "") {
       if (!optional.includes(name)) errors.push({ field: name, msg: "enter a value" });
+      continue;
+    }
+    if (name === "precision") {
+      const read = readPrecision(text);
+      if (read.error) errors.push({ field: name, msg: read.error });
+      else values[name] = read.value;
       continue;
     }
     const value = Number(text);
@@ -561,23 +1080,20 @@ async function solve(event) {
   const errorBox = document.getElementById("solve-error");
   const resultBox = document.getElementById("solve-result");
   clearError(errorBox, form);
+  for (const name of ["precision", "tolerance", "magnitude"]) setFieldMessage(name, "");
   const unknown = form.elements.solve_for.value;
-  const shearGiven = ["shear_m", "shear_c"].some((n) => form.elements[n].value.trim() !== "");
-  // With a shear budget the tolerance is not a given: the budget and the size ratio take its place.
-  const givens = ["precision", "tolerance", "magnitude"].filter((n) => n !== unknown && !(n === "tolerance" && shearGiven));
+  const budget = shearGiven();
+  const givens = ["precision", "tolerance", "magnitude"].filter((n) => n !== unknown && !(n === "tolerance" && budget));
   const [numbers, errors] = readNumbers(form, ["beta0", "exptime", "full_well", "stars", ...givens, "shear_m", "shear_c", "size_ratio"],
     ["shear_m", "shear_c", "size_ratio"]);
-  if (shearGiven && form.elements.size_ratio.value.trim() === "") {
+  if (budget && form.elements.size_ratio.value.trim() === "") {
     errors.push({ field: "size_ratio", msg: "a shear budget needs the galaxy-to-PSF size ratio" });
   }
   for (const e of errors) {
     if (givens.includes(e.field) && e.msg === "enter a value") e.msg = "enter a value (give two of precision, tolerance, magnitude)";
   }
   if (errors.length) {
-    clearAnswer();
-    resultBox.hidden = true;
-    const first = errors[0];
-    showError(errorBox, form, new ApiError(`${first.field}: ${first.msg}`, first.field, 0, errors));
+    failAnswer(new ApiError(`${fieldName(errors[0].field)}: ${errors[0].msg}`, errors[0].field, 0, errors), errors[0].msg);
     return;
   }
   const body = {
@@ -589,35 +1105,129 @@ async function solve(event) {
     ...numbers,
     ...readoutFields("solve"),
   };
+  const button = document.getElementById("solve-button");
+  button.disabled = true;
+  button.textContent = "Solving…";
+  // Until the new answer comes, the old one is greyed: it answers another question.
+  resultBox.classList.add("stale");
+  resultBox.setAttribute("aria-busy", "true");
   try {
-    const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true });
-    form.elements[s.solved_for].value = fmt(s[s.solved_for], 5);
-    const names = { precision: "precision p", tolerance: `tolerance T (${METRIC_LABEL[s.metric]})`, magnitude: "magnitude m" };
-    const uncertaintyParts = [["statistical", s.uncertainty_statistical], ["fidelity", s.uncertainty_fidelity],
-      ["optical model", s.uncertainty_optical_model], ["model", s.uncertainty_model]].filter(([, v]) => v !== null && v !== undefined);
-    resultBox.innerHTML = `
-      <div class="answer" data-testid="solve-answer">${escapeHtml(names[s.solved_for])} = ${escapeHtml(plusMinus(s[s.solved_for], s.uncertainty))}</div>
-      ${s.binding_limit ? `<div class="binding" data-testid="binding-limit">brightest usable star m = ${fmt(s.brightest_usable_magnitude)}:
-        ${s.binding_limit === "saturation" ? "saturation binds (the brightest pixel reaches the full well before the NL error reaches T)"
-          : "the nonlinearity binds (its error reaches T before the star saturates)"}</div>` : ""}
-      ${uncertaintyParts.length ? `<div class="muted">uncertainty: ${uncertaintyParts.map(([k, v]) => `${k} ${fmt(v, 2)}`).join(" · ")}</div>` : ""}
-      <div>precision ${fmt(s.precision)} · tolerance ${fmt(s.tolerance)} · magnitude ${fmt(s.magnitude)}
-        · slope c(m) = ${fmt(s.slope)} · saturation at m = ${fmt(s.saturation_magnitude)}${s.conditions.ramp
-          ? ` (first resultant; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude)})` : ""}</div>
-      ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
-      <div class="muted">applies to ${escapeHtml(s.applies_to)}</div>
-      ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
-      ${s.flags && s.flags.length ? `<ul class="flags">${s.flags.map((f) => `<li>${escapeHtml(f)}</li>`).join("")}</ul>` : ""}
-      <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
-        · ${escapeHtml(s.mode)} of ${escapeHtml(METRIC_LABEL[s.metric])}</p>`;
-    resultBox.hidden = false;
-    state.lastSolution = s;
+    const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true,
+      onJob: () => { button.textContent = "Simulating…"; } });
+    state.lastRequest = body;
+    showAnswer(s);
+    stateToUrl();
     await Promise.all([drawRequirementPlot(s), drawCalculatorPlot(s)]);
+    // The slopes' legend reads at the answer's magnitude: redraw only when that moved.
+    if (state.slopesAt !== s.magnitude) drawSlopes().catch(() => {});
   } catch (error) {
-    resultBox.hidden = true;
-    clearAnswer();
-    showError(errorBox, form, error);
+    if (error.unreachable) connection.lost("solve", () => solve(null));
+    await failAnswer(error, null, body);
+  } finally {
+    button.disabled = false;
+    button.textContent = "Solve";
   }
+}
+
+function showAnswer(s) {
+  const form = document.getElementById("solve-form");
+  const resultBox = document.getElementById("solve-result");
+  const unknown = s.solved_for;
+  const solvedInput = form.elements[unknown];
+  solvedInput.classList.remove("failed");
+  solvedInput.placeholder = "";
+  // The box holds the value to the digits its uncertainty allows (the headline gives the ±).
+  if (unknown === "precision") solvedInput.value = s.precision >= 1 ? "no constraint" : percent(s.precision, s.uncertainty).split(" ± ")[0];
+  else if (unknown === "magnitude") solvedInput.value = s.magnitude.toFixed(2);
+  else solvedInput.value = withUncertainty(s.tolerance, s.uncertainty).split(" ± ")[0].replace(/^\(/, "") + tolSuffix(s);
+  const tol = form.elements.tolerance;
+  if (s.shear && s.shear.given !== "tolerance" && tol.dataset.derived === "true") {
+    tol.value = fmt(s.shear.tolerance, 3);
+    tol.dataset.shown = "budget";
+  }
+  const uncertaintyParts = [["statistical", s.uncertainty_statistical], ["method", s.uncertainty_fidelity],
+    ["optical model", s.uncertainty_optical_model], ["effects not modelled", s.uncertainty_model]]
+    .filter(([, v]) => v !== null && v !== undefined);
+  const scale = unknown === "precision" ? 100 : 1;
+  const unit = unknown === "precision" ? " %" : unknown === "magnitude" ? " mag" : "";
+  const noConstraint = unknown === "precision" && s.precision >= 1;
+  resultBox.innerHTML = `
+    <div class="answer" data-testid="solve-answer">${escapeHtml(answerHeadline(s))}</div>
+    <p class="sentence" data-testid="answer-sentence">${escapeHtml(answerSentence(s))}</p>
+    ${s.binding_limit ? `<div class="binding" data-testid="binding-limit">brightest usable star m = ${fmt(s.brightest_usable_magnitude)}:
+      ${s.binding_limit === "saturation" ? "saturation binds (the brightest pixel reaches the full well before the NL error reaches T)"
+        : "the nonlinearity binds (its error reaches T before the star saturates)"}</div>` : ""}
+    ${uncertaintyParts.length && !noConstraint ? `<div class="muted">uncertainty parts (1σ): ${uncertaintyParts.map(([k, v]) =>
+      `${k} ${fmt(v * scale, 2)}${unit}`).join(" · ")}</div>` : ""}
+    <div>slope c(m) = ${escapeHtml(withUncertainty(s.slope, s.slope_uncertainty))} e⁻ · saturation at m = ${fmt(s.saturation_magnitude, 4)}${s.conditions.ramp
+        ? ` (first resultant; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude, 4)})` : ""}</div>
+    ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
+    <div class="muted">applies to ${escapeHtml(s.applies_to)}</div>
+    ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
+    ${s.flags && s.flags.length ? `<ul class="flags">${s.flags.map((f) => `<li>${escapeHtml(plainWords(f))}</li>`).join("")}</ul>` : ""}
+    <p class="scene-line" data-testid="scene-line">Scene: ${escapeHtml(sceneName(s))}
+      ${sceneName(s) === PAPER_SCENE ? "" : '<button type="button" id="use-paper-scene">Use the paper\'s scene</button>'}</p>
+    <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
+      · ${escapeHtml(MODE_NAME[s.mode] || s.mode)} · ${escapeHtml(METRIC_NAME[s.metric] || s.metric)}</p>`;
+  resultBox.hidden = false;
+  // The answer in one sentence at the top, so the first view says what it answers and for which scene.
+  document.getElementById("top-answer").innerHTML = `<a href="#calc-title">Answer</a>: ${escapeHtml(answerSentence(s))}`;
+  resultBox.classList.remove("stale");
+  resultBox.removeAttribute("aria-busy");
+  state.lastSolution = s;
+  const paperButton = document.getElementById("use-paper-scene");
+  if (paperButton) paperButton.addEventListener("click", usePaperScene);
+  for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = false;
+}
+
+// "(2.31 ± 0.30) × 10⁻⁵" keeps its power of ten in the box: "2.31e-5".
+function tolSuffix(s) {
+  const text = withUncertainty(s.tolerance, s.uncertainty);
+  const m = text.match(/× 10([⁻⁰¹²³⁴⁵⁶⁷⁸⁹]+)$/);
+  if (!m) return "";
+  const digits = { "⁻": "-", "⁰": 0, "¹": 1, "²": 2, "³": 3, "⁴": 4, "⁵": 5, "⁶": 6, "⁷": 7, "⁸": 8, "⁹": 9 };
+  return `e${m[1].split("").map((ch) => digits[ch]).join("")}`;
+}
+
+function answerHeadline(s) {
+  if (s.solved_for === "precision") {
+    if (s.precision >= 1) return "precision p: no constraint (p ≥ 100 %)";
+    return `precision p = ${percent(s.precision, s.uncertainty)}`;
+  }
+  if (s.solved_for === "magnitude") return `magnitude m = ${magnitudeText(s.magnitude, s.uncertainty)}`;
+  return `tolerance T (${METRIC_LABEL[s.metric]}) = ${withUncertainty(s.tolerance, s.uncertainty)}`;
+}
+
+function sceneName(s) {
+  const c = s.conditions || {};
+  const named = c.scene_description || (typeof c.scene === "string" ? c.scene : c.scene && c.scene.description);
+  if (!named || /^paper scene/.test(named)) return PAPER_SCENE;
+  return named;
+}
+
+// One sentence a requirement writer can paste: what must hold, for what, under which conditions.
+function answerSentence(s) {
+  const what = `${METRIC_LABEL[s.metric]}`;
+  const stars = `${s.band} stars`;
+  const where = `on SCA ${s.sca}, ${sceneName(s)}`;
+  const beta = s.mode === "bias" ? "β" : "the pixel-to-pixel scatter of β";
+  const known = s.mode === "bias" ? "known to" : "below";
+  if (s.solved_for === "precision") {
+    if (s.precision >= 1) {
+      return `No constraint: ${what} stays within ${fmt(s.tolerance)} with ${stars} of m = ${fmt(s.magnitude)} ${where} ` +
+        `even if ${beta} is off by its whole value (p would be ${fmt(100 * s.precision, 3)} %).`;
+    }
+    const [value, error] = percent(s.precision, s.uncertainty).split(" ± ");
+    return `${s.mode === "bias" ? "β must be known to" : `${beta} must stay below`} ${value}${error ? ` (± ${error})` : ""} ` +
+      `for ${what} ≤ ${fmt(s.tolerance)} with ${stars} of m = ${fmt(s.magnitude)} ${where}.`;
+  }
+  if (s.solved_for === "tolerance") {
+    return `With ${beta} ${known} ${fmt(100 * s.precision, 3)} %, ${stars} of m = ${fmt(s.magnitude)} ${where} keep ` +
+      `${what} within ${withUncertainty(s.tolerance, s.uncertainty)}.`;
+  }
+  return `With ${beta} ${known} ${fmt(100 * s.precision, 3)} % and ${what} ≤ ${fmt(s.tolerance)}, ${stars} ${where} ` +
+    `can be used as bright as m = ${magnitudeText(s.magnitude, s.uncertainty)}${s.binding_limit ? ` (${s.binding_limit} sets the limit)` : ""}; ` +
+    "brighter stars exceed the tolerance.";
 }
 
 function shearText(shear) {
@@ -625,64 +1235,121 @@ function shearText(shear) {
   const ratio = typeof shear.size_ratio === "number" ? fmt(shear.size_ratio)
     : `${shear.size_ratio.ratios.length} ratios, effective ${fmt(shear.size_ratio.effective)}`;
   if (shear.given === "tolerance") {
-    return `implied shear bias |${kind}| = ${plusMinus(shear[kind], shear.uncertainty)} for R_gal/R_psf = ${ratio} (${shear.relation || ""})`;
+    return `implied shear bias |${kind}| = ${plusMinus(shear[kind], shear.uncertainty)} for a galaxy-to-PSF size ratio of ${ratio}`;
   }
-  return `shear budget |${kind}| = ${fmt(shear[kind])} with R_gal/R_psf = ${ratio} → PSF tolerance T = ${fmt(shear.tolerance)}`;
+  return `shear budget |${kind}| = ${fmt(shear[kind])} with a galaxy-to-PSF size ratio of ${ratio} → PSF tolerance T = ${fmt(shear.tolerance)}`;
 }
 
-// A failed solve leaves no answer behind: the marker goes from both calculator plots.
-function clearAnswer() {
+// A refusal or a failure leaves no answer behind: the solved box is emptied and says why next to
+// itself, the result is greyed, and the plots keep their axes and curves and say "no answer".
+async function failAnswer(error, shortReason = null, body = null) {
+  const form = document.getElementById("solve-form");
+  const errorBox = document.getElementById("solve-error");
+  const resultBox = document.getElementById("solve-result");
+  const unknown = form.elements.solve_for.value;
+  const solved = form.elements[unknown];
+  solved.value = "";
+  solved.placeholder = "no answer";
+  solved.classList.add("failed");
   state.lastSolution = null;
+  for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = true;
+  resultBox.hidden = true;
+  resultBox.classList.remove("stale");
+  resultBox.removeAttribute("aria-busy");
+  document.getElementById("top-answer").textContent = "No answer: see the calculator below.";
+  let plain = plainWords(error.message);
+  const field = error.field ? String(error.field).replace(/^scene\./, "") : null;
+  let short = null;
+  if (field === "magnitude" && /too bright|brighter than the tables/.test(error.message) && body) {
+    [plain, short] = await tooBright(body, error.message);
+  } else if (error.unreachable) {
+    plain = `${error.message}; retrying (see the note at the top of the page)`;
+  }
+  error.plain = error.errors && error.errors.length > 1 ? null : plain;
+  showError(errorBox, form, error);
+  const reason = shortReason || short || (error.unreachable ? "the server cannot be reached" : plain);
+  if (field && ["precision", "tolerance", "magnitude"].includes(field)) setFieldMessage(field, plain);
+  if (field !== unknown) setFieldMessage(unknown, field && field !== unknown ? `no answer: see ${fieldName(field)}` : `no answer: ${reason}`);
   for (const name of ["req", "calc"]) {
     const plot = state.exports[name];
     const el = document.getElementById(`plot-${name}`);
     delete el.dataset.point;
-    el.dataset.answer = "none";
-    if (!plot || !plot.columns.some((c) => c.answer)) continue;
-    drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer) });
+    if (plot && plot.columns.some((c) => c.answer)) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer) });
+    else if (!plot) el.innerHTML = "";
+    setNoAnswer(name, reason);
   }
   document.getElementById("req-readout").textContent = "";
 }
 
-// The requirement picture: p(m) = T / (|c(m)| β₀) (× √n in scatter mode) for the tolerance T and a
-// few around it; the shipped slopes' statistical and the table level's fidelity uncertainty as bands.
-async function drawRequirementPlot(solution) {
-  const c = sharedConditions();
-  const data = await api(`/curves/slope?${query({ metric: solution.metric, mode: solution.mode, sca: solution.sca,
-    exptime: solution.exptime, beta0: solution.beta0, full_well: c.full_well, bands: solution.band })}`);
-  const curve = data.curves[0];
-  const tolerance = solution.tolerance;
-  const averaging = solution.mode === "scatter" ? Math.sqrt(solution.stars || 1) : 1;
-  const fid = curve.fidelity_relative_uncertainty;
-  const color = BAND_COLORS[curve.band] || "#333";
-  const factors = [0.1, 1 / 3, 1, 3, 10];
-  const columns = factors.map((f) => {
-    const t = tolerance * f;
-    const p = curve.slope.map((v) => (v ? (t * averaging) / (Math.abs(v) * solution.beta0) : null));
-    // p ∝ 1/|c|: the slope's relative error is p's relative error.
-    const err = curve.slope.map((v, i) => (v ? (p[i] * curve.uncertainty[i]) / Math.abs(v) : null));
-    const label = `T = ${fmt(t, 3)}${f === 1 ? " (chosen)" : ""}`;
-    return { label, x: curve.magnitude, y: p, err, fid, tolerance: t, band: f === 1,
-      series: { ...lineSeries(label, color, f === 1 ? undefined : [4, 4]), width: f === 1 ? 3 : 1.2,
-        stroke: f === 1 ? color : shade(color, f) } };
-  });
-  const mSat = solution.final_frame_saturation_magnitude ?? solution.saturation_magnitude;
-  // Where 2 β₀ Q_peak ≥ 1 the quadratic is not monotonic; Q_peak = full well at m_sat, × 10^(-0.4 Δm).
-  const fullWell = Number(c.full_well) || solution.full_well;
-  const mNonlinear = mSat - 2.5 * Math.log10(1 / (2 * solution.beta0 * fullWell));
-  const shades = [
-    { from: Math.min(...curve.magnitude) - 5, to: mSat, label: `saturated (m < ${fmt(mSat, 3)})`, color: "rgba(120,120,120,0.18)" },
-    { from: Math.min(...curve.magnitude) - 5, to: mNonlinear, label: `non-linear: 2β₀Q_peak ≥ 1 (m < ${fmt(mNonlinear, 3)})`,
+// The brightest magnitude the calculator answers for at these conditions, from the server.
+async function tooBright(body, original) {
+  try {
+    const limits = await api(`/page/limits?${query({ band: body.band, sca: body.sca, metric: body.metric, mode: body.mode,
+      exptime: body.exptime, beta0: body.beta0, full_well: body.full_well })}`);
+    const m = body.magnitude;
+    const brightest = limits.brightest_answered_magnitude.toFixed(2);
+    return [`m = ${fmt(m)} is too bright: the brightest star answered at these conditions is m = ${brightest}` +
+      ` (stars saturate brighter than m = ${limits.saturation_magnitude.toFixed(2)}; brighter than m = ` +
+      `${limits.nonmonotonic_magnitude.toFixed(2)} the quadratic NL model no longer rises with charge).`,
+    `m = ${fmt(m)} is too bright (brightest answered: m = ${brightest})`];
+  } catch (_) {
+    return [plainWords(original), null];
+  }
+}
+
+function usePaperScene() {
+  const scene = document.getElementById("scene-form");
+  scene.elements.preset.value = "";
+  sceneFill("paper");
+  document.getElementById("scene-use").checked = false;
+  solve(null);
+}
+
+// ---- the calculator's plots, from api/v1/page/requirement -----------------------------------------
+
+async function requirementData(solution) {
+  const ramp = solution.conditions.ramp;
+  return api(`/page/requirement?${query({ band: solution.band, sca: solution.sca, metric: solution.metric, mode: solution.mode,
+    exptime: solution.exptime, beta0: solution.beta0, full_well: solution.full_well, tolerance: solution.tolerance,
+    stars: solution.stars || 1, at: solution.magnitude, ramp_factor: ramp ? ramp.quadratic_beta_factor : null,
+    exact_from: ramp ? solution.conditions.ramp_table_exact_from_magnitude : null })}`);
+}
+
+function limitShades(limits, from) {
+  return [
+    { from, to: limits.saturation_magnitude, label: `saturated stars (m < ${limits.saturation_magnitude.toFixed(2)})`, color: "rgba(120,120,120,0.18)" },
+    { from, to: limits.nonmonotonic_magnitude, label: `quadratic NL model invalid: 2β₀Q_peak ≥ 1 (m < ${limits.nonmonotonic_magnitude.toFixed(2)})`,
       color: "rgba(164,22,26,0.08)", hatch: "rgba(164,22,26,0.35)" },
   ];
-  columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, p = ${fmt(solution.precision)}`, answer: true, band: false,
-    x: [solution.magnitude], y: [solution.precision], series: pointSeries("answer", "#c00000", 12) });
-  const ramp = solution.conditions.ramp;
+}
+
+async function drawRequirementPlot(solution) {
+  const data = await requirementData(solution);
+  const color = BAND_COLORS[solution.band] || "#333";
+  const bias = solution.mode === "bias";
+  const dashes = { 0.1: [2, 3], 0.3333333333333333: [8, 4], 3: [12, 3, 2, 3], 10: [4, 4] };
+  const columns = data.requirement.map((r) => {
+    const chosen = r.factor === 1;
+    const label = `T = ${fmt(r.tolerance, 3)}${chosen ? " (chosen)" : ""}`;
+    const y = r.precision.map((p) => (p == null ? null : 100 * p));
+    const err = r.statistical.map((e) => (e == null ? null : 100 * e));
+    const fid = r.precision.map((p, i) => (p && r.fidelity[i] != null ? r.fidelity[i] / p : null)).find((v) => v != null) ?? null;
+    return { label, tag: `T = ${fmt(r.tolerance, 2)}`, x: r.magnitude, y, err, fid, band: chosen,
+      series: { ...lineSeries(label, chosen ? color : shade(color, r.factor), chosen ? undefined : dashes[r.factor] || [4, 4], chosen ? 3 : 1.4) } };
+  });
+  const from = Math.min(...data.slope.magnitude) - 6;
+  const shades = limitShades(data.limits, from);
+  const noConstraint = solution.precision >= 1;
+  if (!noConstraint) {
+    columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, p = ${fmt(100 * solution.precision, 3)} %`, answer: true, band: false,
+      x: [solution.magnitude], y: [100 * solution.precision], series: pointSeries("answer", "#c00000", 12) });
+  }
+  const averaging = solution.mode === "scatter" && solution.stars > 1 ? ` (averaged over ${solution.stars} stars)` : "";
   drawPlot("req", {
-    title: `Required ${solution.mode === "bias" ? "Δβ/β₀" : "σβ/β₀"} vs magnitude for ${METRIC_LABEL[solution.metric]} tolerances around T = ${fmt(tolerance)}` +
-      `${averaging !== 1 ? ` (averaged over ${solution.stars} stars)` : ""}${ramp ? " (final-frame slopes)" : ""}\n${conditionsText(curve.conditions)}`,
+    title: `Required ${bias ? "Δβ/β₀" : "σβ/β₀"} vs magnitude for ${METRIC_LABEL[solution.metric]} tolerances around T = ${fmt(solution.tolerance)}` +
+      `${averaging}${solution.conditions.ramp ? " (final-frame slopes)" : ""}\n${conditionsText(data.conditions)}`,
     xLabel: "magnitude (AB)",
-    yLabel: `precision p = ${solution.mode === "bias" ? "Δβ/β₀" : "σβ/β₀"}`,
+    yLabel: `precision p = ${bias ? "Δβ/β₀" : "σβ/β₀"} [%]`,
     logY: true,
     columns,
     shades,
@@ -690,30 +1357,31 @@ async function drawRequirementPlot(solution) {
   });
   const el = document.getElementById("plot-req");
   el.dataset.point = `${solution.magnitude},${solution.precision}`;
-  el.dataset.answer = "shown";
+  el.dataset.answer = noConstraint ? "no-constraint" : "shown";
+  if (noConstraint) setNoAnswer("req", "no constraint: p ≥ 100 % at the answer");
   const u = state.plots.req;
   if (!u) return;
   const readout = document.getElementById("req-readout");
+  const chosen = state.exports.req.columns.find((c) => c.label.endsWith("(chosen)"));
   const show = (i) => {
     if (i == null) i = u.defaultIdx;
     const m = u.data[0][i];
-    const chosen = columns[2];
+    if (!chosen) return;
     const j = chosen.x.indexOf(m);
     if (j < 0 || chosen.y[j] == null) return;
     const p = chosen.y[j];
     const stat = chosen.err[j];
-    const fidelity = fid != null ? p * fid : null;
-    const where = m < mNonlinear ? " — non-linear regime" : m < mSat ? " — saturated" : "";
-    readout.textContent = `m = ${fmt(m, 4)}: p ≤ ${fmt(p, 3)} (± ${fmt(stat, 2)} stat` +
-      `${fidelity != null ? `, ± ${fmt(fidelity, 2)} fidelity` : ""}) keeps ${METRIC_LABEL[solution.metric]} within T = ${fmt(tolerance, 3)}${where}`;
+    const fidelity = chosen.fid != null ? p * chosen.fid : null;
+    const where = m < data.limits.saturation_magnitude ? " — saturated" : "";
+    readout.textContent = `m = ${fmt(m, 4)}: p ≤ ${fmt(p, 3)} % (± ${fmt(stat, 2)} % stat` +
+      `${fidelity != null ? `, ± ${fmt(fidelity, 2)} % fidelity` : ""}) keeps ${METRIC_LABEL[solution.metric]} within T = ${fmt(solution.tolerance, 3)}${where}`;
     readout.dataset.magnitude = String(m);
-    readout.dataset.precision = String(p);
+    readout.dataset.precision = String(p / 100);
   };
   u.hooks.setCursor = [(plot) => show(plot.cursor.idx)];
   show(null);
 }
 
-// Lighter (tolerance < T) or darker (> T) versions of the band colour for the neighbouring curves.
 function shade(hex, factor) {
   const n = parseInt(hex.slice(1), 16);
   const mix = factor < 1 ? 255 : 0;
@@ -723,43 +1391,30 @@ function shade(hex, factor) {
 }
 
 async function drawCalculatorPlot(solution) {
-  const c = sharedConditions();
-  const data = await api(`/curves/slope?${query({ metric: solution.metric, mode: solution.mode, sca: solution.sca,
-    exptime: solution.exptime, beta0: solution.beta0, full_well: c.full_well, bands: solution.band })}`);
-  const curve = data.curves[0];
-  const signed = curve.slope.some((v) => v < 0);
-  const abs = (v) => (v === null ? null : Math.abs(v));
+  const data = await requirementData(solution);
   const ramp = solution.conditions.ramp;
-  const label = `${curve.band} ${solution.mode} slope${ramp ? ", final frame" : ""}${signed ? " (|c|)" : ""}`;
+  const curve = data.slope;
+  const label = `${solution.band} ${solution.mode === "bias" ? "bias" : "scatter"} slope${ramp ? ", final frame" : ""}${curve.signed ? " (|c|)" : ""}`;
   const columns = [
-    { label, x: curve.magnitude, y: curve.slope.map(abs), err: curve.uncertainty, fid: curve.fidelity_relative_uncertainty,
-      series: lineSeries(label, BAND_COLORS[curve.band] || "#333") },
+    { label, tag: solution.band, x: curve.magnitude, y: curve.slope, err: curve.statistical, fid: curve.fidelity_relative_uncertainty,
+      series: lineSeries(label, BAND_COLORS[solution.band] || "#333", BAND_DASH[solution.band]) },
   ];
   const markers = [{ x: solution.final_frame_saturation_magnitude ?? solution.saturation_magnitude,
     label: "saturation, final frame", color: "#555" }];
   if (ramp) {
-    markers.push({ x: solution.saturation_magnitude, label: "saturation, ramp (first resultant)", color: "#c00000" });
-    const factor = ramp.quadratic_beta_factor;
-    const exactFrom = solution.conditions.ramp_table_exact_from_magnitude;
-    if (factor) {
-      // OLS: the ramp is the final frame at beta_eff = c beta0 wherever no pixel drops a resultant.
-      const mapped = await api(`/curves/slope?${query({ metric: solution.metric, mode: solution.mode, sca: solution.sca,
-        exptime: solution.exptime, beta0: solution.beta0 * factor, full_well: c.full_well, bands: solution.band })}`);
-      const rampCurve = mapped.curves[0];
-      const keep = rampCurve.magnitude.map((m) => exactFrom === null || m >= exactFrom);
-      const rampLabel = `ramp ${ramp.ma_table} (tables at β_eff = ${fmt(factor)} β₀)`;
-      columns.push({ label: rampLabel, x: rampCurve.magnitude.filter((_, i) => keep[i]),
-        y: rampCurve.slope.filter((_, i) => keep[i]).map((v) => abs(v * factor)),
-        err: rampCurve.uncertainty.filter((_, i) => keep[i]).map((e) => e * factor),
+    markers.push({ x: solution.saturation_magnitude, label: "saturation, ramp (first resultant)", color: "#c00000", dash: [2, 3] });
+    if (data.ramp) {
+      const rampLabel = `ramp ${ramp.ma_table} (tables at β_eff = ${fmt(data.ramp.factor)} β₀)`;
+      columns.push({ label: rampLabel, tag: "ramp", x: data.ramp.magnitude, y: data.ramp.slope, err: data.ramp.statistical,
         series: lineSeries(rampLabel, "#c00000", [6, 3]) });
     }
   }
   columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, c = ${fmt(solution.slope)}`, x: [solution.magnitude],
-    y: [abs(solution.slope)], answer: true, band: false, series: pointSeries("answer", "#c00000", 12) });
+    y: [Math.abs(solution.slope)], answer: true, band: false, series: pointSeries("answer", "#c00000", 12) });
   drawPlot("calc", {
     markers,
     cursorAt: solution.magnitude,
-    title: `${label} vs magnitude; answer marked${ramp ? `; up the ramp: ${ramp.description}` : ""}\n${conditionsText(curve.conditions)}`,
+    title: `${label} vs magnitude; answer marked${ramp ? `; up the ramp: ${ramp.description}` : ""}\n${conditionsText(data.conditions)}`,
     xLabel: "magnitude (AB)",
     yLabel: `${solution.mode === "bias" ? "d" : "σ"}(${METRIC_LABEL[solution.metric]})/${solution.mode === "bias" ? "dβ" : "σβ"} [e⁻]`,
     logY: true,
@@ -779,15 +1434,17 @@ async function drawSlopes() {
   const c = sharedConditions();
   const metric = document.getElementById("slopes-metric").value;
   const mode = document.getElementById("slopes-mode").value;
-  const data = await api(`/curves/slope?${query({ metric, mode, ...c })}`);
-  const signed = data.curves.some((curve) => curve.slope.some((v) => v < 0));
+  const at = state.lastSolution ? state.lastSolution.magnitude : 18.3;
+  state.slopesAt = at;
+  const data = await api(`/page/slopes?${query({ metric, mode, ...c, at })}`);
   const columns = data.curves.map((curve) => ({
     label: curve.band,
+    tag: curve.band,
     x: curve.magnitude,
-    y: curve.slope.map((v) => Math.abs(v)),
-    err: curve.uncertainty,
+    y: curve.slope,
+    err: curve.statistical,
     fid: curve.fidelity_relative_uncertainty,
-    series: lineSeries(curve.band, BAND_COLORS[curve.band] || "#333"),
+    series: lineSeries(curve.band, BAND_COLORS[curve.band] || "#333", BAND_DASH[curve.band]),
   }));
   const paper = paperOn();
   if (paper && metric !== "e") {
@@ -798,22 +1455,22 @@ async function drawSlopes() {
     }
   }
   const first = data.curves[0];
-  const title = `${mode} slope of ${METRIC_LABEL[metric]} vs magnitude${signed ? " (absolute values: the slope changes sign)" : ""}\n` +
+  const title = `${mode} slope of ${METRIC_LABEL[metric]} vs magnitude (absolute values), each band from its saturation limit\n` +
     conditionsText({ ...first.conditions, band: "all bands" });
   document.getElementById("slopes-caption").textContent =
-    `${data.source}. ${title.split("\n")[1]}. Lines: this tool's tables; points: the paper (Cycle-5 optics), when shown.` +
-    (paper && metric === "e" ? " The paper has no |Δe| data." : "");
+    `${title.split("\n")[1]}. Lines: this tool's tables, each band with its own dash and its name at the faint end, ` +
+    `starting at its saturation limit; legend values at m = ${fmt(at)}${state.lastSolution ? " (the answer's magnitude)" : ""}. ` +
+    "Points: the paper (Cycle-5 optics), when shown." + (paper && metric === "e" ? " The paper has no |Δe| data." : "");
   drawPlot("slopes", {
     title,
     xLabel: "magnitude (AB)",
     yLabel: `${mode === "bias" ? "d" : "σ"}(${METRIC_LABEL[metric]})/${mode === "bias" ? "dβ" : "σβ"} [e⁻]`,
     logY: true,
     columns,
+    cursorAt: at,
   });
 }
 
-// Fresh simulation points for the beta or the sigma_beta plot: one series per (β, σβ) group so that
-// several simulations at different β are all drawn, each named by its β.
 function simulationPoints(kind, band, metric, magnitude) {
   const sim = state.lastSimulation;
   if (!sim || metric === "e") return [];
@@ -833,13 +1490,12 @@ function simulationPoints(kind, band, metric, magnitude) {
   }
   const several = groups.size > 1;
   return [...groups.entries()].map(([group, points], k) => {
-    const label = `fresh simulation${kind === "sigma" || several ? `, ${group}` : ""} (${sim.fidelity}, ${rows[0].realizations} realizations)`;
+    const label = `fresh simulation${kind === "sigma" || several ? `, ${group}` : ""} (${fidelityName(sim.fidelity)}, ${rows[0].realizations} realizations)`;
     return { label, x: points.map((p) => p[0]), y: points.map((p) => p[1]), err: points.map((p) => p[2]), band: false,
       series: pointSeries(label, SERIES_COLORS[k % SERIES_COLORS.length], 9) };
   });
 }
 
-// Says which fresh simulation points are drawn, and which are not (another band, magnitude or |Δe|).
 function freshNote(drawn, band, magnitude, metric) {
   const sim = state.lastSimulation;
   if (!sim) return "";
@@ -851,6 +1507,10 @@ function freshNote(drawn, band, magnitude, metric) {
   return parts.join("; ") + ".";
 }
 
+function flagsText(flags) {
+  return flags.length ? ` Notes: ${flags.map(plainWords).join("; ")}` : "";
+}
+
 async function drawBeta() {
   const c = sharedConditions();
   const band = document.getElementById("beta-band").value;
@@ -859,8 +1519,8 @@ async function drawBeta() {
   const log = document.getElementById("beta-log").checked;
   const data = await api(`/curves/beta?${query({ band, metric, magnitude, ...c })}`);
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
-  const columns = [{ label, x: data.beta, y: data.values, err: data.uncertainty, fid: data.fidelity_relative_uncertainty,
-    series: lineSeries(label, BAND_COLORS[band] || "#333") }];
+  const columns = [{ label, tag: band, x: data.beta, y: data.values, err: data.uncertainty, fid: data.fidelity_relative_uncertainty,
+    series: lineSeries(label, BAND_COLORS[band] || "#333", BAND_DASH[band]) }];
   const paper = paperOn();
   if (paper && metric !== "e" && paper["fig2_at_m18.3"][band]) {
     const fig = paper["fig2_at_m18.3"][band];
@@ -869,14 +1529,13 @@ async function drawBeta() {
   }
   columns.push(...simulationPoints("beta", band, metric, Number(magnitude)));
   if (log) {
-    // Δe1 and Δe2 can be negative: a log axis shows their size.
     for (const column of columns) column.y = column.y.map((v) => (v === null ? null : Math.abs(v)));
   }
   const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
-  document.getElementById("beta-caption").textContent = `${data.source}. ${conditionsText(data.conditions)}. ` +
+  document.getElementById("beta-caption").textContent = `Tables, to first order in β. ${conditionsText(data.conditions)}. ` +
     `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty: statistical ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}` +
-    `${data.fidelity_relative_uncertainty != null ? `, fidelity ${fmt(data.fidelity_relative_uncertainty, 2)}` : ""}).` +
-    (data.flags.length ? ` Flags: ${data.flags.join("; ")}` : "");
+    `${data.fidelity_relative_uncertainty != null ? `, method ${fmt(data.fidelity_relative_uncertainty, 2)}` : ""}). ` +
+    "A fresh simulation with several β gives the full, nonlinear response." + flagsText(data.flags);
   const yLabel = log ? `|${METRIC_LABEL[metric]}|` : METRIC_LABEL[metric];
   drawPlot("beta", { title, xLabel: "β [1/e⁻]", yLabel, columns, logX: log, logY: log });
 }
@@ -889,14 +1548,14 @@ async function drawSigma() {
   const log = document.getElementById("sigma-log").checked;
   const data = await api(`/curves/sigma_beta?${query({ band, metric, magnitude, ...c })}`);
   const label = `${band}, m = ${fmt(data.magnitude)} (table, first order)`;
-  const columns = [{ label, x: data.sigma_beta, y: data.values, err: data.uncertainty, fid: data.fidelity_relative_uncertainty,
-    series: lineSeries(label, BAND_COLORS[band] || "#333") }];
+  const columns = [{ label, tag: band, x: data.sigma_beta, y: data.values, err: data.uncertainty, fid: data.fidelity_relative_uncertainty,
+    series: lineSeries(label, BAND_COLORS[band] || "#333", BAND_DASH[band]) }];
   const fresh = simulationPoints("sigma", band, metric, Number(magnitude));
   columns.push(...fresh);
   const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
-  document.getElementById("sigma-caption").textContent = `${data.source}. ${conditionsText(data.conditions)}. ` +
-    `Scatter slope = ${fmt(data.slope)} per unit σβ.` + (data.flags.length ? ` Flags: ${data.flags.join("; ")}` : "") +
-    freshNote(fresh, band, Number(magnitude), metric);
+  document.getElementById("sigma-caption").textContent = `Tables, to first order in σβ. ${conditionsText(data.conditions)}. ` +
+    `Scatter slope = ${fmt(data.slope)} per unit σβ. A fresh simulation with σβ values gives Monte Carlo points.` +
+    flagsText(data.flags) + freshNote(fresh, band, Number(magnitude), metric);
   drawPlot("sigma", { title, xLabel: "σβ [1/e⁻]", yLabel: `σ(${METRIC_LABEL[metric]})`, columns, logX: log, logY: log });
 }
 
@@ -905,7 +1564,10 @@ async function drawCurves() {
   clearError(box, null);
   const results = await Promise.allSettled([drawSlopes(), drawBeta(), drawSigma()]);
   const failed = results.find((r) => r.status === "rejected");
-  if (failed) showError(box, null, failed.reason);
+  if (failed) {
+    showError(box, null, failed.reason);
+    if (failed.reason.unreachable) connection.lost("curves", () => drawCurves());
+  }
 }
 
 // ---- simulations --------------------------------------------------------------------------------
@@ -938,88 +1600,9 @@ async function runSimulation(event) {
     const job = await api("/simulations", { method: "POST", body: JSON.stringify(body) });
     followJob(job);
   } catch (error) {
-    setProgress(0, "not started");
+    setProgress(0, error.unreachable ? "not started: the server cannot be reached" : "not started");
     showError(errorBox, form, error);
   }
-}
-
-// ---- scene and impact ------------------------------------------------------------------------
-
-function sceneBody() {
-  const f = document.getElementById("scene-form").elements;
-  const scene = {};
-  const text = (name) => f[name].value.trim();
-  const given = (name) => text(name) !== "" && text(name).toLowerCase() !== "none";
-  if (f.preset.value) scene.preset = f.preset.value;
-  if (given("position")) scene.position = listOf(text("position"));
-  if (given("sed")) scene.sed = text("sed");
-  for (const name of ["jitter", "charge_diffusion", "bfe", "background"]) {
-    if (given(name)) scene[name] = numberOrText(text(name));
-  }
-  if (given("ipc")) scene.ipc = numberOrText(text("ipc"));
-  if (f.ipc_order.value) scene.ipc_order = f.ipc_order.value;
-  if (given("nl_coefficients")) scene.nl_coefficients = listOf(text("nl_coefficients"));
-  return Object.keys(scene).length ? scene : null;
-}
-
-// The service names scene fields "scene.jitter"; the form's inputs are named "jitter".
-function sceneError(error) {
-  const field = error.field && error.field.startsWith("scene.") ? error.field.slice(6) : error.field;
-  return new ApiError(error.message, field, error.status);
-}
-
-async function measureImpact(event) {
-  if (event) event.preventDefault();
-  const form = document.getElementById("scene-form");
-  const box = document.getElementById("scene-error");
-  const button = document.getElementById("impact-button");
-  clearError(box, form);
-  const s = document.getElementById("solve-form").elements;
-  const body = {
-    band: s.band.value,
-    sca: numberOrText(s.sca.value),
-    metric: s.metric.value,
-    mode: s.mode.value,
-    beta0: numberOrText(s.beta0.value),
-    exptime: numberOrText(s.exptime.value),
-    magnitude: numberOrText(s.magnitude.value) ?? 18.3,
-    realizations: 30,
-  };
-  const scene = sceneBody();
-  if (scene) body.scene = scene;
-  button.disabled = true;
-  button.textContent = "Measuring…";
-  try {
-    showImpact(await api("/impact", { method: "POST", body: JSON.stringify(body), followJob: true }));
-  } catch (error) {
-    showError(box, form, sceneError(error));
-  } finally {
-    button.disabled = false;
-    button.textContent = "Measure impact";
-  }
-}
-
-function showImpact(report) {
-  const c = report.conditions;
-  const metric = c.metric;
-  const values = report.effects.map((e) => e.impact[metric]);
-  const largest = Math.max(1e-12, ...values.filter((v) => v !== null).map(Math.abs));
-  document.getElementById("impact-conditions").textContent =
-    `${c.band} · SCA ${c.sca} · m = ${fmt(c.magnitude)} · β₀ = ${fmt(c.beta0)} /e⁻ · ${METRIC_LABEL[metric] || metric} ${c.mode} slope · ` +
-    `scene: ${c.scene_description} · impact = slope with ÷ without − 1 (linear response, ${c.realizations} centroids)`;
-  document.getElementById("impact-bars").innerHTML = report.effects
-    .map((e, k) => {
-      const v = values[k];
-      const width = v === null ? 0 : (50 * Math.abs(v)) / largest;
-      const side = v !== null && v < 0 ? "neg" : "pos";
-      const label = v === null ? "n/a" : `${v > 0 ? "+" : ""}${fmt(100 * v, 3)} %`;
-      return `<div class="bar-row" data-effect="${escapeHtml(e.name)}" title="${escapeHtml(e.note || "")}">` +
-        `<span class="bar-name">${escapeHtml(e.name)}${e.on ? " (on)" : ""}</span>` +
-        `<span class="bar-track"><span class="bar ${side}" style="width:${width}%"></span></span>` +
-        `<span class="bar-value">${label}</span></div>`;
-    })
-    .join("");
-  document.getElementById("impact-result").hidden = false;
 }
 
 function setProgress(fraction, message) {
@@ -1027,12 +1610,32 @@ function setProgress(fraction, message) {
   document.getElementById("sim-progress-text").textContent = `${Math.round(fraction * 100)}% — ${message}`;
 }
 
+// Follows a simulation to its end. The job's id is kept in this tab's session storage, so a reload,
+// a lost connection or a restarted server picks the same job up again and shows how it really ended.
 function followJob(job) {
   const cancel = document.getElementById("sim-cancel");
   const submit = document.getElementById("sim-button");
   if (state.polling) clearTimeout(state.polling);
-  const step = async (current) => {
+  sessionStorage.setItem("nlpsf-job", job.id);
+  const poll = async () => {
+    try {
+      step(await api(`/simulations/${job.id}`));
+    } catch (error) {
+      if (error.unreachable) {
+        setProgress(document.getElementById("sim-progress").value, "the server cannot be reached; following the job again when it answers");
+        connection.lost("job", poll);
+        return;
+      }
+      sessionStorage.removeItem("nlpsf-job");
+      showError(document.getElementById("sim-error"), null, error);
+      cancel.disabled = true;
+      submit.disabled = false;
+    }
+  };
+  const step = (current) => {
     setProgress(current.progress, current.cached ? "answered from stored results" : current.message);
+    const sim = document.getElementById("sim-progress-text");
+    sim.dataset.status = current.status;
     if (["queued", "running"].includes(current.status)) {
       cancel.disabled = false;
       submit.disabled = true;
@@ -1043,25 +1646,18 @@ function followJob(job) {
           showError(document.getElementById("sim-error"), null, error);
         }
       };
-      state.polling = setTimeout(async () => {
-        try {
-          step(await api(`/simulations/${current.id}`));
-        } catch (error) {
-          showError(document.getElementById("sim-error"), null, error);
-          cancel.disabled = true;
-          submit.disabled = false;
-        }
-      }, 250);
+      state.polling = setTimeout(poll, 250);
       return;
     }
+    sessionStorage.removeItem("nlpsf-job");
     cancel.disabled = true;
     submit.disabled = false;
     if (current.status === "done") {
       setProgress(1, current.cached ? "done (answered from stored results)" : "done");
       showSimulation(current.result);
     } else {
-      const reason = current.error && current.error.message ? `: ${current.error.message}` : "";
-      showError(document.getElementById("sim-error"), null, new ApiError(`simulation ${current.status} — ${current.message}${reason}`));
+      setProgress(current.progress || 0, `${current.status}: ${current.message || ""}`);
+      showError(document.getElementById("sim-error"), null, new ApiError(jobEnding(current)));
     }
   };
   step(job);
@@ -1071,16 +1667,17 @@ function showSimulation(result) {
   state.lastSimulation = result;
   const box = document.getElementById("sim-result");
   document.getElementById("sim-conditions").textContent = `${result.source}. ${conditionsText(result.conditions)}`;
-  const head = ["m", "β", "σβ", "flux [e⁻]", "peak [e⁻]", "ΔR/R", "Δe₁", "Δe₂", "σ(ΔR/R)", "flags"];
+  const head = ["m", "β", "σβ", "flux [e⁻]", "peak [e⁻]", "ΔR/R", "Δe₁", "Δe₂", "σ(ΔR/R)", "notes"];
   const table = document.getElementById("sim-table");
-  table.tHead.innerHTML = `<tr>${head.map((h) => `<th>${escapeHtml(h)}</th>`).join("")}</tr>`;
+  table.tHead.innerHTML = `<tr>${head.map((h) => `<th scope="col">${escapeHtml(h)}</th>`).join("")}</tr>`;
   table.tBodies[0].innerHTML = result.results.map((r) => `<tr>
       <td>${fmt(r.magnitude)}</td><td>${fmt(r.beta)}</td><td>${fmt(r.sigma_beta)}</td>
       <td>${fmt(r.flux_electrons)}</td><td>${fmt(r.peak_electrons)}</td>
       <td>${plusMinus(r.dR_over_R.mean, r.dR_over_R.stderr)}</td><td>${plusMinus(r.de1.mean, r.de1.stderr)}</td>
       <td>${plusMinus(r.de2.mean, r.de2.stderr)}</td><td>${fmt(r.dR_over_R.std)}</td>
-      <td class="flags-cell">${escapeHtml(r.flags.join("; "))}</td></tr>`).join("");
+      <td class="flags-cell">${escapeHtml(r.flags.map(plainWords).join("; "))}</td></tr>`).join("");
   box.hidden = false;
+  markScrollable(table.parentElement);
   const first = result.results[0];
   for (const prefix of ["beta", "sigma"]) {
     document.getElementById(`${prefix}-band`).value = first.band;
@@ -1101,52 +1698,365 @@ function simulationCsv() {
       r.dR_over_R.mean, r.dR_over_R.std, r.dR_over_R.stderr, r.de1.mean, r.de1.std, r.de1.stderr, r.de2.mean, r.de2.std, r.de2.stderr,
       `"${r.flags.join("; ").replace(/"/g, "'")}"`].join(","));
   }
-  download("nlpsf-simulation.csv", "data:text/csv;charset=utf-8," + encodeURIComponent(lines.join("\n") + "\n"));
+  const first = result.results[0] || {};
+  downloadText(`nlpsf-simulation-${first.band || ""}-sca${first.sca || ""}-${result.fidelity || ""}.csv`, lines.join("\n") + "\n", "text/csv");
+}
+
+// ---- scene and impact ------------------------------------------------------------------------
+
+function sceneBody() {
+  const f = document.getElementById("scene-form").elements;
+  const scene = {};
+  const text = (name) => f[name].value.trim();
+  const given = (name) => text(name) !== "" && text(name).toLowerCase() !== "none" && text(name).toLowerCase() !== "off";
+  if (f.preset.value) scene.preset = f.preset.value;
+  if (given("position")) scene.position = listOf(text("position"));
+  if (given("sed")) scene.sed = text("sed");
+  for (const name of ["jitter", "charge_diffusion", "bfe", "background"]) {
+    if (given(name)) scene[name] = numberOrText(text(name));
+  }
+  if (given("ipc")) scene.ipc = numberOrText(text("ipc"));
+  if (f.ipc_order.value) scene.ipc_order = f.ipc_order.value;
+  if (given("nl_coefficients")) scene.nl_coefficients = listOf(text("nl_coefficients"));
+  return Object.keys(scene).length ? scene : null;
+}
+
+// The library's preset values in the form's fields, so that what the preset does is visible.
+function sceneFill(name) {
+  const preset = state.presets && state.presets.scenes[name || "paper"];
+  if (!preset) return;
+  const f = document.getElementById("scene-form").elements;
+  for (const [field, value] of Object.entries(preset.fields)) f[field].value = value === "" ? "" : String(value);
+}
+
+function sceneError(error) {
+  const field = error.field && error.field.startsWith("scene.") ? error.field.slice(6) : error.field;
+  return new ApiError(error.message, field, error.status, error.errors, { unreachable: error.unreachable });
+}
+
+async function measureImpact(event) {
+  if (event) event.preventDefault();
+  const form = document.getElementById("scene-form");
+  const box = document.getElementById("scene-error");
+  const button = document.getElementById("impact-button");
+  clearError(box, form);
+  const s = document.getElementById("solve-form").elements;
+  const body = {
+    band: s.band.value,
+    sca: numberOrText(s.sca.value),
+    metric: s.metric.value,
+    mode: s.mode.value,
+    beta0: numberOrText(s.beta0.value),
+    exptime: numberOrText(s.exptime.value),
+    magnitude: (state.lastSolution && state.lastSolution.magnitude) ?? numberOrText(s.magnitude.value) ?? 18.3,
+    realizations: 30,
+  };
+  const scene = sceneBody();
+  if (scene) body.scene = scene;
+  button.disabled = true;
+  button.textContent = "Measuring…";
+  stateToUrl();
+  try {
+    await showImpact(await api("/impact", { method: "POST", body: JSON.stringify(body), followJob: true }));
+  } catch (error) {
+    if (error.unreachable) connection.lost("impact", () => measureImpact(null));
+    showError(box, form, sceneError(error));
+  } finally {
+    button.disabled = false;
+    button.textContent = "Measure impact";
+  }
+}
+
+// Each effect in requirement terms: what it does to the precision the answer asks for.
+async function showImpact(report) {
+  const c = report.conditions;
+  const metric = c.metric;
+  const values = report.effects.map((e) => e.impact[metric]);
+  const solution = state.lastSolution;
+  const p = solution && solution.precision > 0 ? solution.precision : null;
+  let shifted = [];
+  if (p) {
+    const usable = values.map((v) => (v === null ? 0 : v));
+    shifted = (await api(`/page/impact-terms?${query({ precision: p, impact: usable })}`)).precision;
+  }
+  const modelled = new Set(((solution && solution.model && solution.model.included) || []).map((e) => e.name || e));
+  const largest = Math.max(1e-12, ...values.filter((v) => v !== null).map(Math.abs));
+  document.getElementById("impact-summary").textContent = p
+    ? `What each effect does to the answer's precision p = ${fmt(100 * p, 3)} % (${METRIC_LABEL[metric]} ≤ ${fmt(solution.tolerance)}, ` +
+      `${c.band}, m = ${fmt(c.magnitude)}): a stronger response asks a finer calibration.`
+    : "Solve first to see what each effect does to the precision; here: the change of the slope.";
+  document.getElementById("impact-conditions").textContent =
+    `${c.band} · detector ${c.sca} · m = ${fmt(c.magnitude)} · β₀ = ${fmt(c.beta0)} /e⁻ · ${METRIC_NAME[metric] || metric}, ${MODE_NAME[c.mode] || c.mode} · ` +
+    `scene: ${c.scene_description} · impact = slope with the effect ÷ without − 1 (linear response, ${c.realizations} random centroids)`;
+  document.getElementById("impact-bars").innerHTML = report.effects
+    .map((e, k) => {
+      const v = values[k];
+      const [plain, about] = EFFECTS[e.name] || [e.name.replace(/_/g, " "), ""];
+      const width = v === null ? 0 : (50 * Math.abs(v)) / largest;
+      const side = v !== null && v < 0 ? "neg" : "pos";
+      const change = v === null ? "" : `slope ${v > 0 ? "+" : ""}${fmt(100 * v, 3)} %`;
+      const inAnswer = modelled.has(e.name) ? "in the answer" : e.on ? "on in this scene" : "not in the answer";
+      const label = v === null
+        ? `not measured: ${plainNote(e.note || "no value given")}`
+        : p ? `p ${fmt(100 * p, 3)} % → ${fmt(100 * shifted[k], 3)} % (${change})` : change;
+      return `<div class="bar-row" data-effect="${escapeHtml(e.name)}">` +
+        `<span class="bar-name">${escapeHtml(plain)}${e.on ? " (on)" : ""}<span class="muted small"> · ${escapeHtml(inAnswer)}</span></span>` +
+        `<span class="bar-track" aria-hidden="true"><span class="bar ${side}" style="width:${width}%"></span></span>` +
+        `<span class="bar-value">${escapeHtml(label)}</span>` +
+        `<span class="bar-about muted">${escapeHtml(about)}${e.note && v !== null ? ` (${escapeHtml(plainNote(e.note))})` : ""}</span></div>`;
+    })
+    .join("");
+  document.getElementById("impact-result").hidden = false;
+}
+
+// "measured at galsim.roman.ipc_kernel" in a reader's words.
+function plainNote(note) {
+  return plainWords(String(note).replace(/galsim\.roman\.\w+/g, "GalSim's Roman value"));
+}
+
+function fillExplanations() {
+  const dl = (entries) => entries.map(([k, [name, about]]) => `<dt>${escapeHtml(name)}</dt><dd>${escapeHtml(about)}</dd>`).join("");
+  document.getElementById("effect-explanations").innerHTML = dl(Object.entries(EFFECTS));
+  document.getElementById("fidelity-explanations").innerHTML = dl(Object.entries(FIDELITIES));
+}
+
+// ---- comparison table --------------------------------------------------------------------------
+
+const COMPARE_COLUMNS = [
+  ["band", (s) => s.band], ["detector", (s) => s.sca], ["PSF quantity", (s) => METRIC_LABEL[s.metric]],
+  ["kind", (s) => s.mode], ["scene", (s) => sceneName(s)], ["budget", (s) => (s.shear ? shearText(s.shear) : `T = ${fmt(s.tolerance)}`)],
+  ["solved for", (s) => s.solved_for], ["answer", (s) => answerHeadline(s)], ["method", (s) => fidelityName(s.fidelity)],
+  ["exposure [s]", (s) => fmt(s.exptime)], ["β₀ [1/e⁻]", (s) => fmt(s.beta0)],
+];
+
+function pinAnswer() {
+  if (!state.lastSolution) return;
+  state.pinned.push(state.lastSolution);
+  renderComparison();
+}
+
+// The pinned answers survive a reload (this browser's local storage; the link carries the inputs).
+function savePinned() {
+  try {
+    localStorage.setItem("nlpsf-pinned", JSON.stringify(state.pinned));
+  } catch (_) {
+    // storage full or disabled: the table still works for this page load
+  }
+}
+
+function loadPinned() {
+  try {
+    const saved = JSON.parse(localStorage.getItem("nlpsf-pinned") || "[]");
+    state.pinned = Array.isArray(saved) ? saved.filter((s) => s && s.band && s.solved_for) : [];
+  } catch (_) {
+    state.pinned = [];
+  }
+  renderComparison();
+}
+
+function renderComparison() {
+  savePinned();
+  const section = document.getElementById("comparison");
+  section.hidden = state.pinned.length === 0;
+  const table = document.getElementById("compare-table");
+  table.tHead.innerHTML = `<tr><th scope="col">#</th>${COMPARE_COLUMNS.map(([h]) => `<th scope="col">${escapeHtml(h)}</th>`).join("")}<th scope="col"><span class="visually-hidden">remove</span></th></tr>`;
+  table.tBodies[0].innerHTML = state.pinned.map((s, i) => `<tr><th scope="row">${i + 1}</th>${COMPARE_COLUMNS.map(([, f]) =>
+    `<td>${escapeHtml(f(s))}</td>`).join("")}<td><button type="button" data-unpin="${i}" aria-label="remove row ${i + 1}">✕</button></td></tr>`).join("");
+  table.querySelectorAll("[data-unpin]").forEach((b) => b.addEventListener("click", () => {
+    state.pinned.splice(Number(b.dataset.unpin), 1);
+    renderComparison();
+  }));
+  markScrollable(table.parentElement);
+}
+
+function csvCell(v) {
+  const text = v === null || v === undefined ? "" : String(v);
+  return /[",\n]/.test(text) ? `"${text.replace(/"/g, '""')}"` : text;
+}
+
+function comparisonCsv() {
+  const fields = ["band", "sca", "metric", "mode", "solved_for", "precision", "tolerance", "magnitude", "uncertainty",
+    "uncertainty_statistical", "uncertainty_fidelity", "uncertainty_optical_model", "uncertainty_model", "fidelity", "exptime",
+    "beta0", "full_well", "stars", "saturation_magnitude"];
+  const lines = ["# nlpsf comparison: precision is a fraction of beta0, tolerance dimensionless, magnitudes AB, exposure s, beta0 1/e-",
+    [...fields, "shear_budget", "scene", "sentence"].join(",")];
+  for (const s of state.pinned) {
+    lines.push([...fields.map((f) => csvCell(s[f])), csvCell(s.shear ? shearText(s.shear) : ""), csvCell(sceneName(s)), csvCell(answerSentence(s))].join(","));
+  }
+  downloadText(`nlpsf-comparison-${state.pinned.length}-answers.csv`, lines.join("\n") + "\n", "text/csv");
+}
+
+// ---- one answer as JSON and as ECSV -----------------------------------------------------------
+
+function answerFileName(s, extension) {
+  return `nlpsf-answer-${s.band}-sca${s.sca}-${s.metric}-${s.mode}-${s.solved_for}.${extension}`;
+}
+
+function downloadJson() {
+  const s = state.lastSolution;
+  if (!s) return;
+  const text = JSON.stringify({ request: state.lastRequest, answer: s, sentence: answerSentence(s), link: location.href }, null, 2);
+  downloadText(answerFileName(s, "json"), text + "\n", "application/json");
+}
+
+// ECSV 1.0 (astropy's format): a YAML header (JSON is YAML) with the conditions, then one row per quantity.
+function answerEcsv(s) {
+  const rows = [
+    ["precision", s.precision, "", "calibration precision, fraction of beta0"],
+    ["tolerance", s.tolerance, "", "tolerated error of the PSF quantity"],
+    ["magnitude", s.magnitude, "mag(AB)", "star magnitude"],
+    ["uncertainty", s.uncertainty, s.solved_for === "magnitude" ? "mag(AB)" : "", `1-sigma uncertainty of the ${s.solved_for}`],
+    ["uncertainty_statistical", s.uncertainty_statistical, "", "statistical part"],
+    ["uncertainty_fidelity", s.uncertainty_fidelity, "", "method (fidelity) part"],
+    ["uncertainty_optical_model", s.uncertainty_optical_model, "", "optical-model part"],
+    ["uncertainty_model", s.uncertainty_model, "", "effects not modelled"],
+    ["slope", s.slope, "electron", "slope c(m)"],
+    ["slope_uncertainty", s.slope_uncertainty, "electron", "1-sigma uncertainty of the slope"],
+    ["saturation_magnitude", s.saturation_magnitude, "mag(AB)", "saturation limit"],
+    ["beta0", s.beta0, "1/electron", "NL coefficient"],
+    ["exptime", s.exptime, "s", "exposure time"],
+    ["full_well", s.full_well, "electron", "full-well depth"],
+  ];
+  const meta = {
+    solved_for: s.solved_for, band: s.band, sca: s.sca, metric: s.metric, mode: s.mode, fidelity: s.fidelity, stars: s.stars,
+    sentence: answerSentence(s), scene: sceneName(s), shear: s.shear, flags: s.flags, conditions: s.conditions, link: location.href,
+  };
+  const header = [
+    "# %ECSV 1.0",
+    "# ---",
+    "# datatype:",
+    "# - {name: quantity, datatype: string}",
+    "# - {name: value, datatype: float64}",
+    "# - {name: unit, datatype: string}",
+    "# - {name: description, datatype: string}",
+    `# meta: ${JSON.stringify(meta)}`,
+    "# schema: astropy-2.0",
+  ];
+  const cell = (v) => (v === null || v === undefined || !Number.isFinite(v) ? "nan" : String(v));
+  const quote = (t) => `"${String(t).replace(/"/g, '""')}"`;
+  const body = ["quantity value unit description", ...rows.map(([q, v, u, d]) => `${q} ${cell(v)} ${quote(u)} ${quote(d)}`)];
+  return [...header, ...body].join("\n") + "\n";
+}
+
+function downloadEcsv() {
+  const s = state.lastSolution;
+  if (!s) return;
+  downloadText(answerFileName(s, "ecsv"), answerEcsv(s), "text/plain");
+}
+
+// ---- batch -------------------------------------------------------------------------------------
+
+async function runBatch(event) {
+  event.preventDefault();
+  const form = document.getElementById("batch-form");
+  const box = document.getElementById("batch-error");
+  clearError(box, form);
+  const text = document.getElementById("batch-text").value;
+  try {
+    const answer = await api("/page/batch", { method: "POST", body: text, headers: { "Content-Type": "text/csv" } });
+    state.batch = { text, answer };
+    showBatch(answer);
+  } catch (error) {
+    if (error.unreachable) connection.lost("batch", () => runBatch(new Event("submit")));
+    showError(box, form, error);
+  }
+}
+
+function showBatch(answer) {
+  document.getElementById("batch-summary").textContent = `${answer.answered} answered, ${answer.failed} refused.`;
+  const table = document.getElementById("batch-table");
+  table.tHead.innerHTML = "<tr><th scope=\"col\">row</th><th scope=\"col\">band</th><th scope=\"col\">detector</th><th scope=\"col\">PSF quantity</th>" +
+    "<th scope=\"col\">answer</th><th scope=\"col\">notes</th></tr>";
+  table.tBodies[0].innerHTML = answer.results.map((r) => {
+    const s = r.solution;
+    const request = answer.requests[r.index] || {};
+    if (!s) {
+      return `<tr class="refused"><th scope="row">${r.index + 1}</th><td>${escapeHtml(request.band || "")}</td><td>${escapeHtml(request.sca ?? "")}</td>` +
+        `<td>${escapeHtml(request.metric || "")}</td><td>refused</td><td class="flags-cell">${escapeHtml(plainWords(r.error ? r.error.detail : ""))}</td></tr>`;
+    }
+    return `<tr><th scope="row">${r.index + 1}</th><td>${escapeHtml(s.band)}</td><td>${s.sca}</td><td>${escapeHtml(METRIC_LABEL[s.metric])}</td>` +
+      `<td>${escapeHtml(answerHeadline(s))}</td><td class="flags-cell">${escapeHtml(s.flags.map(plainWords).join("; "))}</td></tr>`;
+  }).join("");
+  document.getElementById("batch-result").hidden = false;
+  markScrollable(table.parentElement);
+}
+
+async function batchCsv() {
+  if (!state.batch) return;
+  try {
+    const text = await api("/page/batch?format=csv", { method: "POST", body: state.batch.text, headers: { "Content-Type": "text/csv" }, raw: true });
+    downloadText("nlpsf-batch-answers.csv", text, "text/csv");
+  } catch (error) {
+    showError(document.getElementById("batch-error"), null, error);
+  }
 }
 
 // ---- start ------------------------------------------------------------------------------------
 
+const SETTING_NAMES = { exptime_s: "exposure [s]", beta0: "β₀ [1/e⁻]", oversampling: "oversampling", stamp: "stamp [fine px]",
+  realizations: "random centroids", seed: "seed", weight_cut_rho2: "weight cut ρ²", pupil_scale: "pupil scale rule" };
+
 async function init() {
-  const meta = await api("/meta");
+  const [meta, presets] = await Promise.all([api("/meta"), api("/page/presets")]);
   state.meta = meta;
+  state.presets = presets;
   const d = meta.defaults.solve;
   const bands = meta.table_bands && meta.table_bands.length ? meta.table_bands : meta.bands;
   document.getElementById("versions").textContent = `code ${meta.code_version} · optical data: ${meta.data_version}`;
   const settings = (meta.tables && meta.tables.settings) || {};
   document.getElementById("table-version").textContent =
-    Object.entries(settings).map(([k, v]) => `${k} ${v}`).join(" · ") + (meta.tables ? ` · fingerprint ${meta.tables.fingerprint}` : "");
-  fillSelect(document.getElementById("solve-band"), bands, "H158");
+    Object.entries(settings).filter(([k]) => SETTING_NAMES[k]).map(([k, v]) => `${SETTING_NAMES[k]} ${v}`).join(" · ") +
+    (meta.tables ? ` · version ${String(meta.tables.fingerprint).slice(0, 12)}` : "");
+  fillSelect(document.getElementById("solve-band"), bands, meta.defaults.simulation.band || "H158");
   fillSelect(document.getElementById("solve-sca"), meta.scas, d.sca);
   for (const id of ["solve-metric", "slopes-metric", "beta-metric", "sigma-metric"]) {
-    fillSelect(document.getElementById(id), meta.metrics, d.metric, (m) => `${m} (${METRIC_LABEL[m] || m})`);
+    fillSelect(document.getElementById(id), meta.metrics, d.metric, (m) => METRIC_NAME[m] || m);
   }
-  fillSelect(document.getElementById("solve-mode"), meta.modes, d.mode);
-  fillSelect(document.getElementById("slopes-mode"), meta.modes, d.mode);
-  fillSelect(document.getElementById("solve-fidelity"), meta.fidelities, d.fidelity || "table");
+  fillSelect(document.getElementById("solve-mode"), meta.modes, d.mode, (m) => MODE_NAME[m] || m);
+  fillSelect(document.getElementById("slopes-mode"), meta.modes, d.mode, (m) => MODE_NAME[m] || m);
+  fillSelect(document.getElementById("solve-fidelity"), meta.fidelities, d.fidelity || "table", fidelityName);
   for (const id of ["beta-band", "sigma-band", "sim-band"]) fillSelect(document.getElementById(id), bands, "H158");
   fillSelect(document.getElementById("sim-sca"), meta.scas, 18);
-  fillSelect(document.getElementById("sim-fidelity"), meta.simulation_fidelities, "monte_carlo");
+  fillSelect(document.getElementById("sim-fidelity"), meta.simulation_fidelities, "monte_carlo", fidelityName);
   fillReadout("solve");
   fillReadout("sim");
+  fillPresets();
+  fillExplanations();
 
   document.getElementById("solve-form").addEventListener("submit", solve);
   document.querySelectorAll('input[name="solve_for"]').forEach((r) => r.addEventListener("change", updateUnknown));
-  updateUnknown();
+  for (const name of ["shear_m", "shear_c"]) document.getElementById(`solve-${name}`).addEventListener("input", updateUnknown);
+  document.getElementById("solve-precision").addEventListener("input", precisionHint);
   document.getElementById("sim-form").addEventListener("submit", runSimulation);
   document.getElementById("sim-csv").addEventListener("click", simulationCsv);
   document.getElementById("scene-form").addEventListener("submit", measureImpact);
+  document.getElementById("scene-preset").addEventListener("change", (e) => sceneFill(e.target.value || "paper"));
+  document.getElementById("batch-form").addEventListener("submit", runBatch);
+  document.getElementById("batch-csv").addEventListener("click", batchCsv);
+  document.getElementById("batch-file").addEventListener("change", async (e) => {
+    const file = e.target.files[0];
+    if (!file) return;
+    document.getElementById("batch-text").value = await file.text();
+    runBatch(new Event("submit"));
+  });
+  document.getElementById("pin-answer").addEventListener("click", pinAnswer);
+  document.getElementById("download-json").addEventListener("click", downloadJson);
+  document.getElementById("download-ecsv").addEventListener("click", downloadEcsv);
+  document.getElementById("copy-link").addEventListener("click", copyLink);
+  document.getElementById("compare-csv").addEventListener("click", comparisonCsv);
+  document.getElementById("compare-clear").addEventListener("click", () => { state.pinned = []; renderComparison(); });
   document.querySelectorAll("[data-png]").forEach((b) => b.addEventListener("click", () => exportPng(b.dataset.png)));
   document.querySelectorAll("[data-csv]").forEach((b) => b.addEventListener("click", () => exportCsv(b.dataset.csv)));
-  const redraw = () => drawCurves();
+  const redraw = () => { drawCurves(); stateToUrl(); };
   for (const id of ["slopes-metric", "slopes-mode", "beta-band", "beta-metric", "beta-log", "sigma-band", "sigma-metric", "sigma-log"]) {
     document.getElementById(id).addEventListener("change", redraw);
   }
   for (const id of ["beta-magnitude", "sigma-magnitude", "solve-sca", "solve-exptime", "solve-beta0", "solve-full_well"]) {
-    document.getElementById(id).addEventListener("change", redraw);
+    document.getElementById(id).addEventListener("change", () => drawCurves());
   }
   document.getElementById("paper-overlay").addEventListener("change", async () => {
     if (!state.paper) state.paper = await api("/paper");
-    drawCurves();
+    redraw();
   });
   let resizeTimer = null;
   window.addEventListener("resize", () => {
@@ -1154,11 +2064,17 @@ async function init() {
     resizeTimer = setTimeout(() => {
       for (const [name, u] of Object.entries(state.plots)) {
         const el = document.getElementById(`plot-${name}`);
-        u.setSize({ width: Math.max(320, el.clientWidth), height: 320 });
+        u.setSize({ width: Math.max(280, el.clientWidth), height: 320 });
       }
     }, 150);
   });
+  stateFromUrl();
+  loadPinned();
+  if (document.getElementById("paper-overlay").checked) state.paper = await api("/paper");
+  updateUnknown();
   await Promise.allSettled([solve(null), drawCurves()]);
+  const job = sessionStorage.getItem("nlpsf-job");
+  if (job) followJob({ id: job, status: "running", progress: 0, message: "following the simulation started before this page loaded" });
   document.body.dataset.ready = "true";
 }
 
@@ -1166,6 +2082,7 @@ document.addEventListener("DOMContentLoaded", () => {
   init().catch((error) => {
     const box = document.getElementById("solve-error");
     showError(box, null, new ApiError(`the page could not load its data: ${error.message}`));
+    if (error.unreachable) connection.lost("init", () => location.reload());
     document.body.dataset.ready = "error";
   });
 });

@@ -19,7 +19,7 @@ def test_requirement_plot_hover_reads_the_requirement(page):  # noqa: F811
     labels = page.evaluate("() => state.exports.req.columns.map((c) => c.label)")
     assert sum(label.startswith("T = ") for label in labels) == 5 and "T = 1e-4 (chosen)" in labels
     shades = page.evaluate("() => state.exports.req.shades.map((s) => s.label)")
-    assert any("saturated" in s for s in shades) and any("non-linear" in s for s in shades)
+    assert any("saturated" in s for s in shades) and any("quadratic NL model invalid" in s for s in shades)
     # Before any hover the legend shows numbers, not dashes.
     legend = page.inner_text("#plot-req .u-legend")
     assert "–" not in legend and any(ch.isdigit() for ch in legend)

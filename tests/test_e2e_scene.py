@@ -18,7 +18,7 @@ def test_impact_bar_chart_and_scene_errors(page):  # noqa: F811
     page.wait_for_selector("[data-testid=impact-bars] .bar-row")
     assert page.locator("#impact-bars .bar-row").count() == 8
     assert "(on)" in page.inner_text("#impact-bars [data-effect=jitter]")
-    assert "n/a" in page.inner_text("#impact-bars [data-effect=brighter_fatter]")
+    assert "not measured" in page.inner_text("#impact-bars [data-effect=brighter_fatter]")
     page.locator("#scene").screenshot(path=str(ARTIFACTS / "e2e-impact.png"))
     page.fill("#scene-jitter", "-1")
     page.click("#impact-button")
