@@ -39,6 +39,8 @@ from . import __version__, defaults, detector, moments, optics, photometry, ramp
 from . import scene as scenes
 from .checks import InputError, check_choice, check_exptime, check_full_well, check_integer, check_number, check_numbers
 from .fidelity import level_name
+from .flags import FlagCode, make
+from .flags import codes as flag_codes
 from .threads import single_blas
 
 METHODS = defaults.METHODS
@@ -317,7 +319,8 @@ class SimulationResult:
             "de1": self.de1.to_dict(),
             "de2": self.de2.to_dict(),
             "failed_realizations": self.failed_realizations,
-            "flags": list(self.flags),
+            "flags": [str(f) for f in self.flags],
+            "flag_codes": flag_codes(self.flags),
             "elapsed_s": self.elapsed_s,
             "fidelity": c["fidelity"],
             "centroid_offset_fine_pixels": self.centroid_offset,
@@ -367,9 +370,13 @@ def _validity_flags(
         # Judged on the star (its brightest pixel over every sub-pixel centroid), so that the flag
         # does not depend on which centroids were drawn.
         flags.append(
-            f"saturated: the star's brightest pixel reaches {star_peak:.4g} e- (the maximum over sub-pixel centroids), "
-            f"above the full well of {config.full_well_e:.4g} e-, and passes it in {int(over.sum())} of the {over.size} "
-            "realizations drawn; a real detector would clip this star, so the numbers describe an unphysical case"
+            make(
+                FlagCode.SATURATED,
+                peak_e=star_peak,
+                full_well_e=config.full_well_e,
+                over=int(over.sum()),
+                realizations=int(over.size),
+            )
         )
     model = config.scene
     if ramp_effect is not None:
@@ -390,20 +397,19 @@ def _validity_flags(
         slope = 1.0 - 2.0 * beta_map * charge_scale * scene.stamps[index]
         worst = float(np.where(weighted, slope, np.inf).min())
     if worst <= 0:
+        plain = model.plain_detector
         flags.append(
-            f"nonlinearity not monotonic: 1 - 2 beta Q reaches {worst:.3g} in pixels that carry weight in the moments; "
-            "the quadratic model S = Q - beta Q^2 is invalid at this charge, so the result is not physical"
-            if model.plain_detector
-            else f"nonlinearity not monotonic: dS/dQ reaches {worst:.3g} in pixels that carry weight in the moments; "
-            "the NL model is invalid at this charge, so the result is not physical"
+            make(
+                FlagCode.NL_NOT_MONOTONIC,
+                slope_name="1 - 2 beta Q" if plain else "dS/dQ",
+                worst=worst,
+                model="the quadratic model S = Q - beta Q^2" if plain else "the NL model",
+            )
         )
     elif beta_map.size == 1 and beta_map.ravel()[0] < 0:
-        flags.append("beta < 0 in the paper's convention: the simulated response is super-linear (brightening)")
+        flags.append(make(FlagCode.NEGATIVE_BETA))
     elif np.any(beta_map < 0):
-        flags.append(
-            f"{100 * np.mean(beta_map < 0):.2g} % of the per-pixel beta values are negative (super-linear pixels): "
-            "sigma_beta is comparable to beta"
-        )
+        flags.append(make(FlagCode.NEGATIVE_PIXEL_BETAS, percent=float(100 * np.mean(beta_map < 0))))
     return flags
 
 
@@ -433,9 +439,14 @@ def _scene_flags(scene: Scene) -> list[str]:
     if q < 1.0:
         needed = math.ceil(config.oversampling / q)
         flags.append(
-            f"undersampled: fine pixels of {config.grid.scale_arcsec * 1e3:.1f} mas are coarser than the Nyquist sampling "
-            f"lambda/2D = {nyquist_arcsec * 1e3:.1f} mas at {wavelength_nm:.0f} nm (q = {q:.2f}); moments of an aliased PSF are "
-            f"biased (measured: up to 3.5 % in size and 13 % in e at q = 0.5-0.85); use --oversampling {needed} or more"
+            make(
+                FlagCode.UNDERSAMPLED,
+                pixel_mas=config.grid.scale_arcsec * 1e3,
+                nyquist_mas=nyquist_arcsec * 1e3,
+                wavelength_nm=wavelength_nm,
+                q=q,
+                needed=needed,
+            )
         )
     # The weight window must fit in the stamp: a cut weight is a different estimator.
     n = config.stamp
@@ -459,10 +470,7 @@ def _scene_flags(scene: Scene) -> list[str]:
         rho2 = (myy[:, None] * dx**2 - 2 * mxy[:, None] * dx * dy + mxx[:, None] * dy**2) / det[:, None]
         inside = int(np.sum(rho2.min(axis=1) < cut))
         if inside:
-            flags.append(
-                f"stamp too small: the adaptive-moment weight window (rho^2 <= {cut:.4g}) reaches past the {n}x{n} stamp edge in "
-                f"{inside} of {int(ok.sum())} realizations, so the moments are those of a truncated image; use a larger --stamp"
-            )
+            flags.append(make(FlagCode.STAMP_TOO_SMALL, cut=cut, n=n, inside=inside, fitted=int(ok.sum())))
     return flags
 
 
@@ -472,7 +480,7 @@ def _failure_flag(status: np.ndarray) -> list[str]:
         return []
     reasons = sorted({moments.STATUS_REASONS[moments.MomentStatus(s)] for s in status[bad]})
     rest = "no statistics are left" if np.all(bad) else "the statistics use the others"
-    return [f"adaptive moments failed in {int(bad.sum())} of {bad.size} realizations ({'; '.join(reasons)}); {rest}"]
+    return [make(FlagCode.MOMENTS_FAILED, failed=int(bad.sum()), total=int(bad.size), reasons="; ".join(reasons), rest=rest)]
 
 
 def _metrics(fit: moments.Moments, reference: moments.Moments, ref_index=None):
@@ -567,16 +575,28 @@ def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) ->
         hit = int(np.sum(np.any(weighted & (usable == 0), axis=(1, 2))))
         where = "in the first resultant" if needed == 1 else "by the second resultant (one gives no slope, as in romancal)"
         flags.append(
-            f"saturated {where}: {summary['unusable']} pixels that carry weight in the moments (in {hit} of "
-            f"{len(stamps)} realizations) pass the saturation level of {config.full_well_e:.4g} e- by t = {first_end:.4g} s; "
-            "they are unusable (their value here is the first resultant's), so the numbers describe an unphysical case"
+            make(
+                FlagCode.RAMP_UNUSABLE_PIXELS,
+                where=where,
+                unusable=summary["unusable"],
+                hit=hit,
+                realizations=len(stamps),
+                full_well_e=config.full_well_e,
+                time_s=first_end,
+            )
         )
     if summary["fitted_on_fewer"]:
         final_peak = float(charge.max())
         flags.append(
-            f"ramp: {summary['fitted_on_fewer']} of {summary['pixels']} pixels that carry weight were fitted on fewer than "
-            f"{K} resultants (down to {summary['fewest_resultants']}; saturated resultants dropped, as the ground pipeline "
-            f"does); a single final frame would be saturated (peak {final_peak:.4g} e- > full well {config.full_well_e:.4g} e-)"
+            make(
+                FlagCode.RAMP_FEWER_RESULTANTS,
+                fewer=summary["fitted_on_fewer"],
+                pixels=summary["pixels"],
+                resultants=K,
+                fewest=summary["fewest_resultants"],
+                peak_e=final_peak,
+                full_well_e=config.full_well_e,
+            )
         )
     return RampEffect(factor, usable, used_peak, flags, {"ramp": summary}, scene_ramp)
 
@@ -664,7 +684,7 @@ def simulate(
 def _zero_flag(d_r: np.ndarray) -> list[str]:
     finite = d_r[np.isfinite(d_r)]
     if finite.size and np.all(finite == 0.0):
-        return ["no change: the nonlinearity is exactly zero for this beta"]
+        return [make(FlagCode.NO_CHANGE)]
     return []
 
 
@@ -929,10 +949,14 @@ def _noise_floor_flag(
     if np.all(expected >= MONTE_CARLO_SPREAD_FLOOR):
         return []
     return [
-        f"below the Monte Carlo's resolution: sigma_beta={sigma_beta:g} should spread the metrics by only "
-        f"{', '.join(f'{n} {v:.2g}' for n, v in zip(METRICS, expected, strict=True))}, under the ~{MONTE_CARLO_SPREAD_FLOOR:g} "
-        f"that differences of converged float64 fits resolve; the measured spread ({', '.join(f'{v:.2g}' for v in measured)}) "
-        "is numerical noise. The linear method is exact here (the response is linear in sigma_beta)."
+        make(
+            FlagCode.BELOW_MONTE_CARLO_RESOLUTION,
+            sigma_beta=sigma_beta,
+            expected=", ".join(f"{n} {v:.2g}" for n, v in zip(METRICS, expected, strict=True)),
+            floor=MONTE_CARLO_SPREAD_FLOOR,
+            measured=", ".join(f"{v:.2g}" for v in measured),
+            expected_spread=[float(v) for v in expected],
+        )
     ]
 
 
@@ -997,7 +1021,8 @@ class SlopeResult:
             "scatter_slope": self.scatter,
             "scatter_basis": self.scatter_basis,
             "failed_realizations": self.failed_realizations,
-            "flags": list(self.flags),
+            "flags": [str(f) for f in self.flags],
+            "flag_codes": flag_codes(self.flags),
             "elapsed_s": self.elapsed_s,
             "fidelity": c["fidelity"],
             "conditions": c,
@@ -1154,11 +1179,7 @@ def _cut_jump_flags(
             off.append(f"{name} {100 * difference / abs(lin.mean):.2g} %")
     if not off:
         return []
-    return [
-        f"jumpy finite difference: the Monte Carlo slope differs from the exact derivative at beta0 by {', '.join(off)}: "
-        f"pixels cross the hard weight cut at rho^2 = {scene.config.weight_cut_rho2:g} between "
-        "beta0 x 0.99 and x 1.01; the linear method (or --weight-cut none) has no such step"
-    ]
+    return [make(FlagCode.JUMPY_FINITE_DIFFERENCE, differences=", ".join(off), cut=scene.config.weight_cut_rho2)]
 
 
 def _linear_slopes(

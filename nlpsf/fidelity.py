@@ -24,6 +24,7 @@ from importlib import resources
 from pathlib import Path
 
 from .checks import InputError, SimulationError
+from .flags import FlagCode, make
 
 LEVELS: tuple[str, ...] = ("table", "linear", "monte_carlo", "polychromatic")
 #: Levels that run a simulation (everything but the table look-up).
@@ -91,14 +92,19 @@ def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str) -> tupl
     errors = data["errors"][band][mode][metric]
     for level in LEVELS:
         if errors[level] <= accuracy:
-            return level, (
-                f"fidelity {level} chosen for accuracy {accuracy:g}: its measured relative error on {band} {metric} {mode} "
-                f"slopes is {errors[level]:.2g} ({data['date']})"
+            return level, make(
+                FlagCode.FIDELITY_CHOSEN,
+                level=level,
+                accuracy=accuracy,
+                band=band,
+                metric=metric,
+                mode=mode,
+                error=errors[level],
+                date=data["date"],
             )
     best = min(LEVELS, key=lambda level: errors[level])
-    return best, (
-        f"no fidelity level meets accuracy {accuracy:g} for {band} {metric} {mode}; using the most accurate, {best}, whose "
-        f"measured relative error is {errors[best]:.2g}"
+    return best, make(
+        FlagCode.FIDELITY_NONE_MEETS, accuracy=accuracy, band=band, metric=metric, mode=mode, level=best, error=errors[best]
     )
 
 

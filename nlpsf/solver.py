@@ -68,6 +68,8 @@ from .checks import (
     check_magnitude,
     check_number,
 )
+from .flags import Flag, FlagCode, make
+from .flags import codes as flag_codes
 
 METRICS = defaults.METRICS
 MODES = defaults.MODES
@@ -149,7 +151,8 @@ class Solution:
             "brightest_usable_magnitude": _json_number(self.brightest_usable_magnitude),
             "binding_limit": self.binding_limit,
             "nonlinearity_magnitude": _json_number(self.nonlinearity_magnitude),
-            "flags": list(self.flags),
+            "flags": [str(f) for f in self.flags],
+            "flag_codes": flag_codes(self.flags),
             "fidelity": self.fidelity,
             "stars": self.stars,
             "applies_to": self.applies_to,
@@ -424,17 +427,11 @@ def solve(
         and not _tables_hold(simulated_scene, tables_set or tables.load_tables(), band, sca)
     )
     if chosen == "table" and scene_needs_simulation:
-        flags.append(
-            "the tables hold the paper's scene only (at the SCA centre and its corner field points): "
-            "the scene's effects are simulated (fidelity linear)"
-        )
+        flags.append(make(FlagCode.SCENE_SIMULATED))
         chosen = "linear"
     table_rule = str((tables_set or tables.load_tables()).get(band, sca).settings["pupil_scale"])
     if pupil_scale is not None and pupil_scale != table_rule and chosen == "table":
-        flags.append(
-            f"the tables hold the {table_rule} pupil scale: the slopes are simulated with pupil scale {pupil_scale} "
-            "(fidelity linear)"
-        )
+        flags.append(make(FlagCode.PUPIL_SCALE_SIMULATED, table_rule=table_rule, rule=pupil_scale))
         chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
@@ -442,10 +439,7 @@ def solve(
     if simulated_scene is not None and simulated_scene.breaks_beta_q_scaling():
         breaking = simulated_scene.breaks_beta_q_scaling()
         verb = "adds" if len(breaking) == 1 else "add"
-        flags.append(
-            f"{', '.join(breaking)} {verb} a flux dependence of its own: slopes are simulated at this exposure and beta0, "
-            "never rescaled from the tables (the beta Q rule does not hold)"
-        )
+        flags.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
     slopes = _Slopes(
         band,
         sca,
@@ -465,10 +459,13 @@ def solve(
     if "relabelled_from" in table.settings:
         size_error, e_error = tables.RELABEL_ERROR[band]
         flags.append(
-            f"the {table.settings['relabelled_from']} tables read with {throughput} photometry (magnitudes "
-            f"{-slopes.relabel_shift:+.3f}); their achromatic PSF keeps the {table.settings['relabelled_from']} curve's "
-            f"wavelength, up to {100 * (size_error if metric == 'size' else e_error):.1f} % on the slope, "
-            "added to the optical-model uncertainty"
+            make(
+                FlagCode.THROUGHPUT_RELABELLED,
+                source=table.settings["relabelled_from"],
+                throughput=throughput,
+                shift=-slopes.relabel_shift,
+                percent=100 * (size_error if metric == "size" else e_error),
+            )
         )
     background = 0.0 if simulated_scene is None else simulated_scene.background_e
     if background >= full_well:
@@ -505,10 +502,8 @@ def solve(
             statistical, fidelity_part, model_part, effects_part, pupil_part = 0.0, 0.0, 0.0, 0.0, 0.0
             model_info = _model_at(model_info, slopes, m_sat)
             slope, slope_err, _ = slopes.at(m_sat)
-            flags.append(
-                f"at the saturation magnitude the {metric} {mode} error is {abs(slope) * precision * beta0 * averaging:.3g} "
-                f"(tolerance {tolerance:g})"
-            )
+            error = abs(slope) * precision * beta0 * averaging
+            flags.append(make(FlagCode.ERROR_AT_SATURATION, metric=metric, mode=mode, error=error, tolerance=tolerance))
     else:
         if ramp is not None:
             flags += _ramp_magnitude_flags(magnitude, m_sat, m_sat_final_frame)  # refuses before simulating
@@ -526,10 +521,7 @@ def solve(
             model_part = None if model is None else tolerance * model
             effects_part, pupil_part = (None, None) if effects is None else (tolerance * effects, tolerance * pupil)
         elif c <= max(c_err, 1e-300):
-            flags.append(
-                f"the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {c_err:.2g}): "
-                "this metric is insensitive to beta here, so no calibration precision is needed for it"
-            )
+            flags.append(make(FlagCode.SLOPE_CONSISTENT_WITH_ZERO, metric=metric, magnitude=magnitude, slope=slope, error=c_err))
             precision, statistical, fidelity_part, model_part, effects_part, pupil_part = math.inf, None, None, None, None, None
         else:
             precision = tolerance / (c * beta0)
@@ -561,7 +553,7 @@ def solve(
     if ratio is not None and tolerance is not None and math.isfinite(tolerance):
         shear_answer = _shear_answer(metric, budget, ratio, tolerance, statistical if solved_for == "tolerance" else None)
         if metric != "size":
-            flags.append(shear.CROSS_TERM_NOTE)
+            flags.append(make(FlagCode.SHEAR_CROSS_TERM))
     if slopes.pupil_scale is not None and chosen != "table":
         conditions["pupil_scale"] = slopes.pupil_scale
     if chosen != "table":
@@ -825,7 +817,7 @@ def _fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[floa
     try:
         return levels.level_error(band, metric, mode, level), None
     except (SimulationError, KeyError):
-        return None, "no measured fidelity error for this band is shipped, so the uncertainty is statistical only"
+        return None, make(FlagCode.FIDELITY_ERROR_UNKNOWN)
 
 
 def _peak_electrons(slopes: _Slopes, magnitude: float) -> float:
@@ -852,15 +844,9 @@ def _magnitude_flags(slopes: _Slopes, magnitude: float, region: int, m_sat: floa
         )
     flags = []
     if region > 0:
-        flags.append(
-            f"extrapolated: m={magnitude:g} is fainter than the table (m <= {hi:.2f}); the slope is scaled in proportion "
-            "to the flux, which is exact in the linear regime these faint stars are in"
-        )
+        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=hi))
     if magnitude < m_sat:
-        flags.append(
-            f"saturated: at m={magnitude:g} the brightest pixel exceeds the full well (saturation at m={m_sat:.2f}); "
-            "such a star cannot be used for the PSF model at all"
-        )
+        flags.append(make(FlagCode.STAR_SATURATED, magnitude=magnitude, m_sat=m_sat))
     return flags
 
 
@@ -875,15 +861,9 @@ def _validity_flags(
         peak = min(peak, max(full_well, peak * slopes.ramp.first_usable_fraction(slopes.exptime)))
     flags = []
     if 2 * beta0 * peak >= 1:
-        flags.append(
-            f"nonlinearity not monotonic: 2 beta0 Q_peak = {2 * beta0 * peak:.2f} >= 1 at m={magnitude:g}; the quadratic model "
-            "is invalid for this star, so the slope is not physical"
-        )
+        flags.append(make(FlagCode.QUADRATIC_NOT_MONOTONIC, value=2 * beta0 * peak, magnitude=magnitude))
     if precision is not None and math.isfinite(precision) and precision * beta0 * peak > LINEAR_REGIME_LIMIT:
-        flags.append(
-            f"outside the linear regime: delta_beta * Q_peak = {precision * beta0 * peak:.2g} > {LINEAR_REGIME_LIMIT}; "
-            "T = c p beta0 assumes the PSF error grows linearly with delta_beta, so expect corrections of that order"
-        )
+        flags.append(make(FlagCode.OUTSIDE_LINEAR_REGIME, value=precision * beta0 * peak, limit=LINEAR_REGIME_LIMIT))
     return flags
 
 
@@ -906,19 +886,15 @@ def _solve_magnitude(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat
         # Even the faintest tabulated star exceeds the tolerance: go fainter along the linear
         # regime, where |c| is proportional to the flux.
         m_nl = float(hi + 2.5 * math.log10(abs(value[0]) / required))
-        flags.append(
-            f"extrapolated: the tolerance is only met fainter than the table (m > {hi:.2f}); m={m_nl:.2f} follows from the slope "
-            "scaling with flux, exact in the linear regime"
-        )
+        flags.append(make(FlagCode.EXTRAPOLATED_ANSWER, faintest=hi, magnitude=m_nl))
         if m_nl > 40:
-            flags.append("the answer is fainter than m = 40: no usable PSF star can meet this tolerance at this precision")
+            flags.append(make(FlagCode.FAINTER_THAN_40))
         slope, slope_err = slopes.at(m_nl)[:2]
         return m_nl, slope, slope_err, -0.4 * math.log(10), flags
     if not above.any():
-        flags.append(
-            f"the NL error stays below the tolerance over the whole table, down to m={lo:.2f} "
-            f"({tables.BRIGHT_MARGIN_MAG} mag brighter than saturation, in beta0 x flux)"
-        )
+        margin = tables.BRIGHT_MARGIN_MAG
+        where = f"over the whole table, down to m={lo:.2f} ({margin} mag brighter than saturation, in beta0 x flux)"
+        flags.append(make(FlagCode.BELOW_TOLERANCE_EVERYWHERE, where=where, down_to=lo))
         return None, None, None, None, flags
     k = int(np.argmax(above))  # first magnitude (from the faint side) where the tolerance is exceeded
     bright, faint = float(grid[k]), float(grid[k - 1])
@@ -941,10 +917,7 @@ def _solve_magnitude(slopes: _Slopes, delta_beta: float, tolerance: float, m_sat
     ends = np.abs(slopes.table.values(slopes.metric, slopes.mode, np.array([m_nl + h, m_nl - h]) - shift))
     log_derivative = float(np.log(ends[0] / ends[1]) / (2 * h))
     if any(np.diff(np.sign(value[np.isfinite(value)])) != 0):
-        flags.append(
-            f"the {slopes.metric} slope changes sign within the table; the answer uses |c| and is the brightest magnitude "
-            "whose error stays within the tolerance for every fainter star"
-        )
+        flags.append(make(FlagCode.SLOPE_CHANGES_SIGN, metric=slopes.metric, where="within the table"))
     return m_nl, slope, slope_err, log_derivative, flags
 
 
@@ -987,12 +960,8 @@ def _ramp_basis(slopes: _Slopes) -> str:
     return "; ".join(parts) or "none needed"
 
 
-def _between_limits_flag(magnitude: float, m_sat: float, m_sat_final_frame: float) -> str:
-    return (
-        f"between the saturation limits: at m={magnitude:.2f} a single final frame would saturate (m < {m_sat_final_frame:.2f}) "
-        f"but the ramp keeps its early resultants (usable down to m={m_sat:.2f}); the answer uses the ramp fit with "
-        "saturated resultants dropped"
-    )
+def _between_limits_flag(magnitude: float, m_sat: float, m_sat_final_frame: float) -> Flag:
+    return make(FlagCode.BETWEEN_SATURATION_LIMITS, magnitude=magnitude, m_sat_final=m_sat_final_frame, m_sat=m_sat)
 
 
 def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: float) -> list[str]:
@@ -1003,10 +972,7 @@ def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: flo
             f"{tables.BRIGHT_MARGIN_MAG} mag (usable down to m={m_sat:.2f}); such a star has no meaningful NL answer",
         )
     if magnitude < m_sat:
-        return [
-            f"saturated: at m={magnitude:g} the brightest pixel passes the full well already in the first resultant "
-            f"(ramp saturation at m={m_sat:.2f}); such a star cannot be used for the PSF model at all"
-        ]
+        return [make(FlagCode.RAMP_SATURATED, magnitude=magnitude, m_sat=m_sat)]
     if magnitude < m_sat_final_frame:
         return [_between_limits_flag(magnitude, m_sat, m_sat_final_frame)]
     return []
@@ -1040,14 +1006,12 @@ def _solve_magnitude_ramp(slopes: _Slopes, delta_beta: float, tolerance: float, 
     if above[0]:
         at_hi = slopes.at(hi)[0]  # the fit in use, at the faint end of the table
         m_nl = float(hi + 2.5 * math.log10(abs(at_hi) / required))
-        flags.append(
-            f"extrapolated: the tolerance is only met fainter than the table (m > {hi:.2f}); m={m_nl:.2f} follows from the slope "
-            "scaling with flux, exact in the linear regime"
-        )
+        flags.append(make(FlagCode.EXTRAPOLATED_ANSWER, faintest=hi, magnitude=m_nl))
         slope, slope_err = slopes.at(m_nl)[:2]
         return m_nl, slope, slope_err, -0.4 * math.log(10), flags
     if not above.any():
-        flags.append(f"the NL error stays below the tolerance for every star down to the ramp's saturation limit m={m_sat:.2f}")
+        where = f"for every star down to the ramp's saturation limit m={m_sat:.2f}"
+        flags.append(make(FlagCode.BELOW_TOLERANCE_EVERYWHERE, where=where, down_to=m_sat))
         return None, None, None, None, flags
     k = int(np.argmax(above))
     bright, faint = float(grid[k]), float(grid[k - 1])
@@ -1065,10 +1029,7 @@ def _solve_magnitude_ramp(slopes: _Slopes, delta_beta: float, tolerance: float, 
     h = 0.01
     log_derivative = (math.log(abs(slopes.at(m_nl + h)[0])) - math.log(abs(slopes.at(m_nl - h)[0]))) / (2 * h)
     if any(np.diff(np.sign(value[np.isfinite(value)])) != 0):
-        flags.append(
-            f"the {slopes.metric} slope changes sign over the scan; the answer uses |c| and is the brightest magnitude "
-            "whose error stays within the tolerance for every fainter star"
-        )
+        flags.append(make(FlagCode.SLOPE_CHANGES_SIGN, metric=slopes.metric, where="over the scan"))
     return m_nl, slope, slope_err, log_derivative, flags
 
 
@@ -1076,10 +1037,7 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
     """The brightest usable star: the fainter of the NL limit and saturation, and which binds."""
     if m_nl is None or m_nl < m_sat:
         where = "" if m_nl is None else f" (the NL error would reach the tolerance only at m={m_nl:.2f})"
-        flags.append(
-            f"saturation binds: stars brighter than m={m_sat:.2f} saturate before the nonlinearity matters{where}; "
-            "at the saturation magnitude the NL error is below the tolerance"
-        )
+        flags.append(make(FlagCode.SATURATION_BINDS, m_sat=m_sat, where=where, nonlinearity_magnitude=m_nl))
         return m_sat, "saturation"
     return m_nl, "nonlinearity"
 
@@ -1176,8 +1134,15 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
         for s, p, a in answers
     ]
     where = "all 18 SCAs" if scas == "all" else "SCA " + ", ".join(map(str, chosen))
-    flag = (
-        f"worst over {len(points)} field points ({where}): "
-        f"SCA {sca} at pixel ({position[0]:.0f}, {position[1]:.0f}); {solved} ranges {min(finite):.4g} to {max(finite):.4g}"
+    flag = make(
+        FlagCode.WORST_OVER_FIELD,
+        points=len(points),
+        where=where,
+        sca=sca,
+        x=position[0],
+        y=position[1],
+        solved=solved,
+        low=min(finite),
+        high=max(finite),
     )
     return replace(worst, flags=[flag, *worst.flags], conditions=conditions)
