@@ -37,9 +37,12 @@ IMPACT_METRICS: dict[str, tuple[str, ...]] = {"size": ("dR_over_R",), "e1": ("de
 MODES = ("bias", "scatter")
 
 
-def _slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
+def slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
     """(slope, its standard error) per impact metric; |e| combines e1 and e2 in quadrature."""
     return {name: result.slope(mode, parts) for name, parts in IMPACT_METRICS.items()}
+
+
+_slope_values = slope_values  # the old private name
 
 
 def _ratio(with_value, without_value):
@@ -114,7 +117,7 @@ def impact(
         if key not in cache:
             start = time.perf_counter()
             result = experiment.slopes(replace(base, scene=key), [magnitude], beta0=beta0)[0]
-            cache[key] = (_slope_values(result, mode), time.perf_counter() - start, result.flags)
+            cache[key] = (slope_values(result, mode), time.perf_counter() - start, result.flags)
         return cache[key]
 
     total = len(scenes.EFFECTS) + 1
@@ -280,7 +283,7 @@ def model_point(
     )
 
     def values(config: experiment.SimulationConfig) -> dict:
-        return _slope_values(experiment.slopes(config, [conditions["magnitude"]], beta0=conditions["beta0"])[0], mode)
+        return slope_values(experiment.slopes(config, [conditions["magnitude"]], beta0=conditions["beta0"])[0], mode)
 
     plain = values(base)
     slope = {m: v[0] for m, v in plain.items()}
