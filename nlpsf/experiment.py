@@ -960,7 +960,8 @@ def _noise_floor_flag(
     ]
 
 
-METRICS = ("dR_over_R", "de1", "de2")
+#: The measured quantities (``defaults.MEASURED``; not the requirement metrics, ``defaults.METRICS``).
+METRICS = defaults.MEASURED
 
 
 @dataclass(frozen=True)

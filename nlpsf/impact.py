@@ -33,8 +33,8 @@ from . import scene as scenes
 from .checks import InputError, check_exptime, check_integer, check_number
 
 #: Impact metrics: the contract's names, and the simulation metrics each combines.
-IMPACT_METRICS: dict[str, tuple[str, ...]] = {"size": ("dR_over_R",), "e1": ("de1",), "e2": ("de2",), "e": ("de1", "de2")}
-MODES = ("bias", "scatter")
+IMPACT_METRICS: dict[str, tuple[str, ...]] = defaults.METRIC_COLUMNS
+MODES = defaults.MODES
 
 
 def slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
@@ -239,7 +239,7 @@ def markdown(report: dict) -> str:
 #: ``e1`` and ``e2`` are the change of that component's slope relative to |c_e| = hypot(c_e1, c_e2)
 #: (as the optical model's part is stated): a component crossing zero would make its own ratio
 #: meaningless, so the solver scales these by |c_e| / |c_ei| at the answer's magnitude.
-MODEL_METRICS: tuple[str, ...] = ("size", "e1", "e2", "e")
+MODEL_METRICS: tuple[str, ...] = defaults.METRICS
 
 
 def _relative_to_scale(change: dict, slope: dict) -> dict:

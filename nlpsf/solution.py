@@ -7,11 +7,7 @@ import math
 from dataclasses import dataclass, field
 
 from .flags import codes as flag_codes
-
-
-def json_number(value: float | None) -> float | None:
-    """A float for JSON: None for None, NaN and infinities (JSON has none)."""
-    return None if value is None or not math.isfinite(value) else float(value)
+from .serialise import json_number
 
 
 @dataclass(frozen=True)

@@ -63,14 +63,14 @@ from .checks import (
 from .flags import Flag, FlagCode, make
 from .magnitude_scan import scan_magnitude
 from .request import SolveRequest
-from .solution import Solution, Uncertainty, json_number
+from .serialise import json_number
+from .solution import Solution, Uncertainty
 
 METRICS = defaults.METRICS
 MODES = defaults.MODES
 FIDELITIES = levels.LEVELS
 #: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
 LINEAR_REGIME_LIMIT = 0.05
-_TABLE_METRIC_NAMES = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
 
 class _Slopes:
@@ -200,8 +200,7 @@ class _Slopes:
         if self._scene is None or self._scene.config != config:
             self._scene = experiment.prepare(config)  # magnitude-independent: once per request
         result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene)[0]
-        names = ("de1", "de2") if self.metric == "e" else (_TABLE_METRIC_NAMES[self.metric],)
-        value, error = result.slope(self.mode, names)
+        value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
