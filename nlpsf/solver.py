@@ -51,9 +51,9 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
-from . import __version__, defaults, model_part, ramps, roman, shear, tables
+from . import __version__, defaults, model_part, ramps, shear, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
@@ -62,15 +62,31 @@ from .checks import (
 )
 from .flags import Flag, FlagCode, make
 from .magnitude_scan import scan_magnitude
+
+# The answer's validity flags and the answers over the field live in their own modules; their names
+# stay importable from here for the callers of ``nlpsf.solver``.
+from .over_field import (  # noqa: F401
+    _corner_tables,
+    _tables_hold,
+    field_points,
+    field_tables,
+    over_field_from_tables,
+    solve_over_field,
+)
 from .request import SolveRequest
-from .serialise import json_number
 from .solution import Solution, Uncertainty
+from .solve_validity import (  # noqa: F401
+    LINEAR_REGIME_LIMIT,
+    _between_limits_flag,
+    _binding,
+    _magnitude_flags,
+    _ramp_magnitude_flags,
+    _validity_flags,
+)
 
 METRICS = defaults.METRICS
 MODES = defaults.MODES
 FIDELITIES = levels.LEVELS
-#: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
-LINEAR_REGIME_LIMIT = 0.05
 
 
 class _Slopes:
@@ -576,53 +592,6 @@ def fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float
 _fidelity_error = fidelity_error
 
 
-def _peak_electrons(slopes: _Slopes, magnitude: float) -> float:
-    table = slopes.table
-    flux = float(table.flux_at(magnitude - 2.5 * math.log10(slopes.exptime / table.exptime_s)))
-    return flux * table.peak_fraction * int(table.settings["oversampling"]) ** 2
-
-
-def _magnitude_flags(slopes: _Slopes, magnitude: float, region: int, m_sat: float, beta0: float) -> list[str]:
-    lo, hi = slopes.range()
-    if region < 0:
-        peak = _peak_electrons(slopes, magnitude)
-        if 2 * beta0 * peak >= 1:
-            raise InputError(
-                "magnitude",
-                f"an m={magnitude:g} star is too bright for beta0={beta0:g}: the quadratic nonlinearity is not monotonic "
-                f"there (2 beta0 Q_peak = {2 * beta0 * peak:.2f} >= 1), so S = Q - beta Q^2 does not describe the detector",
-            )
-        raise InputError(
-            "magnitude",
-            f"m={magnitude:g} is brighter than the tables reach at these conditions (m >= {lo:.2f}: the tables stop "
-            f"{tables.BRIGHT_MARGIN_MAG} mag past saturation, in beta0 x flux); such a star saturates the detector several "
-            "times over and has no meaningful NL answer",
-        )
-    flags = []
-    if region > 0:
-        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=hi))
-    if magnitude < m_sat:
-        flags.append(make(FlagCode.STAR_SATURATED, magnitude=magnitude, m_sat=m_sat))
-    return flags
-
-
-def _validity_flags(
-    slopes: _Slopes, magnitude: float | None, precision: float | None, beta0: float, full_well: float
-) -> list[str]:
-    if magnitude is None or not math.isfinite(magnitude):
-        return []
-    peak = _peak_electrons(slopes, magnitude)
-    if slopes.ramp is not None:
-        # The fit only sees reads up to the last unsaturated resultant (or the first one).
-        peak = min(peak, max(full_well, peak * slopes.ramp.first_usable_fraction(slopes.exptime)))
-    flags = []
-    if 2 * beta0 * peak >= 1:
-        flags.append(make(FlagCode.QUADRATIC_NOT_MONOTONIC, value=2 * beta0 * peak, magnitude=magnitude))
-    if precision is not None and math.isfinite(precision) and precision * beta0 * peak > LINEAR_REGIME_LIMIT:
-        flags.append(make(FlagCode.OUTSIDE_LINEAR_REGIME, value=precision * beta0 * peak, limit=LINEAR_REGIME_LIMIT))
-    return flags
-
-
 def _ramp_basis(slopes: _Slopes) -> str:
     parts = []
     if "table" in slopes.ramp_bases:
@@ -641,136 +610,3 @@ def _ramp_basis(slopes: _Slopes) -> str:
         )
         parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
     return "; ".join(parts) or "none needed"
-
-
-def _between_limits_flag(magnitude: float, m_sat: float, m_sat_final_frame: float) -> Flag:
-    return make(FlagCode.BETWEEN_SATURATION_LIMITS, magnitude=magnitude, m_sat_final=m_sat_final_frame, m_sat=m_sat)
-
-
-def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: float) -> list[str]:
-    if magnitude < m_sat - tables.BRIGHT_MARGIN_MAG:
-        raise InputError(
-            "magnitude",
-            f"m={magnitude:g} saturates the brightest pixel in the first resultant of the ramp by more than "
-            f"{tables.BRIGHT_MARGIN_MAG} mag (usable down to m={m_sat:.2f}); such a star has no meaningful NL answer",
-        )
-    if magnitude < m_sat:
-        return [make(FlagCode.RAMP_SATURATED, magnitude=magnitude, m_sat=m_sat)]
-    if magnitude < m_sat_final_frame:
-        return [_between_limits_flag(magnitude, m_sat, m_sat_final_frame)]
-    return []
-
-
-def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float, str]:
-    """The brightest usable star: the fainter of the NL limit and saturation, and which binds."""
-    if m_nl is None or m_nl < m_sat:
-        where = "" if m_nl is None else f" (the NL error would reach the tolerance only at m={m_nl:.2f})"
-        flags.append(make(FlagCode.SATURATION_BINDS, m_sat=m_sat, where=where, nonlinearity_magnitude=m_nl))
-        return m_sat, "saturation"
-    return m_nl, "nonlinearity"
-
-
-def _tables_hold(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
-    """Whether the tables already hold the scene: it differs from the paper's by its position alone,
-    and the table of (band, SCA) was built at that position (a field-point table, or the centre's)."""
-    if not replace(scene, position=None).is_paper or scene.position is None:
-        return False
-    held = tableset.get(band, sca).position_pixels
-    return all(abs(a - b) < 1e-6 for a, b in zip(held, scene.position, strict=True))
-
-
-def _corner_tables(scene, sca: int) -> tables.TableSet | None:
-    """The field-point tables at the scene's position, if it is one of the SCA's corner field points
-    and the scene has no other effect; None otherwise (or where no field-point tables are installed)."""
-    if scene.position is None or not replace(scene, position=None).is_paper:
-        return None
-    for point, position in enumerate(roman.field_points(sca)):
-        if point and all(abs(a - b) < 1e-6 for a, b in zip(position, scene.position, strict=True)):
-            corners = field_tables()
-            return None if corners is None else corners.at_point(point)
-    return None
-
-
-def field_points(sca: int) -> list[tuple[float, float]]:
-    """Where ``solve_over_field`` looks on an SCA: its centre and the four corner field points
-    (``roman.field_points`` 1-4). The Zernikes are interpolated bilinearly between the corners, so
-    every coefficient takes its extremes there; the centre is where the SCA-centre tables are."""
-    centre = (roman.SCA_PIXELS / 2, roman.SCA_PIXELS / 2)
-    return [centre, *roman.field_points(sca)[1:]]
-
-
-def field_tables() -> tables.TableSet | None:
-    """The shipped field-point tables, None if this installation has none."""
-    path = tables.field_table_path()
-    return tables.load_tables(str(path)) if path.exists() else None
-
-
-def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: float | None = None, ramp=None) -> bool:
-    """Whether ``solve_over_field`` answers such a request from the tables alone (milliseconds, no
-    simulation): the paper's scene, the table level, no accuracy to measure, no ramp, and the
-    field-point tables installed."""
-    plain = (scene is None or scene.is_paper) and ramp is None and accuracy is None
-    return plain and fidelity in (None, "table") and field_tables() is not None
-
-
-def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:
-    """The answer for the worst position over the field: the centre and four corners of the given
-    SCAs (``"all"``: the 18 of the focal plane), each with its own aberrations.
-
-    At the table level (the default) the answer reads the SCA-centre tables and the shipped
-    field-point tables (``field_slopes.ecsv.gz``), milliseconds per point. A scene with other effects,
-    or a simulating fidelity, simulates every point (linear response unless another level is asked
-    for; seconds per point). Worst means the most demanding answer: the smallest precision, the
-    largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that
-    point's, with every point's value in ``conditions["over_field"]`` and where the worst lies in a
-    flag.
-    """
-
-    from . import scene as scenes
-
-    chosen = list(range(1, roman.N_SCA + 1)) if scas == "all" else [roman.check_sca(s) for s in scas]
-    base = scene if scene is not None else scenes.SceneModel()
-    if base.position is not None:
-        raise InputError("position", "give a position or ask for the worst over the field, not both")
-    # Each corner's own table is found by ``solve`` from the position (``_corner_tables``).
-    corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
-    if corners is None and request.get("fidelity") in (None, "table"):
-        # Without field-point tables (or with a scene they do not hold) every point is simulated.
-        request["fidelity"] = "linear"
-    answers = []
-    points = [(s, p) for s in chosen for p in field_points(s)]
-    for index, (sca, position) in enumerate(points):
-        if progress:
-            progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
-        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
-    if progress:
-        progress(len(points), len(points), "done")
-    solved = answers[0][2].solved_for
-
-    def demand(solution: Solution) -> float:
-        value = getattr(solution, solved)
-        if value is None or not math.isfinite(value):
-            return -math.inf
-        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
-
-    sca, position, worst = max(answers, key=lambda item: demand(item[2]))
-    values = [getattr(a[2], solved) for a in answers]
-    finite = [v for v in values if v is not None and math.isfinite(v)]
-    conditions = dict(worst.conditions)
-    conditions["over_field"] = [
-        {"sca": s, "position": list(p), solved: json_number(getattr(a, solved)), "uncertainty": json_number(a.uncertainty)}
-        for s, p, a in answers
-    ]
-    where = "all 18 SCAs" if scas == "all" else "SCA " + ", ".join(map(str, chosen))
-    flag = make(
-        FlagCode.WORST_OVER_FIELD,
-        points=len(points),
-        where=where,
-        sca=sca,
-        x=position[0],
-        y=position[1],
-        solved=solved,
-        low=min(finite),
-        high=max(finite),
-    )
-    return replace(worst, flags=[flag, *worst.flags], conditions=conditions)
