@@ -164,19 +164,10 @@ def model_at(info: dict, slopes, magnitude: float) -> dict:
 
 
 def with_effect(target, source, name: str):
-    """``target`` with effect ``name`` set as in ``source``."""
+    """``target`` with effect ``name`` set as in ``source`` (the fields of ``scene.REGISTRY[name]``)."""
+    from .scene import REGISTRY
 
-    fields_of = {
-        "position": ("position",),
-        "sed": ("sed", "sed_table", "sed_units", "n_wavelengths"),
-        "jitter": ("jitter_arcsec",),
-        "charge_diffusion": ("charge_diffusion_px",),
-        "ipc": ("ipc", "ipc_label", "ipc_order"),
-        "nl_polynomial": ("nl_coefficients",),
-        "brighter_fatter": ("bfe_coefficient",),
-        "background": ("background_e",),
-    }
-    return replace(target, **{f: getattr(source, f) for f in fields_of[name]})
+    return replace(target, **{f: getattr(source, f) for f in REGISTRY[name].fields})
 
 
 def optical_model_relative(slopes, magnitude: float | None) -> float:
