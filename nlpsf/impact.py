@@ -129,35 +129,7 @@ def impact(
     for index, name in enumerate(scenes.EFFECTS, start=1):
         if progress:
             progress(index, total, name)
-        on = scene.effects_on()[name]
-        with_scene = scene if on else scene.with_nominal(name)
-        capped = False
-        if name == "sed" and not on and with_scene is not None:
-            # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
-            wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
-            with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
-            capped = wanted > max_wavelengths
-        entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
-        if with_scene is None:
-            entry.update(
-                impact=dict.fromkeys(IMPACT_METRICS),
-                uncertainty=dict.fromkeys(IMPACT_METRICS),
-                cost_s=None,
-                note=scenes.NOMINAL[name]["note"],
-            )
-            effects.append(entry)
-            continue
-        with_values, with_cost, _ = run(with_scene)
-        without_values, _, _ = run(with_scene.without(name))
-        ratios = {m: _ratio(with_values[m], without_values[m]) for m in IMPACT_METRICS}
-        entry.update(
-            impact={m: r[0] for m, r in ratios.items()},
-            uncertainty={m: r[1] for m, r in ratios.items()},
-            cost_s=with_cost,
-            note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
-            + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
-        )
-        effects.append(entry)
+        effects.append(_measure_effect(name, scene, run, base, max_wavelengths))
     if progress:
         progress(total, total, "done")
     plain_slopes, plain_cost, _ = run(scenes.SceneModel())
@@ -187,6 +159,39 @@ def impact(
             "data_version": roman.DATA_VERSION,
         },
     }
+
+
+def _measure_effect(name: str, scene: scenes.SceneModel, run, base, max_wavelengths: int) -> dict:
+    """One effect's entry of the report: the slopes with and without it (at the scene's value, or
+    its nominal one when the scene leaves it off), their ratio and what it cost."""
+    on = scene.effects_on()[name]
+    with_scene = scene if on else scene.with_nominal(name)
+    capped = False
+    if name == "sed" and not on and with_scene is not None:
+        # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
+        wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
+        with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
+        capped = wanted > max_wavelengths
+    entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
+    if with_scene is None:
+        entry.update(
+            impact=dict.fromkeys(IMPACT_METRICS),
+            uncertainty=dict.fromkeys(IMPACT_METRICS),
+            cost_s=None,
+            note=scenes.NOMINAL[name]["note"],
+        )
+        return entry
+    with_values, with_cost, _ = run(with_scene)
+    without_values, _, _ = run(with_scene.without(name))
+    ratios = {m: _ratio(with_values[m], without_values[m]) for m in IMPACT_METRICS}
+    entry.update(
+        impact={m: r[0] for m, r in ratios.items()},
+        uncertainty={m: r[1] for m, r in ratios.items()},
+        cost_s=with_cost,
+        note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
+        + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
+    )
+    return entry
 
 
 def _effect_value(model: scenes.SceneModel, name: str):

@@ -56,7 +56,7 @@ def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: fl
     return plain and fidelity in (None, "table") and field_tables() is not None
 
 
-def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:
+def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **request) -> Solution:
     """The answer for the worst position over the field: the centre and four corners of the given
     SCAs (``"all"``: the 18 of the focal plane), each with its own aberrations.
 
@@ -66,11 +66,10 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
     for; seconds per point). Worst means the most demanding answer: the smallest precision, the
     largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that
     point's, with every point's value in ``conditions["over_field"]`` and where the worst lies in a
-    flag.
+    flag. ``solve`` is ``nlpsf.solver.solve`` (passed in: this module sits below the solver).
     """
 
     from . import scene as scenes
-    from . import solver
 
     chosen = list(range(1, roman.N_SCA + 1)) if scas == "all" else [roman.check_sca(s) for s in scas]
     base = scene if scene is not None else scenes.SceneModel()
@@ -86,7 +85,7 @@ def solve_over_field(band: str, scas="all", scene=None, progress=None, **request
     for index, (sca, position) in enumerate(points):
         if progress:
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
-        answers.append((sca, position, solver.solve(band, sca, scene=replace(base, position=position), **request)))
+        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
     if progress:
         progress(len(points), len(points), "done")
     solved = answers[0][2].solved_for

@@ -71,7 +71,7 @@ from .over_field import (  # noqa: F401
     field_points,
     field_tables,
     over_field_from_tables,
-    solve_over_field,
+    worst_over_field,
 )
 from .request import SolveRequest
 from .solution import Solution, Uncertainty
@@ -610,3 +610,9 @@ def _ramp_basis(slopes: _Slopes) -> str:
         )
         parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
     return "; ".join(parts) or "none needed"
+
+
+def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:
+    """The answer for the worst position over the field (``nlpsf.over_field.worst_over_field``):
+    the centre and four corners of the given SCAs (``"all"``: the 18 of the focal plane)."""
+    return worst_over_field(solve, band, scas, scene, progress, **request)

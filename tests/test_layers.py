@@ -204,9 +204,6 @@ def test_the_experiment_package_imports_one_way():
 MAX_MODULE_LINES = 600
 #: Functions over ~80 lines, each with why it is still one.
 LONG_FUNCTIONS = {
-    ("nlpsf.experiment.measure", "slopes"): "the Monte Carlo and linear branches of one magnitude loop (to split)",
-    ("nlpsf.experiment.kernels", "_simulate_scatter"): "Monte Carlo and linear scatter share the draws (to split)",
-    ("nlpsf.impact", "impact"): "one report loop over the registry's effects (to split)",
     ("nlpsf.moments", "_fit_chunk"): "the adaptive-moment iteration, kept whole for speed",
 }
 

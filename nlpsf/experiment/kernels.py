@@ -157,33 +157,8 @@ def _simulate_scatter(
     model = config.scene
     stamp_ref, reference0, _, _ = nl_images(scene, charge_scale, beta, count=1)
     stamp = stamp_ref[0]
-    ref_params = reference0.parameters()[0]
-    single_reference = moments.Moments(
-        *(np.full(draws, v) for v in ref_params),
-        amplitude=np.full(draws, reference0.amplitude[0]),
-        iterations=np.zeros(draws, dtype=np.int32),
-        last_step=np.zeros(draws),
-        status=np.full(draws, reference0.status[0], dtype=np.int8),
-    )
     if config.method == "monte_carlo":
-        parts = []
-        for s in range(0, draws, _SCATTER_CHUNK):
-            block = betas[s : s + _SCATTER_CHUNK]
-            base = np.broadcast_to(stamp, block.shape)
-            if model.plain_detector:
-                perturbation = -(block * charge_scale) * shape
-            else:
-                perturbation = nl_images(scene, charge_scale, block, count=1)[2]
-            parts.append(
-                moments.fit_perturbed(
-                    base,
-                    perturbation,
-                    moments.select(single_reference, slice(s, s + block.shape[0])),
-                    settings,
-                )
-            )
-        fit = moments.concatenate(parts)
-        d_r, d_e1, d_e2, status = _metrics(fit, reference0, ref_index=0)
+        d_r, d_e1, d_e2, status = _scatter_monte_carlo(scene, charge_scale, betas, stamp, shape, reference0, settings)
     else:
         if model.plain_detector:
             # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
@@ -216,6 +191,39 @@ def _simulate_scatter(
         flags += _noise_floor_flag(scene, charge_scale, beta, sigma_beta, settings, spread, shape)
     peak = star_peak_electrons(scene, charge_scale)
     return KernelResult(d_r, d_e1, d_e2, status, flags, peak, _reference_summary(scene, 0), offset, extras)
+
+
+def _scatter_monte_carlo(scene: Scene, charge_scale: float, betas, stamp, shape, reference0, settings: moments.MomentSettings):
+    """Every per-pixel beta map fitted to convergence at the first centroid: (dR/R, de1, de2, status)."""
+    draws = scene.config.realizations
+    model = scene.config.scene
+    ref_params = reference0.parameters()[0]
+    single_reference = moments.Moments(
+        *(np.full(draws, v) for v in ref_params),
+        amplitude=np.full(draws, reference0.amplitude[0]),
+        iterations=np.zeros(draws, dtype=np.int32),
+        last_step=np.zeros(draws),
+        status=np.full(draws, reference0.status[0], dtype=np.int8),
+    )
+    parts = []
+    for s in range(0, draws, _SCATTER_CHUNK):
+        block = betas[s : s + _SCATTER_CHUNK]
+        base = np.broadcast_to(stamp, block.shape)
+        if model.plain_detector:
+            perturbation = -(block * charge_scale) * shape
+        else:
+            perturbation = nl_images(scene, charge_scale, block, count=1)[2]
+        parts.append(
+            moments.fit_perturbed(
+                base,
+                perturbation,
+                moments.select(single_reference, slice(s, s + block.shape[0])),
+                settings,
+            )
+        )
+    fit = moments.concatenate(parts)
+    d_r, d_e1, d_e2, status = _metrics(fit, reference0, ref_index=0)
+    return d_r, d_e1, d_e2, status
 
 
 def _per_pixel_beta_response(

@@ -132,16 +132,7 @@ def slopes(
     """
     mags = check_magnitudes(magnitudes)
     check_choice(linearise_at, "linearise_at", LINEARISE_STATES)
-    raw = detector.to_paper_beta(beta0, beta_convention)
-    if raw == 0:
-        raise InputError("beta0", "slopes are taken at beta0, which must not be zero")
-    # The beta the slope is taken at; the raw beta0 still sets what saturates.
-    beta = raw if linearise_at == "beta0" else CORRECTED_RESIDUAL * raw
-    if sigma_beta is None:
-        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(raw)
-    sigma_beta = check_sigma_beta(sigma_beta)
-    if sigma_beta == 0:
-        raise InputError("sigma_beta", "the scatter slope needs sigma_beta > 0")
+    raw, beta, sigma_beta = _slope_betas(beta0, beta_convention, linearise_at, sigma_beta)
     scene = scene or prepare(config)
     if scene.config != config:
         raise InputError("scene", "the scene was prepared for a different configuration")
@@ -164,22 +155,9 @@ def slopes(
             scene, charge_scale, np.full(1, raw * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
         )
         if config.method == "monte_carlo":
-            bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect)
-            flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
-            scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene, saturation_beta=raw)[0]
-            scatter = {}
-            for name in METRICS:
-                stat: Statistic = getattr(scatter_runs, name)
-                if stat.std is None or stat.count < 2:
-                    scatter[name] = {"value": None, "uncertainty": None}
-                else:
-                    value = stat.std / sigma_beta
-                    scatter[name] = {"value": value, "uncertainty": value / math.sqrt(2 * (stat.count - 1))}
-            basis = (
-                f"Monte Carlo: spread over {config.realizations} per-pixel beta maps with sigma_beta={sigma_beta:g} "
-                "at a fixed centroid (the paper's method)"
+            bias, scatter, status, basis = _monte_carlo_slopes(
+                scene, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags
             )
-            flags += [f for f in scatter_runs.flags if f not in flags]
         else:
             bias, scatter, status = _linear_slopes(scene, charge_scale, beta, settings, effect)
             basis = "linear response at beta0: ||g . dI/dbeta|| averaged over centroid realizations"
@@ -237,3 +215,44 @@ def _cut_jump_flags(
     if not off:
         return []
     return [make(FlagCode.JUMPY_FINITE_DIFFERENCE, differences=", ".join(off), cut=scene.config.weight_cut_rho2)]
+
+
+def _monte_carlo_slopes(
+    scene: Scene, magnitude: float, charge_scale: float, beta: float, raw: float, sigma_beta: float, effect, flags: list
+):
+    """The paper's slopes at one magnitude: the bias by finite differences over centroids, the scatter
+    as the spread over per-pixel beta maps at a fixed centroid; adds their flags to ``flags``."""
+    config = scene.config
+    settings = config.moment_settings
+    bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect)
+    flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
+    scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene, saturation_beta=raw)[0]
+    scatter = {}
+    for name in METRICS:
+        stat: Statistic = getattr(scatter_runs, name)
+        if stat.std is None or stat.count < 2:
+            scatter[name] = {"value": None, "uncertainty": None}
+        else:
+            value = stat.std / sigma_beta
+            scatter[name] = {"value": value, "uncertainty": value / math.sqrt(2 * (stat.count - 1))}
+    basis = (
+        f"Monte Carlo: spread over {config.realizations} per-pixel beta maps with sigma_beta={sigma_beta:g} "
+        "at a fixed centroid (the paper's method)"
+    )
+    flags += [f for f in scatter_runs.flags if f not in flags]
+    return bias, scatter, status, basis
+
+
+def _slope_betas(beta0: float, beta_convention: str, linearise_at: str, sigma_beta: float | None):
+    """(raw beta0 in the paper's convention, the beta the slope is taken at, sigma_beta), checked."""
+    raw = detector.to_paper_beta(beta0, beta_convention)
+    if raw == 0:
+        raise InputError("beta0", "slopes are taken at beta0, which must not be zero")
+    # The beta the slope is taken at; the raw beta0 still sets what saturates.
+    beta = raw if linearise_at == "beta0" else CORRECTED_RESIDUAL * raw
+    if sigma_beta is None:
+        sigma_beta = defaults.SIGMA_BETA_FRACTION * abs(raw)
+    sigma_beta = check_sigma_beta(sigma_beta)
+    if sigma_beta == 0:
+        raise InputError("sigma_beta", "the scatter slope needs sigma_beta > 0")
+    return raw, beta, sigma_beta
