@@ -30,6 +30,8 @@ MAX_STARS = 10**9
 #: Why a solve refuses a scene with a ramp: its scene simulation and the ramp's table mapping are
 #: not combined yet (simulations combine them where ``ramps.check_scene`` allows).
 SCENE_AND_RAMP = "a scene and a ramp cannot be combined yet; give one of them"
+#: The fields of a request (API body, batch row) that describe its ramp (``ramps.build`` reads them).
+RAMP_REQUEST_FIELDS: tuple[str, ...] = ("ramp", "ma_table", "ramp_fit", "read_noise")
 #: The three quantities of the relation, of which a request gives exactly two.
 TRIPLE: tuple[str, ...] = ("precision", "tolerance", "magnitude")
 

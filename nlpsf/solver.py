@@ -196,20 +196,15 @@ class _Slopes:
 
         # A ramp that the tables do not map exactly is simulated with the linear response.
         level = levels.simulation_settings("linear" if self.fidelity == "table" else self.fidelity)
-        settings = self.table.settings
-        config = experiment.SimulationConfig(
+        config = experiment.SimulationConfig.from_table(
+            self.table.settings,
             band=self.band,
             sca=self.sca,
-            realizations=int(settings["realizations"]),
-            seed=int(settings["seed"]),
-            oversampling=int(settings["oversampling"]),
-            stamp=int(settings["stamp"]),
             exptime_s=self.exptime,
-            weight_cut_rho2=float(settings["weight_cut_rho2"]),
-            pupil_scale=self.pupil_scale or str(settings["pupil_scale"]),
             throughput=self.table.throughput,
             method=level.method,
             n_wavelengths=level.n_wavelengths,
+            **({} if self.pupil_scale is None else {"pupil_scale": self.pupil_scale}),
             **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
             **({} if self.scene_model is None else {"scene": self.scene_model}),
         )

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -97,6 +97,20 @@ class SimulationConfig:
                 raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
             self.ramp.check_exposure(self.exptime_s)
             ramps.check_scene(self.scene)  # the one rule of what a ramp combines with
+
+    @classmethod
+    def from_table(cls, settings: Mapping, **changes) -> SimulationConfig:
+        """The simulation a slope table was built with (``SlopeTable.settings``: realizations, seed,
+        grid, weight cut, pupil rule), with ``changes`` (band, SCA, method, exposure, ...)."""
+        built = {
+            "realizations": int(settings["realizations"]),
+            "seed": int(settings["seed"]),
+            "oversampling": int(settings["oversampling"]),
+            "stamp": int(settings["stamp"]),
+            "weight_cut_rho2": float(settings["weight_cut_rho2"]),
+            "pupil_scale": str(settings["pupil_scale"]),
+        }
+        return cls(**{**built, **changes})
 
     @property
     def optics(self) -> optics.OpticsConfig:
