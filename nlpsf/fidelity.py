@@ -23,7 +23,8 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
-from .checks import InputError, SimulationError
+from .checks import InputError, SimulationError, check_number
+from .defaults import ACCURACY_RANGE
 from .flags import FlagCode, make
 
 LEVELS: tuple[str, ...] = ("table", "linear", "monte_carlo", "polychromatic")
@@ -114,3 +115,20 @@ def write_measured(result: dict) -> Path:
     path.write_text(json.dumps(result, indent=1) + "\n")
     measured.cache_clear()
     return path
+
+
+def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+    """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
+    if accuracy is None:
+        return check_level(level or "table"), []
+    accuracy = check_number(accuracy, "accuracy", *ACCURACY_RANGE)
+    chosen, note = cheapest_meeting(accuracy, band, metric, mode)
+    return chosen, [note]
+
+
+def fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:
+    """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown."""
+    try:
+        return level_error(band, metric, mode, level), None
+    except (SimulationError, KeyError):
+        return None, make(FlagCode.FIDELITY_ERROR_UNKNOWN)

@@ -58,8 +58,8 @@ from . import fidelity as levels
 from .checks import (
     InputError,
     SimulationError,
-    check_number,
 )
+from .fidelity import choose_fidelity, fidelity_error
 from .flags import Flag, FlagCode, make
 from .magnitude_scan import scan_magnitude
 
@@ -215,15 +215,6 @@ class _Slopes:
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
-
-
-def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
-    """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
-    if accuracy is None:
-        return levels.check_level(level or "table"), []
-    accuracy = check_number(accuracy, "accuracy", *defaults.ACCURACY_RANGE)
-    chosen, note = levels.cheapest_meeting(accuracy, band, metric, mode)
-    return chosen, [note]
 
 
 def solve(
@@ -575,16 +566,7 @@ def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncert
     return implied
 
 
-def fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:
-    """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown."""
-    try:
-        return levels.level_error(band, metric, mode, level), None
-    except (SimulationError, KeyError):
-        return None, make(FlagCode.FIDELITY_ERROR_UNKNOWN)
-
-
-#: The old private name (app/api.py calls it; ``fidelity_error`` is the public one).
-_fidelity_error = fidelity_error
+_fidelity_error = fidelity_error  # the old private name (app/api.py calls it)
 
 
 def _ramp_basis(slopes: _Slopes) -> str:
