@@ -115,6 +115,8 @@ class SceneEffect:
     breaks_beta_q: bool
     combines_with: str
     is_on: Callable[[SceneModel], bool]
+    #: Part of the "roman" preset (at its nominal value).
+    in_roman_preset: bool = False
 
 
 _EVERY = "every other effect, and a ramp"
@@ -125,25 +127,25 @@ REGISTRY: dict[str, SceneEffect] = {
     for e in (
         SceneEffect(
             "position", ("position",), {"position": None}, {"position": (4.0, 4.0)},
-            "a corner of the SCA (pixel 4, 4)", "optical", False, _EVERY, lambda s: s.position is not None,
+            "a corner of the SCA (pixel 4, 4)", "optical", False, _EVERY, lambda s: s.position is not None, False,
         ),
         SceneEffect(
             "sed", ("sed", "sed_table", "sed_units", "n_wavelengths"), {"sed": None, "sed_table": None, "n_wavelengths": None},
-            {"sed": "flat"}, "flat f_nu (the AB reference)", "optical", False, _EVERY, lambda s: s.sed is not None,
+            {"sed": "flat"}, "flat f_nu (the AB reference)", "optical", False, _EVERY, lambda s: s.sed is not None, True,
         ),
         SceneEffect(
             "jitter", ("jitter_arcsec",), {"jitter_arcsec": 0.0}, {"jitter_arcsec": ROMAN_JITTER_ARCSEC},
-            "galsim.roman.jitter_rms", "optical", False, _EVERY, lambda s: s.jitter_arcsec > 0,
+            "galsim.roman.jitter_rms", "optical", False, _EVERY, lambda s: s.jitter_arcsec > 0, True,
         ),
         SceneEffect(
             "charge_diffusion", ("charge_diffusion_px",), {"charge_diffusion_px": 0.0},
             {"charge_diffusion_px": ROMAN_CHARGE_DIFFUSION_PX}, "galsim.roman.charge_diffusion", "optical", False, _EVERY,
-            lambda s: s.charge_diffusion_px > 0,
+            lambda s: s.charge_diffusion_px > 0, True,
         ),
         SceneEffect(
             "ipc", ("ipc", "ipc_label", "ipc_order"), {"ipc": None, "ipc_label": None},
             {"ipc": ROMAN_IPC_KERNEL, "ipc_label": "roman"}, "galsim.roman.ipc_kernel", "detector", False, _EVERY,
-            lambda s: s.ipc is not None,
+            lambda s: s.ipc is not None, True,
         ),
         SceneEffect(
             "nl_polynomial", ("nl_coefficients",), {"nl_coefficients": ()}, {"nl_coefficients": (1e-13, 1e-18)},
@@ -512,17 +514,9 @@ def brighter_fatter(charge: np.ndarray, coefficient: float, oversampling: int) -
 
 
 def preset(name: str) -> SceneModel:
-    presets = {
-        "paper": SceneModel(name="paper"),
-        "roman": SceneModel(
-            sed="flat",
-            jitter_arcsec=ROMAN_JITTER_ARCSEC,
-            charge_diffusion_px=ROMAN_CHARGE_DIFFUSION_PX,
-            ipc=ROMAN_IPC_KERNEL,
-            ipc_label="roman",
-            name="roman",
-        ),
-    }
+    # "roman": the registry's effects marked for it, at their nominal (GalSim Roman) values.
+    roman_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
+    presets = {"paper": SceneModel(name="paper"), "roman": SceneModel(name="roman", **roman_values)}
     if name not in presets:
         raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(presets)}, or a JSON file")
     return presets[name]
