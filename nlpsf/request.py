@@ -167,3 +167,40 @@ class SolveRequest:
         if "band" not in data:
             raise InputError("band", "missing")
         return cls(**dict(data))
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any], allow_files: bool = False) -> SolveRequest:
+        """The request from a JSON-shaped body (the API's, the page's, a batch row's): the fields of
+        :meth:`from_mapping` with the ramp as :data:`RAMP_REQUEST_FIELDS` (``ramps.build``: an MA
+        table's exposure is its last read unless ``exptime`` is given) and the scene as its JSON
+        object (``scene.from_request``; errors name ``scene.FIELD``). Files only with ``allow_files``."""
+        data = dict(data)
+        ramp_fields = {k: data.pop(k, None) for k in RAMP_REQUEST_FIELDS}
+        given_exptime = data.get("exptime")
+        ramp, exptime = ramps.build(
+            ramp_fields["ramp"],
+            ramp_fields["ma_table"],
+            ramp_fields["ramp_fit"] or "ols",
+            ramp_fields["read_noise"],
+            given_exptime,
+            allow_files=allow_files,
+            sca=data.get("sca", defaults.SCA),
+        )
+        data["exptime"], data["ramp"] = exptime, ramp
+        scene = data.pop("scene", None)
+        if isinstance(scene, Mapping) or scene is None:
+            data["scene"] = _scene_from_json(scene)
+        else:
+            data["scene"] = scene
+        return cls.from_mapping(data)
+
+
+def _scene_from_json(fields_: Mapping[str, Any] | None):
+    if not fields_:
+        return None
+    from . import scene as scenes
+
+    try:
+        return scenes.from_request(dict(fields_))
+    except InputError as error:
+        raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None

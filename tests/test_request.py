@@ -56,3 +56,21 @@ def test_accuracy_with_a_shear_budget_solves_for_the_magnitude():
     budget = solver.solve("H158", precision=0.01, shear_m=2e-3, size_ratio=1.5, accuracy=0.05)
     direct = solver.solve("H158", precision=0.01, tolerance=2e-3 * 1.5**2 / 2, accuracy=0.05)
     assert budget.magnitude == pytest.approx(direct.magnitude, abs=1e-9)
+
+
+def test_a_json_body_builds_the_same_request_as_the_python_call():
+    from nlpsf import ramps
+
+    body = {"band": "J129", "precision": 0.01, "tolerance": 1e-4, "ma_table": "romanisim-110"}
+    ramp, exptime = ramps.build(ma_table="romanisim-110")
+    by_json = solver.answer(SolveRequest.from_json(body))
+    by_call = solver.solve("J129", precision=0.01, tolerance=1e-4, ramp=ramp, exptime=exptime)
+    assert by_json.magnitude == by_call.magnitude and by_json.exptime == exptime
+    # The MA table's exposure is its last read unless the body gives one.
+    assert SolveRequest.from_json({**body, "exptime": 300.0}).exptime == 300.0
+    with pytest.raises(InputError) as scene:
+        SolveRequest.from_json({"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": {"jitter": "x", "colour": 1}})
+    assert scene.value.argument.startswith("scene")
+    with pytest.raises(InputError) as both:
+        SolveRequest.from_json({**body, "scene": {"preset": "roman"}})
+    assert both.value.argument == "scene"
