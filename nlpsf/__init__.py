@@ -5,7 +5,8 @@ moments (``experiment``), slope tables and fits (``tables``), and the two-of-thr
 calculator (``solver``). See ``README.md`` and Plazas et al. (2016).
 
 The public API is importable from here (``from nlpsf import solve, simulate, slopes, load_tables,
-SimulationConfig``); each name is imported on first use, so ``import nlpsf`` stays cheap.
+SimulationConfig``; a solve as a typed request: ``answer(SolveRequest(...))``); each name is
+imported on first use, so ``import nlpsf`` stays cheap.
 """
 
 from __future__ import annotations
@@ -18,7 +19,11 @@ from ._version import __version__
 #: public name -> module that defines it
 _PUBLIC = {
     "solve": "nlpsf.solver",
-    "Solution": "nlpsf.solver",
+    "Solution": "nlpsf.solution",
+    "Uncertainty": "nlpsf.solution",
+    "SolveRequest": "nlpsf.request",
+    "answer": "nlpsf.solver",
+    "FlagCode": "nlpsf.flags",
     "simulate": "nlpsf.experiment",
     "slopes": "nlpsf.experiment",
     "prepare": "nlpsf.experiment",
@@ -29,11 +34,15 @@ _PUBLIC = {
 }
 
 __all__ = [
+    "FlagCode",
     "InputError",
     "SimulationConfig",
     "SimulationError",
     "Solution",
+    "SolveRequest",
+    "Uncertainty",
     "__version__",
+    "answer",
     "load_tables",
     "prepare",
     "simulate",
@@ -44,7 +53,10 @@ __all__ = [
 if TYPE_CHECKING:
     from .checks import InputError, SimulationError
     from .experiment import SimulationConfig, prepare, simulate, slopes
-    from .solver import Solution, solve
+    from .flags import FlagCode
+    from .request import SolveRequest
+    from .solution import Solution, Uncertainty
+    from .solver import answer, solve
     from .tables import load_tables
 
 

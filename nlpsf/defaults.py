@@ -74,6 +74,10 @@ MAX_OPTIMAL_RESULTANTS = 100
 
 #: Requirement metrics: size Delta R / R, ellipticity components, and the modulus |Delta e|.
 METRICS: tuple[str, ...] = ("size", "e1", "e2", "e")
+#: What a simulation measures per realization (result and table column names): Delta R / R, Delta e1, Delta e2.
+MEASURED: tuple[str, ...] = ("dR_over_R", "de1", "de2")
+#: Each requirement metric as the measured quantities it is made of (``e``: hypot(de1, de2)).
+METRIC_COLUMNS: dict[str, tuple[str, ...]] = {"size": ("dR_over_R",), "e1": ("de1",), "e2": ("de2",), "e": ("de1", "de2")}
 #: bias: an error in the mean beta; scatter: a per-pixel spread of beta.
 MODES: tuple[str, ...] = ("bias", "scatter")
 #: Simulation methods: the first-order (linear) response, or every realization fitted.

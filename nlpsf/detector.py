@@ -12,6 +12,8 @@ makes a result meaningless, so the experiment flags it in plain words.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from . import defaults
@@ -63,6 +65,14 @@ def polynomial_perturbation(charge: np.ndarray, beta, higher: tuple[float, ...] 
         if coefficient != 0.0:
             out = out - coefficient * power
     return out
+
+
+def coefficients_perturbation(charge: np.ndarray, coefficients: Sequence[float]) -> np.ndarray:
+    """S - Q = -(b2 Q^2 + b3 Q^3 + ...) for ``coefficients`` = (b2, b3, ...) (empty: no NL); the
+    form the ramp readout uses, computed by :func:`polynomial_perturbation`."""
+    if len(coefficients) == 0:
+        return np.zeros_like(charge, dtype=np.float64)
+    return polynomial_perturbation(charge, coefficients[0], tuple(coefficients[1:]))
 
 
 def apply_polynomial_nonlinearity(charge: np.ndarray, beta, higher: tuple[float, ...] = ()) -> np.ndarray:

@@ -23,7 +23,9 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
-from .checks import InputError, SimulationError
+from .checks import InputError, SimulationError, check_number
+from .defaults import ACCURACY_RANGE
+from .flags import FlagCode, make
 
 LEVELS: tuple[str, ...] = ("table", "linear", "monte_carlo", "polychromatic")
 #: Levels that run a simulation (everything but the table look-up).
@@ -91,14 +93,19 @@ def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str) -> tupl
     errors = data["errors"][band][mode][metric]
     for level in LEVELS:
         if errors[level] <= accuracy:
-            return level, (
-                f"fidelity {level} chosen for accuracy {accuracy:g}: its measured relative error on {band} {metric} {mode} "
-                f"slopes is {errors[level]:.2g} ({data['date']})"
+            return level, make(
+                FlagCode.FIDELITY_CHOSEN,
+                level=level,
+                accuracy=accuracy,
+                band=band,
+                metric=metric,
+                mode=mode,
+                error=errors[level],
+                date=data["date"],
             )
     best = min(LEVELS, key=lambda level: errors[level])
-    return best, (
-        f"no fidelity level meets accuracy {accuracy:g} for {band} {metric} {mode}; using the most accurate, {best}, whose "
-        f"measured relative error is {errors[best]:.2g}"
+    return best, make(
+        FlagCode.FIDELITY_NONE_MEETS, accuracy=accuracy, band=band, metric=metric, mode=mode, level=best, error=errors[best]
     )
 
 
@@ -108,3 +115,20 @@ def write_measured(result: dict) -> Path:
     path.write_text(json.dumps(result, indent=1) + "\n")
     measured.cache_clear()
     return path
+
+
+def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+    """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
+    if accuracy is None:
+        return check_level(level or "table"), []
+    accuracy = check_number(accuracy, "accuracy", *ACCURACY_RANGE)
+    chosen, note = cheapest_meeting(accuracy, band, metric, mode)
+    return chosen, [note]
+
+
+def fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:
+    """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown."""
+    try:
+        return level_error(band, metric, mode, level), None
+    except (SimulationError, KeyError):
+        return None, make(FlagCode.FIDELITY_ERROR_UNKNOWN)

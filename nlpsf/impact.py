@@ -33,13 +33,16 @@ from . import scene as scenes
 from .checks import InputError, check_exptime, check_integer, check_number
 
 #: Impact metrics: the contract's names, and the simulation metrics each combines.
-IMPACT_METRICS: dict[str, tuple[str, ...]] = {"size": ("dR_over_R",), "e1": ("de1",), "e2": ("de2",), "e": ("de1", "de2")}
-MODES = ("bias", "scatter")
+IMPACT_METRICS: dict[str, tuple[str, ...]] = defaults.METRIC_COLUMNS
+MODES = defaults.MODES
 
 
-def _slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
+def slope_values(result: experiment.SlopeResult, mode: str) -> dict[str, tuple[float | None, float | None]]:
     """(slope, its standard error) per impact metric; |e| combines e1 and e2 in quadrature."""
     return {name: result.slope(mode, parts) for name, parts in IMPACT_METRICS.items()}
+
+
+_slope_values = slope_values  # the old private name
 
 
 def _ratio(with_value, without_value):
@@ -114,7 +117,7 @@ def impact(
         if key not in cache:
             start = time.perf_counter()
             result = experiment.slopes(replace(base, scene=key), [magnitude], beta0=beta0)[0]
-            cache[key] = (_slope_values(result, mode), time.perf_counter() - start, result.flags)
+            cache[key] = (slope_values(result, mode), time.perf_counter() - start, result.flags)
         return cache[key]
 
     total = len(scenes.EFFECTS) + 1
@@ -126,35 +129,7 @@ def impact(
     for index, name in enumerate(scenes.EFFECTS, start=1):
         if progress:
             progress(index, total, name)
-        on = scene.effects_on()[name]
-        with_scene = scene if on else scene.with_nominal(name)
-        capped = False
-        if name == "sed" and not on and with_scene is not None:
-            # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
-            wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
-            with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
-            capped = wanted > max_wavelengths
-        entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
-        if with_scene is None:
-            entry.update(
-                impact=dict.fromkeys(IMPACT_METRICS),
-                uncertainty=dict.fromkeys(IMPACT_METRICS),
-                cost_s=None,
-                note=scenes.NOMINAL[name]["note"],
-            )
-            effects.append(entry)
-            continue
-        with_values, with_cost, _ = run(with_scene)
-        without_values, _, _ = run(with_scene.without(name))
-        ratios = {m: _ratio(with_values[m], without_values[m]) for m in IMPACT_METRICS}
-        entry.update(
-            impact={m: r[0] for m, r in ratios.items()},
-            uncertainty={m: r[1] for m, r in ratios.items()},
-            cost_s=with_cost,
-            note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
-            + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
-        )
-        effects.append(entry)
+        effects.append(_measure_effect(name, scene, run, base, max_wavelengths))
     if progress:
         progress(total, total, "done")
     plain_slopes, plain_cost, _ = run(scenes.SceneModel())
@@ -184,6 +159,39 @@ def impact(
             "data_version": roman.DATA_VERSION,
         },
     }
+
+
+def _measure_effect(name: str, scene: scenes.SceneModel, run, base, max_wavelengths: int) -> dict:
+    """One effect's entry of the report: the slopes with and without it (at the scene's value, or
+    its nominal one when the scene leaves it off), their ratio and what it cost."""
+    on = scene.effects_on()[name]
+    with_scene = scene if on else scene.with_nominal(name)
+    capped = False
+    if name == "sed" and not on and with_scene is not None:
+        # The nominal SED at the number of wavelengths its accuracy needs, within the caller's cap.
+        wanted = with_scene.wavelengths(base.band, 1, base.sca, base.throughput)
+        with_scene = replace(with_scene, n_wavelengths=min(wanted, max_wavelengths))
+        capped = wanted > max_wavelengths
+    entry: dict = {"name": name, "on": on, "value": _effect_value(with_scene, name) if with_scene else None}
+    if with_scene is None:
+        entry.update(
+            impact=dict.fromkeys(IMPACT_METRICS),
+            uncertainty=dict.fromkeys(IMPACT_METRICS),
+            cost_s=None,
+            note=scenes.NOMINAL[name]["note"],
+        )
+        return entry
+    with_values, with_cost, _ = run(with_scene)
+    without_values, _, _ = run(with_scene.without(name))
+    ratios = {m: _ratio(with_values[m], without_values[m]) for m in IMPACT_METRICS}
+    entry.update(
+        impact={m: r[0] for m, r in ratios.items()},
+        uncertainty={m: r[1] for m, r in ratios.items()},
+        cost_s=with_cost,
+        note=("as in the scene" if on else f"off in the scene; measured at {scenes.NOMINAL[name]['note']}")
+        + (f" with {max_wavelengths} wavelengths, fewer than the {wanted} its accuracy needs" if capped else ""),
+    )
+    return entry
 
 
 def _effect_value(model: scenes.SceneModel, name: str):
@@ -236,7 +244,7 @@ def markdown(report: dict) -> str:
 #: ``e1`` and ``e2`` are the change of that component's slope relative to |c_e| = hypot(c_e1, c_e2)
 #: (as the optical model's part is stated): a component crossing zero would make its own ratio
 #: meaningless, so the solver scales these by |c_e| / |c_ei| at the answer's magnitude.
-MODEL_METRICS: tuple[str, ...] = ("size", "e1", "e2", "e")
+MODEL_METRICS: tuple[str, ...] = defaults.METRICS
 
 
 def _relative_to_scale(change: dict, slope: dict) -> dict:
@@ -280,7 +288,7 @@ def model_point(
     )
 
     def values(config: experiment.SimulationConfig) -> dict:
-        return _slope_values(experiment.slopes(config, [conditions["magnitude"]], beta0=conditions["beta0"])[0], mode)
+        return slope_values(experiment.slopes(config, [conditions["magnitude"]], beta0=conditions["beta0"])[0], mode)
 
     plain = values(base)
     slope = {m: v[0] for m, v in plain.items()}

@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import defaults
+from . import defaults, detector
 from .checks import InputError, check_integer, check_number
 
 ROMAN_FRAME_TIME_S = defaults.ROMAN_FRAME_TIME_S
@@ -416,14 +416,7 @@ class Ramp:
 # --- kernels ----------------------------------------------------------------------------------
 
 
-def polynomial_perturbation(charge: np.ndarray, coefficients: Sequence[float]) -> np.ndarray:
-    """S - Q = -(b2 Q^2 + b3 Q^3 + ...) for ``coefficients`` = (b2, b3, ...)."""
-    out = np.zeros_like(charge, dtype=np.float64)
-    power = charge * charge
-    for b in coefficients:
-        out -= b * power
-        power = power * charge
-    return out
+polynomial_perturbation = detector.coefficients_perturbation  # the one NL polynomial (nlpsf.detector)
 
 
 def polynomial_response(coefficients: Sequence[float]) -> Callable[[np.ndarray], np.ndarray]:

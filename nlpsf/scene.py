@@ -53,6 +53,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 from functools import lru_cache
 from importlib import resources
@@ -62,18 +63,6 @@ import numpy as np
 
 from . import roman
 from .checks import InputError, check_integer, check_number
-
-#: Names of the effects, in the order they act; the impact report's contract uses these.
-EFFECTS: tuple[str, ...] = (
-    "position",
-    "sed",
-    "jitter",
-    "charge_diffusion",
-    "ipc",
-    "nl_polynomial",
-    "brighter_fatter",
-    "background",
-)
 
 #: GalSim 2.8.5 ``galsim/roman/__init__.py`` ``ipc_kernel`` before its normalisation (rows are y,
 #: columns x, as a GalSim Image's array); :data:`ROMAN_IPC_KERNEL` divides it by its sum as GalSim does.
@@ -104,20 +93,82 @@ WAVELENGTH_ACCURACY = 1e-2
 #: ``tests/test_scene.py::test_wavelength_count_meets_its_stated_accuracy``).
 SLOPE_BINNING_FACTOR = 4.0
 
-#: Representative values the impact report tries for an effect the scene leaves off (with sources).
-NOMINAL: dict[str, dict] = {
-    "position": {"position": (4.0, 4.0), "note": "a corner of the SCA (pixel 4, 4)"},
-    "sed": {"sed": "flat", "note": "flat f_nu (the AB reference)"},
-    "jitter": {"jitter_arcsec": ROMAN_JITTER_ARCSEC, "note": "galsim.roman.jitter_rms"},
-    "charge_diffusion": {"charge_diffusion_px": ROMAN_CHARGE_DIFFUSION_PX, "note": "galsim.roman.charge_diffusion"},
-    "ipc": {"ipc": ROMAN_IPC_KERNEL, "ipc_label": "roman", "note": "galsim.roman.ipc_kernel"},
-    "nl_polynomial": {
-        "nl_coefficients": (1e-13, 1e-18),
-        "note": "b3, b4 each 0.1 % of the signal at 1e5 e- (the residual level quoted in issue 8)",
-    },
-    "brighter_fatter": {"bfe_coefficient": None, "note": "no default: give a coefficient to measure it"},
-    "background": {"background_e": 100.0, "note": "100 e- per pixel, of the order of Roman's sky over 168 s"},
-}
+
+@dataclass(frozen=True)
+class SceneEffect:
+    """One scene effect: the one entry the presets, the impact report, the solver and the API read.
+
+    ``fields``: the ``SceneModel`` fields that set it (copied together when a solve simulates it);
+    ``off``: the values that switch it off; ``nominal``: the Roman value the impact report and the
+    shipped model uncertainty try when a scene leaves it off (a None value: no default), with its
+    ``source``; ``kind``: "optical" (acts on the PSF before the pixels) or "detector"; ``breaks_beta_q``:
+    it adds a flux dependence of its own (the tables' beta x flux rescaling then does not hold);
+    ``combines_with``: what it can be simulated together with; ``is_on``: whether a scene has it.
+    """
+
+    name: str
+    fields: tuple[str, ...]
+    off: dict
+    nominal: dict
+    source: str
+    kind: str
+    breaks_beta_q: bool
+    combines_with: str
+    is_on: Callable[[SceneModel], bool]
+    #: Part of the "roman" preset (at its nominal value).
+    in_roman_preset: bool = False
+
+
+_EVERY = "every other effect, and a ramp"
+#: The scene effects, in the order they act (the impact report's contract uses this order).
+#: Adding an effect: one entry here, its kernel (``detector_chain`` or the optics) and its test.
+REGISTRY: dict[str, SceneEffect] = {
+    e.name: e
+    for e in (
+        SceneEffect(
+            "position", ("position",), {"position": None}, {"position": (4.0, 4.0)},
+            "a corner of the SCA (pixel 4, 4)", "optical", False, _EVERY, lambda s: s.position is not None, False,
+        ),
+        SceneEffect(
+            "sed", ("sed", "sed_table", "sed_units", "n_wavelengths"), {"sed": None, "sed_table": None, "n_wavelengths": None},
+            {"sed": "flat"}, "flat f_nu (the AB reference)", "optical", False, _EVERY, lambda s: s.sed is not None, True,
+        ),
+        SceneEffect(
+            "jitter", ("jitter_arcsec",), {"jitter_arcsec": 0.0}, {"jitter_arcsec": ROMAN_JITTER_ARCSEC},
+            "galsim.roman.jitter_rms", "optical", False, _EVERY, lambda s: s.jitter_arcsec > 0, True,
+        ),
+        SceneEffect(
+            "charge_diffusion", ("charge_diffusion_px",), {"charge_diffusion_px": 0.0},
+            {"charge_diffusion_px": ROMAN_CHARGE_DIFFUSION_PX}, "galsim.roman.charge_diffusion", "optical", False, _EVERY,
+            lambda s: s.charge_diffusion_px > 0, True,
+        ),
+        SceneEffect(
+            "ipc", ("ipc", "ipc_label", "ipc_order"), {"ipc": None, "ipc_label": None},
+            {"ipc": ROMAN_IPC_KERNEL, "ipc_label": "roman"}, "galsim.roman.ipc_kernel", "detector", False, _EVERY,
+            lambda s: s.ipc is not None, True,
+        ),
+        SceneEffect(
+            "nl_polynomial", ("nl_coefficients",), {"nl_coefficients": ()}, {"nl_coefficients": (1e-13, 1e-18)},
+            "b3, b4 each 0.1 % of the signal at 1e5 e- (the residual level quoted in issue 8)", "detector", True, _EVERY,
+            lambda s: any(c != 0 for c in s.nl_coefficients),
+        ),
+        SceneEffect(
+            "brighter_fatter", ("bfe_coefficient",), {"bfe_coefficient": 0.0}, {"bfe_coefficient": None},
+            "no default: give a coefficient to measure it", "detector", True,
+            "every other effect; not a ramp (ramps.RAMP_REFUSES)", lambda s: s.bfe_coefficient != 0,
+        ),
+        SceneEffect(
+            "background", ("background_e",), {"background_e": 0.0}, {"background_e": 100.0},
+            "100 e- per pixel, of the order of Roman's sky over 168 s", "detector", True, _EVERY,
+            lambda s: s.background_e > 0,
+        ),
+    )
+}  # fmt: skip
+#: Names of the effects, in the order they act.
+EFFECTS: tuple[str, ...] = tuple(REGISTRY)
+#: Representative values the impact report tries for an effect the scene leaves off, with their
+#: sources as ``note`` (read from :data:`REGISTRY`).
+NOMINAL: dict[str, dict] = {name: {**e.nominal, "note": e.source} for name, e in REGISTRY.items()}
 
 
 #: Where :func:`shipped_model_uncertainty` reads the shipped measurement.
@@ -207,16 +258,7 @@ class SceneModel:
 
     # --- which effects are on -------------------------------------------------------------
     def effects_on(self) -> dict[str, bool]:
-        return {
-            "position": self.position is not None,
-            "sed": self.sed is not None,
-            "jitter": self.jitter_arcsec > 0,
-            "charge_diffusion": self.charge_diffusion_px > 0,
-            "ipc": self.ipc is not None,
-            "nl_polynomial": any(c != 0 for c in self.nl_coefficients),
-            "brighter_fatter": self.bfe_coefficient != 0,
-            "background": self.background_e > 0,
-        }
+        return {name: effect.is_on(self) for name, effect in REGISTRY.items()}
 
     @property
     def is_paper(self) -> bool:
@@ -226,29 +268,19 @@ class SceneModel:
     def plain_detector(self) -> bool:
         """No detector effect beyond the quadratic NL: the experiment keeps the paper's expressions."""
         on = self.effects_on()
-        return not any(on[k] for k in ("ipc", "nl_polynomial", "brighter_fatter", "background"))
+        return not any(on[name] for name, effect in REGISTRY.items() if effect.kind == "detector")
 
     def breaks_beta_q_scaling(self) -> list[str]:
         """Effects that add a flux dependence of their own, so beta and flux no longer enter only
         through beta Q (see the module docstring): the tables' rescaling must not be used."""
         on = self.effects_on()
-        return [k for k in ("nl_polynomial", "brighter_fatter", "background") if on[k]]
+        return [name for name, effect in REGISTRY.items() if effect.breaks_beta_q and on[name]]
 
     def without(self, effect: str) -> SceneModel:
         """This scene with one effect switched off."""
-        off = {
-            "position": {"position": None},
-            "sed": {"sed": None, "sed_table": None, "n_wavelengths": None},
-            "jitter": {"jitter_arcsec": 0.0},
-            "charge_diffusion": {"charge_diffusion_px": 0.0},
-            "ipc": {"ipc": None, "ipc_label": None},
-            "nl_polynomial": {"nl_coefficients": ()},
-            "brighter_fatter": {"bfe_coefficient": 0.0},
-            "background": {"background_e": 0.0},
-        }
-        if effect not in off:
+        if effect not in REGISTRY:
             raise InputError("effect", f"unknown effect {effect!r}; one of {', '.join(EFFECTS)}")
-        return replace(self, name=None, **off[effect])
+        return replace(self, name=None, **REGISTRY[effect].off)
 
     def with_nominal(self, effect: str) -> SceneModel | None:
         """This scene with ``effect`` at its :data:`NOMINAL` value (None when it has no default)."""
@@ -482,17 +514,9 @@ def brighter_fatter(charge: np.ndarray, coefficient: float, oversampling: int) -
 
 
 def preset(name: str) -> SceneModel:
-    presets = {
-        "paper": SceneModel(name="paper"),
-        "roman": SceneModel(
-            sed="flat",
-            jitter_arcsec=ROMAN_JITTER_ARCSEC,
-            charge_diffusion_px=ROMAN_CHARGE_DIFFUSION_PX,
-            ipc=ROMAN_IPC_KERNEL,
-            ipc_label="roman",
-            name="roman",
-        ),
-    }
+    # "roman": the registry's effects marked for it, at their nominal (GalSim Roman) values.
+    roman_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
+    presets = {"paper": SceneModel(name="paper"), "roman": SceneModel(name="roman", **roman_values)}
     if name not in presets:
         raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(presets)}, or a JSON file")
     return presets[name]

@@ -59,6 +59,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .checks import InputError, check_number, shown
+from .flags import CATALOGUE, FlagCode
 
 #: Responsivity of a χ-type (distortion) ellipticity to shear for a round source: e = 2 γ.
 RESPONSIVITY = 2.0
@@ -73,10 +74,8 @@ MAX_WEIGHT = 1e100
 #: Which budget goes with which metric.
 BUDGET_FOR_METRIC = {"size": "m", "e1": "c", "e2": "c", "e": "c"}
 
-CROSS_TERM_NOTE = (
-    "the additive bias from a size error of an elliptical PSF, c ~ e_psf * dR/R / rho^2, is not in the e tolerance; "
-    "it is of order e_psf times the size error and belongs to the size budget"
-)
+#: The cross term an e budget leaves out (the flag ``shear_cross_term`` says it; nlpsf.flags owns the text).
+CROSS_TERM_NOTE = CATALOGUE[FlagCode.SHEAR_CROSS_TERM].template
 
 
 @dataclass(frozen=True)

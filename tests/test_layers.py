@@ -150,9 +150,7 @@ def test_the_table_path_reads_curves_and_rows_without_scipy_or_astropy():
 #: Private functions one module still calls in another. Each is a concept with two owners; make the
 #: function public where it lives (issue 16) and delete its line here. New entries fail the test.
 KNOWN_PRIVATE_CALLS = {
-    ("nlpsf.solver", "tables._conditions"),
-    ("nlpsf.solver", "impact._slope_values"),
-    ("nlpsf.web.api", "solver._fidelity_error"),
+    ("nlpsf.web.api", "solver._fidelity_error"),  # the public name is solver.fidelity_error (the service's to switch)
 }
 
 
@@ -179,3 +177,53 @@ def test_modules_call_each_others_public_names_only():
     found = {(_module_name(p), call) for p in LIBRARY for call in _private_calls(p)}
     found |= {(f"nlpsf.web.{p.stem}", call) for p in web for call in _private_calls(p)}
     assert found <= KNOWN_PRIVATE_CALLS, sorted(found - KNOWN_PRIVATE_CALLS)
+
+
+#: The simulation package in the order its modules may import each other (each only from earlier ones).
+EXPERIMENT_LAYERS = ("config", "prepared", "results", "readout", "validity", "kernels", "measure")
+
+
+def test_the_experiment_package_imports_one_way():
+    for index, name in enumerate(EXPERIMENT_LAYERS):
+        path = PACKAGE / "experiment" / f"{name}.py"
+        inside = {
+            m.split(".")[2] for m in _imports(path, "nlpsf.experiment") if m.startswith("nlpsf.experiment.") and m.count(".") >= 2
+        }
+        later = inside & set(EXPERIMENT_LAYERS[index:])
+        assert not later, (name, later)
+    # Every name the old single module had is still there for its callers.
+    from nlpsf import experiment
+
+    for name in ("SimulationConfig", "Scene", "prepare", "simulate", "slopes", "SlopeResult", "SimulationResult", "Statistic"):
+        assert hasattr(experiment, name), name
+    for name in ("nl_images", "_perturbed_fit", "_cut_jump_flags", "check_magnitudes", "check_sigma_beta", "METRICS"):
+        assert hasattr(experiment, name), name
+
+
+#: Library modules over ~600 lines must say why in their docstring (checked below) -- or be split.
+MAX_MODULE_LINES = 600
+#: Functions over ~80 lines, each with why it is still one.
+LONG_FUNCTIONS = {
+    ("nlpsf.moments", "_fit_chunk"): "the adaptive-moment iteration, kept whole for speed",
+}
+
+
+def test_modules_and_functions_are_small_or_say_why():
+    long_modules = []
+    long_functions = set()
+    for path in LIBRARY:
+        text = path.read_text()
+        tree = ast.parse(text)
+        doc = ast.get_docstring(tree) or ""
+        if len(text.splitlines()) > MAX_MODULE_LINES and "lines" not in doc:
+            long_modules.append(_module_name(path))
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 85:
+                long_functions.add((_module_name(path), node.name))
+    assert long_functions <= set(LONG_FUNCTIONS), sorted(long_functions - set(LONG_FUNCTIONS))
+    # Modules that are still long (and not explained) are listed, so the list can only shrink.
+    assert set(long_modules) <= LONG_MODULES, sorted(set(long_modules) - LONG_MODULES)
+
+
+#: Library modules over MAX_MODULE_LINES whose docstring does not yet say why (owned by other work).
+LONG_MODULES = {"nlpsf.ramps", "nlpsf.scene", "nlpsf.moments"}

@@ -442,3 +442,24 @@ def test_flat_fnu_chromatic_psf_agrees_with_galsim():
         "J129", 7, weight_cut_rho2=moments.PAPER_WEIGHT_CUT_RHO2, pupil_oversampling=4.0, n_waves=WAVES
     ).run(18.3, 5e-7, prepared.offsets, 168.1, redraw=False)
     _agree(ours, peer)
+
+
+def test_the_effect_registry_is_the_one_list_of_effects():
+    # Every SceneModel field that sets an effect belongs to exactly one registry entry, and switching
+    # an effect off (its ``off`` values) or to its nominal value changes only that effect.
+    from nlpsf.scene import EFFECTS, REGISTRY, SceneModel
+
+    assert tuple(REGISTRY) == EFFECTS
+    owned = [f for e in REGISTRY.values() for f in e.fields]
+    assert len(owned) == len(set(owned))
+    for name, effect in REGISTRY.items():
+        assert effect.kind in ("optical", "detector")
+        nominal = SceneModel().with_nominal(name)
+        if nominal is None:
+            assert any(v is None for v in effect.nominal.values())
+            continue
+        on = nominal.effects_on()
+        assert on[name] and sum(on.values()) == 1, name
+        assert not nominal.without(name).effects_on()[name]
+        assert (name in nominal.breaks_beta_q_scaling()) == effect.breaks_beta_q
+        assert nominal.plain_detector == (effect.kind == "optical")

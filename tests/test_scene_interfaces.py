@@ -182,7 +182,7 @@ def test_cli_over_field_and_sca_all(capsys):
     )
     assert code == 0
     got = json.loads(out)
-    assert len(got["conditions"]["over_field"]) == 5 and got["flags"][0].startswith("worst over 5 field points (SCA 3)")
+    assert len(got["conditions"]["over_field"]) == 5 and got["flag_codes"][0] == "worst_over_field"
     code, _, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "all", "--magnitude", "19", "--tolerance", "1e-4")
     assert code == 2 and "--sca" in err
     # The options the plain solve takes reach the over-field answer too (they were once dropped).

@@ -127,8 +127,16 @@ ANSWER_COLUMNS = (
 )
 
 
+#: The options that are SolveRequest fields as they are (exptime, scene and ramp are built from others).
+_REQUEST_OPTIONS = (
+    "band", "sca", "metric", "mode", "beta0", "precision", "tolerance", "magnitude", "full_well", "fidelity",
+    "accuracy", "throughput", "shear_m", "shear_c", "size_ratio", "stars", "pupil_scale",
+)  # fmt: skip
+
+
 def run(args: argparse.Namespace) -> int:
-    from ..solver import solve, solve_over_field
+    from ..request import SolveRequest
+    from ..solver import answer, solve_over_field
 
     if args.batch:
         return run_batch(args)
@@ -165,28 +173,15 @@ def run(args: argparse.Namespace) -> int:
         from ..checks import InputError
 
         raise InputError("sca", "--sca all needs --over-field")
-    solution = solve(
-        args.band,
-        args.sca,
-        args.metric,
-        args.mode,
-        args.beta0,
-        exptime,
-        args.precision,
-        args.tolerance,
-        args.magnitude,
-        args.full_well,
-        args.fidelity,
-        args.accuracy,
-        scene=_scene(args),
-        throughput=args.throughput,
-        shear_m=args.shear_m,
-        shear_c=args.shear_c,
-        size_ratio=args.size_ratio,
-        stars=args.stars,
-        ramp=ramp,
-        pupil_scale=args.pupil_scale,
+    request = SolveRequest.from_mapping(
+        {
+            **{name: getattr(args, name) for name in _REQUEST_OPTIONS},
+            "exptime": exptime,
+            "scene": _scene(args),
+            "ramp": ramp,
+        }
     )
+    solution = answer(request)
     return _report(solution, args, ramp)
 
 
@@ -318,7 +313,8 @@ def run_batch(args: argparse.Namespace) -> int:
     import sys
 
     from ..checks import InputError, SimulationError
-    from ..solver import solve
+    from ..request import SolveRequest
+    from ..solver import answer
 
     ramp, exptime = ramp_from(args)
     try:
@@ -334,7 +330,8 @@ def run_batch(args: argparse.Namespace) -> int:
             if ramp is not None and args.read_noise is None and arguments["sca"] != args.sca:
                 # No read noise given: each row's ramp fit uses its own SCA's official value.
                 row_ramp = ramp_from(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}))[0]
-            solution = solve(**arguments, ramp=row_ramp, pupil_scale=args.pupil_scale)
+            request = SolveRequest.from_mapping({**arguments, "ramp": row_ramp, "pupil_scale": args.pupil_scale})
+            solution = answer(request)
             answers.append({"index": index, "ok": True, "solution": solution.to_dict()})
         except (InputError, SimulationError) as error:
             field = getattr(error, "argument", None)

@@ -1,0 +1,125 @@
+"""The up-the-ramp readout inside a simulation: per-pixel ramp factors, resultants used, their flags."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import ramps
+from ..flags import FlagCode, make
+from .prepared import Scene
+
+
+@dataclass(frozen=True)
+class RampEffect:
+    """What the ramp fit does to the quadratic NL at one magnitude.
+
+    ``factor`` is the per-pixel c_2 (``ramps.order_factors``): the fitted image is
+    s (psi - beta s psi^2 c_2), so the final-frame machinery runs unchanged with -psi^2 replaced
+    by -psi^2 c_2 (and d image / d beta = -s^2 psi^2 c_2 exactly: the weights do not depend on beta).
+    """
+
+    factor: np.ndarray
+    usable: np.ndarray
+    used_peak_e: float
+    flags: list[str]
+    extras: dict
+    #: A scene with detector effects (IPC, background, polynomial NL): every order's factor and the
+    #: charge the NL acts on (``ramps.scene_factors``); None for the paper's detector.
+    scene_ramp: ramps.SceneRamp | None = None
+
+
+def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, beta: float = 0.0) -> RampEffect:
+    """Per-pixel ramp factors, resultants used, and the flags, for all realizations (or one).
+
+    ``beta``: the quadratic NL the ramp's "signal" saturation rule sees (``ramps.usable_resultants``;
+    the ramp's own ``saturation_beta`` wins when set); the factors do not depend on it."""
+    config = scene.config
+    ramp = config.ramp
+    assert ramp is not None
+    state = (beta, *config.scene.nl_coefficients)
+    stamps = scene.stamps if index is None else scene.stamps[index : index + 1]
+    weighted = scene.weighted_region if index is None else scene.weighted_region[index : index + 1]
+    K = ramp.table.n_resultants
+    last = ramp.table.last_read_fractions(config.exptime_s)
+    if not config.scene.plain_detector:
+        return _scene_ramp_effect(scene, charge_scale, index, state)
+    peak = charge_scale * float(stamps.max())
+    if ramp.fit == "ols" and peak * last[-1] <= config.full_well_e and (ramp.saturation == "charge" or beta >= 0):
+        # Every pixel keeps every resultant and OLS weights do not depend on the charge: one factor
+        # (the same number order_factors gives each pixel), no per-pixel work.
+        factor, _ = ramps.order_factors(np.zeros(1), ramp, config.exptime_s, config.full_well_e, (2,))
+        pixels = int(weighted.sum())
+        summary = {"pixels": pixels, "resultants": K, "fitted_on_all": pixels, "fitted_on_fewer": 0, "unusable": 0}
+        summary.update(pixels_by_resultants={str(K): pixels}, fewest_resultants=K, stamp_unusable=0, description=ramp.describe())
+        weighted_peak = scene.weighted_peak_fraction if index is None else scene.weighted_peak_fraction[index : index + 1]
+        used_peak = charge_scale * float(weighted_peak.max()) * last[-1]
+        return RampEffect(factor.reshape(1, 1, 1), np.full(1, K), used_peak, [], {"ramp": summary})
+    charge = charge_scale * stamps
+    factors, usable = ramps.order_factors(charge, ramp, config.exptime_s, config.full_well_e, (2,), state=state)
+    return _ramp_summary(scene, charge, factors[0], usable, weighted, None)
+
+
+def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, state: tuple[float, ...]) -> RampEffect:
+    """The ramp inside a scene with detector effects: ``ramps.scene_factors`` on Q = s psi + B."""
+    config = scene.config
+    model = config.scene
+    pick = slice(None) if index is None else slice(index, index + 1)
+    weighted = scene.weighted_region[pick]
+    charge = charge_scale * scene.charge[pick] + model.background_e
+    orders = tuple(range(2, 3 + len(model.nl_coefficients)))
+    sr = ramps.scene_factors(
+        charge, config.ramp, config.exptime_s, config.full_well_e, state, orders, model.ipc, model.ipc_order, config.oversampling
+    )
+    return _ramp_summary(scene, sr.charge, sr.factors[0], sr.usable, weighted, sr)
+
+
+def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) -> RampEffect:
+    config = scene.config
+    ramp = config.ramp
+    K = ramp.table.n_resultants
+    last = ramp.table.last_read_fractions(config.exptime_s)
+    stamps = charge
+    used_charge = charge * last[np.maximum(usable, 1) - 1]
+    used_peak = float(np.where(weighted, used_charge, 0.0).max())
+    summary = ramps.usage_summary(usable, K, weighted)
+    summary["stamp_unusable"] = int(np.sum(usable == 0))
+    summary["description"] = ramp.describe()
+    flags = []
+    needed = min(ramp.min_usable, K)
+    first_end = ramp.table.resultants[needed - 1][-1] * ramp.table.frame_time_s
+    if summary["unusable"]:
+        hit = int(np.sum(np.any(weighted & (usable == 0), axis=(1, 2))))
+        where = "in the first resultant" if needed == 1 else "by the second resultant (one gives no slope, as in romancal)"
+        flags.append(
+            make(
+                FlagCode.RAMP_UNUSABLE_PIXELS,
+                where=where,
+                unusable=summary["unusable"],
+                hit=hit,
+                realizations=len(stamps),
+                full_well_e=config.full_well_e,
+                time_s=first_end,
+            )
+        )
+    if summary["fitted_on_fewer"]:
+        final_peak = float(charge.max())
+        flags.append(
+            make(
+                FlagCode.RAMP_FEWER_RESULTANTS,
+                fewer=summary["fitted_on_fewer"],
+                pixels=summary["pixels"],
+                resultants=K,
+                fewest=summary["fewest_resultants"],
+                peak_e=final_peak,
+                full_well_e=config.full_well_e,
+            )
+        )
+    return RampEffect(factor, usable, used_peak, flags, {"ramp": summary}, scene_ramp)
+
+
+def _nl_shape(stamps: np.ndarray, factor: np.ndarray | None) -> np.ndarray:
+    """psi^2 for the final frame, psi^2 c_2 after a ramp fit (``factor``, the ramp effect's c_2 on
+    the same pixels): the pattern that -beta s multiplies."""
+    return stamps**2 if factor is None else stamps**2 * factor

@@ -1,0 +1,331 @@
+"""Result flags as codes with a message: the one owner of every warning a result can carry.
+
+A flag is a :class:`Flag`: a ``str`` (its message, so text output, joins and ``in`` tests read as
+before) that also carries its :class:`FlagCode` and the values the message quotes. Each code has
+one :class:`FlagSpec` in :data:`CATALOGUE`: the message template (``str.format`` fields named by the
+values), the names of the values it quotes, and a sentence saying what it means, for a page that
+wants to explain or filter flags.
+
+Serialised results (``to_dict`` of simulation results, slope results and solutions, hence the CLI's
+``--json`` and the API) keep ``flags``, the list of messages, unchanged, and add ``flag_codes``, the
+list of codes in the same order (``flag_codes[i]`` is the code of ``flags[i]``). Tests assert codes
+(:func:`codes`), never the English.
+
+Adding a warning: one member of :class:`FlagCode`, one :data:`CATALOGUE` entry, and ``make(code, ...)``
+where it is raised.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from enum import StrEnum
+
+
+class FlagCode(StrEnum):
+    """Stable codes of result flags (the value is what JSON carries)."""
+
+    # Simulations (nlpsf.experiment)
+    SATURATED = "saturated"
+    NL_NOT_MONOTONIC = "nl_not_monotonic"
+    NEGATIVE_BETA = "negative_beta"
+    NEGATIVE_PIXEL_BETAS = "negative_pixel_betas"
+    UNDERSAMPLED = "undersampled"
+    STAMP_TOO_SMALL = "stamp_too_small"
+    MOMENTS_FAILED = "moments_failed"
+    RAMP_UNUSABLE_PIXELS = "ramp_unusable_pixels"
+    RAMP_FEWER_RESULTANTS = "ramp_fewer_resultants"
+    NO_CHANGE = "no_change"
+    BELOW_MONTE_CARLO_RESOLUTION = "below_monte_carlo_resolution"
+    JUMPY_FINITE_DIFFERENCE = "jumpy_finite_difference"
+    # Solutions (nlpsf.solver, nlpsf.fidelity, nlpsf.shear)
+    FIDELITY_CHOSEN = "fidelity_chosen"
+    FIDELITY_NONE_MEETS = "fidelity_none_meets"
+    FIDELITY_ERROR_UNKNOWN = "fidelity_error_unknown"
+    SCENE_SIMULATED = "scene_simulated"
+    PUPIL_SCALE_SIMULATED = "pupil_scale_simulated"
+    BETA_Q_RULE_BROKEN = "beta_q_rule_broken"
+    THROUGHPUT_RELABELLED = "throughput_relabelled"
+    ERROR_AT_SATURATION = "error_at_saturation"
+    SATURATION_BINDS = "saturation_binds"
+    BETWEEN_SATURATION_LIMITS = "between_saturation_limits"
+    RAMP_SATURATED = "ramp_saturated"
+    STAR_SATURATED = "star_saturated"
+    EXTRAPOLATED_FAINT = "extrapolated_faint"
+    EXTRAPOLATED_ANSWER = "extrapolated_answer"
+    FAINTER_THAN_40 = "fainter_than_40"
+    BELOW_TOLERANCE_EVERYWHERE = "below_tolerance_everywhere"
+    SLOPE_CHANGES_SIGN = "slope_changes_sign"
+    SLOPE_CONSISTENT_WITH_ZERO = "slope_consistent_with_zero"
+    QUADRATIC_NOT_MONOTONIC = "quadratic_not_monotonic"
+    OUTSIDE_LINEAR_REGIME = "outside_linear_regime"
+    SHEAR_CROSS_TERM = "shear_cross_term"
+    WORST_OVER_FIELD = "worst_over_field"
+
+
+@dataclass(frozen=True)
+class FlagSpec:
+    """A code's message template, the values it quotes, and what it means."""
+
+    template: str
+    quotes: tuple[str, ...]
+    meaning: str
+
+
+_UNPHYSICAL = "so the numbers describe an unphysical case"
+
+CATALOGUE: dict[FlagCode, FlagSpec] = {
+    FlagCode.SATURATED: FlagSpec(
+        "saturated: the star's brightest pixel reaches {peak_e:.4g} e- (the maximum over sub-pixel centroids), "
+        "above the full well of {full_well_e:.4g} e-, and passes it in {over} of the {realizations} "
+        "realizations drawn; a real detector would clip this star, " + _UNPHYSICAL,
+        ("peak_e", "full_well_e", "over", "realizations"),
+        "The simulated star's brightest pixel passes the full well: a real detector would clip it.",
+    ),
+    FlagCode.NL_NOT_MONOTONIC: FlagSpec(
+        "nonlinearity not monotonic: {slope_name} reaches {worst:.3g} in pixels that carry weight in the moments; "
+        "{model} is invalid at this charge, so the result is not physical",
+        ("slope_name", "worst", "model"),
+        "The detector response stops growing with charge where the moments look: the NL model is invalid there.",
+    ),
+    FlagCode.NEGATIVE_BETA: FlagSpec(
+        "beta < 0 in the paper's convention: the simulated response is super-linear (brightening)",
+        (),
+        "A negative beta (paper convention) brightens the pixels instead of dimming them.",
+    ),
+    FlagCode.NEGATIVE_PIXEL_BETAS: FlagSpec(
+        "{percent:.2g} % of the per-pixel beta values are negative (super-linear pixels): sigma_beta is comparable to beta",
+        ("percent",),
+        "The per-pixel beta spread is so wide that some pixels are super-linear.",
+    ),
+    FlagCode.UNDERSAMPLED: FlagSpec(
+        "undersampled: fine pixels of {pixel_mas:.1f} mas are coarser than the Nyquist sampling "
+        "lambda/2D = {nyquist_mas:.1f} mas at {wavelength_nm:.0f} nm (q = {q:.2f}); moments of an aliased PSF are "
+        "biased (measured: up to 3.5 % in size and 13 % in e at q = 0.5-0.85); use --oversampling {needed} or more",
+        ("pixel_mas", "nyquist_mas", "wavelength_nm", "q", "needed"),
+        "The fine grid aliases the PSF: the moments are biased; a larger oversampling fixes it.",
+    ),
+    FlagCode.STAMP_TOO_SMALL: FlagSpec(
+        "stamp too small: the adaptive-moment weight window (rho^2 <= {cut:.4g}) reaches past the {n}x{n} stamp edge in "
+        "{inside} of {fitted} realizations, so the moments are those of a truncated image; use a larger --stamp",
+        ("cut", "n", "inside", "fitted"),
+        "The moments' weight window is cut by the stamp edge: a larger stamp fixes it.",
+    ),
+    FlagCode.MOMENTS_FAILED: FlagSpec(
+        "adaptive moments failed in {failed} of {total} realizations ({reasons}); {rest}",
+        ("failed", "total", "reasons", "rest"),
+        "Some (or all) adaptive-moment fits failed; the statistics use the others.",
+    ),
+    FlagCode.RAMP_UNUSABLE_PIXELS: FlagSpec(
+        "saturated {where}: {unusable} pixels that carry weight in the moments (in {hit} of "
+        "{realizations} realizations) pass the saturation level of {full_well_e:.4g} e- by t = {time_s:.4g} s; "
+        "they are unusable (their value here is the first resultant's), " + _UNPHYSICAL,
+        ("where", "unusable", "hit", "realizations", "full_well_e", "time_s"),
+        "Up the ramp, weighted pixels saturate before the resultants a slope needs: they are unusable.",
+    ),
+    FlagCode.RAMP_FEWER_RESULTANTS: FlagSpec(
+        "ramp: {fewer} of {pixels} pixels that carry weight were fitted on fewer than "
+        "{resultants} resultants (down to {fewest}; saturated resultants dropped, as the ground pipeline "
+        "does); a single final frame would be saturated (peak {peak_e:.4g} e- > full well {full_well_e:.4g} e-)",
+        ("fewer", "pixels", "resultants", "fewest", "peak_e", "full_well_e"),
+        "Up the ramp, some weighted pixels drop saturated resultants (as the ground pipeline does).",
+    ),
+    FlagCode.NO_CHANGE: FlagSpec(
+        "no change: the nonlinearity is exactly zero for this beta",
+        (),
+        "beta is zero: the images are unchanged.",
+    ),
+    FlagCode.BELOW_MONTE_CARLO_RESOLUTION: FlagSpec(
+        "below the Monte Carlo's resolution: sigma_beta={sigma_beta:g} should spread the metrics by only "
+        "{expected}, under the ~{floor:g} that differences of converged float64 fits resolve; the measured spread "
+        "({measured}) is numerical noise. The linear method is exact here (the response is linear in sigma_beta).",
+        ("sigma_beta", "expected", "floor", "measured"),
+        "The expected Monte Carlo scatter is below float64 resolution: the measured spread is noise.",
+    ),
+    FlagCode.JUMPY_FINITE_DIFFERENCE: FlagSpec(
+        "jumpy finite difference: the Monte Carlo slope differs from the exact derivative at beta0 by {differences}: "
+        "pixels cross the hard weight cut at rho^2 = {cut:g} between "
+        "beta0 x 0.99 and x 1.01; the linear method (or --weight-cut none) has no such step",
+        ("differences", "cut"),
+        "Pixels crossing the hard weight cut make the Monte Carlo finite difference jump.",
+    ),
+    FlagCode.FIDELITY_CHOSEN: FlagSpec(
+        "fidelity {level} chosen for accuracy {accuracy:g}: its measured relative error on {band} {metric} {mode} "
+        "slopes is {error:.2g} ({date})",
+        ("level", "accuracy", "band", "metric", "mode", "error", "date"),
+        "The accuracy asked for picked this fidelity level (the cheapest whose measured error meets it).",
+    ),
+    FlagCode.FIDELITY_NONE_MEETS: FlagSpec(
+        "no fidelity level meets accuracy {accuracy:g} for {band} {metric} {mode}; using the most accurate, {level}, whose "
+        "measured relative error is {error:.2g}",
+        ("accuracy", "band", "metric", "mode", "level", "error"),
+        "No fidelity level meets the accuracy asked for; the most accurate is used.",
+    ),
+    FlagCode.FIDELITY_ERROR_UNKNOWN: FlagSpec(
+        "no measured fidelity error for this band is shipped, so the uncertainty is statistical only",
+        (),
+        "The fidelity level's error is not measured here: the uncertainty lacks that part.",
+    ),
+    FlagCode.SCENE_SIMULATED: FlagSpec(
+        "the tables hold the paper's scene only (at the SCA centre and its corner field points): "
+        "the scene's effects are simulated (fidelity linear)",
+        (),
+        "A table-level request with scene effects is simulated with the linear response.",
+    ),
+    FlagCode.PUPIL_SCALE_SIMULATED: FlagSpec(
+        "the tables hold the {table_rule} pupil scale: the slopes are simulated with pupil scale {rule} (fidelity linear)",
+        ("table_rule", "rule"),
+        "Another pupil-scale rule than the tables' is simulated with the linear response.",
+    ),
+    FlagCode.BETA_Q_RULE_BROKEN: FlagSpec(
+        "{effects} {verb} a flux dependence of its own: slopes are simulated at this exposure and beta0, "
+        "never rescaled from the tables (the beta Q rule does not hold)",
+        ("effects", "verb"),
+        "A scene effect depends on the flux by itself: slopes are not rescaled between exposures.",
+    ),
+    FlagCode.THROUGHPUT_RELABELLED: FlagSpec(
+        "the {source} tables read with {throughput} photometry (magnitudes {shift:+.3f}); their achromatic PSF keeps "
+        "the {source} curve's wavelength, up to {percent:.1f} % on the slope, added to the optical-model uncertainty",
+        ("source", "throughput", "shift", "percent"),
+        "The tables are relabelled for another throughput; the error that leaves is in the uncertainty.",
+    ),
+    FlagCode.ERROR_AT_SATURATION: FlagSpec(
+        "at the saturation magnitude the {metric} {mode} error is {error:.3g} (tolerance {tolerance:g})",
+        ("metric", "mode", "error", "tolerance"),
+        "Saturation sets the answer; this is the NL error there.",
+    ),
+    FlagCode.SATURATION_BINDS: FlagSpec(
+        "saturation binds: stars brighter than m={m_sat:.2f} saturate before the nonlinearity matters{where}; "
+        "at the saturation magnitude the NL error is below the tolerance",
+        ("m_sat", "where"),
+        "The brightest usable star is set by saturation, not by the nonlinearity.",
+    ),
+    FlagCode.BETWEEN_SATURATION_LIMITS: FlagSpec(
+        "between the saturation limits: at m={magnitude:.2f} a single final frame would saturate (m < {m_sat_final:.2f}) "
+        "but the ramp keeps its early resultants (usable down to m={m_sat:.2f}); the answer uses the ramp fit with "
+        "saturated resultants dropped",
+        ("magnitude", "m_sat_final", "m_sat"),
+        "A final frame would saturate, the ramp's early resultants do not: saturated resultants are dropped.",
+    ),
+    FlagCode.RAMP_SATURATED: FlagSpec(
+        "saturated: at m={magnitude:g} the brightest pixel passes the full well already in the first resultant "
+        "(ramp saturation at m={m_sat:.2f}); such a star cannot be used for the PSF model at all",
+        ("magnitude", "m_sat"),
+        "The star saturates in the ramp's first resultant: it cannot be used.",
+    ),
+    FlagCode.STAR_SATURATED: FlagSpec(
+        "saturated: at m={magnitude:g} the brightest pixel exceeds the full well (saturation at m={m_sat:.2f}); "
+        "such a star cannot be used for the PSF model at all",
+        ("magnitude", "m_sat"),
+        "The star saturates: it cannot be used for the PSF model.",
+    ),
+    FlagCode.EXTRAPOLATED_FAINT: FlagSpec(
+        "extrapolated: m={magnitude:g} is fainter than the table (m <= {faintest:.2f}); the slope is scaled in proportion "
+        "to the flux, which is exact in the linear regime these faint stars are in",
+        ("magnitude", "faintest"),
+        "Fainter than the tables: the slope is scaled with flux (exact in the linear regime).",
+    ),
+    FlagCode.EXTRAPOLATED_ANSWER: FlagSpec(
+        "extrapolated: the tolerance is only met fainter than the table (m > {faintest:.2f}); m={magnitude:.2f} follows "
+        "from the slope scaling with flux, exact in the linear regime",
+        ("faintest", "magnitude"),
+        "The answer lies fainter than the tables: it follows from the slope scaling with flux.",
+    ),
+    FlagCode.FAINTER_THAN_40: FlagSpec(
+        "the answer is fainter than m = 40: no usable PSF star can meet this tolerance at this precision",
+        (),
+        "No real PSF star can meet the tolerance at this precision.",
+    ),
+    FlagCode.BELOW_TOLERANCE_EVERYWHERE: FlagSpec(
+        "the NL error stays below the tolerance {where}",
+        ("where",),
+        "No magnitude reaches the tolerance: saturation sets the brightest usable star.",
+    ),
+    FlagCode.SLOPE_CHANGES_SIGN: FlagSpec(
+        "the {metric} slope changes sign {where}; the answer uses |c| and is the brightest magnitude "
+        "whose error stays within the tolerance for every fainter star",
+        ("metric", "where"),
+        "An ellipticity slope passes through zero: the answer uses |c| and holds for every fainter star.",
+    ),
+    FlagCode.SLOPE_CONSISTENT_WITH_ZERO: FlagSpec(
+        "the {metric} slope at m={magnitude:g} is consistent with zero ({slope:.3g} ± {error:.2g}): "
+        "this metric is insensitive to beta here, so no calibration precision is needed for it",
+        ("metric", "magnitude", "slope", "error"),
+        "The metric is insensitive to beta here: no precision is needed for it.",
+    ),
+    FlagCode.QUADRATIC_NOT_MONOTONIC: FlagSpec(
+        "nonlinearity not monotonic: 2 beta0 Q_peak = {value:.2f} >= 1 at m={magnitude:g}; the quadratic model "
+        "is invalid for this star, so the slope is not physical",
+        ("value", "magnitude"),
+        "At this star's peak the quadratic NL stops being monotonic: the slope is not physical.",
+    ),
+    FlagCode.OUTSIDE_LINEAR_REGIME: FlagSpec(
+        "outside the linear regime: delta_beta * Q_peak = {value:.2g} > {limit}; "
+        "T = c p beta0 assumes the PSF error grows linearly with delta_beta, so expect corrections of that order",
+        ("value", "limit"),
+        "The calibration error is large enough that the PSF error is no longer linear in it.",
+    ),
+    FlagCode.SHEAR_CROSS_TERM: FlagSpec(
+        "the additive bias from a size error of an elliptical PSF, c ~ e_psf * dR/R / rho^2, is not in the e tolerance; "
+        "it is of order e_psf times the size error and belongs to the size budget",
+        (),
+        "An e budget does not hold the additive bias a size error of an elliptical PSF makes.",
+    ),
+    FlagCode.WORST_OVER_FIELD: FlagSpec(
+        "worst over {points} field points ({where}): SCA {sca} at pixel ({x:.0f}, {y:.0f}); {solved} ranges "
+        "{low:.4g} to {high:.4g}",
+        ("points", "where", "sca", "x", "y", "solved", "low", "high"),
+        "The answer is that of the most demanding field point; the range over the points follows.",
+    ),
+}
+
+
+class Flag(str):
+    """A flag: its message (the string itself), its ``code`` and the ``values`` the message quotes."""
+
+    code: FlagCode
+    values: dict
+
+    def __new__(cls, code: FlagCode | str, **values) -> Flag:
+        code = FlagCode(code)
+        spec = CATALOGUE[code]
+        missing = set(spec.quotes) - set(values)
+        if missing:
+            raise TypeError(f"flag {code.value} needs {', '.join(sorted(missing))}")
+        self = super().__new__(cls, spec.template.format(**values))
+        self.code = code
+        self.values = values
+        return self
+
+    def __reduce__(self):  # pickles (jobs, dask) as code + values
+        return (_rebuild, (self.code.value, self.values))
+
+    def to_dict(self) -> dict:
+        return {"code": self.code.value, "message": str(self), "values": dict(self.values)}
+
+
+def _rebuild(code: str, values: dict) -> Flag:
+    return Flag(code, **values)
+
+
+def make(code: FlagCode | str, **values) -> Flag:
+    """The flag of ``code`` with its message filled from ``values``."""
+    return Flag(code, **values)
+
+
+def code_of(flag: str) -> str | None:
+    """The code of a flag (None for a plain string, e.g. one read back from a file)."""
+    return flag.code.value if isinstance(flag, Flag) else None
+
+
+def codes(flags: Iterable[str]) -> list[str | None]:
+    """The codes of ``flags``, in order: what serialised results carry as ``flag_codes``."""
+    return [code_of(f) for f in flags]
+
+
+def catalogue() -> list[dict]:
+    """Every code with its template, the values it quotes and its meaning (for the API and page)."""
+    return [
+        {"code": code.value, "template": spec.template, "quotes": list(spec.quotes), "meaning": spec.meaning}
+        for code, spec in CATALOGUE.items()
+    ]

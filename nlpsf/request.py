@@ -1,0 +1,206 @@
+"""A solve request: every input of ``nlpsf.solver``, validated once, frozen.
+
+:class:`SolveRequest` is what the CLI, the API, the batch and the page's endpoint build (through
+:meth:`SolveRequest.from_mapping`, which names the field at fault in its ``InputError``); the
+solver trusts it. It checks the inputs in the order the solver always has, so the first error a
+bad request meets is the same whichever entry point it came through.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+from . import defaults, ramps, roman, shear
+from . import fidelity as levels
+from .checks import (
+    InputError,
+    check_beta0,
+    check_choice,
+    check_exptime,
+    check_full_well,
+    check_integer,
+    check_magnitude,
+    check_number,
+)
+
+#: Stars (and dithers) a scatter-mode PSF model may average.
+MAX_STARS = 10**9
+#: Why a solve refuses a scene with a ramp: its scene simulation and the ramp's table mapping are
+#: not combined yet (simulations combine them where ``ramps.check_scene`` allows).
+SCENE_AND_RAMP = "a scene and a ramp cannot be combined yet; give one of them"
+#: The fields of a request (API body, batch row) that describe its ramp (``ramps.build`` reads them).
+RAMP_REQUEST_FIELDS: tuple[str, ...] = ("ramp", "ma_table", "ramp_fit", "read_noise")
+#: The three quantities of the relation, of which a request gives exactly two.
+TRIPLE: tuple[str, ...] = ("precision", "tolerance", "magnitude")
+
+
+def _scene_type():
+    from .scene import SceneModel  # the scene module is heavy; only a scene request needs it
+
+    return SceneModel
+
+
+@dataclass(frozen=True)
+class SolveRequest:
+    """Two of (precision, tolerance, magnitude) and the conditions; see ``nlpsf.solver.solve``."""
+
+    band: str
+    sca: int = defaults.SCA
+    metric: str = "size"
+    mode: str = "bias"
+    beta0: float = defaults.BETA0
+    exptime: float = defaults.EXPTIME_S
+    precision: float | None = None
+    tolerance: float | None = None
+    magnitude: float | None = None
+    full_well: float = defaults.FULL_WELL_E
+    fidelity: str | None = None
+    accuracy: float | None = None
+    shear_m: float | None = None
+    shear_c: float | None = None
+    size_ratio: Any = None
+    stars: int = 1
+    ramp: ramps.Ramp | None = None
+    throughput: str | None = None
+    scene: Any = None
+    pupil_scale: str | None = None
+    #: The shear budget (``shear_m`` / ``shear_c`` with ``size_ratio``) and the size ratio, checked.
+    budget: shear.Budget | None = field(default=None, init=False, compare=False, repr=False)
+    ratio: shear.SizeRatio | None = field(default=None, init=False, compare=False, repr=False)
+    budget_tolerance: float | None = field(default=None, init=False, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._set("band", roman.check_band(self.band))
+        self._set("sca", roman.check_sca(self.sca))
+        check_choice(self.metric, "metric", defaults.METRICS)
+        check_choice(self.mode, "mode", defaults.MODES)
+        self._set("beta0", check_beta0(self.beta0))
+        self._set("exptime", check_exptime(self.exptime))
+        self._set("full_well", check_full_well(self.full_well))
+        self._set("stars", check_integer(self.stars, "stars", 1, MAX_STARS))
+        if self.stars > 1 and self.mode != "scatter":
+            raise InputError(
+                "stars",
+                "averaging over stars applies to scatter mode only: a bias in the mean beta is common to every star, "
+                "so a PSF model averaging n stars has the same bias error as one",
+            )
+        self._check_budget()
+        if self.ramp is not None:
+            if not isinstance(self.ramp, ramps.Ramp):
+                raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
+            self.ramp.check_exposure(self.exptime)
+        self._check_triple()
+        if self.accuracy is None:
+            levels.check_level(self.fidelity or "table")
+        else:
+            self._set("accuracy", check_number(self.accuracy, "accuracy", *defaults.ACCURACY_RANGE))
+        if self.throughput is not None:
+            roman.check_throughput(self.throughput)
+        if self.pupil_scale is not None:
+            check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
+        if self.scene is not None and not isinstance(self.scene, _scene_type()):
+            raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
+        if self.scene is not None and self.ramp is not None:
+            raise InputError("scene", SCENE_AND_RAMP)
+
+    def _set(self, name: str, value) -> None:
+        object.__setattr__(self, name, value)
+
+    def _check_budget(self) -> None:
+        if self.shear_m is not None or self.shear_c is not None:
+            if self.tolerance is not None:
+                raise InputError(
+                    "tolerance",
+                    "give the tolerance or a shear budget (shear_m / shear_c), not both: the budget sets the tolerance",
+                )
+            budget = shear.budget_for(self.metric, self.shear_m, self.shear_c, self.size_ratio)
+            # e.g. a tiny budget on tiny galaxies
+            self._set("budget_tolerance", check_number(budget.tolerance, f"shear_{budget.kind}", *defaults.TOLERANCE_RANGE))
+            self._set("budget", budget)
+            self._set("ratio", budget.size_ratio)
+        elif self.size_ratio is not None:
+            self._set("ratio", shear.check_size_ratio(self.size_ratio))
+
+    def _check_triple(self) -> None:
+        values = {"precision": self.precision, "tolerance": self.target_tolerance, "magnitude": self.magnitude}
+        given = [k for k in TRIPLE if values[k] is not None]
+        if len(given) != 2:
+            missing = ", ".join(k for k in TRIPLE if k not in given) or "none"
+            at_fault = next((k for k in TRIPLE if k not in given), "magnitude")
+            if self.budget is not None and (at_fault == "tolerance" or len(given) == 3):
+                at_fault = f"shear_{self.budget.kind}"
+            raise InputError(
+                at_fault,
+                f"give exactly two of precision, tolerance (or a shear budget), magnitude (got {len(given)}; missing: {missing})",
+            )
+        if self.precision is not None:
+            self._set("precision", check_number(self.precision, "precision", *defaults.PRECISION_RANGE))
+        if self.tolerance is not None:
+            self._set("tolerance", check_number(self.tolerance, "tolerance", *defaults.TOLERANCE_RANGE))
+        if self.magnitude is not None:
+            self._set("magnitude", check_magnitude(self.magnitude))
+
+    @property
+    def target_tolerance(self) -> float | None:
+        """The tolerance given, or the one the shear budget sets."""
+        return self.budget_tolerance if self.budget is not None else self.tolerance
+
+    @property
+    def solved_for(self) -> str:
+        values = {"precision": self.precision, "tolerance": self.target_tolerance, "magnitude": self.magnitude}
+        return next(k for k in TRIPLE if values[k] is None)
+
+    def with_changes(self, **changes) -> SolveRequest:
+        """Another request, validated again (``dataclasses.replace``)."""
+        return replace(self, **changes)
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any]) -> SolveRequest:
+        """The request from a mapping of ``solver.solve``'s keyword arguments (the CLI's options,
+        an API body, a batch row); an unknown key is an ``InputError`` naming it."""
+        known = {f.name for f in fields(cls) if f.init}
+        for key in data:
+            if key not in known:
+                raise InputError(str(key), f"unknown field; a solve request takes {', '.join(sorted(known))}")
+        if "band" not in data:
+            raise InputError("band", "missing")
+        return cls(**dict(data))
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any], allow_files: bool = False) -> SolveRequest:
+        """The request from a JSON-shaped body (the API's, the page's, a batch row's): the fields of
+        :meth:`from_mapping` with the ramp as :data:`RAMP_REQUEST_FIELDS` (``ramps.build``: an MA
+        table's exposure is its last read unless ``exptime`` is given) and the scene as its JSON
+        object (``scene.from_request``; errors name ``scene.FIELD``). Files only with ``allow_files``."""
+        data = dict(data)
+        ramp_fields = {k: data.pop(k, None) for k in RAMP_REQUEST_FIELDS}
+        given_exptime = data.get("exptime")
+        ramp, exptime = ramps.build(
+            ramp_fields["ramp"],
+            ramp_fields["ma_table"],
+            ramp_fields["ramp_fit"] or "ols",
+            ramp_fields["read_noise"],
+            given_exptime,
+            allow_files=allow_files,
+            sca=data.get("sca", defaults.SCA),
+        )
+        data["exptime"], data["ramp"] = exptime, ramp
+        scene = data.pop("scene", None)
+        if isinstance(scene, Mapping) or scene is None:
+            data["scene"] = _scene_from_json(scene)
+        else:
+            data["scene"] = scene
+        return cls.from_mapping(data)
+
+
+def _scene_from_json(fields_: Mapping[str, Any] | None):
+    if not fields_:
+        return None
+    from . import scene as scenes
+
+    try:
+        return scenes.from_request(dict(fields_))
+    except InputError as error:
+        raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None

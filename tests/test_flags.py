@@ -1,0 +1,52 @@
+"""Flags are codes with a message: every code has one template, messages are built from it, and a
+flag survives pickling (jobs, dask) and serialisation with its code."""
+
+import pickle
+import string
+from pathlib import Path
+
+import pytest
+
+from nlpsf import flags
+from nlpsf.flags import CATALOGUE, Flag, FlagCode
+
+
+def test_every_code_has_a_template_quoting_exactly_its_values():
+    assert set(CATALOGUE) == set(FlagCode)
+    for code, spec in CATALOGUE.items():
+        fields = {name for _, name, _, _ in string.Formatter().parse(spec.template) if name}
+        assert fields == set(spec.quotes), code
+        assert spec.meaning.endswith("."), code
+
+
+def test_a_flag_is_its_message_with_code_and_values():
+    flag = flags.make(FlagCode.STAR_SATURATED, magnitude=16.5, m_sat=17.98)
+    assert isinstance(flag, str) and flag.code is FlagCode.STAR_SATURATED
+    assert "m=16.5" in flag and "m=17.98" in flag  # the numbers quoted, formatted by the template
+    assert flag.values == {"magnitude": 16.5, "m_sat": 17.98}
+    again = pickle.loads(pickle.dumps(flag))
+    assert again == flag and again.code is flag.code and again.values == flag.values
+    assert flags.codes([flag, "a plain string"]) == ["star_saturated", None]
+    assert flag.to_dict()["code"] == "star_saturated"
+
+
+def test_a_flag_needs_every_value_its_message_quotes():
+    with pytest.raises(TypeError, match="m_sat"):
+        Flag(FlagCode.STAR_SATURATED, magnitude=16.5)
+
+
+def test_catalogue_lists_every_code():
+    assert {entry["code"] for entry in flags.catalogue()} == {c.value for c in FlagCode}
+
+
+def test_tests_assert_codes_not_english():
+    # The messages are the catalogue's to reword: no test of the library matches their prose.
+    here = Path(__file__).parent
+    prose = [spec.template.split(":")[0].split("{")[0].strip() for spec in CATALOGUE.values()]
+    prose = [p for p in prose if len(p) > 12]
+    for path in here.glob("test_*.py"):
+        if path.name == "test_flags.py" or path.name.startswith("test_e2e") or path.name == "test_ramps.py":
+            continue  # the page's browser tests read what the page shows; test_ramps.py: the ramps work's
+        text = path.read_text()
+        for p in prose:
+            assert f'"{p}' not in text, (path.name, p)

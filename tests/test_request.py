@@ -1,0 +1,76 @@
+"""A solve is a request, a plan and an answer: the request validates once and names the field at
+fault, the plan says what is read and what simulated, the uncertainty combines its parts by one rule."""
+
+import math
+
+import pytest
+
+from nlpsf import solver
+from nlpsf.checks import InputError
+from nlpsf.request import SolveRequest
+from nlpsf.solution import Uncertainty
+
+
+def test_from_mapping_names_the_field_at_fault():
+    with pytest.raises(InputError) as unknown:
+        SolveRequest.from_mapping({"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "colour": "red"})
+    assert unknown.value.argument == "colour"
+    with pytest.raises(InputError) as three:
+        SolveRequest.from_mapping({"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "precision": 0.01})
+    assert three.value.argument == "magnitude"
+    with pytest.raises(InputError) as budget:
+        SolveRequest.from_mapping({"band": "H158", "magnitude": 18.3, "shear_m": 2e-3, "size_ratio": 1.5, "precision": 0.01})
+    assert budget.value.argument == "shear_m"
+    with pytest.raises(InputError) as band:
+        SolveRequest.from_mapping({"magnitude": 18.3, "tolerance": 1e-4})
+    assert band.value.argument == "band"
+
+
+def test_the_budget_sets_the_tolerance_the_shear_relation_gives():
+    # Delta R / R = |m| rho^2 / 2 (nlpsf.shear): the request's tolerance is the budget's.
+    request = SolveRequest("H158", magnitude=18.3, shear_m=2e-3, size_ratio=1.5)
+    assert request.tolerance is None and request.target_tolerance == pytest.approx(2e-3 * 1.5**2 / 2, rel=1e-12)
+    assert request.solved_for == "precision"
+
+
+def test_the_plan_says_what_is_read_and_what_is_simulated():
+    table = solver.plan(SolveRequest("H158", magnitude=18.3, tolerance=1e-4))
+    assert table.fidelity == "table" and table.reads == "tables" and table.scene is None and not table.notes
+    other_rule = solver.plan(SolveRequest("H158", magnitude=18.3, tolerance=1e-4, pupil_scale="header"))
+    assert other_rule.fidelity == "linear" and [n.code for n in other_rule.notes] == ["pupil_scale_simulated"]
+
+
+def test_the_uncertainty_rule_counts_the_larger_optical_part_once():
+    parts = Uncertainty(statistical=3.0, fidelity=4.0, optical_model=1.0, effects=0.0, pupil_scale=12.0)
+    assert parts.total == pytest.approx(13.0)  # hypot(3, 4, 0, max(1, 12))
+    assert parts.model == pytest.approx(12.0)
+    assert Uncertainty.none().total is None and Uncertainty.none().model is None
+    s = solver.solve("H158", magnitude=18.3, tolerance=1e-4)
+    p = s.parts
+    expected = math.hypot(p.statistical, p.fidelity, p.effects, max(p.optical_model, p.pupil_scale))
+    assert s.uncertainty == pytest.approx(expected, rel=1e-15)
+
+
+def test_accuracy_with_a_shear_budget_solves_for_the_magnitude():
+    # Was refused: the first, table-level pass got both the budget's tolerance and the budget.
+    budget = solver.solve("H158", precision=0.01, shear_m=2e-3, size_ratio=1.5, accuracy=0.05)
+    direct = solver.solve("H158", precision=0.01, tolerance=2e-3 * 1.5**2 / 2, accuracy=0.05)
+    assert budget.magnitude == pytest.approx(direct.magnitude, abs=1e-9)
+
+
+def test_a_json_body_builds_the_same_request_as_the_python_call():
+    from nlpsf import ramps
+
+    body = {"band": "J129", "precision": 0.01, "tolerance": 1e-4, "ma_table": "romanisim-110"}
+    ramp, exptime = ramps.build(ma_table="romanisim-110")
+    by_json = solver.answer(SolveRequest.from_json(body))
+    by_call = solver.solve("J129", precision=0.01, tolerance=1e-4, ramp=ramp, exptime=exptime)
+    assert by_json.magnitude == by_call.magnitude and by_json.exptime == exptime
+    # The MA table's exposure is its last read unless the body gives one.
+    assert SolveRequest.from_json({**body, "exptime": 300.0}).exptime == 300.0
+    with pytest.raises(InputError) as scene:
+        SolveRequest.from_json({"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": {"jitter": "x", "colour": 1}})
+    assert scene.value.argument.startswith("scene")
+    with pytest.raises(InputError) as both:
+        SolveRequest.from_json({**body, "scene": {"preset": "roman"}})
+    assert both.value.argument == "scene"
