@@ -12,7 +12,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
-from nlpsf import __version__, defaults, detector, fidelity, ramps, roman, solver, tables
+from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
 from nlpsf.checks import InputError
 
 from . import models, simulation
@@ -64,7 +64,7 @@ def public_table_meta(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def _ma_table_summary(name: str) -> dict:
-    table = ramps.load_ma_table(name)
+    table = models.shipped_ma_table(name)
     return {
         "name": name,
         "resultants": table.n_resultants,
@@ -100,7 +100,7 @@ def meta(request: Request) -> SafeJSONResponse:
             "simulation_fidelities": list(fidelity.SIMULATION_LEVELS),
             "beta_conventions": list(detector.BETA_CONVENTIONS),
             "ramp_fits": list(defaults.RAMP_FITS),
-            "ma_tables": [_ma_table_summary(name) for name in ramps.shipped_table_names()],
+            "ma_tables": [_ma_table_summary(name) for name in models.SHIPPED_MA_TABLES],
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
                 "simulation": models.SimulationRequest().model_dump(),
@@ -148,9 +148,11 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
     raw = body.model_dump()
     arguments = {k: v for k, v in raw.items() if k not in ramp_keys and k not in scene_keys}
     ramp, arguments["exptime"] = body.ramp_arguments(body.exptime, body.sca)  # validates the ramp
-    from .simulation import build_scene
+    from .simulation import build_scene, check_scene_bounds
 
     scene = build_scene(raw["scene"]) if raw["scene"] is not None else None  # validates the scene
+    if scene is not None:
+        check_scene_bounds(scene, body.full_well)
     if scene is not None and ramp is not None:
         raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
     plain = ramp is None and scene is None and body.over_field is None
@@ -189,7 +191,7 @@ async def solve(body: models.SolveRequest, request: Request) -> Response:
 async def impact(body: models.ImpactRequest, request: Request) -> Response:
     from nlpsf import impact as impact_module
 
-    from .simulation import LimitError, build_scene
+    from .simulation import LimitError, build_scene, check_scene_bounds
 
     arguments = body.model_dump()
     limits = request.app.state.settings.limits
@@ -201,6 +203,7 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
         )
     scene_request = arguments.pop("scene")
     scene = build_scene(scene_request)
+    check_scene_bounds(scene, defaults.FULL_WELL_E)  # the impact report simulates at the default full well
     wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
     if wavelengths > limits.max_wavelengths:
         raise LimitError(

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from nlpsf import __version__, detector, experiment, fidelity, ramps, roman
+from nlpsf import __version__, detector, experiment, fidelity, roman
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 
@@ -57,18 +57,40 @@ def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
 
 
+def check_scene_bounds(scene: scenes.SceneModel, full_well: float) -> None:
+    """Refuse (422) a scene whose detector effects leave the models' first-order regime inside the
+    full well, where every moment fit fails and the job could only end in an error: the higher NL
+    terms' share of the response slope, sum k |b_k| Q^(k-1), and the brighter-fatter area change
+    |bfe| Q must both stay below 1 at Q = full_well. (Checked here, before anything is queued.)"""
+    higher = sum(k * abs(b) * full_well ** (k - 1) for k, b in enumerate(scene.nl_coefficients, start=3))
+    if not higher < 1.0:
+        raise InputError(
+            "scene.nl_coefficients",
+            f"sum k |b_k| Q^(k-1) at the full well ({full_well:g} e-) is {higher:.3g}; it must stay below 1 "
+            "(the higher NL terms are a perturbation of the response, and dS/dQ must stay positive)",
+        )
+    if not abs(scene.bfe_coefficient) * full_well < 1.0:
+        raise InputError(
+            "scene.bfe",
+            f"|bfe| x full_well = {abs(scene.bfe_coefficient) * full_well:.3g}; it must stay below 1 "
+            f"(the first-order brighter-fatter model), i.e. |bfe| < {1.0 / full_well:.3g} 1/e- at this full well",
+        )
+
+
 def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
+    from .models import build_ramp
+
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
     scene = build_scene(request.get("scene"))
-    ramp, exptime = ramps.build(
+    check_scene_bounds(scene, request["full_well"])
+    ramp, exptime = build_ramp(
         request.get("ramp"),
         request.get("ma_table"),
         request.get("ramp_fit", "ols"),
         request.get("read_noise"),
         request.get("exptime"),
-        allow_files=False,
-        sca=request["sca"],
+        request["sca"],
     )
     return experiment.SimulationConfig(
         band=request["band"],
@@ -231,17 +253,16 @@ def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[st
         arguments = dict(normalised["solve"])
         ramp_request = arguments.pop("ramp_request", None)
         if ramp_request is not None:
-            from nlpsf import ramps
+            from .models import build_ramp
 
             given = arguments["exptime"] if ramp_request["exptime_given"] else None
-            arguments["ramp"], arguments["exptime"] = ramps.build(
+            arguments["ramp"], arguments["exptime"] = build_ramp(
                 ramp_request["ramp"],
                 ramp_request["ma_table"],
                 ramp_request["ramp_fit"],
                 ramp_request["read_noise"],
                 given,
-                allow_files=False,
-                sca=arguments["sca"],
+                arguments["sca"],
             )
         scene_request = arguments.pop("scene_request", None)
         over_field = arguments.pop("over_field", None)

@@ -52,13 +52,21 @@ def healthy(port: int, process: subprocess.Popen | None = None) -> bool:
         return False
 
 
-def start_server(db_path: Path, port: int, env: dict[str, str] | None = None, log: Path | None = None) -> subprocess.Popen:
-    """``nlpsf serve`` on 127.0.0.1:port with its own database; returns once /health answers."""
-    environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), **(env or {})}
+def start_server(
+    db_path: Path,
+    port: int,
+    env: dict[str, str] | None = None,
+    log: Path | None = None,
+    cwd: Path | None = None,
+    args: tuple[str, ...] = (),
+) -> subprocess.Popen:
+    """``nlpsf serve`` on 127.0.0.1:port with its own database (started in ``cwd``, default the
+    repository); returns once /health answers."""
+    environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), "NLPSF_HOST": "127.0.0.1", **(env or {})}
     output = open(log, "wb") if log else subprocess.DEVNULL  # noqa: SIM115 - the server outlives this call
     process = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port)],
-        cwd=ROOT,
+        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port), *args],
+        cwd=cwd or ROOT,
         env=environment,
         stdout=output,
         stderr=subprocess.STDOUT,
