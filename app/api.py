@@ -193,8 +193,10 @@ async def impact(body: models.ImpactRequest, request: Request) -> Response:
 
     from .simulation import LimitError, build_scene, check_scene_bounds
 
-    arguments = body.model_dump()
     limits = request.app.state.settings.limits
+    arguments = body.model_dump()
+    if "realizations" not in body.model_fields_set:
+        arguments["realizations"] = max(2, min(arguments["realizations"], limits.max_realizations))
     if arguments["realizations"] > limits.max_realizations:
         raise LimitError(
             "realizations",

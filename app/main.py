@@ -130,6 +130,7 @@ def _problem_schema(app: FastAPI) -> None:
                         if not media.endswith("json") and not entry.get("schema"):
                             entry["schema"] = {"type": "string"}
         components = schema.get("components", {}).get("schemas", {})
+        _publish_limits(components, app.state.settings)
         components.setdefault("Problem", models.Problem.model_json_schema(ref_template="#/components/schemas/{model}"))
         for unused in ("HTTPValidationError", "ValidationError"):
             components.pop(unused, None)
@@ -137,6 +138,41 @@ def _problem_schema(app: FastAPI) -> None:
         return schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _tighten(prop: dict, key: str, value: int) -> None:
+    """Set ``maximum``/``maxItems`` on a property (or its non-null member) to the smaller of the two;
+    a default above a lowered maximum is lowered with it (the endpoints do the same)."""
+    for target in [prop, *prop.get("anyOf", [])]:
+        if target.get("type") in ("integer", "number", "array") and (key != "maxItems" or target.get("type") == "array"):
+            target[key] = min(target.get(key, value), value)
+    if key == "maximum" and isinstance(prop.get("default"), (int, float)) and prop["default"] > value:
+        prop["default"] = value
+
+
+def _publish_limits(components: dict, settings: Settings) -> None:
+    """The service's own caps on one request, where one field sets them, in its schema (the
+    library's ranges are there already, from the models): a request the schema allows is one this
+    service accepts. Caps on products of fields (grid cells, stamp pixels, work, memory) cannot be
+    said in a JSON schema; they are in /meta and named in the 422 that enforces them."""
+    limits = settings.limits
+    simulation = components.get("SimulationRequest", {}).get("properties", {})
+    for name, key, value in (
+        ("realizations", "maximum", limits.max_realizations),
+        ("stamp", "maximum", limits.max_stamp),
+        ("n_wavelengths", "maximum", limits.max_wavelengths),
+        ("magnitudes", "maxItems", limits.max_grid),
+        ("betas", "maxItems", limits.max_grid),
+        ("sigma_betas", "maxItems", limits.max_grid),
+    ):
+        if name in simulation:
+            _tighten(simulation[name], key, value)
+    impact = components.get("ImpactRequest", {}).get("properties", {})
+    if "realizations" in impact:
+        _tighten(impact["realizations"], "maximum", limits.max_realizations)
+    scene = components.get("SceneRequest", {}).get("properties", {})
+    if "n_wavelengths" in scene:
+        _tighten(scene["n_wavelengths"], "maximum", limits.max_wavelengths)
 
 
 app = create_app()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict
 
 from nlpsf import defaults, detector, fidelity, ramps, roman, shear, solver
 from nlpsf import scene as scenes
@@ -18,19 +18,40 @@ from nlpsf import scene as scenes
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
-def _within(bounds: tuple[float, float], description: str, default: Any = None, *, open_low: bool = False) -> Any:
+def _within(
+    bounds: tuple[float, float], description: str, default: Any = None, *, open_low: bool = False, in_type: bool = False
+) -> Any:
     """A field whose range is the library's (``bounds``, its one owner): enforced at the entry as a
-    422 naming the field, and published in the OpenAPI schema (minimum/maximum) and its description."""
+    422 naming the field, and published in the OpenAPI schema (minimum/maximum) and its description.
+    ``in_type``: the bounds are on the field's type already (``_Int``), only the description says them."""
     low, high = bounds
     opening = "(" if open_low else "["
-    limits = {"gt" if open_low else "ge": low, "le": high}
+    limits = {} if in_type else {"gt" if open_low else "ge": low, "le": high}
     return Field(default, **limits, description=f"{description}; accepted {opening}{low:g}, {high:g}]")
+
+
+def _Int(bounds: tuple[int, int]) -> Any:
+    """An integer in the library's range that also takes 3.0 (see ``_whole``). The bounds sit inside
+    the type, before the validator, so that the schema shows them as minimum/maximum."""
+    return Annotated[int, Field(ge=bounds[0], le=bounds[1]), BeforeValidator(_whole)]
+
+
+def _whole(value: Any) -> Any:
+    # JSON Schema calls 1.0 an integer (a number with a zero fractional part); so does this API.
+    # Strings stay refused (strict models), and so do 1.5 and floats too large to be exact.
+    if isinstance(value, float) and value.is_integer() and abs(value) <= 2**53:
+        return int(value)
+    return value
 
 
 def _Number(bounds: tuple[float, float]) -> Any:
     """One number in the library's range (for list items and union members)."""
     return Annotated[float, Field(ge=bounds[0], le=bounds[1])]
 
+
+#: Seeds over JSON: the library takes up to 2^63 - 1, but a JSON number above 2^53 is not exact in
+#: most clients (JavaScript's), nor in a schema checker's float arithmetic; 2^53 seeds are plenty.
+JSON_SEEDS = (defaults.SEED_RANGE[0], min(defaults.SEED_RANGE[1], 2**53))
 
 #: The MA tables the service knows, by name (case-insensitive). The API never opens a file by a name
 #: it was given: anything else is one refusal, the same words for every unknown name.
@@ -50,7 +71,7 @@ _SOLVE_DEFAULTS = {
 
 #: R_gal / R_psf, and a [ratio, weight] pair of a size-ratio distribution (ranges: ``nlpsf.shear``).
 _Ratio = Annotated[float, Field(ge=shear.SIZE_RATIO_RANGE[0], le=shear.SIZE_RATIO_RANGE[1])]
-_RatioWeight = tuple[_Ratio, Annotated[float, Field(ge=0.0, le=shear.MAX_WEIGHT)]]
+_RatioWeight = Annotated[tuple[_Ratio, Annotated[float, Field(ge=0.0, le=shear.MAX_WEIGHT)]], Strict(False)]  # a JSON array
 _RatioList = Annotated[list[_Ratio | _RatioWeight], Field(min_length=1, max_length=shear.MAX_SIZE_RATIOS)]
 
 
@@ -90,8 +111,10 @@ class SceneRequest(BaseModel):
     sed_units: Literal["flambda", "fnu"] = Field(
         "flambda", description="(no unit) what sed_table's flux is: flambda or fnu, any scale"
     )
-    n_wavelengths: int | None = _within(
-        (1, defaults.MAX_WAVELENGTHS), "number of wavelengths for the SED (count; default: chosen for 0.1 % of the slopes)"
+    n_wavelengths: _Int((1, defaults.MAX_WAVELENGTHS)) | None = _within(
+        (1, defaults.MAX_WAVELENGTHS),
+        "number of wavelengths for the SED (count; default: chosen for 0.1 % of the slopes)",
+        in_type=True,
     )
     jitter: float | None = _within((0.0, scenes.MAX_JITTER_ARCSEC), "pointing jitter, arcsec rms per axis (Roman 0.014)")
     charge_diffusion: float | None = _within(
@@ -133,9 +156,7 @@ class MATableSpec(BaseModel):
     model_config = _STRICT
 
     resultants: list[
-        Annotated[
-            list[Annotated[int, Field(ge=1, le=defaults.MAX_RAMP_READS)]], Field(min_length=1, max_length=defaults.MAX_RAMP_READS)
-        ]
+        Annotated[list[_Int((1, defaults.MAX_RAMP_READS))], Field(min_length=1, max_length=defaults.MAX_RAMP_READS)]
     ] = Field(
         min_length=1,
         max_length=defaults.MAX_RAMP_READS,
@@ -150,8 +171,8 @@ class MATableSpec(BaseModel):
 class RampFields(BaseModel):
     """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
 
-    ramp: int | None = _within(
-        (1, defaults.MAX_RAMP_READS), "N uniformly spaced reads over the exposure, one per resultant (count)"
+    ramp: _Int((1, defaults.MAX_RAMP_READS)) | None = _within(
+        (1, defaults.MAX_RAMP_READS), "N uniformly spaced reads over the exposure, one per resultant (count)", in_type=True
     )
     ma_table: ShippedMATable | MATableSpec | None = Field(
         None,
@@ -197,7 +218,7 @@ class SolveRequest(RampFields):
     )
 
     band: Band = Field(description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
-    sca: int = Field(_SOLVE_DEFAULTS["sca"], ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    sca: _Int((1, roman.N_SCA)) = Field(_SOLVE_DEFAULTS["sca"], description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
     metric: Metric = Field(_SOLVE_DEFAULTS["metric"], description="the PSF metric (no unit): size (dR/R), e1, e2 or e (|de|)")
     mode: Mode = Field(
         _SOLVE_DEFAULTS["mode"], description="(no unit) bias: calibration error of beta; scatter: per-pixel sigma_beta"
@@ -259,10 +280,8 @@ class SolveRequest(RampFields):
         description="R_gal/R_psf, dimensionless (intrinsic galaxy over PSF, R = det(M)^(1/4)): a number, or a list of ratios or "
         "[ratio, weight] pairs; alone it reports the shear bias the tolerance implies",
     )
-    stars: int = Field(
+    stars: _Int((1, solver.MAX_STARS)) = Field(
         _SOLVE_DEFAULTS["stars"],
-        ge=1,
-        le=solver.MAX_STARS,
         description="scatter mode: number of stars/dithers on independent pixels the PSF model averages (sigma / sqrt(stars))",
     )
 
@@ -465,16 +484,16 @@ class ImpactRequest(BaseModel):
     )
 
     band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
-    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    sca: _Int((1, roman.N_SCA)) = Field(defaults.SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
     magnitude: float = _within(defaults.MAGNITUDE_RANGE, "magnitude of the star in AB mag", defaults.MAGNITUDE)
     metric: Metric = Field("size", description="the request's metric (no unit)")
     mode: Mode = Field("bias", description="bias or scatter slopes (no unit)")
     beta0: float = _within(defaults.BETA0_RANGE, "beta0 in 1/e- (paper convention)", defaults.BETA0)
     exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", defaults.EXPTIME_S)
-    realizations: int = _within(
-        (2, 10_000), "number of centroid realizations per run (count; both runs of an effect share them)", 50
+    realizations: _Int((2, 10_000)) = _within(
+        (2, 10_000), "number of centroid realizations per run (count; both runs of an effect share them)", 50, in_type=True
     )
-    seed: int = _within(defaults.SEED_RANGE, "random seed (integer, no unit)", 1)
+    seed: _Int(JSON_SEEDS) = _within(JSON_SEEDS, "random seed (integer, no unit)", 1, in_type=True)
     scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
 
 
@@ -506,7 +525,7 @@ class SimulationRequest(RampFields):
     )
 
     band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
-    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    sca: _Int((1, roman.N_SCA)) = Field(defaults.SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
     magnitudes: list[_Number(defaults.MAGNITUDE_RANGE)] = Field(
         [18.3], min_length=1, max_length=10_000, description="star magnitudes in AB mag in the band"
     )
@@ -527,15 +546,22 @@ class SimulationRequest(RampFields):
     fidelity: SimulationFidelity = Field(
         "monte_carlo", description="(no unit) linear response, Monte Carlo, or Monte Carlo polychromatic"
     )
-    n_wavelengths: int | None = _within(
-        (1, defaults.MAX_WAVELENGTHS), "number of wavelengths of the polychromatic PSF (count, default 8)"
+    n_wavelengths: _Int((1, defaults.MAX_WAVELENGTHS)) | None = _within(
+        (1, defaults.MAX_WAVELENGTHS), "number of wavelengths of the polychromatic PSF (count, default 8)", in_type=True
     )
-    realizations: int = _within(
-        (1, defaults.MAX_REALIZATIONS), "number of centroid realizations, or beta-map draws when sigma_beta > 0 (count)", 100
+    realizations: _Int((1, defaults.MAX_REALIZATIONS)) = _within(
+        (1, defaults.MAX_REALIZATIONS),
+        "number of centroid realizations, or beta-map draws when sigma_beta > 0 (count)",
+        100,
+        in_type=True,
     )
-    seed: int = _within(defaults.SEED_RANGE, "random seed (integer, no unit); the same seed gives the same numbers", 1)
-    oversampling: int = _within(defaults.OVERSAMPLING_RANGE, "fine pixels per native pixel along a side, N (count)", 3)
-    stamp: int = _within(defaults.STAMP_RANGE, "stamp side in fine pixels (count)", 96)
+    seed: _Int(JSON_SEEDS) = _within(
+        JSON_SEEDS, "random seed (integer, no unit); the same seed gives the same numbers", 1, in_type=True
+    )
+    oversampling: _Int(defaults.OVERSAMPLING_RANGE) = _within(
+        defaults.OVERSAMPLING_RANGE, "fine pixels per native pixel along a side, N (count)", 3, in_type=True
+    )
+    stamp: _Int(defaults.STAMP_RANGE) = _within(defaults.STAMP_RANGE, "stamp side in fine pixels (count)", 96, in_type=True)
     weight_cut_rho2: float = _within(
         defaults.WEIGHT_CUT_RHO2_RANGE,
         "adaptive-moment weight cut rho^2, dimensionless (paper 25, GalSim 32.24)",

@@ -15,6 +15,8 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from nlpsf import defaults
+
 #: Peak resident memory a simulation job adds per stamp pixel (realizations x stamp^2), measured by
 #: benchmarks/bench_job_memory.py: 37 bytes for the linear fidelity (the worst), 18 for Monte Carlo
 #: (2026-11-26, H158, 200 and 1200 realizations of 96^2 stamps); rounded up.
@@ -29,10 +31,11 @@ def _default_db_path() -> str:
 
 
 # The limits' ranges, shared by ``Limits`` (code) and ``Settings`` (the flat environment fields).
-_Realizations = Annotated[int, Field(ge=1, le=100_000)]
-_Stamp = Annotated[int, Field(ge=16, le=512)]
+# A limit can only tighten what the library accepts: its top is the library's own range (nlpsf.defaults).
+_Realizations = Annotated[int, Field(ge=1, le=defaults.MAX_REALIZATIONS)]
+_Stamp = Annotated[int, Field(ge=defaults.STAMP_RANGE[0], le=defaults.STAMP_RANGE[1])]
 _Grid = Annotated[int, Field(ge=1, le=100_000)]
-_Wavelengths = Annotated[int, Field(ge=1, le=64)]
+_Wavelengths = Annotated[int, Field(ge=1, le=defaults.MAX_WAVELENGTHS)]
 _StampPixels = Annotated[int, Field(ge=256, le=10**11)]
 _Work = Annotated[int, Field(ge=256, le=10**15)]
 

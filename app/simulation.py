@@ -111,6 +111,25 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     )
 
 
+#: Request fields whose default a deployment's limit may lower: (field, limit). An omitted field
+#: means "the default, or the limit if that is smaller" (the schema publishes the same), so a
+#: request the schema allows is never refused for a value the client did not send.
+CAPPED_DEFAULTS = (("realizations", "max_realizations"), ("stamp", "max_stamp"))
+
+
+def capped_defaults(payload: dict[str, Any], given: set[str], limits: Limits) -> dict[str, Any]:
+    """``payload`` with each omitted capped field at min(default, limit); a polychromatic level's
+    default wavelength count likewise."""
+    out = dict(payload)
+    for name, limit in CAPPED_DEFAULTS:
+        if name not in given and name in out:
+            out[name] = min(out[name], getattr(limits, limit))
+    if out.get("fidelity") == "polychromatic" and out.get("n_wavelengths") is None:
+        default = fidelity.simulation_settings("polychromatic").n_wavelengths
+        out["n_wavelengths"] = min(default, limits.max_wavelengths) if default > limits.max_wavelengths else None
+    return out
+
+
 def work_of(config: experiment.SimulationConfig, cells: int) -> int:
     return config.realizations * config.stamp**2 * (config.optics.n_wavelengths + cells)
 

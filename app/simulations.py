@@ -78,7 +78,7 @@ async def submit(
 ) -> Response:
     settings = request.app.state.settings
     try:
-        payload = body.model_dump()
+        payload = simulation.capped_defaults(body.model_dump(), body.model_fields_set, settings.limits)
         if body.ma_table is not None and "exptime" not in body.model_fields_set:
             payload["exptime"] = None  # an MA table's exposure is its last read
         normalised = simulation.validate(payload, settings.limits, settings.job_memory_mb)
