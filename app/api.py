@@ -15,7 +15,7 @@ from starlette.concurrency import run_in_threadpool
 from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
 from nlpsf.checks import InputError
 
-from . import models, simulation
+from . import liveness, models, simulation
 from .errors import SafeJSONResponse, input_error_response, json_safe, problem
 from .store import QueueFull
 
@@ -44,14 +44,17 @@ Points = Annotated[int, Query(ge=2, le=1000, description="number of grid points 
     summary="Liveness: 200 when the service answers; 'degraded' (with the reason) when simulations cannot run",
 )
 async def health(request: Request) -> dict[str, Any]:
-    # No I/O here: the job store's state is kept by the dispatcher's heartbeat (every 2 s).
+    # No I/O here: the job store's state is kept by the dispatcher's heartbeat (every 1 s, with an integrity check).
     store = getattr(request.app.state, "store", None)
     job_store = store.status() if store is not None else {"state": "starting", "reason": None, "since": None}
+    workers = liveness.report()  # None when no supervisor runs this process
+    stalled = bool(workers and workers["stalled"])
     return {
-        "status": "ok" if job_store["state"] == "ok" else "degraded",
+        "status": "ok" if job_store["state"] == "ok" and not stalled else "degraded",
         "version": __version__,
         "calculator": "ok",
         "job_store": job_store,
+        "http_workers": workers,
     }
 
 
@@ -363,17 +366,25 @@ def table_ecsv(request: Request, band: OptionalBand = None, sca: OptionalSca = N
 
 @router.get(
     "/tables.csv",
-    responses={**ERRORS, 200: {"content": {"text/csv": {}}, "description": "CSV, one row per (band, SCA, magnitude)"}},
-    summary="The shipped slope tables as a CSV download",
+    responses={
+        **ERRORS,
+        **_NOT_MODIFIED,
+        200: {"content": {"text/csv": {}}, "description": "CSV, one row per (band, SCA, magnitude)"},
+    },
+    summary="The shipped slope tables as a CSV download; ETag-cacheable",
 )
-def table_csv(band: OptionalBand = None, sca: OptionalSca = None) -> Response:
+def table_csv(request: Request, band: OptionalBand = None, sca: OptionalSca = None) -> Response:
+    etag = _table_etag("csv", band, sca)
+    if (cached := _not_modified(request, etag)) is not None:
+        return cached
     rows = tables.table_rows(band, sca)
     out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
     writer.writerows({k: _csv_value(v) for k, v in row.items()} for row in rows)
     name = "nlpsf-slopes" + (f"-{band.upper()}" if band else "") + (f"-sca{sca}" if sca else "") + ".csv"
-    return Response(out.getvalue(), media_type="text/csv", headers={"Content-Disposition": f'attachment; filename="{name}"'})
+    headers = {"Content-Disposition": f'attachment; filename="{name}"', "ETag": etag, **_CACHE}
+    return Response(out.getvalue(), media_type="text/csv", headers=headers)
 
 
 def _csv_value(value: Any) -> Any:

@@ -25,7 +25,7 @@ from nlpsf import __version__, solver, tables
 
 from . import api, errors, models, simulations
 from .jobs import Dispatcher, Notifier
-from .security import ApiKey, BodyLimit, SecurityHeaders
+from .security import ApiKey, ApiMethods, BodyLimit, SecurityHeaders
 from .settings import Settings
 from .store import Store
 
@@ -94,7 +94,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Outermost last: every response, refusals included, gets the security headers.
     if settings.api_keys:
         app.add_middleware(ApiKey, keys=[k.get_secret_value() for k in settings.api_keys])
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(ApiMethods)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
     if settings.allowed_hosts != ["*"]:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts)
     app.add_middleware(SecurityHeaders)

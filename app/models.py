@@ -390,6 +390,11 @@ class Health(BaseModel):
     version: str = Field(description="code version (no unit)")
     calculator: str = Field(description="state of the calculator (no unit)")
     job_store: JobStoreStatus = Field(description="state of the simulation job store")
+    http_workers: dict[str, Any] | None = Field(
+        None,
+        description="the HTTP workers under the supervisor: workers, responding (counts), stalled (each worker's index and "
+        "silence in s), heartbeat_timeout_s; null when no supervisor runs the service",
+    )
 
 
 class Meta(BaseModel):

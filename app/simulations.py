@@ -35,7 +35,16 @@ def job_response(job: dict[str, Any], status: int) -> SafeJSONResponse:
 
 
 def client_of(request: Request) -> str | None:
+    """The caller's identity for listings: its API key's hash (None without keys)."""
     return getattr(request.state, "client", None)
+
+
+def share_key(request: Request) -> str:
+    """Whose share of the queue a submission counts against: the API key, else the address."""
+    key = client_of(request)
+    if key is not None:
+        return key
+    return f"address:{request.client.host if request.client else 'unknown'}"
 
 
 async def submit_job(request: Request, normalised: dict[str, Any], wait: float) -> tuple[dict[str, Any], int]:
@@ -44,7 +53,10 @@ async def submit_job(request: Request, normalised: dict[str, Any], wait: float) 
     Raises QueueFull as a 429 response and StoreUnavailable (503, by the app's handler)."""
     app = request.app
     key = simulation.request_hash(normalised)
-    job, _how = await asyncio.to_thread(app.state.store.submit, normalised, key, app.state.settings.max_queue, client_of(request))
+    settings = app.state.settings
+    job, _how = await asyncio.to_thread(
+        app.state.store.submit, normalised, key, settings.max_queue, share_key(request), settings.queue_per_client
+    )
     app.state.dispatcher.wake()
     if job["status"] not in FINISHED:
         finished = await app.state.notifier.wait(job["id"], min(wait, app.state.settings.max_wait_s))
@@ -54,7 +66,10 @@ async def submit_job(request: Request, normalised: dict[str, Any], wait: float) 
 
 
 def queue_full_response(full: QueueFull) -> Response:
-    return problem(429, f"the simulation queue is full: {full}", limit="max_queue", headers={"Retry-After": "10"})
+    """429 naming the limit hit (max_queue: the whole queue; max_queue_per_client: this client's share)."""
+    mine = full.setting == "max_queue_per_client"
+    what = "your share of the simulation queue is full" if mine else "the simulation queue is full"
+    return problem(429, f"{what}: {full}", limit=full.setting, headers={"Retry-After": "10"})
 
 
 @router.post(
@@ -103,7 +118,7 @@ async def list_jobs(
     store = request.app.state.store
     everyone = request.app.state.settings.list_all_jobs
     jobs = await asyncio.to_thread(store.list, client_of(request), everyone, limit)
-    counts = await asyncio.to_thread(store.counts)
+    counts = await asyncio.to_thread(store.counts, client_of(request), everyone)
     return SafeJSONResponse({"jobs": [{k: v for k, v in j.items() if k not in _HIDDEN} for j in jobs], "counts": counts})
 
 

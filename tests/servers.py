@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
@@ -78,3 +79,40 @@ def start_server(
         process.wait(10)
         raise
     return process
+
+
+def child_pids(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux /proc): a supervisor's HTTP workers (and its helpers)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat", "rb") as handle:
+                    parent = int(handle.read().rsplit(b")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            if parent == pid:
+                out.append(int(entry))
+    return sorted(out)
+
+
+def http_workers(pid: int) -> list[int]:
+    """The HTTP worker processes of the ``nlpsf serve`` supervisor ``pid``."""
+    workers = []
+    for child in child_pids(pid):
+        try:
+            with open(f"/proc/{child}/cmdline", "rb") as handle:
+                cmdline = handle.read()
+        except OSError:
+            continue
+        if b"resource_tracker" not in cmdline and b"forkserver" not in cmdline:
+            workers.append(child)
+    return workers
+
+
+def crash(process: subprocess.Popen) -> None:
+    """SIGKILL the whole service at once, supervisor and HTTP workers: a crash, with no chance to clean up."""
+    for pid in [process.pid, *child_pids(process.pid)]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, 9)
+    process.wait(10)
