@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+from uvicorn.protocols.http import httptools_impl
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from .security import SECURITY_HEADERS
@@ -35,6 +36,20 @@ def raw_problem(status: int, phrase: str, message: str) -> bytes:
         *(name + b": " + value for name, value in SECURITY_HEADERS),
     ]
     return b"\r\n".join(lines) + b"\r\n\r\n" + body
+
+
+async def _too_many_connections(scope, receive, send) -> None:
+    """uvicorn's answer past limit_concurrency (max_connections), as the service's problem JSON with
+    its headers; uvicorn's own is plain text without them."""
+    from .security import _problem
+
+    message = "this worker has as many open connections as it takes (the setting max_connections); retry shortly"
+    headers = [(b"retry-after", b"1"), (b"connection", b"close"), *SECURITY_HEADERS]
+    await _problem(send, 503, message, "max_connections", headers)
+
+
+# uvicorn calls this module-level name for every request over its limit; there is no option for it.
+httptools_impl.service_unavailable = _too_many_connections
 
 
 class GuardedHttpTools(HttpToolsProtocol):

@@ -25,11 +25,13 @@ from .servers import free_port, http_workers, start_server, wait_for
 
 pytestmark = pytest.mark.slow
 
-HEARTBEAT_S = 2.0
+HEARTBEAT_S = 3.0
 HEADER_S = 1.0
 BODY_S = 1.0
 KEEP_ALIVE_S = 1.0
+MAX_CONNECTIONS = 8
 ENV = {
+    "NLPSF_MAX_CONNECTIONS": str(MAX_CONNECTIONS),
     "NLPSF_WORKERS": "2",
     "NLPSF_HEARTBEAT_TIMEOUT_S": str(HEARTBEAT_S),
     "NLPSF_HEADER_TIMEOUT_S": str(HEADER_S),
@@ -87,9 +89,10 @@ def test_a_stopped_worker_is_reported_replaced_and_stops_taking_connections(serv
     os.kill(victim, signal.SIGSTOP)
     stopped = time.monotonic()
     reported = None
-    # /health from the other worker says so while it lasts (requests to the stopped one time out).
+    # /health from the other worker says so while it lasts (from 1 s of silence until the kill at
+    # HEARTBEAT_S; requests to the stopped one time out).
     while time.monotonic() - stopped < HEARTBEAT_S + 5 and victim in http_workers(process.pid):
-        answer = health(port, timeout=1.0)
+        answer = health(port, timeout=0.25)  # a probe the stopped worker holds costs little of the window
         if answer and answer["http_workers"]["stalled"] and reported is None:
             reported = time.monotonic() - stopped
             assert answer["status"] == "degraded"
@@ -167,3 +170,18 @@ def test_get_bodies_and_duplicate_keys_are_refused(server):
     duplicate = b'{"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "tolerance": 1e-2}'
     response = httpx.post(f"{base}/solve", content=duplicate, headers={"content-type": "application/json"})
     assert response.status_code == 422 and "tolerance" in response.json()["detail"]
+
+
+def test_open_connections_per_worker_are_bounded(server):
+    _, port = server
+    # 40 silent connections: each worker holds at least its limit of them (until the header deadline).
+    silent = [raw(port) for _ in range(40)]
+    try:
+        response = httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=3)
+        assert response.status_code == 503
+        assert response.json()["limit"] == "max_connections" and response.headers["x-frame-options"] == "DENY"
+    finally:
+        for sock in silent:
+            sock.close()
+    time.sleep(0.2)
+    assert httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=3).status_code == 200
