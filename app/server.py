@@ -41,6 +41,8 @@ class ServeOptions:
     header_timeout_s: float = 10.0
     keep_alive_s: float = 5.0
     max_connections: int = 1000
+    #: one listening socket for all workers (True), or one per worker with SO_REUSEPORT (False)
+    shared_socket: bool = True
 
 
 def serve(host: str, port: int, workers: int, options: ServeOptions | None = None) -> int:
@@ -82,7 +84,7 @@ def _listening_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
-def _worker(host: str, port: int, options: ServeOptions, beats, index: int) -> None:
+def _worker(host: str, port: int, options: ServeOptions, beats, index: int, shared: socket.socket | None) -> None:
     import ctypes
 
     import uvicorn
@@ -101,7 +103,7 @@ def _worker(host: str, port: int, options: ServeOptions, beats, index: int) -> N
 
     config = uvicorn.Config(APP, host=host, port=port, **_uvicorn_options(options))
     config.header_timeout_s = options.header_timeout_s  # read by protocol.GuardedHttpTools
-    Server(config).run(sockets=[_listening_socket(host, port)])
+    Server(config).run(sockets=[shared if shared is not None else _listening_socket(host, port)])
 
 
 def _supervise(workers: int, host: str, port: int, options: ServeOptions) -> int:
@@ -109,7 +111,12 @@ def _supervise(workers: int, host: str, port: int, options: ServeOptions) -> int
     them all on SIGTERM/SIGINT."""
     import multiprocessing
 
-    _listening_socket(host, port).close()  # fail here, once, if the port is taken
+    first = _listening_socket(host, port)  # fail here, once, if the port is taken
+    shared = first if options.shared_socket else None
+    if shared is not None:
+        shared.listen(2048)
+    else:
+        first.close()
     context = multiprocessing.get_context("spawn")
     beats = context.Array("d", workers, lock=False)
     stopping, status = False, 0
@@ -117,7 +124,7 @@ def _supervise(workers: int, host: str, port: int, options: ServeOptions) -> int
 
     def start(index: int):
         beats[index] = time.monotonic() + START_GRACE_S  # silent until it has loaded the tables
-        process = context.Process(target=_worker, args=(host, port, options, beats, index), name=f"nlpsf-http-{index}")
+        process = context.Process(target=_worker, args=(host, port, options, beats, index, shared), name=f"nlpsf-http-{index}")
         process.start()
         started[process.pid or 0] = time.monotonic()
         return process

@@ -92,6 +92,9 @@ class Settings(BaseSettings):
     keep_alive_s: float = Field(5.0, ge=0.5, le=600.0)
     #: open connections per HTTP worker; beyond it the worker answers 503
     max_connections: int = Field(1000, ge=8, le=1_000_000)
+    #: all HTTP workers accept from one listening socket (a stopped worker then takes no new
+    #: connections); false: one SO_REUSEPORT socket per worker (see docs/service.md for the measurement)
+    shared_socket: bool = True
     #: the page's files; None: the installed package data ``nlpsf.web.static``
     static_dir: str | None = None
 

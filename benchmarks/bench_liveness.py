@@ -60,7 +60,8 @@ def children(pid: int) -> list[int]:
 
 def start(kind: str, port: int, timeout: float, folder: str) -> subprocess.Popen:
     env = {**os.environ, "NLPSF_DB_PATH": f"{folder}/{kind}.sqlite3", "NLPSF_HEARTBEAT_TIMEOUT_S": str(timeout)}
-    if kind == "nlpsf":
+    if kind.startswith("nlpsf"):
+        env["NLPSF_SHARED_SOCKET"] = "false" if kind == "nlpsf-reuse-port" else "true"
         command = [sys.executable, "-m", "nlpsf", "serve", "--host", HOST, "--port", str(port), "--workers", "2"]
     else:
         command = [sys.executable, "-m", "gunicorn", "nlpsf.web.main:app", "-k", "uvicorn.workers.UvicornWorker"]
@@ -155,7 +156,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--requests", type=int, default=1500)
     parser.add_argument("--timeout", type=float, default=5.0)
-    parser.add_argument("--kinds", default="nlpsf,gunicorn,gunicorn-reuse-port")
+    parser.add_argument("--kinds", default="nlpsf,nlpsf-reuse-port,gunicorn,gunicorn-reuse-port")
     args = parser.parse_args()
     folder = tempfile.mkdtemp(prefix="nlpsf-liveness-")
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, timeout {args.timeout:g} s")

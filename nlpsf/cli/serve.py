@@ -51,5 +51,6 @@ def run(args: argparse.Namespace) -> int:
         header_timeout_s=settings.header_timeout_s,
         keep_alive_s=settings.keep_alive_s,
         max_connections=settings.max_connections,
+        shared_socket=settings.shared_socket,
     )
     return serve(host, port, workers, options)
