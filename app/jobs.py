@@ -232,13 +232,11 @@ class Dispatcher:
 
 
 def _estimate(request: dict) -> float | None:
-    """The job's estimated duration on one core, s (grid simulations; None for solves and impact reports)."""
-    from . import simulation
+    """The job's estimated duration on one core, s (None where its kind cannot price it)."""
+    from . import job_kinds
 
-    if request.get("kind"):
-        return None
     try:
-        return simulation.estimate_seconds(request)
+        return job_kinds.estimate(request)
     except Exception:  # an estimate must never stop a job from starting
         return None
 

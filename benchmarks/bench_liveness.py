@@ -58,6 +58,19 @@ def children(pid: int) -> list[int]:
     return sorted(out)
 
 
+def tree_cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) of a server and its children, s: what a request costs the server,
+    whatever else the machine is doing."""
+    total = 0.0
+    for member in [pid, *children(pid)]:
+        try:
+            fields = Path(f"/proc/{member}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
 def start(kind: str, port: int, timeout: float, folder: str) -> subprocess.Popen:
     env = {**os.environ, "NLPSF_DB_PATH": f"{folder}/{kind}.sqlite3", "NLPSF_HEARTBEAT_TIMEOUT_S": str(timeout)}
     if kind.startswith("nlpsf"):
@@ -161,15 +174,17 @@ def main() -> int:
     folder = tempfile.mkdtemp(prefix="nlpsf-liveness-")
     print(f"# {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, timeout {args.timeout:g} s")
     print(
-        "| supervisor | burst req/s | burst failures | stall probes | unanswered (3 s) | replaced after s "
-        "| /health said so after s |"
+        "| supervisor | burst req/s | server CPU ms/request | burst failures | stall probes | unanswered (3 s) "
+        "| replaced after s | /health said so after s |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for kind in args.kinds.split(","):
         port = free_port()
         process = start(kind, port, args.timeout, folder)
         try:
+            cpu = tree_cpu_seconds(process.pid)
             rate, failures = asyncio.run(burst(port, args.requests))
+            cpu_ms = 1000 * (tree_cpu_seconds(process.pid) - cpu) / args.requests
             result = stall(process, port)
         finally:
             process.send_signal(signal.SIGTERM)
@@ -179,8 +194,8 @@ def main() -> int:
                 process.kill()
         shown = {k: ("-" if v is None else f"{v:.1f}" if isinstance(v, float) else v) for k, v in result.items()}
         print(
-            f"| {kind} | {rate:.0f} | {failures} | {shown['probes']} | {shown['unanswered']} | {shown['replaced_after_s']} "
-            f"| {shown['health_reported_after_s']} |",
+            f"| {kind} | {rate:.0f} | {cpu_ms:.2f} | {failures} | {shown['probes']} | {shown['unanswered']} "
+            f"| {shown['replaced_after_s']} | {shown['health_reported_after_s']} |",
             flush=True,
         )
     return 0

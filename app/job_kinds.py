@@ -1,8 +1,13 @@
-"""From a simulation request to the library's calls, and back to JSON.
+"""The kinds of job, one registry: what each kind is, how it is validated (in the web process,
+before anything is queued), how it runs (in the job process) and how long it is expected to take.
 
-Shared by the web process (which validates a request and prices its work before queueing it) and
-the job worker (which runs it). All physics is in ``nlpsf.experiment``; this module only maps
-field names, applies the service's work limits and reports progress.
+- ``simulation``: a fresh simulation on a grid of magnitudes x betas x sigma_betas (POST /simulations);
+- ``solve``: a two-of-three solve that needs simulated slopes (POST /solve);
+- ``impact``: an impact report, every scene effect simulated with and without (POST /impact).
+
+A job request is a JSON object: a simulation's normalised request, or ``{"kind": K, K: arguments}``
+for the others; :data:`KINDS` maps each kind to its entry. All physics is in the library; this
+module maps field names, applies the service's work limits and reports progress.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import json
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from nlpsf import __version__, detector, experiment, fidelity, roman
@@ -232,17 +238,27 @@ def estimate_seconds(normalised: dict[str, Any]) -> float:
 Progress = Callable[[float, str], None]
 
 
+@dataclass(frozen=True)
+class JobKind:
+    """One kind of job: ``run(arguments, progress)`` in the job process, ``estimate(arguments)`` (s on
+    one core, or None when it cannot be priced at table cost) for the wall-time limit."""
+
+    name: str
+    run: Callable[[dict[str, Any], Progress | None], dict[str, Any]]
+    estimate: Callable[[dict[str, Any]], float | None]
+
+
 #: A job that is a solve at a simulating fidelity (POST /solve), not a simulation grid.
 SOLVE_KIND = "solve"
+#: A job that is an impact report (POST /impact): every effect simulated with and without.
+IMPACT_KIND = "impact"
+#: A simulation grid (POST /simulations): its request is the normalised request itself, without "kind".
+SIMULATION_KIND = "simulation"
 
 
 def solve_job(arguments: dict[str, Any]) -> dict[str, Any]:
     """The job request of a solve that needs a simulation (``arguments`` as ``solver.solve`` takes them)."""
     return {"kind": SOLVE_KIND, "solve": arguments}
-
-
-#: A job that is an impact report (POST /impact): every effect simulated with and without.
-IMPACT_KIND = "impact"
 
 
 def impact_job(arguments: dict[str, Any]) -> dict[str, Any]:
@@ -251,52 +267,53 @@ def impact_job(arguments: dict[str, Any]) -> dict[str, Any]:
     return {"kind": IMPACT_KIND, "impact": arguments}
 
 
+def _steps(progress: Progress | None):
+    return None if progress is None else (lambda done, total, message: progress(done / max(total, 1), message))
+
+
 def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
     from nlpsf import impact
 
     arguments = dict(arguments)
     scene = build_scene(arguments.pop("scene"))
-    step = None if progress is None else (lambda done, total, message: progress(done / max(total, 1), message))
-    return _json_safe(impact.impact(scene=scene, progress=step, **arguments))
+    return _json_safe(impact.impact(scene=scene, progress=_steps(progress), **arguments))
 
 
-def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[str, Any]:
-    """Run a validated request with the library; ``progress(fraction, message)`` along the way."""
-    if normalised.get("kind") == IMPACT_KIND:
-        return _run_impact(normalised["impact"], progress)
-    if normalised.get("kind") == SOLVE_KIND:
-        from nlpsf import solver
+def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
+    from nlpsf import solver
 
-        if progress:
-            progress(0.0, "simulating the slopes this solve needs")
-        arguments = dict(normalised["solve"])
-        ramp_request = arguments.pop("ramp_request", None)
-        if ramp_request is not None:
-            from .models import build_ramp
+    if progress:
+        progress(0.0, "simulating the slopes this solve needs")
+    arguments = dict(arguments)
+    ramp_request = arguments.pop("ramp_request", None)
+    if ramp_request is not None:
+        from .models import build_ramp
 
-            given = arguments["exptime"] if ramp_request["exptime_given"] else None
-            arguments["ramp"], arguments["exptime"] = build_ramp(
-                ramp_request["ramp"],
-                ramp_request["ma_table"],
-                ramp_request["ramp_fit"],
-                ramp_request["read_noise"],
-                given,
-                arguments["sca"],
-            )
-        scene_request = arguments.pop("scene_request", None)
-        over_field = arguments.pop("over_field", None)
-        if scene_request is not None:
-            arguments["scene"] = build_scene(scene_request)
-        if over_field is not None:
-            band, sca = arguments.pop("band"), arguments.pop("sca")
-            scas = "all" if over_field == "focal_plane" else [sca]
-            step = None if progress is None else (lambda done, total, message: progress(done / max(total, 1), message))
-            solution = solver.solve_over_field(band, scas, progress=step, **arguments).to_dict()
-        else:
-            solution = solver.solve(**arguments).to_dict()
-        if progress:
-            progress(1.0, "done")
-        return _json_safe(solution)
+        given = arguments["exptime"] if ramp_request["exptime_given"] else None
+        arguments["ramp"], arguments["exptime"] = build_ramp(
+            ramp_request["ramp"],
+            ramp_request["ma_table"],
+            ramp_request["ramp_fit"],
+            ramp_request["read_noise"],
+            given,
+            arguments["sca"],
+        )
+    scene_request = arguments.pop("scene_request", None)
+    over_field = arguments.pop("over_field", None)
+    if scene_request is not None:
+        arguments["scene"] = build_scene(scene_request)
+    if over_field is not None:
+        band, sca = arguments.pop("band"), arguments.pop("sca")
+        scas = "all" if over_field == "focal_plane" else [sca]
+        solution = solver.solve_over_field(band, scas, progress=_steps(progress), **arguments).to_dict()
+    else:
+        solution = solver.solve(**arguments).to_dict()
+    if progress:
+        progress(1.0, "done")
+    return _json_safe(solution)
+
+
+def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
     start = time.perf_counter()
     config = build_config(normalised)
     magnitudes, betas, sigma_betas = normalised["magnitudes"], normalised["betas"], normalised["sigma_betas"]
@@ -338,6 +355,33 @@ def run(normalised: dict[str, Any], progress: Progress | None = None) -> dict[st
         "results": rows,
         "elapsed_s": time.perf_counter() - start,
     }
+
+
+#: Every kind of job. A new kind is one entry here (and the endpoint that validates and submits it).
+KINDS: dict[str, JobKind] = {
+    SIMULATION_KIND: JobKind(SIMULATION_KIND, _run_simulation, estimate_seconds),
+    SOLVE_KIND: JobKind(SOLVE_KIND, _run_solve, lambda _arguments: None),
+    IMPACT_KIND: JobKind(IMPACT_KIND, _run_impact, lambda _arguments: None),
+}
+
+
+def _entry(request: dict[str, Any]) -> tuple[JobKind, dict[str, Any]]:
+    """The kind of a job request and its arguments."""
+    name = request.get("kind", SIMULATION_KIND)
+    kind = KINDS[name]
+    return kind, (request if name == SIMULATION_KIND else request[name])
+
+
+def run(request: dict[str, Any], progress: Progress | None = None) -> dict[str, Any]:
+    """Run a validated job request with the library; ``progress(fraction, message)`` along the way."""
+    kind, arguments = _entry(request)
+    return kind.run(arguments, progress)
+
+
+def estimate(request: dict[str, Any]) -> float | None:
+    """A job request's expected duration on one core, s (None when not priced)."""
+    kind, arguments = _entry(request)
+    return kind.estimate(arguments)
 
 
 def _json_safe(value: Any) -> Any:
