@@ -124,8 +124,13 @@ def input_error_response(error: InputError, field: str | None = None, location: 
 
 
 def _field_of(loc: tuple | list) -> str | None:
-    names = [part for part in loc[1:] if isinstance(part, str)]
-    return names[0] if names else None
+    """The request field at fault, dotted for a nested one (``scene.jitter``): the location's field
+    names, without list indices and pydantic's tags for union members (``constrained-float``,
+    ``MATableSpec``, ``literal[...]``)."""
+    import re
+
+    names = [part for part in loc[1:] if isinstance(part, str) and re.fullmatch(r"[a-z_][a-z0-9_]*", part)]
+    return ".".join(names) if names else None
 
 
 def _readable(error: dict[str, Any]) -> str:

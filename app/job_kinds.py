@@ -240,10 +240,13 @@ Progress = Callable[[float, str], None]
 
 @dataclass(frozen=True)
 class JobKind:
-    """One kind of job: ``run(arguments, progress)`` in the job process, ``estimate(arguments)`` (s on
-    one core, or None when it cannot be priced at table cost) for the wall-time limit."""
+    """One kind of job. ``validate(fields, given, settings)`` runs in the web process at table cost,
+    before anything is queued: from the request's fields (``given``: those the client sent) to the
+    job request, or InputError/LimitError naming the field. ``run(arguments, progress)`` runs in the
+    job process; ``estimate(arguments)`` (s on one core, None when not priced) sets the wall-time limit."""
 
     name: str
+    validate: Callable[[dict[str, Any], set[str], Any], dict[str, Any]]
     run: Callable[[dict[str, Any], Progress | None], dict[str, Any]]
     estimate: Callable[[dict[str, Any]], float | None]
 
@@ -357,11 +360,77 @@ def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> di
     }
 
 
-#: Every kind of job. A new kind is one entry here (and the endpoint that validates and submits it).
+def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
+    payload = capped_defaults(fields, given, settings.limits)
+    if payload.get("ma_table") is not None and "exptime" not in given:
+        payload["exptime"] = None  # an MA table's exposure is its last read
+    return validate(payload, settings.limits, settings.job_memory_mb)
+
+
+#: Request fields of a solve that the job rebuilds from JSON rather than receiving as objects.
+_SOLVE_RAMP_FIELDS = ("ramp", "ma_table", "ramp_fit", "read_noise")
+
+
+def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
+    """A solve that needs simulated slopes: everything checked at table cost (the table solve of the
+    same question, the fidelity choice, ramp and scene), then the job's arguments."""
+    from nlpsf import solver
+
+    from .models import build_ramp
+
+    arguments = {k: v for k, v in fields.items() if k not in (*_SOLVE_RAMP_FIELDS, "scene", "over_field")}
+    ramp, arguments["exptime"] = build_ramp(
+        fields["ramp"], fields["ma_table"], fields["ramp_fit"], fields["read_noise"],
+        fields["exptime"] if "exptime" in given else None, fields["sca"],
+    )  # fmt: skip
+    scene = build_scene(fields["scene"]) if fields["scene"] is not None else None
+    if scene is not None:
+        check_scene_bounds(scene, fields["full_well"])
+    if scene is not None and ramp is not None:
+        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
+    checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None})
+    solver.choose_fidelity(fields["fidelity"], fields["accuracy"], checked.band, checked.metric, checked.mode)
+    job = {**arguments, "band": checked.band, "scene_request": fields["scene"], "over_field": fields["over_field"]}
+    if ramp is not None:
+        # The worker rebuilds the ramp from the request's own (JSON) fields.
+        job["exptime"] = fields["exptime"]
+        job["ramp_request"] = {**{k: fields[k] for k in _SOLVE_RAMP_FIELDS}, "exptime_given": "exptime" in given}
+    return solve_job(job)
+
+
+def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
+    from nlpsf import defaults
+    from nlpsf import impact as impact_module
+
+    limits = settings.limits
+    arguments = dict(fields)
+    if "realizations" not in given:
+        arguments["realizations"] = max(2, min(arguments["realizations"], limits.max_realizations))
+    if arguments["realizations"] > limits.max_realizations:
+        raise LimitError(
+            "realizations",
+            "max_realizations",
+            f"asks for {arguments['realizations']:,} realizations; the limit max_realizations is {limits.max_realizations:,}",
+        )
+    scene_request = arguments.pop("scene")
+    scene = build_scene(scene_request)
+    check_scene_bounds(scene, defaults.FULL_WELL_E)  # the impact report simulates at the default full well
+    wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
+    if wavelengths > limits.max_wavelengths:
+        raise LimitError(
+            "scene",
+            "max_wavelengths",
+            f"the scene's SED needs {wavelengths} wavelengths; the limit max_wavelengths is {limits.max_wavelengths}",
+        )
+    checked = impact_module.check_request(**arguments)
+    return impact_job({**checked, "scene": scene_request, "max_wavelengths": limits.max_wavelengths})
+
+
+#: Every kind of job. A new kind is one entry here and the endpoint that submits it.
 KINDS: dict[str, JobKind] = {
-    SIMULATION_KIND: JobKind(SIMULATION_KIND, _run_simulation, estimate_seconds),
-    SOLVE_KIND: JobKind(SOLVE_KIND, _run_solve, lambda _arguments: None),
-    IMPACT_KIND: JobKind(IMPACT_KIND, _run_impact, lambda _arguments: None),
+    SIMULATION_KIND: JobKind(SIMULATION_KIND, _validate_simulation, _run_simulation, estimate_seconds),
+    SOLVE_KIND: JobKind(SOLVE_KIND, _validate_solve, _run_solve, lambda _arguments: None),
+    IMPACT_KIND: JobKind(IMPACT_KIND, _validate_impact, _run_impact, lambda _arguments: None),
 }
 
 

@@ -101,10 +101,7 @@ async def submit(
 ) -> Response:
     settings = services.settings
     try:
-        payload = job_kinds.capped_defaults(body.model_dump(), body.model_fields_set, settings.limits)
-        if body.ma_table is not None and "exptime" not in body.model_fields_set:
-            payload["exptime"] = None  # an MA table's exposure is its last read
-        normalised = job_kinds.validate(payload, settings.limits, settings.job_memory_mb)
+        normalised = job_kinds.KINDS[job_kinds.SIMULATION_KIND].validate(body.model_dump(), body.model_fields_set, settings)
     except InputError as error:
         return input_error_response(error, job_kinds.request_field(error.argument))
     try:

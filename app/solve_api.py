@@ -51,21 +51,12 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
         rest = {k: v for k, v in arguments.items() if k not in ("band", "sca")}
         answer = await run_in_threadpool(solver.solve_over_field, body.band, scas, **rest)
         return SafeJSONResponse(answer.to_dict())
-    # Validate everything else at table cost; what remains -- a simulating level, an accuracy (its
-    # effects are measured by simulation even when the table level meets it), a ramp, a scene, or an
-    # over-field answer the field-point tables do not hold -- is a job like any other simulation
-    # (queue, limits, idle priority), never work inside this HTTP worker.
-    checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None})
-    solver.choose_fidelity(body.fidelity, body.accuracy, checked.band, checked.metric, checked.mode)
-    job_arguments = {**arguments, "band": checked.band, "scene_request": raw["scene"], "over_field": raw["over_field"]}
-    if ramp is not None:
-        # The worker rebuilds the ramp from the request's own (JSON) fields.
-        job_arguments["exptime"] = body.exptime
-        job_arguments["ramp_request"] = {
-            **{k: raw[k] for k in ramp_keys},
-            "exptime_given": "exptime" in body.model_fields_set,
-        }
-    return await job_answer(services, caller, job_kinds.solve_job(job_arguments))
+    # What remains -- a simulating level, an accuracy (its effects are measured by simulation even
+    # when the table level meets it), a ramp, a scene, or an over-field answer the field-point tables
+    # do not hold -- is a job like any other simulation (queue, limits, idle priority), validated
+    # completely at table cost first, never work inside this HTTP worker.
+    job = job_kinds.KINDS[job_kinds.SOLVE_KIND].validate(raw, body.model_fields_set, services.settings)
+    return await job_answer(services, caller, job)
 
 
 @router.post(
