@@ -94,6 +94,14 @@ def meta(settings: SettingsDep) -> SafeJSONResponse:
                 "solve_wait_s": settings.solve_wait_s,
                 "job_memory_mb": settings.job_memory_mb,
                 "max_body_bytes": settings.max_body_bytes,
+                "max_queue_per_client": settings.queue_per_client,
+                "job_stall_s": settings.job_stall_s,
+                "job_time_factor": settings.job_time_factor,
+                "header_timeout_s": settings.header_timeout_s,
+                "body_timeout_s": settings.body_timeout_s,
+                "keep_alive_s": settings.keep_alive_s,
+                "max_connections": settings.max_connections,
+                "heartbeat_timeout_s": settings.heartbeat_timeout_s,
             },
         }
     )
