@@ -224,6 +224,9 @@ class ApiMethods:
         from starlette.routing import Match, Mount
 
         routes = [r for r in getattr(scope.get("app"), "routes", []) if not (isinstance(r, Mount) and r.path in ("", "/"))]
+        if scope["method"] not in ("OPTIONS", "HEAD") and any(r.matches(scope)[0] == Match.FULL for r in routes):
+            await self.app(scope, receive, send)  # the common case: a route takes this method
+            return
         allowed = {
             method
             for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
