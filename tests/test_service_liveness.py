@@ -92,7 +92,7 @@ def test_a_stopped_worker_is_reported_replaced_and_stops_taking_connections(serv
     # /health from the other worker says so while it lasts (from 1 s of silence until the kill at
     # HEARTBEAT_S; requests to the stopped one time out).
     while time.monotonic() - stopped < HEARTBEAT_S + 5 and victim in http_workers(process.pid):
-        answer = health(port, timeout=0.25)  # a probe the stopped worker holds costs little of the window
+        answer = health(port, timeout=1.0)  # one shared socket: no probe waits on the stopped worker
         if answer and answer["http_workers"]["stalled"] and reported is None:
             reported = time.monotonic() - stopped
             assert answer["status"] == "degraded"
@@ -174,11 +174,14 @@ def test_get_bodies_and_duplicate_keys_are_refused(server):
 
 def test_open_connections_per_worker_are_bounded(server):
     _, port = server
-    # 40 silent connections: each worker holds at least its limit of them (until the header deadline).
-    silent = [raw(port) for _ in range(40)]
+    # 80 silent connections, ten times the limit, shared out by the kernel between the two workers:
+    # a worker over its limit answers 503 (until the header deadline closes them).
+    silent = [raw(port) for _ in range(80)]
     try:
-        response = httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=3)
-        assert response.status_code == 503
+        answers = [httpx.get(f"http://127.0.0.1:{port}/api/v1/health", timeout=3) for _ in range(5)]
+        refused = [r for r in answers if r.status_code == 503]
+        assert refused, [r.status_code for r in answers]
+        response = refused[0]
         assert response.json()["limit"] == "max_connections" and response.headers["x-frame-options"] == "DENY"
     finally:
         for sock in silent:
