@@ -65,13 +65,19 @@ PROBLEM_TYPES = {
     409: "/problems/conflict",
     413: "/problems/limit-exceeded",
     422: "/problems/invalid-input",
+    # A rule the schema cannot state, found by the library after the schema passed: fields that
+    # conflict (give exactly two of three), a value valid only with others (a star too bright for
+    # beta0), a table's shape (increasing wavelengths).
+    "combination": "/problems/invalid-combination",
     429: "/problems/queue-full",
     500: "/problems/internal-error",
     503: "/problems/unavailable",
 }
 
 
-def problem_body(status: int, message: str, field: str | None = None, limit: str | None = None, errors=None) -> dict:
+def problem_body(
+    status: int, message: str, field: str | None = None, limit: str | None = None, errors=None, kind: str | None = None
+) -> dict:
     """The problem object; ``errors`` = [{loc, field, msg, type}] for every bad field found."""
     from http import HTTPStatus
 
@@ -80,7 +86,8 @@ def problem_body(status: int, message: str, field: str | None = None, limit: str
         title = HTTPStatus(status).phrase
     except ValueError:
         title = "Error"
-    kind = "/problems/limit-exceeded" if status == 422 and limit else PROBLEM_TYPES.get(status, "about:blank")
+    if kind is None:
+        kind = "/problems/limit-exceeded" if status == 422 and limit else PROBLEM_TYPES.get(status, "about:blank")
     errors = [{**d, "msg": short(d["msg"], 4 * ECHO_CHARS), "field": d["field"] and short(d["field"])} for d in errors or []]
     return {
         "type": kind,
@@ -108,7 +115,8 @@ def input_error_body(error: InputError, field: str | None = None, location: str 
     limit = getattr(error, "limit", None)
     message = f"{field}: {error.reason}"
     detail = [{"loc": [location, short(field)], "field": field, "msg": error.reason, "type": "limit" if limit else "value_error"}]
-    return problem_body(422, message, field, limit, detail)
+    kind = "/problems/limit-exceeded" if limit else PROBLEM_TYPES["combination"]
+    return problem_body(422, message, field, limit, detail, kind)
 
 
 def input_error_response(error: InputError, field: str | None = None, location: str = "body") -> JSONResponse:
@@ -116,8 +124,13 @@ def input_error_response(error: InputError, field: str | None = None, location: 
 
 
 def _field_of(loc: tuple | list) -> str | None:
-    names = [part for part in loc[1:] if isinstance(part, str)]
-    return names[0] if names else None
+    """The request field at fault, dotted for a nested one (``scene.jitter``): the location's field
+    names, without list indices and pydantic's tags for union members (``constrained-float``,
+    ``MATableSpec``, ``literal[...]``)."""
+    import re
+
+    names = [part for part in loc[1:] if isinstance(part, str) and re.fullmatch(r"[a-z_][a-z0-9_]*", part)]
+    return ".".join(names) if names else None
 
 
 def _readable(error: dict[str, Any]) -> str:

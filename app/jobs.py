@@ -25,7 +25,14 @@ from .store import FINISHED, Store, StoreUnavailable
 log = logging.getLogger("nlpsf.jobs")
 
 _POLL_S = 0.1
-_HEARTBEAT_S = 2.0
+#: Heartbeat (and the job database's integrity check, PRAGMA quick_check) every this many s: damage
+#: shows in /health within about this long, in every worker.
+_HEARTBEAT_S = 1.0
+#: How often running jobs are checked for progress and wall time, s.
+_WATCH_S = 1.0
+#: CPU time a job must use between checks to count as working when it reports no progress, s (a
+#: stopped or deadlocked process uses none; its parent-watch thread, a few microseconds a second).
+_WORKING_CPU_S = 0.05
 _SWEEP_S = 5.0
 _PRUNE_S = 60.0
 
@@ -45,6 +52,9 @@ class Dispatcher:
         # _tick runs in a thread that cancelling the task cannot stop: stopping waits for it.
         self._lock = threading.Lock()
         self._stopping = False
+        #: per running job: start (monotonic), wall-time limit, last CPU time, last progress write, last sign of work
+        self.watch: dict[str, dict[str, float]] = {}
+        self._last_watch = 0.0
 
     async def start(self) -> None:
         await asyncio.to_thread(self._register)
@@ -127,6 +137,7 @@ class Dispatcher:
     def _dispatch(self) -> None:
         for job_id in self.store.cancel_requested(self.instance):
             process = self.processes.pop(job_id, None)
+            self.watch.pop(job_id, None)
             if process is not None:
                 process.terminate()
                 process.join(5)
@@ -145,6 +156,10 @@ class Dispatcher:
                 owner=self.instance,
             )
             del self.processes[job_id]
+            self.watch.pop(job_id, None)
+        if time.monotonic() - self._last_watch > _WATCH_S:
+            self._last_watch = time.monotonic()
+            self._end_stalled()
         while len(self.processes) < self.settings.job_workers:
             job = self.store.claim(self.instance, self.settings.job_workers)
             if job is None:
@@ -169,7 +184,71 @@ class Dispatcher:
             )
             process.start()
             self.processes[job["id"]] = process
+            now = time.monotonic()
+            self.watch[job["id"]] = {
+                "started": now,
+                "limit": self.settings.job_time_limit_s(_estimate(job["request"])),
+                "cpu": 0.0,
+                "updated": 0.0,
+                "seen": now,
+            }
             self.store.set_pid(job["id"], process.pid or 0)
+
+    def _end_stalled(self) -> None:
+        """End a running job that has shown no sign of work (no progress written, no CPU time used)
+        for job_stall_s, or has run past its wall-time limit: killed, recorded failed, its place freed."""
+        if not self.processes:
+            return
+        updated = self.store.running_updates(self.instance)
+        now = time.monotonic()
+        for job_id, process in list(self.processes.items()):
+            watch = self.watch.get(job_id)
+            if watch is None or not process.is_alive():
+                continue
+            cpu = _cpu_seconds(process.pid or 0)
+            if cpu - watch["cpu"] > _WORKING_CPU_S or updated.get(job_id, 0.0) != watch["updated"]:
+                watch.update(cpu=cpu, updated=updated.get(job_id, 0.0), seen=now)
+            stall = self.settings.job_stall_s
+            if now - watch["seen"] > stall:
+                why, limit = (
+                    f"the simulation made no progress for {stall:g} s (no progress report and no CPU time; "
+                    "the setting job_stall_s) and was ended",
+                    "job_stall_s",
+                )
+            elif now - watch["started"] > watch["limit"]:
+                why, limit = (
+                    f"the simulation ran past its wall-time limit of {watch['limit']:,.0f} s (job_time_factor x its "
+                    f"estimated duration, at least 10 x job_stall_s) and was ended",
+                    "job_time_factor",
+                )
+            else:
+                continue
+            log.error("job %s: %s", job_id, why)
+            process.kill()  # SIGKILL: a stopped process cannot run a SIGTERM handler
+            process.join(5)
+            self.store.end(job_id, "failed", why, {"field": None, "message": why, "limit": limit}, owner=self.instance)
+            self.processes.pop(job_id, None)
+            self.watch.pop(job_id, None)
+
+
+def _estimate(request: dict) -> float | None:
+    """The job's estimated duration on one core, s (None where its kind cannot price it)."""
+    from . import job_kinds
+
+    try:
+        return job_kinds.estimate(request)
+    except Exception:  # an estimate must never stop a job from starting
+        return None
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process, s (Linux /proc; 0 elsewhere)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as handle:
+            fields = handle.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 class Notifier:

@@ -25,7 +25,7 @@ from nlpsf import __version__, solver, tables
 
 from . import api, errors, models, page_api, simulations
 from .jobs import Dispatcher, Notifier
-from .security import ApiKey, BodyLimit, SecurityHeaders
+from .security import ApiKey, ApiMethods, BodyLimit, SecurityHeaders
 from .settings import Settings
 from .store import Store
 
@@ -95,7 +95,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Outermost last: every response, refusals included, gets the security headers.
     if settings.api_keys:
         app.add_middleware(ApiKey, keys=[k.get_secret_value() for k in settings.api_keys])
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(ApiMethods)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
     if settings.allowed_hosts != ["*"]:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts)
     app.add_middleware(SecurityHeaders)
@@ -131,6 +132,7 @@ def _problem_schema(app: FastAPI) -> None:
                         if not media.endswith("json") and not entry.get("schema"):
                             entry["schema"] = {"type": "string"}
         components = schema.get("components", {}).get("schemas", {})
+        _publish_limits(components, app.state.settings)
         components.setdefault("Problem", models.Problem.model_json_schema(ref_template="#/components/schemas/{model}"))
         for unused in ("HTTPValidationError", "ValidationError"):
             components.pop(unused, None)
@@ -138,6 +140,41 @@ def _problem_schema(app: FastAPI) -> None:
         return schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _tighten(prop: dict, key: str, value: int) -> None:
+    """Set ``maximum``/``maxItems`` on a property (or its non-null member) to the smaller of the two;
+    a default above a lowered maximum is lowered with it (the endpoints do the same)."""
+    for target in [prop, *prop.get("anyOf", [])]:
+        if target.get("type") in ("integer", "number", "array") and (key != "maxItems" or target.get("type") == "array"):
+            target[key] = min(target.get(key, value), value)
+    if key == "maximum" and isinstance(prop.get("default"), (int, float)) and prop["default"] > value:
+        prop["default"] = value
+
+
+def _publish_limits(components: dict, settings: Settings) -> None:
+    """The service's own caps on one request, where one field sets them, in its schema (the
+    library's ranges are there already, from the models): a request the schema allows is one this
+    service accepts. Caps on products of fields (grid cells, stamp pixels, work, memory) cannot be
+    said in a JSON schema; they are in /meta and named in the 422 that enforces them."""
+    limits = settings.limits
+    simulation = components.get("SimulationRequest", {}).get("properties", {})
+    for name, key, value in (
+        ("realizations", "maximum", limits.max_realizations),
+        ("stamp", "maximum", limits.max_stamp),
+        ("n_wavelengths", "maximum", limits.max_wavelengths),
+        ("magnitudes", "maxItems", limits.max_grid),
+        ("betas", "maxItems", limits.max_grid),
+        ("sigma_betas", "maxItems", limits.max_grid),
+    ):
+        if name in simulation:
+            _tighten(simulation[name], key, value)
+    impact = components.get("ImpactRequest", {}).get("properties", {})
+    if "realizations" in impact:
+        _tighten(impact["realizations"], "maximum", limits.max_realizations)
+    scene = components.get("SceneRequest", {}).get("properties", {})
+    if "n_wavelengths" in scene:
+        _tighten(scene["n_wavelengths"], "maximum", limits.max_wavelengths)
 
 
 app = create_app()

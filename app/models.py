@@ -10,11 +10,59 @@ from __future__ import annotations
 import inspect
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict
 
-from nlpsf import defaults, detector, fidelity, roman, solver
+from nlpsf import defaults, detector, fidelity, ramps, roman, shear, solver
+from nlpsf import scene as scenes
+from nlpsf.request import MAX_STARS
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+
+def _within(
+    bounds: tuple[float, float], description: str, default: Any = None, *, open_low: bool = False, in_type: bool = False
+) -> Any:
+    """A field whose range is the library's (``bounds``, its one owner): enforced at the entry as a
+    422 naming the field, and published in the OpenAPI schema (minimum/maximum) and its description.
+    ``in_type``: the bounds are on the field's type already (``_Int``), only the description says them."""
+    low, high = bounds
+    opening = "(" if open_low else "["
+    limits = {} if in_type else {"gt" if open_low else "ge": low, "le": high}
+    return Field(default, **limits, description=f"{description}; accepted {opening}{low:g}, {high:g}]")
+
+
+def _Int(bounds: tuple[int, int]) -> Any:
+    """An integer in the library's range that also takes 3.0 (see ``_whole``). The bounds sit inside
+    the type, before the validator, so that the schema shows them as minimum/maximum."""
+    return Annotated[int, Field(ge=bounds[0], le=bounds[1]), BeforeValidator(_whole)]
+
+
+def _whole(value: Any) -> Any:
+    # JSON Schema calls 1.0 an integer (a number with a zero fractional part); so does this API.
+    # Strings stay refused (strict models), and so do 1.5 and floats too large to be exact.
+    if isinstance(value, float) and value.is_integer() and abs(value) <= 2**53:
+        return int(value)
+    return value
+
+
+def _Number(bounds: tuple[float, float]) -> Any:
+    """One number in the library's range (for list items and union members)."""
+    return Annotated[float, Field(ge=bounds[0], le=bounds[1])]
+
+
+#: Seeds over JSON: the library takes up to 2^63 - 1, but a JSON number above 2^53 is not exact in
+#: most clients (JavaScript's), nor in a schema checker's float arithmetic; 2^53 seeds are plenty.
+JSON_SEEDS = (defaults.SEED_RANGE[0], min(defaults.SEED_RANGE[1], 2**53))
+
+#: The MA tables the service knows, by name (case-insensitive). The API never opens a file by a name
+#: it was given: anything else is one refusal, the same words for every unknown name.
+SHIPPED_MA_TABLES: tuple[str, ...] = tuple(ramps.shipped_table_names())
+ShippedMATable = Annotated[
+    Literal[SHIPPED_MA_TABLES],  # type: ignore[valid-type]
+    BeforeValidator(lambda value: value.strip().lower() if isinstance(value, str) and len(value) <= 64 else value),
+]
+#: ``blackbody:TEFF`` with TEFF in the library's range (1000 K to 1e6 K), or ``flat``.
+SED_PATTERN = r"^(flat|blackbody:([1-9][0-9]{3,5}(\.[0-9]{0,6})?|1000000(\.0{0,6})?))$"
 
 _SOLVE_DEFAULTS = {
     name: parameter.default
@@ -22,8 +70,10 @@ _SOLVE_DEFAULTS = {
     if parameter.default is not inspect.Parameter.empty
 }
 
-#: A [ratio, weight] pair of a size-ratio distribution.
-_RatioWeight = Annotated[list[float], Field(min_length=2, max_length=2)]
+#: R_gal / R_psf, and a [ratio, weight] pair of a size-ratio distribution (ranges: ``nlpsf.shear``).
+_Ratio = Annotated[float, Field(ge=shear.SIZE_RATIO_RANGE[0], le=shear.SIZE_RATIO_RANGE[1])]
+_RatioWeight = Annotated[tuple[_Ratio, Annotated[float, Field(ge=0.0, le=shear.MAX_WEIGHT)]], Strict(False)]  # a JSON array
+_RatioList = Annotated[list[_Ratio | _RatioWeight], Field(min_length=1, max_length=shear.MAX_SIZE_RATIOS)]
 
 
 def _band_name(value: Any) -> Any:
@@ -50,20 +100,36 @@ class SceneRequest(BaseModel):
     preset: Literal["paper", "roman"] | None = Field(
         None, description="(no unit) roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
     )
-    position: list[float] | None = Field(None, min_length=2, max_length=2, description="X, Y on the SCA in pixels (1-4088)")
-    sed: str | None = Field(None, description="(no unit) flat (f_nu) or blackbody:TEFF (TEFF in K)")
-    sed_table: list[list[float]] | None = Field(
-        None, max_length=20_000, description="the SED as rows [wavelength in nm, flux in sed_units]"
+    position: list[_Number((1.0, float(roman.SCA_PIXELS)))] | None = Field(
+        None, min_length=2, max_length=2, description=f"X, Y on the SCA in pixels (1-{roman.SCA_PIXELS})"
+    )
+    sed: str | None = Field(
+        None, max_length=32, pattern=SED_PATTERN, description="(no unit) flat (f_nu) or blackbody:TEFF (TEFF in K, 1000-1e6)"
+    )
+    sed_table: list[Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=2, max_length=2)]] | None = Field(
+        None, min_length=2, max_length=20_000, description="the SED as rows [wavelength in nm, flux in sed_units]"
     )
     sed_units: Literal["flambda", "fnu"] = Field(
         "flambda", description="(no unit) what sed_table's flux is: flambda or fnu, any scale"
     )
-    n_wavelengths: int | None = Field(
-        None, description="number of wavelengths for the SED (count; default: chosen for 0.1 % of the slopes)"
+    n_wavelengths: _Int((1, defaults.MAX_WAVELENGTHS)) | None = _within(
+        (1, defaults.MAX_WAVELENGTHS),
+        "number of wavelengths for the SED (count; default: chosen for 0.1 % of the slopes)",
+        in_type=True,
     )
-    jitter: float | None = Field(None, description="pointing jitter, arcsec rms per axis (Roman 0.014)")
-    charge_diffusion: float | None = Field(None, description="charge diffusion, native pixels rms (GalSim's Roman 0.1)")
-    ipc: str | float | list[list[float]] | None = Field(
+    jitter: float | None = _within((0.0, scenes.MAX_JITTER_ARCSEC), "pointing jitter, arcsec rms per axis (Roman 0.014)")
+    charge_diffusion: float | None = _within(
+        (0.0, scenes.MAX_DIFFUSION_PX), "charge diffusion, native pixels rms (GalSim's Roman 0.1)"
+    )
+    ipc: (
+        Literal["roman", "none", "off"]
+        | _Number((0.0, scenes.MAX_IPC_ALPHA))
+        | Annotated[
+            list[Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=3, max_length=3)]],
+            Field(min_length=3, max_length=3),
+        ]
+        | None
+    ) = Field(
         None,
         description="interpixel capacitance: roman, a nearest-neighbour alpha (dimensionless fraction), or a 3x3 kernel "
         "(dimensionless, rows y, columns x)",
@@ -73,11 +139,16 @@ class SceneRequest(BaseModel):
     )
     nl_coefficients: list[float] | None = Field(
         None,
-        max_length=6,
-        description="NL beyond the quadratic: b3 in 1/e-^2, b4 in 1/e-^3, ... in S = Q - beta Q^2 - b3 Q^3 - ...",
+        max_length=scenes.MAX_NL_ORDER - 2,
+        description="NL beyond the quadratic: b3 in 1/e-^2, b4 in 1/e-^3, ... in S = Q - beta Q^2 - b3 Q^3 - ...; "
+        "the response must rise (dS/dQ > 0) from 0 to the full well, else 422",
     )
-    bfe: float | None = Field(None, description="brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours)")
-    background: float | None = Field(None, description="sky + dark in e- per native pixel over the exposure")
+    bfe: float | None = _within(
+        (-scenes.MAX_BFE, scenes.MAX_BFE),
+        "brighter-fatter coefficient in 1/e- (Antilogus et al. 2014, nearest neighbours); |bfe| x full_well must stay "
+        "below 1 (the first-order model), else 422",
+    )
+    background: float | None = _within((0.0, scenes.MAX_BACKGROUND_E), "sky + dark in e- per native pixel over the exposure")
 
 
 class MATableSpec(BaseModel):
@@ -85,35 +156,58 @@ class MATableSpec(BaseModel):
 
     model_config = _STRICT
 
-    resultants: list[list[int]] = Field(
-        description="resultants as lists of 1-based read indices (dimensionless), e.g. [[1], [2, 3], [4, 5, 6]]"
+    resultants: list[
+        Annotated[list[_Int((1, defaults.MAX_RAMP_READS))], Field(min_length=1, max_length=defaults.MAX_RAMP_READS)]
+    ] = Field(
+        min_length=1,
+        max_length=defaults.MAX_RAMP_READS,
+        description="resultants as lists of 1-based read indices (dimensionless), e.g. [[1], [2, 3], [4, 5, 6]]",
     )
-    frame_time_s: float = Field(defaults.ROMAN_FRAME_TIME_S, description="time between reads in s")
+    frame_time_s: float = _within(
+        defaults.FRAME_TIME_RANGE_S, "time between reads in s", defaults.ROMAN_FRAME_TIME_S, open_low=True
+    )
     name: str = Field("custom", max_length=64, description="a label for the conditions (text, no unit)")
 
 
 class RampFields(BaseModel):
     """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
 
-    ramp: int | None = Field(None, description="N uniformly spaced reads over the exposure, one per resultant (count)")
-    ma_table: str | MATableSpec | None = Field(
+    ramp: _Int((1, defaults.MAX_RAMP_READS)) | None = _within(
+        (1, defaults.MAX_RAMP_READS), "N uniformly spaced reads over the exposure, one per resultant (count)", in_type=True
+    )
+    ma_table: ShippedMATable | MATableSpec | None = Field(
         None,
-        description="MultiAccum table (no unit): a shipped name (romanisim-1, romanisim-109, romanisim-110) or the table itself; "
-        "without an exptime the exposure is the table's last read",
+        description=f"MultiAccum table (no unit): a shipped name ({', '.join(SHIPPED_MA_TABLES)}) or the table itself "
+        "(never a file on the server); without an exptime the exposure is the table's last read",
     )
     ramp_fit: RampFit = Field("ols", description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting)")
-    read_noise: float | None = Field(
-        None, description="read noise per read in e- (optimal fit); default: the SCA's official value (CDS noise / sqrt 2)"
+    read_noise: float | None = _within(
+        defaults.READ_NOISE_RANGE_E,
+        "read noise per read in e- (optimal fit: > 0); default: the SCA's official value (CDS noise / sqrt 2)",
     )
 
     def ramp_arguments(self, exptime: float, sca: int = defaults.SCA) -> tuple[object, float]:
         """(ramps.Ramp or None, exposure time): the library's one rule for both (an MA table's
         exposure is its last read unless the request gives ``exptime``)."""
-        from nlpsf import ramps
-
         table = self.ma_table.model_dump() if isinstance(self.ma_table, MATableSpec) else self.ma_table
         given = exptime if "exptime" in self.model_fields_set else None
-        return ramps.build(self.ramp, table, self.ramp_fit, self.read_noise, given, allow_files=False, sca=sca)
+        return build_ramp(self.ramp, table, self.ramp_fit, self.read_noise, given, sca)
+
+
+def shipped_ma_table(name: str) -> ramps.MATable:
+    """A shipped MA table by its (validated) name, read from the package's own data folder only."""
+    import json
+
+    if name not in SHIPPED_MA_TABLES:  # unreachable past the model; kept so no caller can pass a path
+        raise ValueError("not a shipped MA table")
+    return ramps.MATable.from_dict(json.loads((ramps.shipped_table_dir() / f"{name}.json").read_text()), name=name)
+
+
+def build_ramp(reads, ma_table, fit, read_noise, exptime, sca) -> tuple[object, float]:
+    """``ramps.build`` for the web layer: a name becomes the shipped table before the library sees
+    it, so no string the client sent ever reaches a file-system call."""
+    table = shipped_ma_table(ma_table) if isinstance(ma_table, str) else ma_table
+    return ramps.build(reads, table, fit, read_noise, exptime, allow_files=False, sca=sca)
 
 
 class SolveRequest(RampFields):
@@ -125,28 +219,36 @@ class SolveRequest(RampFields):
     )
 
     band: Band = Field(description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
-    sca: int = Field(_SOLVE_DEFAULTS["sca"], ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    sca: _Int((1, roman.N_SCA)) = Field(_SOLVE_DEFAULTS["sca"], description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
     metric: Metric = Field(_SOLVE_DEFAULTS["metric"], description="the PSF metric (no unit): size (dR/R), e1, e2 or e (|de|)")
     mode: Mode = Field(
         _SOLVE_DEFAULTS["mode"], description="(no unit) bias: calibration error of beta; scatter: per-pixel sigma_beta"
     )
-    beta0: float = Field(_SOLVE_DEFAULTS["beta0"], description="NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)")
-    exptime: float = Field(_SOLVE_DEFAULTS["exptime"], description="exposure time in s")
-    precision: float | None = Field(
-        None, description="calibration precision, dimensionless fraction: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)"
+    beta0: float = _within(
+        defaults.BETA0_RANGE, "NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)", _SOLVE_DEFAULTS["beta0"]
     )
-    tolerance: float | None = Field(None, description="tolerated error of the metric, dimensionless (dR/R, de1, de2 or |de|)")
-    magnitude: float | None = Field(
-        None, description="magnitude of the brightest star used for the PSF model, in AB mag in the band"
+    exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", _SOLVE_DEFAULTS["exptime"])
+    precision: float | None = _within(
+        defaults.PRECISION_RANGE,
+        "calibration precision, dimensionless fraction: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)",
     )
-    full_well: float = Field(_SOLVE_DEFAULTS["full_well"], description="full-well depth in e-")
+    tolerance: float | None = _within(
+        defaults.TOLERANCE_RANGE, "tolerated error of the metric, dimensionless (dR/R, de1, de2 or |de|)"
+    )
+    magnitude: float | None = _within(
+        defaults.MAGNITUDE_RANGE, "magnitude of the brightest star used for the PSF model, in AB mag in the band"
+    )
+    full_well: float = _within(defaults.FULL_WELL_RANGE_E, "full-well depth in e-", _SOLVE_DEFAULTS["full_well"])
     fidelity: Fidelity | None = Field(
         _SOLVE_DEFAULTS["fidelity"],
         description="how the slope is obtained (no unit): table (instant, the default), linear, monte_carlo, polychromatic",
     )
     accuracy: float | None = Field(
         None,
-        description="relative accuracy target (dimensionless fraction): picks the cheapest fidelity meeting it, "
+        ge=defaults.ACCURACY_RANGE[0],
+        le=defaults.ACCURACY_RANGE[1],
+        description=f"accepted [{defaults.ACCURACY_RANGE[0]:g}, {defaults.ACCURACY_RANGE[1]:g}]; "
+        "relative accuracy target (dimensionless fraction): picks the cheapest fidelity meeting it, "
         "simulates only the scene effects whose measured impact exceeds it and adds the others to the uncertainty's model part",
     )
     scene: SceneRequest | None = Field(
@@ -168,19 +270,23 @@ class SolveRequest(RampFields):
     )
     shear_m: float | None = Field(
         None,
+        ge=shear.BUDGET_RANGE[0],
+        le=shear.BUDGET_RANGE[1],
         description="multiplicative shear-bias budget |m|, dimensionless (size metric); with size_ratio, in place of tolerance",
     )
     shear_c: float | None = Field(
         None,
+        ge=shear.BUDGET_RANGE[0],
+        le=shear.BUDGET_RANGE[1],
         description="additive shear-bias budget |c|, dimensionless (e1, e2, e metrics); with size_ratio, in place of tolerance",
     )
     # No strings here: the library also reads '@FILE', which a web request must not reach.
-    size_ratio: float | list[float | _RatioWeight] | None = Field(
+    size_ratio: _Ratio | _RatioList | None = Field(
         None,
         description="R_gal/R_psf, dimensionless (intrinsic galaxy over PSF, R = det(M)^(1/4)): a number, or a list of ratios or "
         "[ratio, weight] pairs; alone it reports the shear bias the tolerance implies",
     )
-    stars: int = Field(
+    stars: _Int((1, MAX_STARS)) = Field(
         _SOLVE_DEFAULTS["stars"],
         description="scatter mode: number of stars/dithers on independent pixels the PSF model averages (sigma / sqrt(stars))",
     )
@@ -290,6 +396,11 @@ class Health(BaseModel):
     version: str = Field(description="code version (no unit)")
     calculator: str = Field(description="state of the calculator (no unit)")
     job_store: JobStoreStatus = Field(description="state of the simulation job store")
+    http_workers: dict[str, Any] | None = Field(
+        None,
+        description="the HTTP workers under the supervisor: workers, responding (counts), stalled (each worker's index and "
+        "silence in s), heartbeat_timeout_s; null when no supervisor runs the service",
+    )
 
 
 class Meta(BaseModel):
@@ -384,16 +495,16 @@ class ImpactRequest(BaseModel):
     )
 
     band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
-    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
-    magnitude: float = Field(defaults.MAGNITUDE, description="magnitude of the star in AB mag")
+    sca: _Int((1, roman.N_SCA)) = Field(defaults.SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    magnitude: float = _within(defaults.MAGNITUDE_RANGE, "magnitude of the star in AB mag", defaults.MAGNITUDE)
     metric: Metric = Field("size", description="the request's metric (no unit)")
     mode: Mode = Field("bias", description="bias or scatter slopes (no unit)")
-    beta0: float = Field(defaults.BETA0, description="beta0 in 1/e- (paper convention)")
-    exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
-    realizations: int = Field(
-        50, description="number of centroid realizations per run (count; both runs of an effect share them)"
+    beta0: float = _within(defaults.BETA0_RANGE, "beta0 in 1/e- (paper convention)", defaults.BETA0)
+    exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", defaults.EXPTIME_S)
+    realizations: _Int((2, 10_000)) = _within(
+        (2, 10_000), "number of centroid realizations per run (count; both runs of an effect share them)", 50, in_type=True
     )
-    seed: int = Field(1, description="random seed (integer, no unit)")
+    seed: _Int(JSON_SEEDS) = _within(JSON_SEEDS, "random seed (integer, no unit)", 1, in_type=True)
     scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
 
 
@@ -425,27 +536,47 @@ class SimulationRequest(RampFields):
     )
 
     band: Band = Field(defaults.BAND, description=f"Roman band (no unit): {', '.join(roman.BANDS)}")
-    sca: int = Field(defaults.SCA, ge=1, le=roman.N_SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
-    magnitudes: list[float] = Field([18.3], max_length=10_000, description="star magnitudes in AB mag in the band")
-    betas: list[float] = Field([defaults.BETA0], max_length=10_000, description="NL coefficients beta in 1/e-")
-    sigma_betas: list[float] = Field(
-        [0.0], max_length=10_000, description="per-pixel beta scatter sigma_beta in 1/e-; > 0 draws beta maps at a fixed centroid"
+    sca: _Int((1, roman.N_SCA)) = Field(defaults.SCA, description=f"detector (SCA number, no unit) 1-{roman.N_SCA}")
+    magnitudes: list[_Number(defaults.MAGNITUDE_RANGE)] = Field(
+        [18.3], min_length=1, max_length=10_000, description="star magnitudes in AB mag in the band"
+    )
+    betas: list[_Number((-defaults.MAX_ABS_BETA, defaults.MAX_ABS_BETA))] = Field(
+        [defaults.BETA0], min_length=1, max_length=10_000, description="NL coefficients beta in 1/e-"
+    )
+    sigma_betas: list[_Number((0.0, defaults.MAX_ABS_BETA))] = Field(
+        [0.0],
+        min_length=1,
+        max_length=10_000,
+        description="per-pixel beta scatter sigma_beta in 1/e-; > 0 draws beta maps at a fixed centroid",
     )
     beta_convention: BetaConvention = Field(
         "paper", description="sign convention (no unit); paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2"
     )
-    exptime: float = Field(defaults.EXPTIME_S, description="exposure time in s")
-    full_well: float = Field(defaults.FULL_WELL_E, description="full-well depth in e-")
+    exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", defaults.EXPTIME_S)
+    full_well: float = _within(defaults.FULL_WELL_RANGE_E, "full-well depth in e-", defaults.FULL_WELL_E)
     fidelity: SimulationFidelity = Field(
         "monte_carlo", description="(no unit) linear response, Monte Carlo, or Monte Carlo polychromatic"
     )
-    n_wavelengths: int | None = Field(None, description="number of wavelengths of the polychromatic PSF (count, default 8)")
-    realizations: int = Field(100, description="number of centroid realizations, or beta-map draws when sigma_beta > 0 (count)")
-    seed: int = Field(1, description="random seed (integer, no unit); the same seed gives the same numbers")
-    oversampling: int = Field(3, description="fine pixels per native pixel along a side, N (count)")
-    stamp: int = Field(96, description="stamp side in fine pixels (count)")
-    weight_cut_rho2: float = Field(
-        defaults.PAPER_WEIGHT_CUT_RHO2, description="adaptive-moment weight cut rho^2, dimensionless (paper 25, GalSim 32.24)"
+    n_wavelengths: _Int((1, defaults.MAX_WAVELENGTHS)) | None = _within(
+        (1, defaults.MAX_WAVELENGTHS), "number of wavelengths of the polychromatic PSF (count, default 8)", in_type=True
+    )
+    realizations: _Int((1, defaults.MAX_REALIZATIONS)) = _within(
+        (1, defaults.MAX_REALIZATIONS),
+        "number of centroid realizations, or beta-map draws when sigma_beta > 0 (count)",
+        100,
+        in_type=True,
+    )
+    seed: _Int(JSON_SEEDS) = _within(
+        JSON_SEEDS, "random seed (integer, no unit); the same seed gives the same numbers", 1, in_type=True
+    )
+    oversampling: _Int(defaults.OVERSAMPLING_RANGE) = _within(
+        defaults.OVERSAMPLING_RANGE, "fine pixels per native pixel along a side, N (count)", 3, in_type=True
+    )
+    stamp: _Int(defaults.STAMP_RANGE) = _within(defaults.STAMP_RANGE, "stamp side in fine pixels (count)", 96, in_type=True)
+    weight_cut_rho2: float = _within(
+        defaults.WEIGHT_CUT_RHO2_RANGE,
+        "adaptive-moment weight cut rho^2, dimensionless (paper 25, GalSim 32.24)",
+        defaults.PAPER_WEIGHT_CUT_RHO2,
     )
     pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule (no unit)")
     scene: SceneRequest | None = Field(

@@ -24,7 +24,7 @@ from nlpsf import solver as solver_module
 from nlpsf import tables
 from nlpsf.checks import InputError
 
-from . import api, models
+from . import models, params, solve_api
 from .errors import SafeJSONResponse, json_safe
 
 # The page's own endpoints: outside the versioned public schema (/openapi.json), which they would
@@ -116,13 +116,13 @@ def limits(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: f
 
 @router.get("/limits", summary="Saturation, the non-monotonic limit and the brightest magnitude answered (AB mag)")
 def limits_endpoint(
-    band: api.Band = "H158",
-    sca: api.Sca = 18,
-    metric: api.MetricQuery = "size",
-    mode: api.ModeQuery = "bias",
-    exptime: api.Exptime = 168.1,
-    beta0: api.Beta0 = 5e-7,
-    full_well: api.FullWell = 1.1e5,
+    band: params.Band = "H158",
+    sca: params.Sca = 18,
+    metric: params.MetricQuery = "size",
+    mode: params.ModeQuery = "bias",
+    exptime: params.Exptime = 168.1,
+    beta0: params.Beta0 = 5e-7,
+    full_well: params.FullWell = 1.1e5,
 ) -> SafeJSONResponse:
     return SafeJSONResponse(json_safe(limits(band.upper(), sca, metric, mode, exptime, beta0, full_well)))
 
@@ -130,13 +130,13 @@ def limits_endpoint(
 @router.get("/requirement", summary="The calculator's two plots: p(m) around T, the slope c(m), limits")
 def requirement(
     tolerance: Tolerance,
-    band: api.Band = "H158",
-    sca: api.Sca = 18,
-    metric: api.MetricQuery = "size",
-    mode: api.ModeQuery = "bias",
-    exptime: api.Exptime = 168.1,
-    beta0: api.Beta0 = 5e-7,
-    full_well: api.FullWell = 1.1e5,
+    band: params.Band = "H158",
+    sca: params.Sca = 18,
+    metric: params.MetricQuery = "size",
+    mode: params.ModeQuery = "bias",
+    exptime: params.Exptime = 168.1,
+    beta0: params.Beta0 = 5e-7,
+    full_well: params.FullWell = 1.1e5,
     stars: Stars = 1,
     at: At = None,
     ramp_factor: RampFactor = None,
@@ -200,12 +200,12 @@ def requirement(
 
 @router.get("/slopes", summary="Slope vs magnitude for every band, stopping at saturation, with a chosen magnitude")
 def slopes(
-    metric: api.MetricQuery = "size",
-    mode: api.ModeQuery = "bias",
-    sca: api.Sca = 18,
-    exptime: api.Exptime = 168.1,
-    beta0: api.Beta0 = 5e-7,
-    full_well: api.FullWell = 1.1e5,
+    metric: params.MetricQuery = "size",
+    mode: params.ModeQuery = "bias",
+    sca: params.Sca = 18,
+    exptime: params.Exptime = 168.1,
+    beta0: params.Beta0 = 5e-7,
+    full_well: params.FullWell = 1.1e5,
     at: At = None,
 ) -> SafeJSONResponse:
     out = []
@@ -395,7 +395,7 @@ def batch(
     format: Annotated[str, Query(pattern="^(json|csv)$", description="json (default) or csv")] = "json",
 ) -> Response:
     rows = parse_batch_csv(csv_text)
-    answered = json.loads(api.solve_batch(models.BatchSolveRequest(requests=rows)).body)
+    answered = json.loads(solve_api.solve_batch(models.BatchSolveRequest(requests=rows)).body)
     if format == "csv":
         return PlainTextResponse(
             _answers_csv(answered["results"]),

@@ -7,6 +7,7 @@ The Host check is Starlette's ``TrustedHostMiddleware`` (see ``main.create_app``
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import hmac
 import json
@@ -62,27 +63,68 @@ class SecurityHeaders:
             await self.app(scope, receive, send)
             return
 
+        api = scope.get("path", "").startswith("/api/")
+
         async def with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
-                present = {name.lower() for name, _ in message.get("headers", [])}
-                message["headers"] = [*message.get("headers", []), *(h for h in SECURITY_HEADERS if h[0] not in present)]
+                headers = [(name, value) for name, value in message.get("headers", []) if name.lower() != b"server"]
+                present = {name.lower() for name, _ in headers}
+                extra = [h for h in SECURITY_HEADERS if h[0] not in present]
+                if api and b"cache-control" not in present:
+                    # API answers are not to be kept by a cache unless they say so (the tables do): a job's
+                    # id is its capability, and answers differ by caller.
+                    extra.append((b"cache-control", b"no-store"))
+                message["headers"] = [*headers, *extra]
             await send(message)
 
         await self.app(scope, receive, with_headers)
 
 
+#: Methods whose requests carry no body here: one that sends a body anyway is refused (400).
+BODILESS = ("GET", "HEAD", "OPTIONS", "DELETE")
+
+
+def _duplicate_keys(body: bytes) -> str | None:
+    """The first key that appears twice in one JSON object of ``body``, or None (also for a body
+    that is not JSON: the application says what is wrong with it)."""
+    found: list[str] = []
+
+    def pairs(items: list[tuple[str, Any]]) -> dict:
+        keys = [key for key, _ in items]
+        if len(set(keys)) != len(keys) and not found:
+            found.append(next(key for key in keys if keys.count(key) > 1))
+        return dict(items)
+
+    try:
+        json.loads(body, object_pairs_hook=pairs)
+    except (ValueError, RecursionError):
+        return None
+    return found[0] if found else None
+
+
 class BodyLimit:
-    """Refuse a body over ``max_bytes`` with 413, before the application reads or parses any of it.
+    """Refuse a body over ``max_bytes`` with 413, before the application reads or parses any of it;
+    a body that takes longer than ``timeout_s`` to arrive with 408 (the connection is closed); a body
+    on a GET, HEAD, OPTIONS or DELETE with 400; a JSON object with a key given twice with 422.
 
     A declared Content-Length over the limit is refused at once; a chunked body is read up to the
     limit (small by default) and refused as soon as it passes it."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int):
+    def __init__(self, app: ASGIApp, max_bytes: int, timeout_s: float = 30.0):
         self.app = app
         self.max_bytes = max_bytes
+        self.timeout_s = timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        if scope["method"] in BODILESS:
+            for name, value in scope.get("headers", []):
+                if (name == b"content-length" and value.strip() not in (b"0", b"")) or name == b"transfer-encoding":
+                    close = [(b"connection", b"close")]
+                    await _problem(send, 400, f"a {scope['method']} request carries no body here; send none", None, close)
+                    return
             await self.app(scope, receive, send)
             return
         message = f"the request body is larger than {self.max_bytes:,} bytes (the setting max_body_bytes)"
@@ -98,8 +140,14 @@ class BodyLimit:
                     return
         chunks: list[bytes] = []
         size = 0
+        deadline = asyncio.get_running_loop().time() + self.timeout_s
         while True:
-            event = await receive()
+            try:
+                event = await asyncio.wait_for(receive(), max(deadline - asyncio.get_running_loop().time(), 0.0))
+            except TimeoutError:
+                slow = f"the request body did not arrive within {self.timeout_s:g} s (the setting body_timeout_s)"
+                await _problem(send, 408, slow, None, [(b"connection", b"close")])
+                return
             if event["type"] != "http.request":
                 break  # the client went away; let the application see it
             chunk = event.get("body", b"")
@@ -110,13 +158,19 @@ class BodyLimit:
             chunks.append(chunk)
             if not event.get("more_body", False):
                 break
+        body = b"".join(chunks)
+        if (repeated := _duplicate_keys(body)) is not None:
+            from .errors import short
+
+            await _problem(send, 422, f"the JSON body gives the key {short(repeated)!r} twice; give each key once")
+            return
         replayed = False
 
         async def replay() -> Message:
             nonlocal replayed
             if not replayed:
                 replayed = True
-                return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+                return {"type": "http.request", "body": body, "more_body": False}
             return await receive()
 
         await self.app(scope, replay, send)
@@ -152,4 +206,53 @@ class ApiKey:
                            [(b"www-authenticate", b"Bearer")])  # fmt: skip
             return
         scope.setdefault("state", {})["client"] = client_of(match.decode())
+        await self.app(scope, receive, send)
+
+
+class ApiMethods:
+    """Methods on /api/ paths answered as HTTP says: OPTIONS with 204 and ``Allow``, a method the
+    route does not take with 405 and ``Allow`` (HEAD wherever GET is), an unknown path with 404 --
+    never the page's static files, which would otherwise answer every path the API does not hold."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not scope.get("path", "").startswith("/api/"):
+            await self.app(scope, receive, send)
+            return
+        from starlette.routing import Match, Mount
+
+        routes = [r for r in getattr(scope.get("app"), "routes", []) if not (isinstance(r, Mount) and r.path in ("", "/"))]
+        if scope["method"] not in ("OPTIONS", "HEAD") and any(r.matches(scope)[0] == Match.FULL for r in routes):
+            await self.app(scope, receive, send)  # the common case: a route takes this method
+            return
+        allowed = {
+            method
+            for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
+            if any(route.matches({**scope, "method": method})[0] == Match.FULL for route in routes)
+        }
+        if not allowed:
+            await _problem(send, 404, "no such API path (see /docs)")
+            return
+        if "GET" in allowed:
+            allowed.add("HEAD")
+        allow = ", ".join(sorted(allowed | {"OPTIONS"}))
+        if scope["method"] == "OPTIONS":
+            await send({"type": "http.response.start", "status": 204, "headers": [(b"allow", allow.encode())]})
+            await send({"type": "http.response.body", "body": b""})
+            return
+        if scope["method"] not in allowed:
+            await _problem(send, 405, f"{scope['method']} is not a method of this path; it takes {allow}", None,
+                           [(b"allow", allow.encode())])  # fmt: skip
+            return
+        if scope["method"] == "HEAD":
+            # HEAD is GET without the body (RFC 9110 9.3.2): the same status and headers.
+            async def headers_only(message: Message) -> None:
+                if message["type"] == "http.response.body":
+                    message = {**message, "body": b""}
+                await send(message)
+
+            await self.app({**scope, "method": "GET"}, receive, headers_only)
+            return
         await self.app(scope, receive, send)

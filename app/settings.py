@@ -15,6 +15,8 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from nlpsf import defaults
+
 #: Peak resident memory a simulation job adds per stamp pixel (realizations x stamp^2), measured by
 #: benchmarks/bench_job_memory.py: 37 bytes for the linear fidelity (the worst), 18 for Monte Carlo
 #: (2026-11-26, H158, 200 and 1200 realizations of 96^2 stamps); rounded up.
@@ -29,10 +31,11 @@ def _default_db_path() -> str:
 
 
 # The limits' ranges, shared by ``Limits`` (code) and ``Settings`` (the flat environment fields).
-_Realizations = Annotated[int, Field(ge=1, le=100_000)]
-_Stamp = Annotated[int, Field(ge=16, le=512)]
+# A limit can only tighten what the library accepts: its top is the library's own range (nlpsf.defaults).
+_Realizations = Annotated[int, Field(ge=1, le=defaults.MAX_REALIZATIONS)]
+_Stamp = Annotated[int, Field(ge=defaults.STAMP_RANGE[0], le=defaults.STAMP_RANGE[1])]
 _Grid = Annotated[int, Field(ge=1, le=100_000)]
-_Wavelengths = Annotated[int, Field(ge=1, le=64)]
+_Wavelengths = Annotated[int, Field(ge=1, le=defaults.MAX_WAVELENGTHS)]
 _StampPixels = Annotated[int, Field(ge=256, le=10**11)]
 _Work = Annotated[int, Field(ge=256, le=10**15)]
 
@@ -79,6 +82,19 @@ class Settings(BaseSettings):
     api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
     #: largest request body in bytes; a larger one is answered 413 before it is read
     max_body_bytes: int = Field(65_536, ge=1024, le=64 * 1024**2)
+    #: an HTTP worker whose event loop is silent this long (stopped, or blocked) is killed and replaced, s
+    heartbeat_timeout_s: float = Field(3.0, ge=0.5, le=600.0)
+    #: a request's headers must arrive within this of its first byte, else 408 and the connection closes, s
+    header_timeout_s: float = Field(10.0, ge=0.5, le=600.0)
+    #: a request's body must arrive within this of its headers, else 408 and the connection closes, s
+    body_timeout_s: float = Field(30.0, ge=0.5, le=3600.0)
+    #: an idle kept-alive connection is closed after this, s
+    keep_alive_s: float = Field(5.0, ge=0.5, le=600.0)
+    #: open connections per HTTP worker; beyond it the worker answers 503
+    max_connections: int = Field(1000, ge=8, le=1_000_000)
+    #: all HTTP workers accept from one listening socket (a stopped worker then takes no new
+    #: connections); false: one SO_REUSEPORT socket per worker (see docs/service.md for the measurement)
+    shared_socket: bool = True
     #: the page's files; None: the installed package data ``nlpsf.web.static``
     static_dir: str | None = None
 
@@ -94,6 +110,13 @@ class Settings(BaseSettings):
     #: measured need (JOB_BYTES_PER_STAMP_PIXEL x stamp pixels) is larger is refused, and a job that
     #: still grows past it fails cleanly instead of taking the host
     job_memory_mb: int = Field(2048, ge=64, le=1024**2)
+    #: queued simulations one client (its API key, else its address) may hold; the rest of the queue
+    #: stays open to others. None: a quarter of max_queue (at least 1)
+    max_queue_per_client: int | None = Field(None, ge=1, le=100_000)
+    #: a running job that reports no progress for this long is ended (failed) and its place freed, s
+    job_stall_s: float = Field(120.0, ge=2.0, le=86_400.0)
+    #: a job's wall-time limit is this many times its estimated duration (and at least 10 x job_stall_s)
+    job_time_factor: float = Field(20.0, ge=1.0, le=10_000.0)
     #: longest ``wait`` a POST /simulations may ask for, seconds
     max_wait_s: float = Field(30.0, ge=0.0, le=600.0, validation_alias="NLPSF_MAX_WAIT")
     #: how long POST /solve waits for a solve that needs a simulation before answering 202 with its job
@@ -157,6 +180,14 @@ class Settings(BaseSettings):
     def http_workers(self) -> int:
         # One HTTP worker per core: on 2 cores that doubles the calculator's throughput (benchmarks/bench_service.py).
         return self.workers or min(os.cpu_count() or 1, 8)
+
+    @property
+    def queue_per_client(self) -> int:
+        return self.max_queue_per_client or max(1, self.max_queue // 4)
+
+    def job_time_limit_s(self, estimate_s: float | None) -> float:
+        """The wall time a job may run: job_time_factor x its estimated duration, at least 10 x job_stall_s."""
+        return max(10.0 * self.job_stall_s, self.job_time_factor * (estimate_s or 0.0))
 
     @property
     def retention_s(self) -> float:

@@ -11,12 +11,13 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Path, Query
 from fastapi.responses import Response
 
 from nlpsf.checks import InputError
 
-from . import models, simulation
+from . import job_kinds, models
+from .deps import Caller, CallerDep, Services, ServicesDep
 from .errors import SafeJSONResponse, input_error_response, problem
 from .store import FINISHED, NotCancellable, QueueFull
 
@@ -34,27 +35,48 @@ def job_response(job: dict[str, Any], status: int) -> SafeJSONResponse:
     return SafeJSONResponse(job, status_code=status, headers=headers)
 
 
-def client_of(request: Request) -> str | None:
-    return getattr(request.state, "client", None)
-
-
-async def submit_job(request: Request, normalised: dict[str, Any], wait: float) -> tuple[dict[str, Any], int]:
+async def submit_job(services: Services, caller: Caller, normalised: dict[str, Any], wait: float) -> tuple[dict[str, Any], int]:
     """Queue (or answer from stored results, or join) a validated job request and wait up to ``wait``
     seconds for it; returns the job as its submitter sees it and the HTTP status (200 finished, 202 not).
-    Raises QueueFull as a 429 response and StoreUnavailable (503, by the app's handler)."""
-    app = request.app
-    key = simulation.request_hash(normalised)
-    job, _how = await asyncio.to_thread(app.state.store.submit, normalised, key, app.state.settings.max_queue, client_of(request))
-    app.state.dispatcher.wake()
+    Raises QueueFull (a 429) and StoreUnavailable (503, by the app's handler)."""
+    key = job_kinds.request_hash(normalised)
+    settings = services.settings
+    job, _how = await asyncio.to_thread(
+        services.store.submit, normalised, key, settings.max_queue, caller.share, settings.queue_per_client
+    )
+    services.dispatcher.wake()
     if job["status"] not in FINISHED:
-        finished = await app.state.notifier.wait(job["id"], min(wait, app.state.settings.max_wait_s))
+        finished = await services.notifier.wait(job["id"], min(wait, settings.max_wait_s))
         if finished:
-            job = await asyncio.to_thread(app.state.store.get, job["id"]) or job
+            job = await asyncio.to_thread(services.store.get, job["id"]) or job
     return job, 200 if job["status"] in FINISHED else 202
 
 
 def queue_full_response(full: QueueFull) -> Response:
-    return problem(429, f"the simulation queue is full: {full}", limit="max_queue", headers={"Retry-After": "10"})
+    """429 naming the limit hit (max_queue: the whole queue; max_queue_per_client: this client's share)."""
+    mine = full.setting == "max_queue_per_client"
+    what = "your share of the simulation queue is full" if mine else "the simulation queue is full"
+    return problem(429, f"{what}: {full}", limit=full.setting, headers={"Retry-After": "10"})
+
+
+async def job_answer(services: Services, caller: Caller, job_request: dict[str, Any]) -> Response:
+    """Submit a job and answer with its result when it finishes within ``solve_wait_s`` (200), with
+    its input error (422), its failure (500) or its cancellation (503), or with the job to poll (202)."""
+    try:
+        job, status = await submit_job(services, caller, job_request, services.settings.solve_wait_s)
+    except QueueFull as full:
+        return queue_full_response(full)
+    if job.get("status") == "done" and job.get("result") is not None:
+        return SafeJSONResponse(job["result"], headers={"Location": f"/api/v1/simulations/{job['id']}"})
+    location = {"Location": f"/api/v1/simulations/{job['id']}"}
+    if job.get("status") == "failed" and (job.get("error") or {}).get("field"):
+        error = job["error"]
+        return problem(422, f"{error['field']}: {error['message']}", error["field"], limit=error.get("limit"), headers=location)
+    if job.get("status") == "failed":
+        return problem(500, f"the simulation failed: {job.get('message') or 'no reason given'}", headers=location)
+    if job.get("status") in ("cancelled", "interrupted"):
+        return problem(503, f"the simulation was {job['status']}: {job.get('message') or ''}".rstrip(": "), headers=location)
+    return job_response(job, status)
 
 
 @router.post(
@@ -73,19 +95,17 @@ def queue_full_response(full: QueueFull) -> Response:
 )
 async def submit(
     body: models.SimulationRequest,
-    request: Request,
+    services: ServicesDep,
+    caller: CallerDep,
     wait: Annotated[float, Query(ge=0, le=600, allow_inf_nan=False, description="time to wait for the result, in s")] = 0.0,
 ) -> Response:
-    settings = request.app.state.settings
+    settings = services.settings
     try:
-        payload = body.model_dump()
-        if body.ma_table is not None and "exptime" not in body.model_fields_set:
-            payload["exptime"] = None  # an MA table's exposure is its last read
-        normalised = simulation.validate(payload, settings.limits, settings.job_memory_mb)
+        normalised = job_kinds.KINDS[job_kinds.SIMULATION_KIND].validate(body.model_dump(), body.model_fields_set, settings)
     except InputError as error:
-        return input_error_response(error, simulation.request_field(error.argument))
+        return input_error_response(error, job_kinds.request_field(error.argument))
     try:
-        job, status = await submit_job(request, normalised, wait)
+        job, status = await submit_job(services, caller, normalised, wait)
     except QueueFull as full:
         return queue_full_response(full)
     return job_response(job, status)
@@ -98,12 +118,14 @@ async def submit(
     summary="The caller's recent simulation jobs (by API key; every job if the operator allows), without results",
 )
 async def list_jobs(
-    request: Request, limit: Annotated[int, Query(ge=1, le=500, description="most jobs to list (count)")] = 50
+    services: ServicesDep,
+    caller: CallerDep,
+    limit: Annotated[int, Query(ge=1, le=500, description="most jobs to list (count)")] = 50,
 ) -> SafeJSONResponse:
-    store = request.app.state.store
-    everyone = request.app.state.settings.list_all_jobs
-    jobs = await asyncio.to_thread(store.list, client_of(request), everyone, limit)
-    counts = await asyncio.to_thread(store.counts)
+    store = services.store
+    everyone = services.settings.list_all_jobs
+    jobs = await asyncio.to_thread(store.list, caller.key, everyone, limit)
+    counts = await asyncio.to_thread(store.counts, caller.key, everyone)
     return SafeJSONResponse({"jobs": [{k: v for k, v in j.items() if k not in _HIDDEN} for j in jobs], "counts": counts})
 
 
@@ -113,8 +135,8 @@ async def list_jobs(
     responses={404: _PROBLEM, 503: _PROBLEM},
     summary="Status and progress of a job; the result once it is done",
 )
-async def get_job(job_id: JobId, request: Request) -> Response:
-    job = await asyncio.to_thread(request.app.state.store.get, job_id)
+async def get_job(job_id: JobId, services: ServicesDep) -> Response:
+    job = await asyncio.to_thread(services.store.get, job_id)
     if job is None:
         return problem(404, "no simulation job with this id")
     return job_response(job, 200)
@@ -126,16 +148,16 @@ async def get_job(job_id: JobId, request: Request) -> Response:
     responses={404: _PROBLEM, 409: {**_PROBLEM, "description": "the job has already finished"}, 503: _PROBLEM},
     summary="Cancel a queued or running job",
 )
-async def cancel_job(job_id: JobId, request: Request) -> Response:
-    store = request.app.state.store
+async def cancel_job(job_id: JobId, services: ServicesDep) -> Response:
+    store = services.store
     try:
         job = await asyncio.to_thread(store.cancel, job_id)
     except NotCancellable as error:
         return problem(409, str(error))
     if job is None:
         return problem(404, "no simulation job with this id")
-    request.app.state.dispatcher.wake()
+    services.dispatcher.wake()
     # The owner stops a running job within a poll or two; wait briefly so the answer is final.
-    if job["status"] not in FINISHED and await request.app.state.notifier.wait(job_id, 5.0):
+    if job["status"] not in FINISHED and await services.notifier.wait(job_id, 5.0):
         job = await asyncio.to_thread(store.get, job_id) or job
     return job_response(job, 200)

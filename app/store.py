@@ -92,10 +92,14 @@ T = TypeVar("T")
 
 
 class QueueFull(Exception):
-    def __init__(self, queued: int, limit: int):
-        super().__init__(f"{queued} simulations are already waiting (limit {limit}); try again later")
+    """The queue, or this client's share of it, is full; ``setting`` names the limit that was hit."""
+
+    def __init__(self, queued: int, limit: int, setting: str = "max_queue"):
+        whose = "of yours are" if setting == "max_queue_per_client" else "are already"
+        super().__init__(f"{queued} simulations {whose} waiting (limit {limit}, the setting {setting}); try again later")
         self.queued = queued
         self.limit = limit
+        self.setting = setting
 
 
 class NotCancellable(Exception):
@@ -277,9 +281,18 @@ class Store:
     # --- submitting and reading ---------------------------------------------------------------
 
     def submit(
-        self, request: dict[str, Any], request_hash: str, max_queue: int, client: str | None = None
+        self,
+        request: dict[str, Any],
+        request_hash: str,
+        max_queue: int,
+        client: str | None = None,
+        max_per_client: int | None = None,
     ) -> tuple[dict[str, Any], str]:
         """Queue a request, or answer it from the results, or join the same request in flight.
+
+        A new run is queued only while fewer than ``max_queue`` wait, and fewer than
+        ``max_per_client`` of them are ``client``'s (its API key, else its address): one client
+        cannot hold the whole queue while others wait.
 
         Returns the job as the submitter sees it (``id`` is their ticket) and how it was handled:
         "cached", "joined" or "queued".
@@ -310,6 +323,14 @@ class Store:
                     queued = db.execute("SELECT COUNT(*) FROM jobs WHERE status = 'queued'").fetchone()[0]
                     if queued >= max_queue:
                         raise QueueFull(queued, max_queue)
+                    if client is not None and max_per_client is not None:
+                        mine = db.execute(
+                            "SELECT COUNT(DISTINCT j.id) FROM tickets t JOIN jobs j ON j.id = t.job_id"
+                            " WHERE t.client = ? AND t.cancelled = 0 AND j.status = 'queued'",
+                            (client,),
+                        ).fetchone()[0]
+                        if mine >= max_per_client:
+                            raise QueueFull(mine, max_per_client, "max_queue_per_client")
                     job_id, how = uuid.uuid4().hex, "queued"
                     db.execute(
                         "INSERT INTO jobs (id, request_hash, request, status, message, created_at, updated_at)"
@@ -434,8 +455,20 @@ class Store:
 
         return self._write_op(run)
 
-    def counts(self) -> dict[str, int]:
-        rows = self._read_op(lambda db: db.execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall())
+    def counts(self, client: str | None = None, everyone: bool = True) -> dict[str, int]:
+        """Jobs per status: every job (``everyone``), or those ``client`` holds a ticket to, as it sees them."""
+        if everyone:
+            rows = self._read_op(lambda db: db.execute("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status").fetchall())
+            return {row["status"]: row["n"] for row in rows}
+        if client is None:
+            return {}
+        rows = self._read_op(
+            lambda db: db.execute(
+                "SELECT CASE WHEN t.cancelled = 1 AND j.status IN ('queued', 'running') THEN 'cancelled' ELSE j.status END"
+                " AS status, COUNT(*) AS n FROM tickets t JOIN jobs j ON j.id = t.job_id WHERE t.client = ? GROUP BY 1",
+                (client,),
+            ).fetchall()
+        )
         return {row["status"]: row["n"] for row in rows}
 
     # --- the dispatcher's side ----------------------------------------------------------------
@@ -470,6 +503,13 @@ class Store:
             ).fetchall()
         )
         return [row["id"] for row in rows]
+
+    def running_updates(self, owner: str) -> dict[str, float]:
+        """When each of ``owner``'s running jobs last wrote progress (Unix time, s)."""
+        rows = self._read_op(
+            lambda db: db.execute("SELECT id, updated_at FROM jobs WHERE owner = ? AND status = 'running'", (owner,)).fetchall()
+        )
+        return {row["id"]: row["updated_at"] for row in rows}
 
     def progress(self, job_id: str, owner: str, fraction: float, message: str) -> bool:
         """Record progress; False when the job should stop (cancelled, or no longer this owner's)."""
@@ -560,13 +600,20 @@ class Store:
         """Record that ``instance`` is alive, re-registering it if a peer has removed it meanwhile
         (a worker stalled past the stale window comes back as itself, with its jobs)."""
         now = time.time()
-        self._write_op(
-            lambda db: db.execute(
+
+        def run(db: sqlite3.Connection) -> None:
+            db.execute(
                 "INSERT INTO instances (id, hostname, pid, pid_start, heartbeat, started_at) VALUES (?, ?, ?, ?, ?, ?)"
                 " ON CONFLICT(id) DO UPDATE SET heartbeat = excluded.heartbeat",
                 (instance, socket.gethostname(), os.getpid(), process_start_time(os.getpid()), now, now),
             )
-        )
+            # A write that succeeds proves one page; the whole file's structure is checked too, so a
+            # damaged table elsewhere is reported (and not cleared by this write) within a heartbeat.
+            verdict = db.execute("PRAGMA quick_check(1)").fetchone()[0]
+            if verdict != "ok":
+                raise sqlite3.DatabaseError(f"database disk image is malformed (quick_check: {str(verdict)[:80]})")
+
+        self._write_op(run)
         self._set_state("ok", None)
 
     def unregister_instance(self, instance: str) -> None:

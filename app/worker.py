@@ -21,7 +21,7 @@ from typing import Any
 from nlpsf import experiment  # noqa: F401
 from nlpsf.checks import InputError
 
-from . import simulation
+from . import job_kinds
 from .store import Store, StoreUnavailable
 
 _PROGRESS_INTERVAL_S = 0.2
@@ -119,12 +119,12 @@ def run_job(
         _record(lambda: store.end(job_id, status, message, error, owner=owner), service_pid)
 
     try:
-        result = simulation.run(request, progress)
+        result = job_kinds.run(request, progress)
     except Cancelled:
         end("cancelled", "cancelled while running")
         return
     except InputError as error:
-        field = simulation.request_field(error.argument)
+        field = job_kinds.request_field(error.argument)
         end("failed", str(error), {"field": field, "message": error.reason})
         return
     except MemoryError:

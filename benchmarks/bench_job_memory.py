@@ -21,9 +21,9 @@ sys.path.insert(0, str(ROOT))
 
 
 def _child(request: dict, queue) -> None:
-    from nlpsf.web import simulation
+    from nlpsf.web import job_kinds
 
-    simulation.run(request)
+    job_kinds.run(request)
     queue.put(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
 
 
@@ -50,10 +50,10 @@ def main() -> int:
         points = []
         for realizations in (args.largest // 6, args.largest):
             request = {**base, **extra, "fidelity": fidelity, "realizations": realizations, "band": "H158"}
-            from nlpsf.web import simulation
+            from nlpsf.web import job_kinds
             from nlpsf.web.settings import Limits
 
-            normalised = simulation.validate(request, Limits(max_realizations=100_000, max_stamp_pixels=10**11, max_work=10**15))
+            normalised = job_kinds.validate(request, Limits(max_realizations=100_000, max_stamp_pixels=10**11, max_work=10**15))
             pixels = realizations * normalised["stamp"] ** 2
             peak = peak_bytes(normalised)
             points.append((pixels, peak))

@@ -115,3 +115,10 @@ TOLERANCE_RANGE = (1e-15, 1e3)
 #: The smallest relative accuracy a request may ask for: below the best measured fidelity error
 #: (~1e-3) no level can promise it, and a target of 1e-320 is a typo, not a request.
 ACCURACY_RANGE = (1e-4, 10.0)
+#: Adaptive-moment weight cut rho^2: from a window of two sigma (the moments' own floor) to one far
+#: past any stamp (1e308 overflowed the window's pixel count). The library also takes inf (no cut).
+WEIGHT_CUT_RHO2_RANGE = (4.0, 1e4)
+#: Random seeds: what numpy's generator takes.
+SEED_RANGE = (0, 2**63 - 1)
+#: Time between reads of an MA table [s] (the low end open).
+FRAME_TIME_RANGE_S = (0.0, 1e4)

@@ -79,8 +79,9 @@ class MomentSettings:
 
     def __post_init__(self) -> None:
         cut = float(self.weight_cut_rho2)
-        if math.isnan(cut) or cut < 4.0:
-            raise InputError("weight_cut_rho2", f"must be at least 4 (or inf), got {self.weight_cut_rho2!r}")
+        low = defaults.WEIGHT_CUT_RHO2_RANGE[0]
+        if math.isnan(cut) or cut < low:
+            raise InputError("weight_cut_rho2", f"must be at least {low:g} (or inf), got {self.weight_cut_rho2!r}")
         if not (math.isfinite(self.tolerance) and 1e-15 <= self.tolerance <= 1e-3):
             raise InputError("tolerance", f"must lie between 1e-15 and 1e-3, got {self.tolerance!r}")
         if not 1 <= int(self.max_iterations) <= 10000:

@@ -139,7 +139,7 @@ class MATable:
         if previous > MAX_READS:
             raise InputError(f"{field}.resultants", f"at most {MAX_READS} reads, got read {previous}")
         object.__setattr__(self, "resultants", tuple(tuple(int(i) for i in r) for r in resultants))
-        check_number(self.frame_time_s, f"{field}.frame_time_s", 0.0, 1e4, open_low=True)
+        check_number(self.frame_time_s, f"{field}.frame_time_s", *defaults.FRAME_TIME_RANGE_S, open_low=True)
         object.__setattr__(self, "frame_time_s", float(self.frame_time_s))
 
     @classmethod

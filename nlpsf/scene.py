@@ -86,6 +86,8 @@ MAX_DIFFUSION_PX = 3.0
 MAX_BACKGROUND_E = 1e5
 MAX_BFE = 1e-4
 MAX_NL_ORDER = 8
+#: Largest nearest-neighbour IPC coupling alpha.
+MAX_IPC_ALPHA = 0.2
 #: Default relative accuracy the number of wavelengths is chosen for (see :func:`choose_wavelengths`).
 WAVELENGTH_ACCURACY = 1e-2
 #: Empirical factor between the relative error of the NL slopes from one wavelength and the band's
@@ -598,7 +600,7 @@ def parse_ipc(text) -> tuple[tuple[tuple[float, ...], ...] | None, str | None]:
         if array.shape != (3, 3):
             raise InputError("ipc", f"{text} must hold a 3x3 kernel, got shape {array.shape}") from None
         return _check_kernel(array), f"file:{Path(text).name}"
-    alpha = check_number(alpha, "ipc", 0.0, 0.2)
+    alpha = check_number(alpha, "ipc", 0.0, MAX_IPC_ALPHA)
     kernel = ((0.0, alpha, 0.0), (alpha, 1.0 - 4 * alpha, alpha), (0.0, alpha, 0.0))
     return _check_kernel(kernel), f"alpha={alpha:g}"
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
@@ -52,13 +53,21 @@ def healthy(port: int, process: subprocess.Popen | None = None) -> bool:
         return False
 
 
-def start_server(db_path: Path, port: int, env: dict[str, str] | None = None, log: Path | None = None) -> subprocess.Popen:
-    """``nlpsf serve`` on 127.0.0.1:port with its own database; returns once /health answers."""
-    environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), **(env or {})}
+def start_server(
+    db_path: Path,
+    port: int,
+    env: dict[str, str] | None = None,
+    log: Path | None = None,
+    cwd: Path | None = None,
+    args: tuple[str, ...] = (),
+) -> subprocess.Popen:
+    """``nlpsf serve`` on 127.0.0.1:port with its own database (started in ``cwd``, default the
+    repository); returns once /health answers."""
+    environment = {**os.environ, "NLPSF_DB_PATH": str(db_path), "NLPSF_HOST": "127.0.0.1", **(env or {})}
     output = open(log, "wb") if log else subprocess.DEVNULL  # noqa: SIM115 - the server outlives this call
     process = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port)],
-        cwd=ROOT,
+        [sys.executable, "-c", "import sys; from nlpsf.cli import main; sys.exit(main())", "serve", "--port", str(port), *args],
+        cwd=cwd or ROOT,
         env=environment,
         stdout=output,
         stderr=subprocess.STDOUT,
@@ -70,3 +79,40 @@ def start_server(db_path: Path, port: int, env: dict[str, str] | None = None, lo
         process.wait(10)
         raise
     return process
+
+
+def child_pids(pid: int) -> list[int]:
+    """Direct children of ``pid`` (Linux /proc): a supervisor's HTTP workers (and its helpers)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat", "rb") as handle:
+                    parent = int(handle.read().rsplit(b")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            if parent == pid:
+                out.append(int(entry))
+    return sorted(out)
+
+
+def http_workers(pid: int) -> list[int]:
+    """The HTTP worker processes of the ``nlpsf serve`` supervisor ``pid``."""
+    workers = []
+    for child in child_pids(pid):
+        try:
+            with open(f"/proc/{child}/cmdline", "rb") as handle:
+                cmdline = handle.read()
+        except OSError:
+            continue
+        if b"resource_tracker" not in cmdline and b"forkserver" not in cmdline:
+            workers.append(child)
+    return workers
+
+
+def crash(process: subprocess.Popen) -> None:
+    """SIGKILL the whole service at once, supervisor and HTTP workers: a crash, with no chance to clean up."""
+    for pid in [process.pid, *child_pids(process.pid)]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, 9)
+    process.wait(10)

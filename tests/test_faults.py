@@ -13,7 +13,7 @@ import os
 import signal
 import sqlite3
 import time
-from contextlib import closing
+from contextlib import closing, suppress
 
 import httpx
 import pytest
@@ -106,8 +106,9 @@ def stop(server) -> None:
 
 
 def test_a_stalled_worker_loses_no_jobs(tmp_path):
-    """One HTTP worker frozen (SIGSTOP) for longer than the stale window and a sweep: its peer must
-    not take its jobs, and the jobs it claims after it wakes must all finish."""
+    """One HTTP worker frozen (SIGSTOP) for longer than the stale window and a sweep: the supervisor
+    kills and replaces it after its heartbeat timeout (issue 19), its running jobs are queued again,
+    and every job submitted before and after finishes."""
     db = tmp_path / "jobs.sqlite3"
     port = free_port()
     server = start_server(db, port, ENV, log=tmp_path / "server.log")
@@ -117,8 +118,10 @@ def test_a_stalled_worker_loses_no_jobs(tmp_path):
         tickets = [client.submit(job_body(seed)) for seed in range(6)]
         victim = instance_pids(db)[0]
         os.kill(victim, signal.SIGSTOP)
-        time.sleep(3 + 5 + 2)  # past the stale window (3 s) and the peer's sweep (every 5 s)
-        os.kill(victim, signal.SIGCONT)
+        time.sleep(3 + 5 + 2)  # past the stale window (3 s), the peer's sweep (every 5 s) and the heartbeat timeout
+        with suppress(ProcessLookupError):
+            os.kill(victim, signal.SIGCONT)
+        assert victim not in instance_pids(db) or not os.path.exists(f"/proc/{victim}"), "the stopped worker was not replaced"
         tickets += [client.submit(job_body(seed)) for seed in range(6, 14)]
         final = client.finish_all(tickets)
         report("worker stalled 10 s (stale window 3 s)", tickets, final, client)

@@ -149,9 +149,7 @@ def test_the_table_path_reads_curves_and_rows_without_scipy_or_astropy():
 
 #: Private functions one module still calls in another. Each is a concept with two owners; make the
 #: function public where it lives (issue 16) and delete its line here. New entries fail the test.
-KNOWN_PRIVATE_CALLS = {
-    ("nlpsf.web.api", "solver._fidelity_error"),  # the public name is solver.fidelity_error (the service's to switch)
-}
+KNOWN_PRIVATE_CALLS = {}
 
 
 def _private_calls(path: Path) -> set[str]:

@@ -123,9 +123,9 @@ def test_api_simulation_with_scene_matches_the_library(client):
         ({"ipc": [[0.0, 0.1], [0.1, 1.0]]}, "scene.ipc"),
         ({"position": [0, 100]}, "scene.position"),
         ({"position": [5000, 100]}, "scene.position"),
-        ({"ipc_order": "during"}, "scene"),
-        ({"preset": "hubble"}, "scene"),
-        ({"colour": "red"}, "scene"),
+        ({"ipc_order": "during"}, "scene.ipc_order"),
+        ({"preset": "hubble"}, "scene.preset"),
+        ({"colour": "red"}, "scene.colour"),
     ],
 )
 def test_api_bad_scene_is_422_naming_the_field(client, scene, field):
@@ -137,7 +137,7 @@ def test_api_bad_scene_is_422_naming_the_field(client, scene, field):
 
 def test_api_nan_in_scene_is_422(client):
     response = client.post("/api/v1/impact", content='{"scene": {"jitter": NaN}}', headers={"content-type": "application/json"})
-    assert response.status_code == 422 and response.json()["field"] == "scene"
+    assert response.status_code == 422 and response.json()["field"] == "scene.jitter"
 
 
 def test_api_impact(client):

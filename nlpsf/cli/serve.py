@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from ..checks import check_integer
-    from ..web.server import serve
+    from ..web.server import ServeOptions, serve
     from ..web.settings import Settings
 
     try:
@@ -44,4 +44,13 @@ def run(args: argparse.Namespace) -> int:
     host = args.host if args.host is not None else settings.host
     port = check_integer(args.port if args.port is not None else settings.port, "port", 0, 65535)
     workers = check_integer(args.workers if args.workers is not None else settings.http_workers, "workers", 1, 64)
-    return serve(host, port, workers, access_log=args.access_log, log_level=args.log_level)
+    options = ServeOptions(
+        access_log=args.access_log,
+        log_level=args.log_level,
+        heartbeat_timeout_s=settings.heartbeat_timeout_s,
+        header_timeout_s=settings.header_timeout_s,
+        keep_alive_s=settings.keep_alive_s,
+        max_connections=settings.max_connections,
+        shared_socket=settings.shared_socket,
+    )
+    return serve(host, port, workers, options)
