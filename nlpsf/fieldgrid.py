@@ -78,11 +78,19 @@ class RomanReadout:
     background_e: float
 
 
-def roman_readout(band: str, sca: int) -> RomanReadout:
-    """The HLWAS ramp (likelihood fit, the SCA's official read noise) and its exposure's background."""
+def roman_exptime_s() -> float:
+    """The exposure of the candidate readout: the MA table's last read (139.1 s for C2A_IMG_HLWAS)."""
     from . import ramps
 
-    ramp, exptime = ramps.build(ma_table=ROMAN_MA_TABLE, fit=ROMAN_RAMP_FIT, sca=sca)
+    return float(ramps.load_ma_table(ROMAN_MA_TABLE).duration_s)
+
+
+def roman_readout(band: str, sca: int, exptime_s: float | None = None) -> RomanReadout:
+    """The HLWAS ramp (likelihood fit, the SCA's official read noise) and its exposure's background;
+    ``exptime_s`` None: the table's own exposure (``ramps.build`` refuses one the table does not fit)."""
+    from . import ramps
+
+    ramp, exptime = ramps.build(ma_table=ROMAN_MA_TABLE, fit=ROMAN_RAMP_FIT, sca=sca, exptime_s=exptime_s)
     return RomanReadout(ramp, exptime, backgrounds.background_electrons(ROMAN_BACKGROUND, band, sca, exptime))
 
 

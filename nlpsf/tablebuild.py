@@ -55,7 +55,7 @@ class TableSettings:
     #: Throughput data (``defaults.THROUGHPUTS``): the per-SCA official curves by default.
     throughput: str = defaults.THROUGHPUT
     #: ``fieldgrid.TABLE_SCENES``: "paper" (the shipped tables) or "roman", the candidate Roman default
-    #: (``fieldgrid.roman_scene``: its own HLWAS exposure replaces ``exptime_s``).
+    #: (``fieldgrid.roman_scene``; ``TableSettings.roman`` sets the HLWAS exposure).
     scene: str = "paper"
     #: The fidelity level the slopes are computed at: "linear" (the tables') or "polychromatic"
     #: (Monte Carlo on the PSF integrated over 8 wavelengths, ``fidelity.simulation_settings``).
@@ -70,8 +70,10 @@ class TableSettings:
 
     @classmethod
     def roman(cls, **changes) -> TableSettings:
-        """Settings for the candidate Roman default scene (official pupil scale unless given)."""
-        return cls(**({"scene": "roman", "pupil_scale": fieldgrid.ROMAN_PUPIL_SCALE} | changes))
+        """Settings for the candidate Roman default scene (official pupil scale and the HLWAS
+        exposure unless given)."""
+        base = {"scene": "roman", "pupil_scale": fieldgrid.ROMAN_PUPIL_SCALE, "exptime_s": fieldgrid.roman_exptime_s()}
+        return cls(**(base | changes))
 
     def config(
         self, band: str, sca: int, point: int | None = None, position: tuple[float, float] | None = None
@@ -82,7 +84,7 @@ class TableSettings:
             position = field_position(sca, point)
         exptime, ramp = self.exptime_s, None
         if self.scene == "roman":
-            readout = fieldgrid.roman_readout(band, sca)
+            readout = fieldgrid.roman_readout(band, sca, self.exptime_s)
             exptime, ramp = readout.exptime_s, readout.ramp
             scene = fieldgrid.roman_scene(band, sca, position, readout.background_e)
         else:
@@ -134,8 +136,9 @@ def field_position(sca: int, point: int | None) -> tuple[float, float] | None:
 
 
 def saturation_magnitude(peak_fraction: float, config: experiment.SimulationConfig) -> float:
-    """Magnitude at which the brightest fine pixel (over centroids) reaches the full well."""
-    electrons_at_full_well = config.full_well_e / (peak_fraction * config.oversampling**2)
+    """Magnitude at which the brightest fine pixel (over centroids) reaches the full well, on top of
+    the scene's background (none in the paper's scene)."""
+    electrons_at_full_well = (config.full_well_e - config.scene.background_e) / (peak_fraction * config.oversampling**2)
     return float(
         photometry.electrons_to_magnitude(
             electrons_at_full_well, config.band, config.exptime_s, sca=config.sca, throughput=config.throughput
@@ -151,6 +154,19 @@ def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit:
     bright = np.arange(first, switch, fine)
     faint = np.arange(switch, faint_limit + step / 2, step)
     return np.round(np.concatenate([bright, faint]), 6)
+
+
+def table_magnitudes(scene: experiment.Scene, settings: TableSettings) -> tuple[float, np.ndarray]:
+    """The saturation magnitude a table's grid is anchored at, and the grid (``magnitude_grid``).
+
+    Final frame: the brightest fine pixel reaches the full well. Up the ramp a star stays measurable
+    until its brightest pixel saturates within the resultants a slope needs, so the anchor moves
+    brighter by ``ramps.Ramp.saturation_shift_mag`` (3.4 mag for H158 with C2A_IMG_HLWAS)."""
+    config = scene.config
+    m_sat = saturation_magnitude(float(scene.star_peak_fraction), config)
+    if config.ramp is not None:
+        m_sat -= config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
+    return m_sat, magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
 
 
 def compute_table(
@@ -171,8 +187,7 @@ def compute_table(
         position = (float(fieldgrid.grid_axis(n)[i]), float(fieldgrid.grid_axis(n)[j]))
     config = settings.config(band, sca, point, position)
     scene = experiment.prepare(config)
-    m_sat = saturation_magnitude(float(scene.star_peak_fraction), config)
-    magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+    m_sat, magnitudes = table_magnitudes(scene, settings)
     results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
     for metric in COLUMN_METRICS:

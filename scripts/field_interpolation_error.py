@@ -49,8 +49,7 @@ def _table_cost(scene: str, fidelity: str, band: str, sca: int, position, realiz
         table = tablebuild.compute_table(band, sca, settings, node=None) if position is None else None
         if table is None:
             prepared = experiment.prepare(config)
-            m_sat = tablebuild.saturation_magnitude(float(prepared.star_peak_fraction), config)
-            mags = tablebuild.magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+            _, mags = tablebuild.table_magnitudes(prepared, settings)
             results = experiment.slopes(config, list(mags), beta0=settings.beta0, scene=prepared)
             values = np.array([[r.bias[m].mean for m in METRIC_NAMES.values()] for r in results], dtype=float)
             errors = np.array([[r.bias[m].stderr for m in METRIC_NAMES.values()] for r in results], dtype=float)
@@ -76,8 +75,7 @@ def _table_cost(scene: str, fidelity: str, band: str, sca: int, position, realiz
         }
     prepared = experiment.prepare(config)
     cpu_prepare = time.process_time() - cpu0
-    m_sat = tablebuild.saturation_magnitude(float(prepared.star_peak_fraction), config)
-    mags = tablebuild.magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+    _, mags = tablebuild.table_magnitudes(prepared, settings)
     picked = list(mags[np.linspace(0, len(mags) - 1, sample).round().astype(int)])
     cpu1 = time.process_time()
     experiment.slopes(config, picked, beta0=settings.beta0, scene=prepared)

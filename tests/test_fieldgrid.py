@@ -133,3 +133,16 @@ def test_interpolated_slopes_match_a_fresh_simulation_off_the_grid():
     interpolated = fieldgrid.interpolate(nodes, position, "lagrange")
     for k, metric in enumerate(MEASURED_BOUND):
         assert abs(interpolated[k] / fresh[k] - 1) <= MEASURED_BOUND[metric], metric
+
+
+def test_the_cli_builds_and_packs_a_field_grid(tmp_path, capsys):
+    from nlpsf.cli import main
+
+    argv = ["tables", "build", "--band", "H158", "--sca", "18", "--realizations", "2", "--faint-limit", "18.5"]
+    argv += ["--step", "0.5", "--quiet", "--output", str(tmp_path / "nodes")]
+    assert main([*argv, "--grid", "4"]) == 2
+    assert "grid" in capsys.readouterr().err
+    assert main([*argv, "--grid", "3", "--merge-to", str(tmp_path / "grid.npz")]) == 0
+    grid = fieldgrid.FieldGrid.load(tmp_path / "grid.npz")
+    assert grid.meta["tables"]["H158_18"]["grid"] == 3 and grid.meta["value_dtype"] == "float32"
+    assert len(list((tmp_path / "nodes").glob("*_G3_*.ecsv"))) == 9
