@@ -146,3 +146,20 @@ def test_the_cli_builds_and_packs_a_field_grid(tmp_path, capsys):
     grid = fieldgrid.FieldGrid.load(tmp_path / "grid.npz")
     assert grid.meta["tables"]["H158_18"]["grid"] == 3 and grid.meta["value_dtype"] == "float32"
     assert len(list((tmp_path / "nodes").glob("*_G3_*.ecsv"))) == 9
+
+
+def _malloc_trim_threshold():
+    import os
+
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_")
+
+
+def test_local_dask_workers_keep_glibcs_dynamic_mmap_threshold(monkeypatch):
+    """dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which made a Roman-scene table
+    cost 3 x the CPU there (docs/field.md); ``cluster.dask_client`` unsets it for a local cluster."""
+    pytest.importorskip("dask.distributed")
+    from nlpsf import cluster
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    with cluster.dask_client("local", workers=1) as client:
+        assert set(client.run(_malloc_trim_threshold).values()) == {None}
