@@ -49,7 +49,14 @@ def dask_client(address: str | None = None, scheduler_file: str | None = None, w
     if scheduler_file is not None:
         client = Client(scheduler_file=scheduler_file)
     elif address == "local":
-        cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, processes=True, dashboard_address=None)
+        import dask
+
+        # dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which switches off glibc's
+        # dynamic mmap threshold: every large temporary array is then mmapped and page-faulted
+        # afresh, and a slope table of the Roman scene costs 3 x the CPU (75.8 s against 22-24 s
+        # in a plain process, docs/field.md). None unsets it (distributed's own convention).
+        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+            cluster = LocalCluster(n_workers=max(workers, 1), threads_per_worker=1, processes=True, dashboard_address=None)
         client = Client(cluster)
     else:
         client = Client(address)

@@ -26,7 +26,7 @@ import numpy as np
 from astropy.table import Table, vstack
 from scipy.interpolate import CubicSpline
 
-from . import __version__, cluster, defaults, experiment, photometry, roman
+from . import __version__, cluster, defaults, experiment, fidelity, fieldgrid, photometry, roman
 from .checks import InputError, SimulationError
 from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion
 
@@ -54,13 +54,42 @@ class TableSettings:
     faint_limit: float = FAINT_LIMIT
     #: Throughput data (``defaults.THROUGHPUTS``): the per-SCA official curves by default.
     throughput: str = defaults.THROUGHPUT
+    #: ``fieldgrid.TABLE_SCENES``: "paper" (the shipped tables) or "roman", the candidate Roman default
+    #: (``fieldgrid.roman_scene``; ``TableSettings.roman`` sets the HLWAS exposure).
+    scene: str = "paper"
+    #: The fidelity level the slopes are computed at: "linear" (the tables') or "polychromatic"
+    #: (Monte Carlo on the PSF integrated over 8 wavelengths, ``fidelity.simulation_settings``).
+    fidelity: str = "linear"
 
     def __post_init__(self) -> None:
         roman.check_throughput(self.throughput)
+        if self.scene not in fieldgrid.TABLE_SCENES:
+            raise InputError("scene", f"tables are built for the scenes {', '.join(fieldgrid.TABLE_SCENES)}, got {self.scene!r}")
+        if self.fidelity not in ("linear", "polychromatic"):
+            raise InputError("fidelity", f"tables are built at fidelity linear or polychromatic, got {self.fidelity!r}")
 
-    def config(self, band: str, sca: int, point: int | None = None) -> experiment.SimulationConfig:
+    @classmethod
+    def roman(cls, **changes) -> TableSettings:
+        """Settings for the candidate Roman default scene (official pupil scale and the HLWAS
+        exposure unless given)."""
+        base = {"scene": "roman", "pupil_scale": fieldgrid.ROMAN_PUPIL_SCALE, "exptime_s": fieldgrid.roman_exptime_s()}
+        return cls(**(base | changes))
+
+    def config(
+        self, band: str, sca: int, point: int | None = None, position: tuple[float, float] | None = None
+    ) -> experiment.SimulationConfig:
         """The simulation of one table; ``point`` (1-4) puts the star at that corner field point of
-        the SCA (``roman.field_points``), None at the SCA's centre."""
+        the SCA (``roman.field_points``), ``position`` at any pixel position, neither at the centre."""
+        if point:
+            position = field_position(sca, point)
+        exptime, ramp = self.exptime_s, None
+        if self.scene == "roman":
+            readout = fieldgrid.roman_readout(band, sca, self.exptime_s)
+            exptime, ramp = readout.exptime_s, readout.ramp
+            scene = fieldgrid.roman_scene(band, sca, position, readout.background_e)
+        else:
+            scene = experiment.scenes.SceneModel(position=position) if position else experiment.PAPER_SCENE
+        level = fidelity.simulation_settings(self.fidelity)
         return experiment.SimulationConfig(
             band=band,
             sca=sca,
@@ -68,18 +97,27 @@ class TableSettings:
             seed=self.seed,
             oversampling=self.oversampling,
             stamp=self.stamp,
-            exptime_s=self.exptime_s,
+            exptime_s=exptime,
             full_well_e=self.full_well_e,
             weight_cut_rho2=self.weight_cut_rho2,
             pupil_scale=self.pupil_scale,
-            method="linear",
+            method=level.method,
+            n_wavelengths=level.n_wavelengths,
             throughput=self.throughput,
-            scene=experiment.scenes.SceneModel(position=field_position(sca, point)) if point else experiment.PAPER_SCENE,
+            ramp=ramp,
+            scene=scene,
         )
 
     def fingerprint(self) -> str:
-        """Identifies the settings and code a table was made with (resuming skips matching ones)."""
-        text = json.dumps({**asdict(self), "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
+        """Identifies the settings and code a table was made with (resuming skips matching ones).
+
+        Fields added after the shipped tables were built enter only when they differ from their
+        default, so the paper tables keep their fingerprints."""
+        settings = asdict(self)
+        for name, default in (("scene", "paper"), ("fidelity", "linear")):
+            if settings[name] == default:
+                settings.pop(name)
+        text = json.dumps({**settings, "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -98,8 +136,9 @@ def field_position(sca: int, point: int | None) -> tuple[float, float] | None:
 
 
 def saturation_magnitude(peak_fraction: float, config: experiment.SimulationConfig) -> float:
-    """Magnitude at which the brightest fine pixel (over centroids) reaches the full well."""
-    electrons_at_full_well = config.full_well_e / (peak_fraction * config.oversampling**2)
+    """Magnitude at which the brightest fine pixel (over centroids) reaches the full well, on top of
+    the scene's background (none in the paper's scene)."""
+    electrons_at_full_well = (config.full_well_e - config.scene.background_e) / (peak_fraction * config.oversampling**2)
     return float(
         photometry.electrons_to_magnitude(
             electrons_at_full_well, config.band, config.exptime_s, sca=config.sca, throughput=config.throughput
@@ -117,14 +156,38 @@ def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit:
     return np.round(np.concatenate([bright, faint]), 6)
 
 
-def compute_table(band: str, sca: int, settings: TableSettings | None = None, progress=None, point: int | None = None) -> Table:
-    """The slope table of one (band, SCA), at the SCA centre or at a corner field point (1-4)."""
-    settings = settings or TableSettings()
-    start = time.perf_counter()
-    config = settings.config(band, sca, point)
-    scene = experiment.prepare(config)
+def table_magnitudes(scene: experiment.Scene, settings: TableSettings) -> tuple[float, np.ndarray]:
+    """The saturation magnitude a table's grid is anchored at, and the grid (``magnitude_grid``).
+
+    Final frame: the brightest fine pixel reaches the full well. Up the ramp a star stays measurable
+    until its brightest pixel saturates within the resultants a slope needs, so the anchor moves
+    brighter by ``ramps.Ramp.saturation_shift_mag`` (3.4 mag for H158 with C2A_IMG_HLWAS)."""
+    config = scene.config
     m_sat = saturation_magnitude(float(scene.star_peak_fraction), config)
-    magnitudes = magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+    if config.ramp is not None:
+        m_sat -= config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
+    return m_sat, magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+
+
+def compute_table(
+    band: str,
+    sca: int,
+    settings: TableSettings | None = None,
+    progress=None,
+    point: int | None = None,
+    node: tuple[int, int, int] | None = None,
+) -> Table:
+    """The slope table of one (band, SCA), at the SCA centre, a corner field point (1-4) or the
+    node ``(n, i, j)`` of the n x n field grid (``fieldgrid.grid_positions``)."""
+    settings = settings or TableSettings()
+    start, cpu_start = time.perf_counter(), time.process_time()
+    position = None
+    if node is not None:
+        n, i, j = (int(v) for v in node)
+        position = (float(fieldgrid.grid_axis(n)[i]), float(fieldgrid.grid_axis(n)[j]))
+    config = settings.config(band, sca, point, position)
+    scene = experiment.prepare(config)
+    m_sat, magnitudes = table_magnitudes(scene, settings)
     results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
     for metric in COLUMN_METRICS:
@@ -155,6 +218,9 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
         table.add_column(np.int16(point), name="field_point", index=2)
         table.meta["field_point"] = int(point)
         table.meta["position"] = list(field_position(sca, point))
+    if node is not None:
+        table.meta["grid_node"] = [int(v) for v in node]
+        table.meta["position"] = list(position)
     table.meta.update(
         {
             "band": band,
@@ -167,13 +233,17 @@ def compute_table(band: str, sca: int, settings: TableSettings | None = None, pr
             "data_version": roman.DATA_VERSION,
             "code_version": __version__,
             "elapsed_s": time.perf_counter() - start,
+            "cpu_s": time.process_time() - cpu_start,
+            "exptime_s": config.exptime_s,
+            "scene": config.scene.describe(),
         }
     )
     return table
 
 
-def _partial_path(directory: Path, band: str, sca: int, point: int | None = None) -> Path:
-    return directory / (f"slopes_{band}_SCA{sca:02d}" + (f"_P{point}" if point else "") + ".ecsv")
+def _partial_path(directory: Path, band: str, sca: int, point: int | None = None, node=None) -> Path:
+    suffix = (f"_P{point}" if point else "") + (f"_G{node[0]}_{node[1]}{node[2]}" if node is not None else "")
+    return directory / f"slopes_{band}_SCA{sca:02d}{suffix}.ecsv"
 
 
 def build_tables(
@@ -187,9 +257,11 @@ def build_tables(
     scheduler_file: str | None = None,
     retries: int = 1,
     field: bool = False,
+    grid: int | None = None,
 ) -> list[Path]:
     """Compute every (band, SCA) table into ``directory``, skipping those already done; with
-    ``field``, the tables at each SCA's four corner field points instead (``FIELD_POINTS``).
+    ``field``, the tables at each SCA's four corner field points instead (``FIELD_POINTS``); with
+    ``grid`` n, at the n x n nodes of the field grid (``fieldgrid.grid_positions``).
 
     Work is spread over ``workers`` local processes, or over a dask.distributed cluster when
     ``dask_address`` ("local" starts a LocalCluster with ``workers`` workers) or ``scheduler_file``
@@ -201,14 +273,17 @@ def build_tables(
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     todo, done = [], []
+    if field and grid:
+        raise InputError("grid", "give either the corner field points or a field grid, not both")
     points = FIELD_POINTS if field else (None,)
-    pairs = [(roman.check_band(b), roman.check_sca(s), p) for b in bands for s in scas for p in points]
-    for band, sca, point in pairs:
-        path = _partial_path(directory, band, sca, point)
+    nodes = [(grid, i, j) for i, j, _ in fieldgrid.grid_positions(grid)] if grid else [None]
+    pairs = [(roman.check_band(b), roman.check_sca(s), p, q) for b in bands for s in scas for p in points for q in nodes]
+    for band, sca, point, node in pairs:
+        path = _partial_path(directory, band, sca, point, node)
         if path.exists() and ecsv_fingerprint(path) == settings.fingerprint():
             done.append(path)
         else:
-            todo.append((band, sca, settings, None, point))
+            todo.append((band, sca, settings, None, point, node))
     total = len(pairs)
     if progress:
         progress(len(done), total, "resumed" if done else "starting")
@@ -217,12 +292,12 @@ def build_tables(
         compute_table, todo, workers=workers, dask_address=dask_address, scheduler_file=scheduler_file, retries=retries
     )
     for index, table, error in finished:
-        band, sca, _, _, point = todo[index]
-        where = f"{band} SCA {sca}" + (f" point {point}" if point else "")
+        band, sca, _, _, point, node = todo[index]
+        where = f"{band} SCA {sca}" + (f" point {point}" if point else "") + (f" node {node[1]},{node[2]}" if node else "")
         if error is not None:
             failures.append(f"{where}: {type(error).__name__}: {error}")
             continue
-        path = _partial_path(directory, band, sca, point)
+        path = _partial_path(directory, band, sca, point, node)
         cluster.write_atomic(table, path)
         done.append(path)
         if progress:
@@ -302,3 +377,14 @@ def interpolation_error_estimate(flux: np.ndarray, slope: np.ndarray) -> np.ndar
     out = np.empty_like(estimate)
     out[order] = estimate * x  # back to slope units
     return out
+
+
+def merge_field_grid(paths: Iterable[Path], destination: Path | str) -> Path:
+    """Pack the node tables of a ``build_tables(grid=n)`` run into one field-grid file
+    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads)."""
+    tables = [Table.read(p, format="ascii.ecsv") for p in sorted(paths)]
+    if not tables:
+        raise InputError("tables", "nothing to merge")
+    if any("grid_node" not in t.meta for t in tables):
+        raise InputError("tables", "only field-grid node tables (built with grid=n) go into a field-grid file")
+    return fieldgrid.write_grid(tables, destination)

@@ -25,6 +25,21 @@ def configure(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the tables at each SCA's four corner field points (what --over-field reads) instead of the centres",
     )
+    build.add_argument(
+        "--scene",
+        choices=("paper", "roman"),
+        default="paper",
+        help="paper: the shipped tables' idealised scene; roman: the candidate Roman default (nlpsf.fieldgrid: "
+        "preset roman at the position, roman-typical background, HLWAS ramp with the likelihood fit, official pupil scale)",
+    )
+    build.add_argument(
+        "--grid",
+        type=int,
+        default=None,
+        metavar="N",
+        help="tables at the N x N field-grid nodes of each SCA (N = 3, 5, 7, 9; nlpsf.fieldgrid); "
+        "--merge-to then writes one float32 .npz field-grid file",
+    )
     build.add_argument("--band", action="append", help="only these bands (repeat); default all")
     build.add_argument("--sca", action="append", type=int, help="only these SCAs (repeat); default all")
     build.add_argument("--workers", type=int, default=1, help="local worker processes")
@@ -42,8 +57,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     build.add_argument(
         "--pupil-scale",
         choices=defaults.PUPIL_SCALE_RULES,
-        default=defaults.PUPIL_SCALE,
-        help="pupil mask scale rule the tables use (see nlpsf/data/SOURCES.md)",
+        default=None,
+        help=f"pupil mask scale rule the tables use (see nlpsf/data/SOURCES.md); default {defaults.PUPIL_SCALE} "
+        "for --scene paper, official for --scene roman",
     )
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     show = sub.add_parser("show", help="print one table", formatter_class=parser.formatter_class)
@@ -69,12 +85,18 @@ def _build(args) -> int:
     from ..checks import check_integer
 
     check_integer(args.workers, "workers", 1, 256)
-    settings = tablebuild.TableSettings(
+    if args.grid is not None:
+        from .. import fieldgrid
+
+        fieldgrid.check_grid(args.grid)
+    make = tablebuild.TableSettings.roman if args.scene == "roman" else tablebuild.TableSettings
+    chosen = {"pupil_scale": args.pupil_scale} if args.pupil_scale else {}
+    settings = make(
         realizations=args.realizations,
         faint_limit=args.faint_limit,
         magnitude_step=args.step,
         throughput=args.throughput,
-        pupil_scale=args.pupil_scale,
+        **chosen,
     )
     start = time.perf_counter()
     paths = tablebuild.build_tables(
@@ -88,9 +110,13 @@ def _build(args) -> int:
         retries=args.retries,
         progress=progress_printer(not args.quiet),
         field=args.field,
+        grid=args.grid,
     )
     print(f"{len(paths)} tables in {args.output} ({time.perf_counter() - start:.1f} s)", file=sys.stderr)
-    if args.merge_to:
+    if args.merge_to and args.grid:
+        tablebuild.merge_field_grid(paths, args.merge_to)
+        print(f"field grid packed into {args.merge_to}", file=sys.stderr)
+    elif args.merge_to:
         tablebuild.merge_tables(paths, args.merge_to)
         print(f"merged into {args.merge_to} (and its .npz companion)", file=sys.stderr)
     return 0
