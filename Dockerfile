@@ -27,6 +27,7 @@ COPY pyproject.toml README.md LICENSE ./
 COPY nlpsf ./nlpsf
 COPY app ./app
 COPY static ./static
+COPY docs ./docs
 RUN pip install --no-cache-dir . && rm -rf /srv/nlpsf/* && python -c "import nlpsf.tables as t; t.load_tables().load_all()"
 
 # A system user without a login; written directly because minimal Debian bases lack useradd.
