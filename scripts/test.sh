@@ -20,7 +20,7 @@ fi
 
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[test,reference,dask]"
+.venv/bin/python -m pip install -q -e ".[test,reference,dask,pipeline]"
 
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
