@@ -27,9 +27,6 @@ from .checks import (
 
 #: Stars (and dithers) a scatter-mode PSF model may average.
 MAX_STARS = 10**9
-#: Why a solve refuses a scene with a ramp: its scene simulation and the ramp's table mapping are
-#: not combined yet (simulations combine them where ``ramps.check_scene`` allows).
-SCENE_AND_RAMP = "a scene and a ramp cannot be combined yet; give one of them"
 #: The fields of a request (API body, batch row) that describe its ramp (``ramps.build`` reads them).
 RAMP_REQUEST_FIELDS: tuple[str, ...] = ("ramp", "ma_table", "ramp_fit", "read_noise")
 #: The three quantities of the relation, of which a request gives exactly two.
@@ -103,7 +100,7 @@ class SolveRequest:
         if self.scene is not None and not isinstance(self.scene, _scene_type()):
             raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
         if self.scene is not None and self.ramp is not None:
-            raise InputError("scene", SCENE_AND_RAMP)
+            ramps.check_scene(self.scene)  # the one rule of what a ramp combines with (brighter-fatter: not yet)
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)

@@ -11,7 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, solver, tablebuild
+from nlpsf import experiment, ramps, solver, tablebuild, tables
+from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 
@@ -358,9 +359,16 @@ def test_solver_saturation_rules_and_stars_between_them():
     ramp = solver.solve("H158", precision=0.01, magnitude=17.0, ramp=uniform(n))
     payload = json.loads(json.dumps(ramp.to_dict()))
     assert payload["final_frame_saturation_magnitude"] == pytest.approx(plain.saturation_magnitude)
-    # A slope needs two resultants (romancal); the second ends at 2T/n: the ramp limit is 2.5 log10(n / 2)
-    # brighter (for a linear detector: the NL lowers the signal, so the signal rule's own limit is a little brighter still).
-    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-12)
+    # A slope needs two resultants (romancal); the second ends at tau = 2/n of the exposure. romancal's
+    # rule judges the signal S = x - beta0 x^2 of the charge x there: it reaches the full well W at
+    # x = (1 - sqrt(1 - 4 beta0 W)) / (2 beta0), a peak charge x / tau over the exposure, so the limit is
+    # 2.5 log10(x / (tau W)) brighter than the final frame's (2.5 log10(n / 2) for a linear detector).
+    x = (1 - math.sqrt(1 - 4 * BETA * FULL_WELL)) / (2 * BETA)
+    shift = 2.5 * math.log10(x / (2 / n * FULL_WELL))
+    assert shift > 2.5 * math.log10(n / 2) + 0.05  # the linear estimate is this much too faint
+    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - shift, abs=1e-9)
+    charge = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n, saturation="charge"))
+    assert charge.saturation_magnitude == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-9)
     assert "ramp" in ramp.conditions["saturation_rule"] and "final frame" in plain.conditions["saturation_rule"]
     # m = 17 lies between the two limits: an answer from a fresh simulation, flagged as such.
     assert any(f.startswith("saturated:") for f in plain.flags)
@@ -371,10 +379,30 @@ def test_solver_saturation_rules_and_stars_between_them():
     loose = solver.solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
     assert loose.binding_limit == "saturation"
     assert loose.brightest_usable_magnitude == pytest.approx(loose.saturation_magnitude)
-    assert loose.brightest_usable_magnitude == pytest.approx(loose.final_frame_saturation_magnitude - 2.5 * math.log10(n / 2))
+    assert loose.brightest_usable_magnitude == pytest.approx(loose.final_frame_saturation_magnitude - shift)
     with pytest.raises(InputError) as error:
         solver.solve("H158", precision=0.01, magnitude=10.0, ramp=uniform(n))
     assert error.value.argument == "magnitude"
+
+
+def test_solver_takes_a_scene_with_a_ramp_where_the_ramp_can_read_it_out():
+    # The charge rule with a background b: the pixel holds (q + b) tau at the last read of the
+    # resultant a slope needs, so the star's limit is a peak charge W / tau - b over the exposure
+    # (the final frame's: W - b), read off the same photometry at those charges.
+    n, background = 8, 2000.0
+    table = tables.load_tables().get("H158", 18)
+    ramp = uniform(n, saturation="charge")
+    answer = solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(background_e=background))
+    assert answer.saturation_magnitude == pytest.approx(table.saturation(T, FULL_WELL / (2 / n) - background), abs=1e-9)
+    assert answer.final_frame_saturation_magnitude == pytest.approx(table.saturation(T, FULL_WELL - background), abs=1e-12)
+    assert answer.fidelity == "linear" and "the scene has no table" in answer.conditions["ramp_slopes_from"]
+    assert answer.conditions["scene"]["background_e"] == background and answer.tolerance > 0
+    # IPC goes through the ramp too; brighter-fatter is the one effect a ramp refuses (ramps.check_scene).
+    ipc = scenes.SceneModel(ipc=((0.0, 0.02, 0.0), (0.02, 0.92, 0.02), (0.0, 0.02, 0.0)))
+    assert solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=ipc).tolerance > 0
+    with pytest.raises(InputError) as error:
+        solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(bfe_coefficient=1e-7))
+    assert error.value.argument == "scene" and "brighter_fatter" in error.value.reason
 
 
 def test_solver_without_a_ramp_reports_one_saturation_rule():
@@ -399,7 +427,11 @@ def test_cli_solve_with_a_ramp_reports_both_saturation_rules(capsys):
     payload = json.loads(out)
     library = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8))
     assert payload["tolerance"] == library.tolerance
-    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - 2.5 * math.log10(4))
+    x = (1 - math.sqrt(1 - 4 * BETA * FULL_WELL)) / (2 * BETA)  # romancal's signal rule at the second read
+    shift = 2.5 * math.log10(x / (2 / 8 * FULL_WELL))
+    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - shift, abs=1e-9)
+    code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ramp", "8")
+    assert code == 0 and "(ramp rule: resultant 2, the one a slope needs)" in out
     # An MA table's exposure defaults to its last read.
     code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ma-table", "romanisim-109", "--json")
     assert code == 0 and json.loads(out)["exptime"] == pytest.approx(ramps.load_ma_table("romanisim-109").duration_s)
