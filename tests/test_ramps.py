@@ -563,3 +563,50 @@ def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(be
     assert ramp.saturation_shift_mag(T) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
     charge_rule = uniform(n, saturation="charge")
     assert charge_rule.saturation_shift_mag(T, FULL_WELL, beta) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
+
+
+# --- the ramp's rules and the linearisation state from every entry point -------------------------
+
+
+def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
+    # The charge rule at the resultant a slope needs, for a linear detector judged by its charge:
+    # k = 2 (romancal: one resultant gives no slope) or k = 1 (through zero), ending at k T / n.
+    from nlpsf.request import SolveRequest
+
+    n = 8
+    frame = solver.solve("H158", precision=0.01, magnitude=19.0).saturation_magnitude
+    for single, needed in (("unusable", 2), ("through_zero", 1)):
+        argv = ["solve", "--precision", "0.01", "--magnitude", "19", "--ramp", str(n), "--ramp-saturation", "charge"]
+        code, out, _ = _cli_json(capsys, *argv, "--single-resultant", single, "--json")
+        assert code == 0
+        payload = json.loads(out)
+        assert payload["saturation_magnitude"] == pytest.approx(frame - 2.5 * math.log10(n / needed), abs=1e-9)
+        assert payload["conditions"]["ramp"]["saturation"] == "charge"
+        assert payload["conditions"]["ramp"]["single_resultant"] == single
+        body = {"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": n}
+        request = SolveRequest.from_json({**body, "ramp_saturation": "charge", "ramp_single_resultant": single})
+        assert solver.answer(request).saturation_magnitude == payload["saturation_magnitude"]
+    # Neither given: romancal's rules (ramps.build's defaults).
+    assert SolveRequest.from_json(body).ramp.saturation == "signal"
+    assert SolveRequest.from_json(body).ramp.single_resultant == "unusable"
+    with pytest.raises(InputError) as error:
+        SolveRequest.from_json({**body, "ramp_single_resultant": "twice"})
+    assert error.value.argument == "ramp_single_resultant"
+
+
+def test_cli_slopes_takes_the_linearisation_state(capsys):
+    # "corrected": the slope at the residual NL CORRECTED_RESIDUAL x beta0. A final frame's saturation
+    # does not depend on beta, so that is the paper's slope taken at beta0' = CORRECTED_RESIDUAL x beta0.
+    argv = ["slopes", "--realizations", "4", "--magnitude", "18", "--method", "linear", "--json"]
+    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected")
+    assert code == 0
+    corrected = json.loads(out)[0]
+    assert corrected["conditions"]["linearised_at"]["state"] == "corrected"
+    config = SimulationConfig(realizations=4, method="linear")
+    at_residual = slopes(config, [18.0], beta0=experiment.CORRECTED_RESIDUAL * BETA)[0]
+    assert corrected["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(at_residual.bias["dR_over_R"].mean, rel=1e-12)
+    code, out, _ = _cli_json(capsys, *argv)
+    raw = json.loads(out)[0]
+    assert "linearised_at" not in raw["conditions"]
+    # At m = 18 the NL is not linear in beta: the slope at beta0 is measurably not the corrected one.
+    assert raw["bias_slope"]["dR_over_R"]["mean"] != pytest.approx(corrected["bias_slope"]["dR_over_R"]["mean"], rel=1e-3)
