@@ -15,6 +15,7 @@ from nlpsf import experiment, ramps, solver, tablebuild, tables
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
+from nlpsf.flags import FlagCode, codes
 
 T = 168.1
 FULL_WELL = 1.1e5
@@ -296,7 +297,7 @@ def test_the_ramp_saturation_magnitude_moves_by_the_time_of_the_resultant_a_slop
     frame_results = simulate(paper_config, list(grid), [BETA], scene=paper_scene)
     unusable = np.array([r.extras["ramp"]["unusable"] > 0 for r in results])
     dropped = np.array([r.extras["ramp"]["fitted_on_fewer"] > 0 for r in results])
-    frame_saturated = np.array([any(f.startswith("saturated:") for f in r.flags) for r in frame_results])
+    frame_saturated = np.array([FlagCode.SATURATED in codes(r.flags) for r in frame_results])
     # Brightest magnitude still usable on the ramp, and brightest unsaturated final frame.
     ramp_limit = grid[np.argmax(unusable) - 1]
     frame_limit = grid[np.argmax(frame_saturated) - 1]
@@ -306,8 +307,8 @@ def test_the_ramp_saturation_magnitude_moves_by_the_time_of_the_resultant_a_slop
     between = (grid < drawn) & (grid > ramp_limit)  # a drawn centroid's final frame passes the full well
     assert between.sum() > 10
     for r, d in zip(np.array(results)[between], dropped[between], strict=True):
-        assert d and r.dR_over_R.mean is not None and any(f.startswith("ramp:") for f in r.flags)
-        assert not any(f.startswith("saturated:") for f in r.flags)
+        assert d and r.dR_over_R.mean is not None and FlagCode.RAMP_FEWER_RESULTANTS in codes(r.flags)
+        assert FlagCode.SATURATED not in codes(r.flags)
 
 
 def test_optimal_ramp_runs_through_both_methods_and_names_itself(paper_config, paper_scene):
@@ -371,9 +372,9 @@ def test_solver_saturation_rules_and_stars_between_them():
     assert charge.saturation_magnitude == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-9)
     assert "ramp" in ramp.conditions["saturation_rule"] and "final frame" in plain.conditions["saturation_rule"]
     # m = 17 lies between the two limits: an answer from a fresh simulation, flagged as such.
-    assert any(f.startswith("saturated:") for f in plain.flags)
-    assert not any(f.startswith("saturated:") for f in ramp.flags)
-    assert any(f.startswith("between the saturation limits") for f in ramp.flags)
+    assert FlagCode.STAR_SATURATED in codes(plain.flags)
+    assert not {FlagCode.SATURATED, FlagCode.STAR_SATURATED, FlagCode.RAMP_SATURATED} & set(codes(ramp.flags))
+    assert FlagCode.BETWEEN_SATURATION_LIMITS in codes(ramp.flags)
     assert "simulations" in ramp.conditions["ramp_slopes_from"] and ramp.tolerance > 0
     # When saturation binds, the brightest usable star is the ramp's limit, not the final frame's.
     loose = solver.solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
