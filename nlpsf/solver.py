@@ -351,13 +351,11 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         )
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    # With a ramp a star is usable until its brightest pixel keeps fewer resultants than a slope needs
-    # (the first, or the second where one resultant gives no slope): exact under the ramp's rules,
-    # with the raw beta0 (saturation is flagged before the NL is corrected) and the background.
+    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
+    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
     ramp = request.ramp
     shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
-    saturation = final_frame - shift
-    return _Limits(saturation, final_frame)
+    return _Limits(final_frame - shift, final_frame)
 
 
 @dataclass
@@ -589,9 +587,7 @@ def _ramp_basis(slopes: _Slopes) -> str:
             if slopes.ramp.fit == "optimal"
             else f"brighter than m={slopes.exact_from():.2f} pixels drop saturated resultants"
             if slopes.fidelity == "table"
-            else "the scene has no table"
-            if slopes.scene_model is not None
-            else f"fidelity {slopes.fidelity} asked for"
+            else ("the scene has no table" if slopes.scene_model is not None else f"fidelity {slopes.fidelity} asked for")
         )
         parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
     return "; ".join(parts) or "none needed"
