@@ -61,19 +61,11 @@ class TableSettings:
     def config(self, band: str, sca: int, point: int | None = None) -> experiment.SimulationConfig:
         """The simulation of one table; ``point`` (1-4) puts the star at that corner field point of
         the SCA (``roman.field_points``), None at the SCA's centre."""
-        return experiment.SimulationConfig(
+        return experiment.SimulationConfig.from_settings(
+            self,  # its exposure, full well, grid, realizations, seed, weight cut, pupil rule, throughput
             band=band,
             sca=sca,
-            realizations=self.realizations,
-            seed=self.seed,
-            oversampling=self.oversampling,
-            stamp=self.stamp,
-            exptime_s=self.exptime_s,
-            full_well_e=self.full_well_e,
-            weight_cut_rho2=self.weight_cut_rho2,
-            pupil_scale=self.pupil_scale,
             method="linear",
-            throughput=self.throughput,
             scene=experiment.scenes.SceneModel(position=field_position(sca, point)) if point else experiment.PAPER_SCENE,
         )
 

@@ -241,21 +241,13 @@ def config_from(args: argparse.Namespace):
     from ..experiment import SimulationConfig
 
     ramp, exptime = ramp_from(args)
-    return SimulationConfig(
-        band=args.band,
-        sca=args.sca,
-        realizations=args.realizations,
-        seed=args.seed,
-        oversampling=args.oversampling,
-        stamp=args.stamp,
+    # The options named as the fields are taken as they are; these differ in name or meaning.
+    return SimulationConfig.from_settings(
+        vars(args),
         exptime_s=exptime,
         full_well_e=args.full_well,
-        n_wavelengths=args.n_wavelengths,
         weight_cut_rho2=args.weight_cut,
-        pupil_scale=args.pupil_scale,
-        method=args.method,
         scene=scene_from(args)[0],
-        throughput=args.throughput,
         ramp=ramp,
     )
 
