@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, Strict
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from nlpsf import defaults, detector, fidelity, ramps, roman, shear, solver
 from nlpsf import scene as scenes
@@ -72,7 +72,15 @@ _SOLVE_DEFAULTS = {
 
 #: R_gal / R_psf, and a [ratio, weight] pair of a size-ratio distribution (ranges: ``nlpsf.shear``).
 _Ratio = Annotated[float, Field(ge=shear.SIZE_RATIO_RANGE[0], le=shear.SIZE_RATIO_RANGE[1])]
-_RatioWeight = Annotated[tuple[_Ratio, Annotated[float, Field(ge=0.0, le=shear.MAX_WEIGHT)]], Strict(False)]  # a JSON array
+
+
+def _array_as_pair(value: Any) -> Any:
+    # A JSON array is a list; strict models take a tuple only as a tuple. Strict(False) on the tuple
+    # did this from pydantic 2.8 on, not in 2.7 (the declared minimum), inside a union.
+    return tuple(value) if isinstance(value, list) else value
+
+
+_RatioWeight = Annotated[tuple[_Ratio, Annotated[float, Field(ge=0.0, le=shear.MAX_WEIGHT)]], BeforeValidator(_array_as_pair)]
 _RatioList = Annotated[list[_Ratio | _RatioWeight], Field(min_length=1, max_length=shear.MAX_SIZE_RATIOS)]
 
 

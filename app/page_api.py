@@ -20,8 +20,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import PlainTextResponse, Response
 
+from nlpsf import relation, tables
 from nlpsf import solver as solver_module
-from nlpsf import tables
 from nlpsf.checks import InputError
 
 from . import models, params, solve_api
@@ -76,13 +76,6 @@ def _fidelity_relative(points: list[dict[str, Any] | None]) -> float | None:
     return None
 
 
-def _nonmonotonic_magnitude(saturation: float, beta0: float, full_well: float) -> float:
-    # The brightest pixel holds the full well at the saturation magnitude and scales with the flux,
-    # 10^(-0.4 Δm); the quadratic S = Q − βQ² stops rising where 2 β₀ Q_peak = 1.
-    # (The library's solver applies the same rule; it has no public function for the magnitude yet.)
-    return saturation - 2.5 * math.log10(1.0 / (2.0 * beta0 * full_well))
-
-
 def limits(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: float, full_well: float) -> dict[str, Any]:
     """Saturation, the non-monotonic limit and the brightest magnitude the solver answers for."""
     curve = tables.curve(band, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well)
@@ -103,7 +96,7 @@ def limits(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: f
         brightest = faint
     return {
         "saturation_magnitude": saturation,
-        "nonmonotonic_magnitude": _nonmonotonic_magnitude(saturation, beta0, full_well),
+        "nonmonotonic_magnitude": relation.nl_invalid_magnitude(band, sca, beta0, exptime),
         "brightest_answered_magnitude": brightest,
         "rules": {
             "saturation_magnitude": "brighter than this the brightest pixel passes the full well in a single final frame",
@@ -233,11 +226,12 @@ def impact_terms(
     precision: Positive,
     impact: Annotated[list[float], Query(max_length=50, description="slope with ÷ without − 1 for each effect")],
 ) -> SafeJSONResponse:
-    # T = |c| p β₀ at fixed T and β₀: p scales as 1/|c|, so a slope larger by (1 + impact) asks p / (1 + impact).
+    # The relation is the library's (nlpsf.relation); a vanishing slope asks no precision (null).
+    asked = [relation.precision_with_impact(precision, x) for x in impact]
     return SafeJSONResponse(
         {
-            "relation": "p_with = p / (1 + impact): T = |c| p beta0 at fixed T and beta0",
-            "precision": [precision / (1.0 + x) if 1.0 + x > 0 else None for x in impact],
+            "relation": "p_with = p / |1 + impact|: T = |c| p beta0 at fixed T and beta0",
+            "precision": [p if math.isfinite(p) else None for p in asked],
         }
     )
 

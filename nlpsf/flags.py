@@ -208,10 +208,10 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "A final frame would saturate, the ramp's early resultants do not: saturated resultants are dropped.",
     ),
     FlagCode.RAMP_SATURATED: FlagSpec(
-        "saturated: at m={magnitude:g} the brightest pixel passes the full well already in the first resultant "
+        "saturated: at m={magnitude:g} the brightest pixel saturates already in the resultant a slope needs "
         "(ramp saturation at m={m_sat:.2f}); such a star cannot be used for the PSF model at all",
         ("magnitude", "m_sat"),
-        "The star saturates in the ramp's first resultant: it cannot be used.",
+        "The star saturates in the resultants a ramp slope needs: it cannot be used.",
     ),
     FlagCode.STAR_SATURATED: FlagSpec(
         "saturated: at m={magnitude:g} the brightest pixel exceeds the full well (saturation at m={m_sat:.2f}); "

@@ -83,6 +83,13 @@ def check_request(
     }
 
 
+def point_config(band: str, sca: int, exptime: float, realizations: int, seed: int = defaults.SEED, **changes):
+    """The simulation an effect's impact is measured with: the linear response at one point
+    (``changes``: its scene, pupil rule, ...). The impact report and the solver's model part share it."""
+    settings = {"band": band, "sca": sca, "exptime_s": exptime, "realizations": realizations, "seed": seed}
+    return experiment.SimulationConfig.from_settings(settings, method="linear", **changes)
+
+
 def impact(
     band: str = defaults.BAND,
     sca: int = defaults.SCA,
@@ -107,9 +114,7 @@ def impact(
         raise InputError("scene", "must be a scene description")
     checked = check_request(band, sca, magnitude, metric, mode, beta0, exptime, realizations, seed)
     magnitude, beta0 = checked["magnitude"], checked["beta0"]
-    base = experiment.SimulationConfig(
-        band=checked["band"], sca=sca, realizations=realizations, seed=seed, exptime_s=exptime, method="linear", scene=scene
-    )
+    base = point_config(checked["band"], sca, exptime, realizations, seed, scene=scene)
     cache: dict[scenes.SceneModel, tuple[dict, float, list[str]]] = {}
 
     def run(model: scenes.SceneModel):
@@ -283,9 +288,7 @@ def model_point(
     """
     report = impact(band, sca, magnitude, mode=mode, beta0=beta0, exptime=exptime, realizations=realizations, seed=seed)
     conditions = report["conditions"]
-    base = experiment.SimulationConfig(
-        band=band, sca=sca, realizations=realizations, seed=seed, exptime_s=exptime, method="linear"
-    )
+    base = point_config(band, sca, exptime, realizations, seed)
 
     def values(config: experiment.SimulationConfig) -> dict:
         return slope_values(experiment.slopes(config, [conditions["magnitude"]], beta0=conditions["beta0"])[0], mode)

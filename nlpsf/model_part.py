@@ -70,9 +70,7 @@ def select_scene(scene, request, magnitude: float):
     # The pupil-mask scale rule (nlpsf/data/SOURCES.md): the same point with the other rule.
     runs = {}
     for rule in ("galsim", "header"):
-        config = experiment.SimulationConfig(
-            band=band, sca=sca, realizations=50, exptime_s=exptime, method="linear", pupil_scale=rule, scene=simulated
-        )
+        config = impact.point_config(band, sca, exptime, 50, pupil_scale=rule, scene=simulated)
         runs[rule] = impact.slope_values(experiment.slopes(config, [magnitude], beta0=beta0)[0], mode)[metric][0]
     pupil = None if not runs["galsim"] or runs["header"] is None else runs["header"] / runs["galsim"] - 1
     parts.append({"name": "pupil_scale", "impact": pupil, "why": "pupil-mask scale rule: galsim (used) vs header"})

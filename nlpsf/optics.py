@@ -33,6 +33,7 @@ import numpy as np
 
 from . import roman
 from .checks import InputError, check_integer, check_number
+from .threads import limited_blas
 
 ARCSEC_PER_RADIAN = 180.0 * 3600.0 / math.pi
 
@@ -304,14 +305,18 @@ def _optical_cutoff(pupil: roman.Pupil, wavelength_nm: float) -> float:
 def effective_psf(optics: OpticsConfig, field_arcsec: float) -> EffectivePSF:
     """Effective PSF (optics convolved with the 0.11" pixel) of ``optics`` on a field of this side.
 
-    Cached per (optics, field): the only expensive step of a simulation, done once.
+    Cached per (optics, field): the only expensive step of a simulation, done once. It is computed
+    on the kernels' BLAS threads (``threads.limited_blas``) whoever asks first: a multithreaded matrix
+    product sums in another order, so a PSF cached by a caller outside the kernels would differ in its
+    last bits from the same PSF computed inside one (e.g. the SCA centre given or defaulted).
     """
     field_arcsec = check_number(field_arcsec, "field_arcsec", 0.5, 60.0)
     pupil = roman.pupil(optics.sca, optics.band, optics.pupil_bin, optics.pupil_scale)
     wavelengths, weights = optics.wavelengths_and_weights()
-    return psf_from_pupil(
-        pupil, roman.aberrations(optics.sca, optics.position_pixels), wavelengths, weights, field_arcsec, optics
-    )
+    with limited_blas():
+        return psf_from_pupil(
+            pupil, roman.aberrations(optics.sca, optics.position_pixels), wavelengths, weights, field_arcsec, optics
+        )
 
 
 def psf_from_pupil(

@@ -27,11 +27,12 @@ from .checks import (
 
 #: Stars (and dithers) a scatter-mode PSF model may average.
 MAX_STARS = 10**9
-#: Why a solve refuses a scene with a ramp: its scene simulation and the ramp's table mapping are
-#: not combined yet (simulations combine them where ``ramps.check_scene`` allows).
-SCENE_AND_RAMP = "a scene and a ramp cannot be combined yet; give one of them"
 #: The fields of a request (API body, batch row) that describe its ramp (``ramps.build`` reads them).
-RAMP_REQUEST_FIELDS: tuple[str, ...] = ("ramp", "ma_table", "ramp_fit", "read_noise")
+RAMP_REQUEST_FIELDS: tuple[str, ...] = (
+    "ramp", "ma_table", "ramp_fit", "read_noise", "ramp_saturation", "ramp_single_resultant",
+)  # fmt: skip
+#: The ramp's rules among them, as ``ramps.build``'s arguments (absent: its defaults, romancal's).
+RAMP_RULE_FIELDS: dict[str, str] = {"ramp_saturation": "saturation", "ramp_single_resultant": "single_resultant"}
 #: The three quantities of the relation, of which a request gives exactly two.
 TRIPLE: tuple[str, ...] = ("precision", "tolerance", "magnitude")
 
@@ -103,7 +104,7 @@ class SolveRequest:
         if self.scene is not None and not isinstance(self.scene, _scene_type()):
             raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
         if self.scene is not None and self.ramp is not None:
-            raise InputError("scene", SCENE_AND_RAMP)
+            ramps.check_scene(self.scene)  # the one rule of what a ramp combines with (brighter-fatter: not yet)
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
@@ -185,6 +186,7 @@ class SolveRequest:
             given_exptime,
             allow_files=allow_files,
             sca=data.get("sca", defaults.SCA),
+            **{rule: ramp_fields[name] for name, rule in RAMP_RULE_FIELDS.items() if ramp_fields[name] is not None},
         )
         data["exptime"], data["ramp"] = exptime, ramp
         scene = data.pop("scene", None)

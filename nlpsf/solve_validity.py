@@ -69,7 +69,7 @@ def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: flo
     if magnitude < m_sat - tables.BRIGHT_MARGIN_MAG:
         raise InputError(
             "magnitude",
-            f"m={magnitude:g} saturates the brightest pixel in the first resultant of the ramp by more than "
+            f"m={magnitude:g} saturates the brightest pixel in the resultant a ramp slope needs by more than "
             f"{tables.BRIGHT_MARGIN_MAG} mag (usable down to m={m_sat:.2f}); such a star has no meaningful NL answer",
         )
     if magnitude < m_sat:

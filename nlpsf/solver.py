@@ -29,10 +29,13 @@ Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from
 (``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
 measured error (``nlpsf tradeoff``) meets it.
 
-Up-the-ramp exposures (``ramp``, see ``nlpsf.ramps``): the saturation rule becomes Roman's (a star
-is usable until its brightest pixel saturates in the *first* resultant, 2.5 log10(T / t_1) mag
-brighter than the final-frame rule), and the slopes come from the tables where the mapping is exact
-(quadratic NL, OLS fit, every pixel keeping every resultant: the final frame at beta_eff = c_2 beta0,
+Up-the-ramp exposures (``ramp``, see ``nlpsf.ramps``; in a scene where ``ramps.check_scene``
+allows): the saturation rule becomes Roman's (a star
+is usable until its brightest pixel saturates in the resultant a slope needs -- the first, or the
+second where one resultant gives no slope, as in romancal -- about 2.5 log10(T / t_k) mag brighter
+than the final-frame rule, exactly ``Ramp.saturation_shift_mag(T, full well, beta0, background)``),
+and the slopes come from the tables where the mapping is exact (quadratic NL, OLS fit, every
+pixel keeping every resultant: the final frame at beta_eff = c_2 beta0,
 c_2 = 1 + 1/N for N uniform reads, so c(m) = c_2 c_table(m; c_2 beta0)) and from fresh
 linear-response simulations of the ramp otherwise (optimal fit, or a star bright enough that some
 of its pixels drop saturated resultants). ``conditions["ramp_slopes_from"]`` says which.
@@ -348,11 +351,11 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         )
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    # With a ramp a star is usable until its brightest pixel saturates in the first resultant,
-    # 2.5 log10(T / t_1) brighter than the single final frame's limit.
+    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
+    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
     ramp = request.ramp
-    saturation = final_frame if ramp is None else final_frame - ramp.saturation_shift_mag(request.exptime)
-    return _Limits(saturation, final_frame)
+    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
+    return _Limits(final_frame - shift, final_frame)
 
 
 @dataclass
@@ -519,7 +522,8 @@ def _conditions(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> 
         conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
     else:
         conditions["saturation_rule"] = (
-            "ramp: the brightest pixel's first resultant reaches the full well (later saturated resultants are dropped)"
+            "ramp: the brightest pixel saturates in the resultant a slope needs (the first, or the second where one "
+            "resultant gives no slope; later saturated resultants are dropped): " + ramp.saturation_rule()
         )
         conditions["ramp"] = ramp.conditions(request.exptime)
         # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
@@ -583,7 +587,7 @@ def _ramp_basis(slopes: _Slopes) -> str:
             if slopes.ramp.fit == "optimal"
             else f"brighter than m={slopes.exact_from():.2f} pixels drop saturated resultants"
             if slopes.fidelity == "table"
-            else f"fidelity {slopes.fidelity} asked for"
+            else ("the scene has no table" if slopes.scene_model is not None else f"fidelity {slopes.fidelity} asked for")
         )
         parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
     return "; ".join(parts) or "none needed"

@@ -40,9 +40,8 @@ def _combine(values: list[float], errors: list[float]) -> float:
 
 def reference_slopes(band: str, sca: int, magnitude: float) -> dict:
     """Most exact slopes: polychromatic (16 wavelengths), 400 centroids, exact derivatives."""
-    config = experiment.SimulationConfig(
-        band=band, sca=sca, realizations=REFERENCE_REALIZATIONS, method="linear", n_wavelengths=REFERENCE_WAVELENGTHS
-    )
+    reference = {"method": "linear", "n_wavelengths": REFERENCE_WAVELENGTHS, "realizations": REFERENCE_REALIZATIONS}
+    config = experiment.SimulationConfig.from_settings(reference, band=band, sca=sca)
     return _slope_values(experiment.slopes(config, [magnitude])[0])
 
 
@@ -67,7 +66,7 @@ def level_slopes(level: str, band: str, sca: int, magnitude: float) -> tuple[dic
         elapsed = _time_table_solve(band, sca, magnitude)
         return out, elapsed
     settings = simulation_settings(level)
-    config = experiment.SimulationConfig(band=band, sca=sca, method=settings.method, n_wavelengths=settings.n_wavelengths)
+    config = experiment.SimulationConfig.from_settings(settings, band=band, sca=sca)  # its method and wavelengths
     optics.effective_psf.cache_clear()  # a fresh request pays for its optics
     result = experiment.slopes(config, [magnitude])[0]
     return _slope_values(result), time.perf_counter() - start

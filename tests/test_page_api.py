@@ -80,3 +80,14 @@ def test_presets_carry_sources(client):
     assert all(p["source"] and p["share"] for p in presets["presets"])
     assert any("arXiv:2505.00093" in p["source"] for p in presets["presets"])
     assert presets["scenes"]["roman"]["fields"]["ipc"] == "roman"
+
+
+def test_the_page_reads_its_limits_and_impacts_from_the_library(client):
+    from nlpsf import relation
+
+    params = {"band": "J129", "sca": 3, "beta0": 1e-6, "exptime": 100.0}
+    limits = client.get("/api/v1/page/limits", params=params).json()
+    assert limits["nonmonotonic_magnitude"] == relation.nl_invalid_magnitude("J129", 3, 1e-6, 100.0)
+    impacts = client.get("/api/v1/page/impact-terms", params={"precision": 0.01, "impact": [0.25, -1.0, -1.5]}).json()
+    # T = |c| p beta0 at fixed T: p / |1 + impact|; a vanishing slope asks no precision (null).
+    assert impacts["precision"] == [pytest.approx(0.008), None, pytest.approx(0.02)]

@@ -11,9 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, solver, tablebuild
+from nlpsf import experiment, ramps, solver, tablebuild, tables
+from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
+from nlpsf.flags import FlagCode, codes
 
 T = 168.1
 FULL_WELL = 1.1e5
@@ -295,7 +297,7 @@ def test_the_ramp_saturation_magnitude_moves_by_the_time_of_the_resultant_a_slop
     frame_results = simulate(paper_config, list(grid), [BETA], scene=paper_scene)
     unusable = np.array([r.extras["ramp"]["unusable"] > 0 for r in results])
     dropped = np.array([r.extras["ramp"]["fitted_on_fewer"] > 0 for r in results])
-    frame_saturated = np.array([any(f.startswith("saturated:") for f in r.flags) for r in frame_results])
+    frame_saturated = np.array([FlagCode.SATURATED in codes(r.flags) for r in frame_results])
     # Brightest magnitude still usable on the ramp, and brightest unsaturated final frame.
     ramp_limit = grid[np.argmax(unusable) - 1]
     frame_limit = grid[np.argmax(frame_saturated) - 1]
@@ -305,8 +307,8 @@ def test_the_ramp_saturation_magnitude_moves_by_the_time_of_the_resultant_a_slop
     between = (grid < drawn) & (grid > ramp_limit)  # a drawn centroid's final frame passes the full well
     assert between.sum() > 10
     for r, d in zip(np.array(results)[between], dropped[between], strict=True):
-        assert d and r.dR_over_R.mean is not None and any(f.startswith("ramp:") for f in r.flags)
-        assert not any(f.startswith("saturated:") for f in r.flags)
+        assert d and r.dR_over_R.mean is not None and FlagCode.RAMP_FEWER_RESULTANTS in codes(r.flags)
+        assert FlagCode.SATURATED not in codes(r.flags)
 
 
 def test_optimal_ramp_runs_through_both_methods_and_names_itself(paper_config, paper_scene):
@@ -358,23 +360,50 @@ def test_solver_saturation_rules_and_stars_between_them():
     ramp = solver.solve("H158", precision=0.01, magnitude=17.0, ramp=uniform(n))
     payload = json.loads(json.dumps(ramp.to_dict()))
     assert payload["final_frame_saturation_magnitude"] == pytest.approx(plain.saturation_magnitude)
-    # A slope needs two resultants (romancal); the second ends at 2T/n: the ramp limit is 2.5 log10(n / 2)
-    # brighter (for a linear detector: the NL lowers the signal, so the signal rule's own limit is a little brighter still).
-    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-12)
+    # A slope needs two resultants (romancal); the second ends at tau = 2/n of the exposure. romancal's
+    # rule judges the signal S = x - beta0 x^2 of the charge x there: it reaches the full well W at
+    # x = (1 - sqrt(1 - 4 beta0 W)) / (2 beta0), a peak charge x / tau over the exposure, so the limit is
+    # 2.5 log10(x / (tau W)) brighter than the final frame's (2.5 log10(n / 2) for a linear detector).
+    x = (1 - math.sqrt(1 - 4 * BETA * FULL_WELL)) / (2 * BETA)
+    shift = 2.5 * math.log10(x / (2 / n * FULL_WELL))
+    assert shift > 2.5 * math.log10(n / 2) + 0.05  # the linear estimate is this much too faint
+    assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - shift, abs=1e-9)
+    charge = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n, saturation="charge"))
+    assert charge.saturation_magnitude == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-9)
     assert "ramp" in ramp.conditions["saturation_rule"] and "final frame" in plain.conditions["saturation_rule"]
     # m = 17 lies between the two limits: an answer from a fresh simulation, flagged as such.
-    assert any(f.startswith("saturated:") for f in plain.flags)
-    assert not any(f.startswith("saturated:") for f in ramp.flags)
-    assert any(f.startswith("between the saturation limits") for f in ramp.flags)
+    assert FlagCode.STAR_SATURATED in codes(plain.flags)
+    assert not {FlagCode.SATURATED, FlagCode.STAR_SATURATED, FlagCode.RAMP_SATURATED} & set(codes(ramp.flags))
+    assert FlagCode.BETWEEN_SATURATION_LIMITS in codes(ramp.flags)
     assert "simulations" in ramp.conditions["ramp_slopes_from"] and ramp.tolerance > 0
     # When saturation binds, the brightest usable star is the ramp's limit, not the final frame's.
     loose = solver.solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
     assert loose.binding_limit == "saturation"
     assert loose.brightest_usable_magnitude == pytest.approx(loose.saturation_magnitude)
-    assert loose.brightest_usable_magnitude == pytest.approx(loose.final_frame_saturation_magnitude - 2.5 * math.log10(n / 2))
+    assert loose.brightest_usable_magnitude == pytest.approx(loose.final_frame_saturation_magnitude - shift)
     with pytest.raises(InputError) as error:
         solver.solve("H158", precision=0.01, magnitude=10.0, ramp=uniform(n))
     assert error.value.argument == "magnitude"
+
+
+def test_solver_takes_a_scene_with_a_ramp_where_the_ramp_can_read_it_out():
+    # The charge rule with a background b: the pixel holds (q + b) tau at the last read of the
+    # resultant a slope needs, so the star's limit is a peak charge W / tau - b over the exposure
+    # (the final frame's: W - b), read off the same photometry at those charges.
+    n, background = 8, 2000.0
+    table = tables.load_tables().get("H158", 18)
+    ramp = uniform(n, saturation="charge")
+    answer = solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(background_e=background))
+    assert answer.saturation_magnitude == pytest.approx(table.saturation(T, FULL_WELL / (2 / n) - background), abs=1e-9)
+    assert answer.final_frame_saturation_magnitude == pytest.approx(table.saturation(T, FULL_WELL - background), abs=1e-12)
+    assert answer.fidelity == "linear" and "the scene has no table" in answer.conditions["ramp_slopes_from"]
+    assert answer.conditions["scene"]["background_e"] == background and answer.tolerance > 0
+    # IPC goes through the ramp too; brighter-fatter is the one effect a ramp refuses (ramps.check_scene).
+    ipc = scenes.SceneModel(ipc=((0.0, 0.02, 0.0), (0.02, 0.92, 0.02), (0.0, 0.02, 0.0)))
+    assert solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=ipc).tolerance > 0
+    with pytest.raises(InputError) as error:
+        solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(bfe_coefficient=1e-7))
+    assert error.value.argument == "scene" and "brighter_fatter" in error.value.reason
 
 
 def test_solver_without_a_ramp_reports_one_saturation_rule():
@@ -399,7 +428,11 @@ def test_cli_solve_with_a_ramp_reports_both_saturation_rules(capsys):
     payload = json.loads(out)
     library = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8))
     assert payload["tolerance"] == library.tolerance
-    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - 2.5 * math.log10(4))
+    x = (1 - math.sqrt(1 - 4 * BETA * FULL_WELL)) / (2 * BETA)  # romancal's signal rule at the second read
+    shift = 2.5 * math.log10(x / (2 / 8 * FULL_WELL))
+    assert payload["saturation_magnitude"] == pytest.approx(payload["final_frame_saturation_magnitude"] - shift, abs=1e-9)
+    code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ramp", "8")
+    assert code == 0 and "(ramp rule: resultant 2, the one a slope needs)" in out
     # An MA table's exposure defaults to its last read.
     code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ma-table", "romanisim-109", "--json")
     assert code == 0 and json.loads(out)["exptime"] == pytest.approx(ramps.load_ma_table("romanisim-109").duration_s)
@@ -531,3 +564,50 @@ def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(be
     assert ramp.saturation_shift_mag(T) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
     charge_rule = uniform(n, saturation="charge")
     assert charge_rule.saturation_shift_mag(T, FULL_WELL, beta) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
+
+
+# --- the ramp's rules and the linearisation state from every entry point -------------------------
+
+
+def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
+    # The charge rule at the resultant a slope needs, for a linear detector judged by its charge:
+    # k = 2 (romancal: one resultant gives no slope) or k = 1 (through zero), ending at k T / n.
+    from nlpsf.request import SolveRequest
+
+    n = 8
+    frame = solver.solve("H158", precision=0.01, magnitude=19.0).saturation_magnitude
+    for single, needed in (("unusable", 2), ("through_zero", 1)):
+        argv = ["solve", "--precision", "0.01", "--magnitude", "19", "--ramp", str(n), "--ramp-saturation", "charge"]
+        code, out, _ = _cli_json(capsys, *argv, "--single-resultant", single, "--json")
+        assert code == 0
+        payload = json.loads(out)
+        assert payload["saturation_magnitude"] == pytest.approx(frame - 2.5 * math.log10(n / needed), abs=1e-9)
+        assert payload["conditions"]["ramp"]["saturation"] == "charge"
+        assert payload["conditions"]["ramp"]["single_resultant"] == single
+        body = {"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": n}
+        request = SolveRequest.from_json({**body, "ramp_saturation": "charge", "ramp_single_resultant": single})
+        assert solver.answer(request).saturation_magnitude == payload["saturation_magnitude"]
+    # Neither given: romancal's rules (ramps.build's defaults).
+    assert SolveRequest.from_json(body).ramp.saturation == "signal"
+    assert SolveRequest.from_json(body).ramp.single_resultant == "unusable"
+    with pytest.raises(InputError) as error:
+        SolveRequest.from_json({**body, "ramp_single_resultant": "twice"})
+    assert error.value.argument == "ramp_single_resultant"
+
+
+def test_cli_slopes_takes_the_linearisation_state(capsys):
+    # "corrected": the slope at the residual NL CORRECTED_RESIDUAL x beta0. A final frame's saturation
+    # does not depend on beta, so that is the paper's slope taken at beta0' = CORRECTED_RESIDUAL x beta0.
+    argv = ["slopes", "--realizations", "4", "--magnitude", "18", "--method", "linear", "--json"]
+    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected")
+    assert code == 0
+    corrected = json.loads(out)[0]
+    assert corrected["conditions"]["linearised_at"]["state"] == "corrected"
+    config = SimulationConfig(realizations=4, method="linear")
+    at_residual = slopes(config, [18.0], beta0=experiment.CORRECTED_RESIDUAL * BETA)[0]
+    assert corrected["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(at_residual.bias["dR_over_R"].mean, rel=1e-12)
+    code, out, _ = _cli_json(capsys, *argv)
+    raw = json.loads(out)[0]
+    assert "linearised_at" not in raw["conditions"]
+    # At m = 18 the NL is not linear in beta: the slope at beta0 is measurably not the corrected one.
+    assert raw["bias_slope"]["dR_over_R"]["mean"] != pytest.approx(corrected["bias_slope"]["dR_over_R"]["mean"], rel=1e-3)

@@ -1,6 +1,7 @@
 """``--ramp-fit optimal`` against stcal's own likelihood ramp fitter (romancal's), on the same noiseless resultants.
 
-stcal is a test dependency (the ``pipeline`` extra, which scripts/test.sh installs); without it these tests are skipped. Jump rejection is
+stcal is a test dependency (the ``pipeline`` extra, installed by scripts/test.sh); without it these tests
+are skipped. Jump rejection is
 off: stcal's ``fit_ramps`` is called directly with every resultant difference used (``likely_ramp_fit``
 always runs its jump masking first, which at the full beta0 takes the NL curvature of bright cores for
 cosmic-ray jumps).

@@ -71,6 +71,9 @@ def test_a_json_body_builds_the_same_request_as_the_python_call():
     with pytest.raises(InputError) as scene:
         SolveRequest.from_json({"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": {"jitter": "x", "colour": 1}})
     assert scene.value.argument.startswith("scene")
+    # A ramp reads out the Roman preset (IPC, background, polynomial NL: ramps.check_scene) but not
+    # brighter-fatter, whose charge moves by an amount quadratic in the charge collected up the ramp.
+    assert SolveRequest.from_json({**body, "scene": {"preset": "roman"}}).scene.effects_on()["ipc"]
     with pytest.raises(InputError) as both:
-        SolveRequest.from_json({**body, "scene": {"preset": "roman"}})
-    assert both.value.argument == "scene"
+        SolveRequest.from_json({**body, "scene": {"bfe": 1e-7}})
+    assert both.value.argument == "scene" and "brighter_fatter" in both.value.reason

@@ -239,6 +239,23 @@ def test_position_interpolates_the_zernikes_as_galsim_does_and_moves_the_psf():
     assert np.array_equal(experiment.prepare(explicit).reference.e1, b.e1)
 
 
+def test_the_cached_psf_is_the_kernels_whatever_blas_threads_its_first_caller_runs():
+    # A PSF is cached by whoever asks first; a caller on several BLAS threads (a product summed in
+    # another order) must not leave a PSF that differs from the one a kernel computes on its own.
+    from threadpoolctl import threadpool_limits
+
+    field = round(render.Grid().field_arcsec(), 9)
+    config = optics.OpticsConfig(position_pixels=(2044.0, 2044.0))
+    optics.effective_psf.cache_clear()
+    with threadpool_limits(limits=1, user_api="blas"):
+        alone = optics.effective_psf(config, field).coefficients
+    optics.effective_psf.cache_clear()
+    with threadpool_limits(limits=2, user_api="blas"):
+        crowded = optics.effective_psf(config, field).coefficients
+    optics.effective_psf.cache_clear()
+    assert np.array_equal(alone, crowded)
+
+
 @requires_galsim
 @pytest.mark.parametrize("sca", [3, 18])
 def test_aberrations_at_positions_equal_galsims_interpolation(sca):

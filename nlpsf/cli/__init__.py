@@ -44,6 +44,7 @@ OPTION_FOR_ARGUMENT = {
     "background_e": "--background",
     "ma_table.resultants": "--ma-table",
     "ma_table.frame_time_s": "--ma-table",
+    "ramp_single_resultant": "--single-resultant",
 }
 
 

@@ -89,6 +89,22 @@ def add_ramp_options(parser: argparse.ArgumentParser) -> None:
         metavar="E",
         help="read noise per read [e-] for --ramp-fit optimal (default: the SCA's official value, its median CDS noise / sqrt 2)",
     )
+    from ..ramps import SATURATION_RULES, SINGLE_RESULTANT_RULES
+
+    # None: the ramp's own default (ramps.build: romancal's rules), so the default has one owner.
+    parser.add_argument(
+        "--ramp-saturation",
+        choices=SATURATION_RULES,
+        default=None,
+        help="which resultants saturate: signal (romancal's: the NL-lowered signal reaches the saturation level; the "
+        "default) or charge (the charge at the resultant's last read passes the full well)",
+    )
+    parser.add_argument(
+        "--single-resultant",
+        choices=SINGLE_RESULTANT_RULES,
+        default=None,
+        help="a pixel left with one usable resultant: unusable (romancal, no slope; the default) or through_zero (S_1 / t_1)",
+    )
 
 
 def ramp_from(args: argparse.Namespace):
@@ -96,6 +112,7 @@ def ramp_from(args: argparse.Namespace):
     from ..ramps import build
 
     sca = getattr(args, "sca", None)
+    rules = {"saturation": args.ramp_saturation, "single_resultant": args.single_resultant}
     return build(
         args.ramp,
         args.ma_table,
@@ -103,6 +120,7 @@ def ramp_from(args: argparse.Namespace):
         args.read_noise,
         args.exptime if args.exptime_given else None,
         sca=sca if isinstance(sca, int) else defaults.SCA,  # the official read noise of this SCA unless given
+        **{k: v for k, v in rules.items() if v is not None},
     )
 
 
@@ -223,21 +241,13 @@ def config_from(args: argparse.Namespace):
     from ..experiment import SimulationConfig
 
     ramp, exptime = ramp_from(args)
-    return SimulationConfig(
-        band=args.band,
-        sca=args.sca,
-        realizations=args.realizations,
-        seed=args.seed,
-        oversampling=args.oversampling,
-        stamp=args.stamp,
+    # The options named as the fields are taken as they are; these differ in name or meaning.
+    return SimulationConfig.from_settings(
+        vars(args),
         exptime_s=exptime,
         full_well_e=args.full_well,
-        n_wavelengths=args.n_wavelengths,
         weight_cut_rho2=args.weight_cut,
-        pupil_scale=args.pupil_scale,
-        method=args.method,
         scene=scene_from(args)[0],
-        throughput=args.throughput,
         ramp=ramp,
     )
 

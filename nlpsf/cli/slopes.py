@@ -29,6 +29,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"per-pixel beta scatter of the Monte Carlo scatter slope [1/e-] (default {defaults.SIGMA_BETA_FRACTION:g} |beta0|)",
     )
+    from ..experiment.config import LINEARISE_STATES
+
+    parser.add_argument(
+        "--linearise-at",
+        choices=LINEARISE_STATES,
+        default="beta0",
+        help="where the slope is taken: beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
+        "linearity correction: a residual NL of 1%% of beta0, saturation flagged at the raw beta0)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         beta0=args.beta0,
         sigma_beta=args.sigma_beta,
         beta_convention=args.beta_convention,
+        linearise_at=args.linearise_at,
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:

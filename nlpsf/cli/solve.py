@@ -214,7 +214,8 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     else:
         print(f"  ramp: {ramp.describe()}; slopes from {solution.conditions['ramp_slopes_from']}")
         print(
-            f"  saturation at m={solution.saturation_magnitude:.2f} AB (ramp rule: first resultant), "
+            f"  saturation at m={solution.saturation_magnitude:.2f} AB (ramp rule: resultant "
+            f"{solution.conditions['ramp']['limit_resultant']}, the one a slope needs), "
             f"final frame m={solution.final_frame_saturation_magnitude:.2f} AB"
         )
     print(f"  applies to {solution.applies_to}")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -99,6 +100,18 @@ class SimulationConfig:
             ramps.check_scene(self.scene)  # the one rule of what a ramp combines with
 
     @classmethod
+    def from_settings(cls, settings: Mapping | Any, **changes) -> SimulationConfig:
+        """The one constructor from a record of settings: a mapping (the CLI's options, a table's
+        settings) or a dataclass (``tablebuild.TableSettings``, ``fidelity.LevelSettings``), of which
+        the keys that name a field of this configuration are taken, then ``changes`` on top (a key
+        whose meaning differs from the field's, e.g. the CLI's ``--scene`` preset name, must be
+        given in ``changes``). Every value is validated by ``__post_init__``."""
+        if not isinstance(settings, Mapping):
+            settings = {f.name: getattr(settings, f.name) for f in fields(settings)}
+        names = {f.name for f in fields(cls)}
+        return cls(**{**{k: v for k, v in settings.items() if k in names}, **changes})
+
+    @classmethod
     def from_table(cls, settings: Mapping, **changes) -> SimulationConfig:
         """The simulation a slope table was built with (``SlopeTable.settings``: realizations, seed,
         grid, weight cut, pupil rule), with ``changes`` (band, SCA, method, exposure, ...)."""
@@ -110,7 +123,7 @@ class SimulationConfig:
             "weight_cut_rho2": float(settings["weight_cut_rho2"]),
             "pupil_scale": str(settings["pupil_scale"]),
         }
-        return cls(**{**built, **changes})
+        return cls.from_settings(built, **changes)
 
     @property
     def optics(self) -> optics.OpticsConfig:
