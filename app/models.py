@@ -186,13 +186,6 @@ class RampFields(BaseModel):
         "read noise per read in e- (optimal fit: > 0); default: the SCA's official value (CDS noise / sqrt 2)",
     )
 
-    def ramp_arguments(self, exptime: float, sca: int = defaults.SCA) -> tuple[object, float]:
-        """(ramps.Ramp or None, exposure time): the library's one rule for both (an MA table's
-        exposure is its last read unless the request gives ``exptime``)."""
-        table = self.ma_table.model_dump() if isinstance(self.ma_table, MATableSpec) else self.ma_table
-        given = exptime if "exptime" in self.model_fields_set else None
-        return build_ramp(self.ramp, table, self.ramp_fit, self.read_noise, given, sca)
-
 
 def shipped_ma_table(name: str) -> ramps.MATable:
     """A shipped MA table by its (validated) name, read from the package's own data folder only."""

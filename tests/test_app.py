@@ -401,3 +401,57 @@ def test_responses_never_contain_non_finite_numbers(client):
             if response.status_code == 200:
                 value = response.json()["precision"]
                 assert value is None or math.isfinite(value)
+
+
+# --- the API builds the library's typed request -------------------------------------------------
+
+
+def _run_solve_job(client, body):
+    """A solve that is a job, validated as the endpoint does and run in this process."""
+    from nlpsf.web import job_kinds, models
+
+    model = models.SolveRequest.model_validate(body)
+    job = job_kinds.KINDS[job_kinds.SOLVE_KIND].validate(model.model_dump(), model.model_fields_set, client.app.state.settings)
+    return job_kinds.run(json.loads(json.dumps(job)))  # the job request travels as JSON
+
+
+def test_a_uniform_ols_ramp_solve_job_is_the_final_frame_at_beta_eff(client):
+    # Independent of the ramp code path: an N-read OLS ramp's magnitude equals the final frame's at
+    # beta_eff = (1 + 1/N) beta0 with the same precision (see tests/test_ramps.py).
+    n = 8
+    ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n})
+    frame = client.post(
+        "/api/v1/solve", json={"band": "H158", "precision": 0.01, "tolerance": 1e-4, "beta0": defaults.BETA0 * (1 + 1 / n)}
+    ).json()
+    assert ramp["conditions"]["ramp"]["ma_table"] == f"uniform-{n}"
+    assert ramp["magnitude"] == pytest.approx(frame["magnitude"], abs=1e-5)
+
+
+def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
+    from nlpsf import ramps
+
+    table = {"resultants": [[1], [2, 3], [4, 5, 6]], "frame_time_s": 3.04}
+    answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table})
+    assert answer["exptime"] == pytest.approx(ramps.MATable.from_dict(table).duration_s)
+    longer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "exptime": 30.0})
+    assert longer["exptime"] == 30.0
+
+
+@pytest.mark.parametrize("scene", [{"bfe": 1e-6}, {"ipc": "roman"}, {"background": 10.0}])
+def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
+    # The service holds no rule of its own: it refuses exactly what the library's request refuses.
+    from nlpsf.checks import InputError
+    from nlpsf.request import SolveRequest
+
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": scene}
+    try:
+        SolveRequest.from_json(body)
+        library = None
+    except InputError as error:
+        library = error
+    answer = client.post("/api/v1/solve", json=body)
+    if library is None:
+        assert answer.status_code in (200, 202), answer.text
+    else:
+        assert answer.status_code == 422
+        assert answer.json()["field"] == library.argument and library.reason in answer.json()["detail"]
