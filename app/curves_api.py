@@ -7,9 +7,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query
 
 from nlpsf import defaults, detector, fidelity, solver, tables
+from nlpsf.serialise import json_safe
 
 from . import models
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 from .params import ERRORS, Band, Beta0, Exptime, FullWell, Magnitude, MetricQuery, ModeQuery, Points, Sca
 
 router = APIRouter(prefix="/api/v1")

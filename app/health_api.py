@@ -9,10 +9,11 @@ from typing import Any
 from fastapi import APIRouter
 
 from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
+from nlpsf.serialise import json_safe
 
 from . import liveness, models
 from .deps import ServicesDep, SettingsDep
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 
 router = APIRouter(prefix="/api/v1")
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from nlpsf import __version__, detector, experiment, fidelity, roman
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.request import RAMP_REQUEST_FIELDS, SolveRequest
+from nlpsf.serialise import json_safe
 
 from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
@@ -313,7 +313,7 @@ def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[st
 
     arguments = dict(arguments)
     scene = build_scene(arguments.pop("scene"))
-    return _json_safe(impact.impact(scene=scene, progress=_steps(progress), **arguments))
+    return json_safe(impact.impact(scene=scene, progress=_steps(progress), **arguments))
 
 
 def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
@@ -332,7 +332,7 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
         solution = solver.answer(request).to_dict()
     if progress:
         progress(1.0, "done")
-    return _json_safe(solution)
+    return json_safe(solution)
 
 
 def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
@@ -368,11 +368,11 @@ def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> di
         )
     if progress:
         progress(1.0, "done")
-    rows = [_json_safe(r.to_dict()) for r in results]
+    rows = [json_safe(r.to_dict()) for r in results]
     return {
         "source": f"fresh simulation ({config.fidelity}, {config.realizations} realizations, seed {config.seed})",
         "fidelity": normalised["fidelity"],
-        "conditions": _json_safe(config.conditions()),
+        "conditions": json_safe(config.conditions()),
         "grid": {"magnitudes": magnitudes, "betas": betas, "sigma_betas": sigma_betas, "order": "sigma_beta, magnitude, beta"},
         "results": rows,
         "elapsed_s": time.perf_counter() - start,
@@ -452,14 +452,3 @@ def estimate(request: dict[str, Any]) -> float | None:
     """A job request's expected duration on one core, s (None when not priced)."""
     kind, arguments = _entry(request)
     return kind.estimate(arguments)
-
-
-def _json_safe(value: Any) -> Any:
-    """Non-finite floats become None: JSON has no NaN, and a silent 'Infinity' breaks clients."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value

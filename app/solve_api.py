@@ -11,10 +11,11 @@ from starlette.concurrency import run_in_threadpool
 
 from nlpsf import defaults, solver
 from nlpsf.checks import InputError
+from nlpsf.serialise import json_safe
 
 from . import job_kinds, models
 from .deps import CallerDep, ServicesDep
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 from .params import ERRORS, JOB_ANSWER_RESPONSES
 from .simulations import job_answer
 

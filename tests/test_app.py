@@ -455,3 +455,16 @@ def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
     else:
         assert answer.status_code == 422
         assert answer.json()["field"] == library.argument and library.reason in answer.json()["detail"]
+
+
+def test_service_json_has_no_nan_or_numpy_whatever_the_library_returns():
+    # JSON (RFC 8259) has no NaN or infinity; numpy integers are not JSON numbers. The service's
+    # responses and its job results go through the one json_safe (nlpsf.serialise).
+    import numpy as np
+    from nlpsf.web import job_kinds
+    from nlpsf.web.errors import SafeJSONResponse
+
+    payload = {"nan": float("nan"), "inf": np.float64("-inf"), "n": np.int64(3), "pair": (1.5, float("inf")), 2: "key"}
+    expected = {"nan": None, "inf": None, "n": 3, "pair": [1.5, None], "2": "key"}
+    assert json.loads(SafeJSONResponse(payload).body) == expected
+    assert json.loads(json.dumps(job_kinds.json_safe(payload), allow_nan=False)) == expected
