@@ -74,6 +74,7 @@ def _linear_curve(
         "fidelity_relative_uncertainty": abs(systematic / at_beta0) if at_beta0 and systematic is not None else None,
         "slope": solution["slope"],
         "flags": solution["flags"],
+        "flag_codes": solution["flag_codes"],
         "saturation_magnitude": solution["saturation_magnitude"],
         "conditions": solution["conditions"],
     }

@@ -30,17 +30,49 @@ const FIELD_NAMES = {
   nl_coefficients: "NL beyond the quadratic", bfe: "brighter-fatter coefficient", background: "sky background",
   scene: "scene", csv: "CSV", over_field: "over the field", throughput: "throughput",
 };
-const EFFECTS = {
+// The page's words for each scene effect, by the registry's name (GET /api/v1/meta → scene_effects,
+// nlpsf.scene.REGISTRY, is the list of effects and their facts); an effect without words here shows
+// under its registry name.
+const EFFECT_WORDS = {
   position: ["position on the detector", "the optics change across a detector: the PSF at a corner differs from the centre the tables hold"],
   sed: ["star colour (SED)", "a real star spans the band's wavelengths; the tables use one wavelength"],
-  jitter: ["pointing jitter", "the telescope's pointing wanders during the exposure and blurs the PSF (Roman: 0.014″ rms)"],
-  charge_diffusion: ["charge diffusion", "charge spreads to neighbouring pixels before it is collected (Roman: 0.1 px rms)"],
+  jitter: ["pointing jitter", "the telescope's pointing wanders during the exposure and blurs the PSF"],
+  charge_diffusion: ["charge diffusion", "charge spreads to neighbouring pixels before it is collected"],
   ipc: ["interpixel capacitance", "a pixel's signal leaks capacitively into its neighbours (a few per cent for Roman's detectors)"],
   nl_polynomial: ["NL beyond the quadratic", "the detector's response has cubic and higher terms besides S = Q − βQ²"],
-  brighter_fatter: ["brighter-fatter effect", "collected charge repels new charge, so bright stars look bigger; no Roman value is public, so it is measured only when you give a coefficient"],
+  brighter_fatter: ["brighter-fatter effect", "collected charge repels new charge, so bright stars look bigger"],
   background: ["sky background", "sky and dark current add charge under the star and move it up the nonlinear curve"],
-  pupil_scale: ["pupil-mask scale rule", "two readings of how the pupil mask is scaled; the difference measures the optical model's own uncertainty"],
 };
+// Not a scene effect, but explained beside them (the optical model's own uncertainty).
+const PUPIL_SCALE_WORDS = ["pupil-mask scale rule", "two readings of how the pupil mask is scaled; the difference measures the optical model's own uncertainty"];
+
+function effectWords(name) {
+  return EFFECT_WORDS[name] || [String(name).replace(/_/g, " "), ""];
+}
+
+// One registry entry in words: the page's wording, then the registry's facts.
+function effectExplanation(effect) {
+  const [name, about] = effectWords(effect.name);
+  const where = effect.kind === "optical" ? "optical: acts on the PSF before the pixels" : "detector: acts in the pixels";
+  const values = Object.entries(effect.nominal || {}).filter(([, v]) => typeof v === "number").map(([k, v]) => `${k} = ${fmt(v)}`);
+  return [name, `${about ? `${about}. ` : ""}${where}; the value tried when a scene leaves it off: ` +
+    `${values.length ? `${values.join(", ")}, ` : ""}${plainNote(effect.source)}; combines with ${effect.combines_with}`];
+}
+
+// Each flag on an answer: its message and, from the code catalogue (GET /api/v1/meta → flag_codes),
+// what it means, in a disclosure that opens by keyboard (Enter/Space on its summary).
+function flagsList(flags, codes) {
+  const catalogue = new Map(((state.meta && state.meta.flag_codes) || []).map((c) => [c.code, c.meaning]));
+  const items = flags.map((message, k) => {
+    const meaning = codes && catalogue.get(codes[k]);
+    const about = meaning
+      ? `<details class="flag-about"><summary>what this means</summary><span data-flag-code="${escapeHtml(codes[k])}">${escapeHtml(meaning)}</span></details>`
+      : "";
+    return `<li>${escapeHtml(plainWords(message))}${about}</li>`;
+  });
+  return `<ul class="flags" data-testid="answer-flags">${items.join("")}</ul>`;
+}
+
 const FIDELITIES = {
   table: ["tables", "the shipped slope tables, interpolated: instant; the uncertainty includes their measured error"],
   linear: ["linear response", "a fresh simulation of the first-order response to β: seconds"],
@@ -1164,7 +1196,7 @@ function showAnswer(s) {
     ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
     <div class="muted">applies to ${escapeHtml(s.applies_to)}</div>
     ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
-    ${s.flags && s.flags.length ? `<ul class="flags">${s.flags.map((f) => `<li>${escapeHtml(plainWords(f))}</li>`).join("")}</ul>` : ""}
+    ${s.flags && s.flags.length ? flagsList(s.flags, s.flag_codes) : ""}
     <p class="scene-line" data-testid="scene-line">Scene: ${escapeHtml(sceneName(s))}
       ${sceneName(s) === PAPER_SCENE ? "" : '<button type="button" id="use-paper-scene">Use the paper\'s scene</button>'}</p>
     <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
@@ -1791,7 +1823,7 @@ async function showImpact(report) {
   document.getElementById("impact-bars").innerHTML = report.effects
     .map((e, k) => {
       const v = values[k];
-      const [plain, about] = EFFECTS[e.name] || [e.name.replace(/_/g, " "), ""];
+      const [plain, about] = effectWords(e.name);
       const width = v === null ? 0 : (50 * Math.abs(v)) / largest;
       const side = v !== null && v < 0 ? "neg" : "pos";
       const change = v === null ? "" : `slope ${v > 0 ? "+" : ""}${fmt(100 * v, 3)} %`;
@@ -1816,7 +1848,8 @@ function plainNote(note) {
 
 function fillExplanations() {
   const dl = (entries) => entries.map(([k, [name, about]]) => `<dt>${escapeHtml(name)}</dt><dd>${escapeHtml(about)}</dd>`).join("");
-  document.getElementById("effect-explanations").innerHTML = dl(Object.entries(EFFECTS));
+  const effects = ((state.meta && state.meta.scene_effects) || []).map((e) => [e.name, effectExplanation(e)]);
+  document.getElementById("effect-explanations").innerHTML = dl([...effects, ["pupil_scale", PUPIL_SCALE_WORDS]]);
   document.getElementById("fidelity-explanations").innerHTML = dl(Object.entries(FIDELITIES));
 }
 

@@ -468,3 +468,39 @@ def test_service_json_has_no_nan_or_numpy_whatever_the_library_returns():
     expected = {"nan": None, "inf": None, "n": 3, "pair": [1.5, None], "2": "key"}
     assert json.loads(SafeJSONResponse(payload).body) == expected
     assert json.loads(json.dumps(job_kinds.json_safe(payload), allow_nan=False)) == expected
+
+
+# --- flags as codes on the surface --------------------------------------------------------------
+
+
+def test_meta_serves_the_flag_catalogue_and_the_scene_effect_registry(client):
+    from nlpsf import flags
+    from nlpsf import scene as scenes
+
+    meta = client.get("/api/v1/meta").json()
+    served = {entry["code"]: entry for entry in meta["flag_codes"]}
+    assert set(served) == {code.value for code in flags.FlagCode}
+    assert all(entry["meaning"] and entry["template"] for entry in served.values())
+    effects = meta["scene_effects"]
+    assert [e["name"] for e in effects] == list(scenes.REGISTRY)  # the order they act in
+    by_name = {e["name"]: e for e in effects}
+    assert by_name["jitter"]["nominal"] == {"jitter_arcsec": scenes.ROMAN_JITTER_ARCSEC}
+    assert by_name["jitter"]["kind"] == "optical" and by_name["brighter_fatter"]["kind"] == "detector"
+    from nlpsf import ramps
+
+    for name, effect in by_name.items():  # what a ramp refuses says so
+        assert (name in ramps.RAMP_REFUSES) == ("not a ramp" in effect["combines_with"]), name
+
+
+def test_an_answers_flags_come_with_their_codes(client):
+    # A star brighter than its saturation magnitude is flagged saturated, whatever the words say.
+    body = {"band": "H158", "precision": 0.5, "magnitude": 17.0}
+    answer = client.post("/api/v1/solve", json=body).json()
+    assert answer["saturation_magnitude"] > 17.0
+    assert len(answer["flag_codes"]) == len(answer["flags"]) and "star_saturated" in answer["flag_codes"]
+    catalogue = {entry["code"] for entry in client.get("/api/v1/meta").json()["flag_codes"]}
+    assert set(answer["flag_codes"]) <= catalogue
+    schema = client.get("/openapi.json").json()["components"]["schemas"]
+    assert "flag_codes" in schema["SolveResponse"]["required"]
+    curve = client.get("/api/v1/curves/beta?band=H158&magnitude=17").json()
+    assert "star_saturated" in curve["flag_codes"] and len(curve["flag_codes"]) == len(curve["flags"])

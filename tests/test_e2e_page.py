@@ -144,3 +144,30 @@ def test_a_shear_budget_takes_the_place_of_the_tolerance(page):  # noqa: F811
     page.fill("#solve-tolerance", "1e-4")
     page.click("#solve-button")
     page.wait_for_selector("#solve-error", state="hidden")
+
+
+def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):  # noqa: F811
+    from nlpsf import flags
+
+    solution = solve_for(page, "tolerance", {"precision": "0.5", "magnitude": "17"})
+    assert "star_saturated" in solution["flag_codes"]
+    items = page.locator("[data-testid=answer-flags] li")
+    assert items.count() == len(solution["flags"])
+    index = solution["flag_codes"].index("star_saturated")
+    summary = items.nth(index).locator("summary")
+    summary.focus()
+    page.keyboard.press("Enter")
+    details = items.nth(index).locator("details")
+    assert details.get_attribute("open") is not None
+    meaning = {entry["code"]: entry["meaning"] for entry in flags.catalogue()}["star_saturated"]
+    assert items.nth(index).locator("[data-flag-code=star_saturated]").inner_text() == meaning
+
+
+def test_the_effect_explanations_list_the_registrys_effects(page):  # noqa: F811
+    from nlpsf import scene as scenes
+
+    terms = page.locator("#effect-explanations dt").all_inner_texts()
+    # One per registry effect (in the page's words), then the pupil-scale rule.
+    assert len(terms) == len(scenes.REGISTRY) + 1
+    text = page.evaluate("() => document.getElementById('effect-explanations').textContent")
+    assert f"jitter_arcsec = {scenes.ROMAN_JITTER_ARCSEC:g}" in text
