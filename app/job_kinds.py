@@ -64,26 +64,6 @@ def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
 
 
-def check_scene_bounds(scene: scenes.SceneModel, full_well: float) -> None:
-    """Refuse (422) a scene whose detector effects leave the models' first-order regime inside the
-    full well, where every moment fit fails and the job could only end in an error: the higher NL
-    terms' share of the response slope, sum k |b_k| Q^(k-1), and the brighter-fatter area change
-    |bfe| Q must both stay below 1 at Q = full_well. (Checked here, before anything is queued.)"""
-    higher = sum(k * abs(b) * full_well ** (k - 1) for k, b in enumerate(scene.nl_coefficients, start=3))
-    if not higher < 1.0:
-        raise InputError(
-            "scene.nl_coefficients",
-            f"sum k |b_k| Q^(k-1) at the full well ({full_well:g} e-) is {higher:.3g}; it must stay below 1 "
-            "(the higher NL terms are a perturbation of the response, and dS/dQ must stay positive)",
-        )
-    if not abs(scene.bfe_coefficient) * full_well < 1.0:
-        raise InputError(
-            "scene.bfe",
-            f"|bfe| x full_well = {abs(scene.bfe_coefficient) * full_well:.3g}; it must stay below 1 "
-            f"(the first-order brighter-fatter model), i.e. |bfe| < {1.0 / full_well:.3g} 1/e- at this full well",
-        )
-
-
 #: Fields of POST /solve that are the service's, not the library request's.
 SOLVE_SERVICE_FIELDS = ("over_field",)
 
@@ -106,7 +86,7 @@ def solve_request(body: dict[str, Any]) -> SolveRequest:
         body = {**body, "ma_table": shipped_ma_table(body["ma_table"])}
     request = SolveRequest.from_json(body)
     if request.scene is not None:
-        check_scene_bounds(request.scene, request.full_well)
+        scenes.check_first_order(request.scene, request.full_well)
     return request
 
 
@@ -122,8 +102,7 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     from .models import build_ramp
 
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
-    scene = build_scene(request.get("scene"))
-    check_scene_bounds(scene, request["full_well"])
+    scene = build_scene(request.get("scene"))  # SimulationConfig refuses one beyond first order (scene.check_first_order)
     ramp, exptime = build_ramp(
         request.get("ramp"),
         request.get("ma_table"),
@@ -415,7 +394,7 @@ def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> 
         )
     scene_request = arguments.pop("scene")
     scene = build_scene(scene_request)
-    check_scene_bounds(scene, defaults.FULL_WELL_E)  # the impact report simulates at the default full well
+    scenes.check_first_order(scene, defaults.FULL_WELL_E)  # the impact report simulates at the default full well
     wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
     if wavelengths > limits.max_wavelengths:
         raise LimitError(

@@ -504,3 +504,55 @@ def test_an_answers_flags_come_with_their_codes(client):
     assert "flag_codes" in schema["SolveResponse"]["required"]
     curve = client.get("/api/v1/curves/beta?band=H158&magnitude=17").json()
     assert "star_saturated" in curve["flag_codes"] and len(curve["flag_codes"]) == len(curve["flags"])
+
+
+# --- one owner for each range: the library's and the service's entries refuse the same ----------
+
+
+@pytest.mark.parametrize(("beta0", "accepted"), [(5e-13, False), (defaults.BETA0_RANGE[0], True), (2e-3, False)])
+def test_impact_beta0_is_refused_alike_by_the_library_and_the_service(client, beta0, accepted):
+    from nlpsf import impact
+    from nlpsf.checks import InputError
+
+    if accepted:
+        assert impact.check_request(beta0=beta0)["beta0"] == beta0
+    else:
+        with pytest.raises(InputError) as refused:
+            impact.check_request(beta0=beta0)
+        assert refused.value.argument == "beta0"
+        answer = client.post("/api/v1/impact", json={"band": "H158", "magnitude": 18.3, "beta0": beta0})
+        assert answer.status_code == 422 and answer.json()["field"] == "beta0"
+
+
+def test_seeds_up_to_2_63_minus_1_at_every_library_entry():
+    from nlpsf import impact
+    from nlpsf.checks import InputError
+
+    top = 2**63 - 1  # numpy's SeedSequence takes it; one past is refused alike by both entries
+    assert impact.check_request(seed=top)["seed"] == top
+    experiment.SimulationConfig(seed=top)
+    for entry in (lambda: impact.check_request(seed=top + 1), lambda: experiment.SimulationConfig(seed=top + 1)):
+        with pytest.raises(InputError, match="seed"):
+            entry()
+
+
+@pytest.mark.parametrize(
+    ("scene", "field"), [({"bfe": 2e-5}, "scene.bfe"), ({"nl_coefficients": [1e-10]}, "scene.nl_coefficients")]
+)
+def test_a_scene_beyond_first_order_is_refused_by_the_library_and_the_service(client, scene, field):
+    # At the full well Q = 1.1e5 e-: |bfe| Q = 2.2 and 3 b3 Q^2 = 3.6, both past 1; at Q/10, 0.22 and 0.036.
+    from nlpsf import scene as scenes
+    from nlpsf.checks import InputError
+
+    model = scenes.from_request(scene)
+    with pytest.raises(InputError) as refused:
+        experiment.SimulationConfig(scene=model, full_well_e=defaults.FULL_WELL_E)
+    assert refused.value.argument == field
+    for path, body in (
+        ("/api/v1/simulations", {"band": "H158", "scene": scene, "realizations": 2}),
+        ("/api/v1/solve", {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": scene}),
+    ):
+        answer = client.post(path, json=body)
+        assert answer.status_code == 422 and answer.json()["field"] == field, answer.text
+    # The same scene at a tenth of the full well is within the first-order regime.
+    experiment.SimulationConfig(scene=model, full_well_e=defaults.FULL_WELL_E / 10, realizations=2)
