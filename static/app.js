@@ -59,6 +59,16 @@ function effectExplanation(effect) {
     `${values.length ? `${values.join(", ")}, ` : ""}${plainNote(effect.source)}; combines with ${effect.combines_with}`];
 }
 
+// Up the ramp a star is usable until its brightest pixel saturates in the resultant a slope needs
+// (usually the second: one resultant gives no slope; docs/ramps.md), named by the ramp's conditions.
+function limitResultantText(ramp) {
+  const k = ramp && ramp.limit_resultant;
+  if (!k) return "the resultant a slope needs";
+  const ordinal = ["first", "second", "third"][k - 1] || `${k}th`;
+  const end = ramp.limit_resultant_end_s;
+  return `its ${ordinal} resultant, the one a slope needs${end ? `, ends at ${fmt(end, 4)} s` : ""}`;
+}
+
 // Each flag on an answer: its message and, from the code catalogue (GET /api/v1/meta → flag_codes),
 // what it means, in a disclosure that opens by keyboard (Enter/Space on its summary).
 function flagsList(flags, codes) {
@@ -1192,7 +1202,7 @@ function showAnswer(s) {
     ${uncertaintyParts.length && !noConstraint ? `<div class="muted">uncertainty parts (1σ): ${uncertaintyParts.map(([k, v]) =>
       `${k} ${fmt(v * scale, 2)}${unit}`).join(" · ")}</div>` : ""}
     <div>slope c(m) = ${escapeHtml(withUncertainty(s.slope, s.slope_uncertainty))} e⁻ · saturation at m = ${fmt(s.saturation_magnitude, 4)}${s.conditions.ramp
-        ? ` (first resultant; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude, 4)})` : ""}</div>
+        ? ` (${escapeHtml(limitResultantText(s.conditions.ramp))}; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude, 4)})` : ""}</div>
     ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
     <div class="muted">applies to ${escapeHtml(s.applies_to)}</div>
     ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
@@ -1434,7 +1444,7 @@ async function drawCalculatorPlot(solution) {
   const markers = [{ x: solution.final_frame_saturation_magnitude ?? solution.saturation_magnitude,
     label: "saturation, final frame", color: "#555" }];
   if (ramp) {
-    markers.push({ x: solution.saturation_magnitude, label: "saturation, ramp (first resultant)", color: "#c00000", dash: [2, 3] });
+    markers.push({ x: solution.saturation_magnitude, label: `saturation, ramp (${limitResultantText(ramp)})`, color: "#c00000", dash: [2, 3] });
     if (data.ramp) {
       const rampLabel = `ramp ${ramp.ma_table} (tables at β_eff = ${fmt(data.ramp.factor)} β₀)`;
       columns.push({ label: rampLabel, tag: "ramp", x: data.ramp.magnitude, y: data.ramp.slope, err: data.ramp.statistical,
