@@ -347,7 +347,7 @@ def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> di
         )
     if progress:
         progress(1.0, "done")
-    rows = [json_safe(r.to_dict()) for r in results]
+    rows = [json_safe(_result_row(r)) for r in results]
     return {
         "source": f"fresh simulation ({config.fidelity}, {config.realizations} realizations, seed {config.seed})",
         "fidelity": normalised["fidelity"],
@@ -356,6 +356,19 @@ def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> di
         "results": rows,
         "elapsed_s": time.perf_counter() - start,
     }
+
+
+#: The metrics of a simulation result row, each with mean, std, stderr (and std_error, added here).
+RESULT_METRICS = ("dR_over_R", "de1", "de2")
+
+
+def _result_row(result) -> dict[str, Any]:
+    """A simulation result as JSON, each metric with ``std_error``, the standard error of its
+    ``std`` (``Statistic.std_error``): the error bar of a scatter (sigma_beta > 0) point."""
+    row = result.to_dict()
+    for name in RESULT_METRICS:
+        row[name] = {**row[name], "std_error": getattr(result, name).std_error}
+    return row
 
 
 def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:

@@ -477,7 +477,7 @@ function drawPlot(name, opts) {
       y: { distr: logY ? 3 : 1 },
     },
     hooks: {
-      drawClear: [(u) => { drawShades(u, shades); drawMarkers(u, markers); drawBands(u, usable, halfWidths); }],
+      drawClear: [(u) => { drawShades(u, shades); drawMarkers(u, markers); drawBands(u, usable, halfWidths); drawWhiskers(u, usable, halfWidths); }],
       draw: [(u) => drawDirectLabels(u, usable)],
     },
     axes: [
@@ -614,6 +614,36 @@ function drawBands(u, columns, halfWidths) {
     ctx.fillStyle = c.series.stroke || "#888";
     ctx.fill();
     ctx.restore();
+  });
+}
+
+// Points (a fresh simulation's) carry their 1σ error as a vertical bar with caps; u.whiskers keeps
+// what was drawn (data values) for the plot's table and for tests.
+function drawWhiskers(u, columns, halfWidths) {
+  const ctx = u.ctx;
+  const ratio = window.devicePixelRatio || 1;
+  u.whiskers = [];
+  columns.forEach((c, k) => {
+    if (c.band !== false || c.answer || !c.err) return;
+    const si = k + 1;
+    u.data[0].forEach((x, i) => {
+      const y = u.data[si][i];
+      const h = halfWidths[k][i];
+      if (y == null || !h) return;
+      const low = u.scales.y.distr === 3 ? Math.max(y - h, y * 1e-3) : y - h;
+      const px = u.valToPos(x, "x", true);
+      const [top, bottom] = [u.valToPos(y + h, "y", true), u.valToPos(low, "y", true)];
+      ctx.save();
+      ctx.strokeStyle = c.series.stroke || "#333";
+      ctx.lineWidth = 1.5 * ratio;
+      ctx.beginPath();
+      ctx.moveTo(px, top); ctx.lineTo(px, bottom);
+      ctx.moveTo(px - 4 * ratio, top); ctx.lineTo(px + 4 * ratio, top);
+      ctx.moveTo(px - 4 * ratio, bottom); ctx.lineTo(px + 4 * ratio, bottom);
+      ctx.stroke();
+      ctx.restore();
+      u.whiskers.push({ label: c.label, x, y, half: h });
+    });
   });
 }
 
@@ -1520,10 +1550,11 @@ function simulationPoints(kind, band, metric, magnitude) {
   const rows = sim.results.filter((r) => r.band === band && Math.abs(r.magnitude - magnitude) < 1e-9 &&
     (kind === "beta" ? r.sigma_beta === 0 : r.sigma_beta > 0));
   if (rows.length === 0) return [];
-  // The standard error of a mean; for a spread over n draws, std / sqrt(2(n - 1)).
+  // Error bars from the API: the standard error of the mean, and of a spread its std_error (a result
+  // stored before std_error existed draws its point without a bar).
   const point = (r) => (kind === "beta"
     ? [r.beta, r[key].mean, r[key].stderr]
-    : [r.sigma_beta, r[key].std, r[key].std / Math.sqrt(2 * Math.max(r.realizations - 1, 1))]);
+    : [r.sigma_beta, r[key].std, r[key].std_error ?? null]);
   const groups = new Map();
   for (const r of rows) {
     const group = kind === "beta" ? `σβ = ${fmt(r.sigma_beta)}` : `β = ${fmt(r.beta)}`;

@@ -556,3 +556,34 @@ def test_a_scene_beyond_first_order_is_refused_by_the_library_and_the_service(cl
         assert answer.status_code == 422 and answer.json()["field"] == field, answer.text
     # The same scene at a tenth of the full well is within the first-order regime.
     experiment.SimulationConfig(scene=model, full_well_e=defaults.FULL_WELL_E / 10, realizations=2)
+
+
+def test_a_simulation_result_carries_the_standard_error_of_each_spread(client):
+    from nlpsf.web import job_kinds, models
+
+    request = models.SimulationRequest.model_validate(
+        {"band": "H158", "magnitudes": [18.3], "betas": [5e-7], "sigma_betas": [5e-8], "realizations": 5, "stamp": 48,
+         "fidelity": "linear", "seed": 3}
+    )  # fmt: skip
+    job = job_kinds.KINDS[job_kinds.SIMULATION_KIND].validate(
+        request.model_dump(), request.model_fields_set, client.app.state.settings
+    )
+    (row,) = job_kinds.run(job)["results"]
+    for metric in job_kinds.RESULT_METRICS:
+        # Of n normal draws, the sample std's standard error is std / sqrt(2 (n - 1)).
+        assert row[metric]["std_error"] == pytest.approx(row[metric]["std"] / math.sqrt(2 * (5 - 1)), rel=1e-12)
+
+
+def test_std_error_is_the_spread_of_sample_standard_deviations():
+    # Independent of the formula: the scatter of many samples' std around sigma.
+    import numpy as np
+
+    from nlpsf.experiment.results import Statistic
+
+    rng = np.random.default_rng(5)
+    n = 20
+    samples = rng.normal(0.0, 2.0, size=(4000, n))
+    stds = samples.std(axis=1, ddof=1)
+    predicted = np.mean([Statistic.of(s).std_error for s in samples[:200]])
+    assert stds.std() == pytest.approx(predicted, rel=0.06)
+    assert Statistic.of(np.array([1.0])).std_error is None

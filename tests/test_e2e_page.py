@@ -100,6 +100,13 @@ def test_fresh_simulations_at_several_betas_are_all_shown(page):  # noqa: F811
     points = page.evaluate("() => state.exports.sigma.columns.filter((c) => c.label.startsWith('fresh')).map((c) => c.x.length)")
     assert points == [2, 2, 2]
     assert "3 series" in page.inner_text("#sigma-caption")
+    # Each scatter point has its error bar drawn, the API's std_error: std / sqrt(2 (n - 1)) over the
+    # n = 6 beta-map draws (the standard error of a normal sample's standard deviation).
+    whiskers = page.evaluate("() => state.plots.sigma.whiskers")
+    rows = page.evaluate("() => state.lastSimulation.results.filter((r) => r.sigma_beta > 0)")
+    assert len(whiskers) == len(rows) == 6
+    expected = sorted(r["dR_over_R"]["std"] / (2 * (6 - 1)) ** 0.5 for r in rows)
+    assert sorted(w["half"] for w in whiskers) == pytest.approx(expected, rel=1e-9)
     page.locator("#curves").screenshot(path=str(ARTIFACTS / "e2e-sigma-betas.png"))
     page.fill("#sim-sigma_betas", "0")
     page.select_option("#sim-fidelity", "monte_carlo")
