@@ -435,7 +435,9 @@ function pointSeries(label, color, size = 8) {
 // lines; `shades` = [{from, to, label, color, hatch}]: x ranges behind the curves. Their names go in
 // the key under the plot (never on the canvas, where they covered the answer).
 function drawPlot(name, opts) {
-  const { xLabel, yLabel, columns, logX = false, logY = false, markers = [], shades = [], cursorAt = null } = opts;
+  // noAnswer: the plot keeps its curves but its legend reads nothing until hovered (no value may
+  // look like the refused answer's, e.g. the previous answer's magnitude).
+  const { xLabel, yLabel, columns, logX = false, logY = false, markers = [], shades = [], cursorAt = null, noAnswer = false } = opts;
   const el = document.getElementById(`plot-${name}`);
   const usable = columns.map((c) => {
     const keep = c.x.map((x, i) => x !== null && c.y[i] !== null && c.y[i] !== undefined && (!logX || x > 0) && (!logY || c.y[i] > 0));
@@ -484,10 +486,11 @@ function drawPlot(name, opts) {
       { label: xLabel, values: axisFormatter(logX), space: 60, ...logSplits(logX) },
       { label: yLabel, values: axisFormatter(logY), size: 72, space: 36, ...logSplits(logY) },
     ],
-    series: [{ label: xLabel, value: (u, v, si, i) => fmt(i == null ? u.data[0][defaultIdx] : v) },
+    series: [{ label: xLabel, value: (u, v, si, i) => (i == null && noAnswer ? "–" : fmt(i == null ? u.data[0][defaultIdx] : v)) },
       ...usable.map((c) => {
         const index = new Map(c.x.map((x, i) => [x, i]));
         return { ...c.series, value: (u, v, si, i) => {
+          if (i == null && noAnswer) return "–";
           let where = "";
           if (i == null) {
             i = nearestDefined(u.data[si], defaultIdx);
@@ -504,6 +507,7 @@ function drawPlot(name, opts) {
     cursor: { points: { size: 8 } },
   };
   const u = new uPlot(options, data, el);
+  el.classList.toggle("legend-void", noAnswer);
   state.plots[name] = u;
   u.defaultIdx = defaultIdx;
   u.halfWidths = halfWidths;
@@ -1346,8 +1350,9 @@ async function failAnswer(error, shortReason = null, body = null) {
     const plot = state.exports[name];
     const el = document.getElementById(`plot-${name}`);
     delete el.dataset.point;
-    if (plot && plot.columns.some((c) => c.answer)) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer) });
-    else if (!plot) el.innerHTML = "";
+    // The curves stay; the answer's point and the legend's values at its magnitude go.
+    if (plot) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer), cursorAt: null, noAnswer: true });
+    else el.innerHTML = "";
     setNoAnswer(name, reason);
   }
   document.getElementById("req-readout").textContent = "";

@@ -63,7 +63,16 @@ def test_a_failed_solve_clears_the_marker(page):  # noqa: F811
         assert page.get_attribute(f"#plot-{plot}", "data-answer") == "none"
         assert page.evaluate(f"() => state.exports.{plot}.columns.some((c) => c.answer)") is False
     assert page.is_hidden("#solve-result")
+    # The legends read nothing (no value left at the refused answer's magnitude) until hovered.
+    for plot in ("req", "calc"):
+        values = page.locator(f"#plot-{plot} .u-legend .u-value").all_inner_texts()
+        assert values and all(v == "–" for v in values), values
+        assert "legend-void" in page.get_attribute(f"#plot-{plot}", "class")
     page.fill("#solve-magnitude", "18.3")
+    solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
+    page.wait_for_function("() => document.getElementById('plot-req').dataset.answer === 'shown'")
+    assert "18.3" in page.inner_text("#plot-calc .u-legend")
+    assert "legend-void" not in (page.get_attribute("#plot-calc", "class") or "")
 
 
 def test_every_bad_field_is_reported_at_once(page):  # noqa: F811
