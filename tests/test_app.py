@@ -587,3 +587,19 @@ def test_std_error_is_the_spread_of_sample_standard_deviations():
     predicted = np.mean([Statistic.of(s).std_error for s in samples[:200]])
     assert stds.std() == pytest.approx(predicted, rel=0.06)
     assert Statistic.of(np.array([1.0])).std_error is None
+
+
+def test_every_service_setting_is_in_the_api_docs_configuration_list():
+    from pathlib import Path
+
+    from nlpsf.web.settings import Settings
+
+    text = (Path(__file__).parents[1] / "docs" / "api.md").read_text()
+    configuration = text.split("## Configuration", 1)[1]
+    for name, info in Settings.model_fields.items():
+        if name == "limits":
+            names = [f"NLPSF_{limit.upper()}" for limit in Settings().limits.to_dict()]
+        else:
+            names = [info.validation_alias if isinstance(info.validation_alias, str) else f"NLPSF_{name.upper()}"]
+        for variable in names:
+            assert f"`{variable}`" in configuration, variable
