@@ -7,9 +7,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query
 
 from nlpsf import defaults, detector, fidelity, solver, tables
+from nlpsf.serialise import json_safe
 
 from . import models
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 from .params import ERRORS, Band, Beta0, Exptime, FullWell, Magnitude, MetricQuery, ModeQuery, Points, Sca
 
 router = APIRouter(prefix="/api/v1")
@@ -73,6 +74,7 @@ def _linear_curve(
         "fidelity_relative_uncertainty": abs(systematic / at_beta0) if at_beta0 and systematic is not None else None,
         "slope": solution["slope"],
         "flags": solution["flags"],
+        "flag_codes": solution["flag_codes"],
         "saturation_magnitude": solution["saturation_magnitude"],
         "conditions": solution["conditions"],
     }

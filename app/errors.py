@@ -9,7 +9,6 @@ naming the field, whether pydantic or the library caught it; nothing a client se
 from __future__ import annotations
 
 import json
-import math
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -18,6 +17,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from nlpsf.checks import InputError
+from nlpsf.serialise import json_safe
 
 from .store import StoreUnavailable
 
@@ -29,19 +29,6 @@ ECHO_CHARS = 120
 def short(text: Any, limit: int = ECHO_CHARS) -> str:
     text = str(text)
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"
-
-
-def json_safe(value: Any) -> Any:
-    """Non-finite floats become None (JSON has no NaN); numpy scalars become Python numbers."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if hasattr(value, "item") and callable(value.item):  # numpy scalar
-        return json_safe(value.item())
-    return value
 
 
 class SafeJSONResponse(JSONResponse):

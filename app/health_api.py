@@ -8,11 +8,13 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from nlpsf import __version__, defaults, detector, fidelity, roman, solver, tables
+from nlpsf import __version__, defaults, detector, fidelity, flags, roman, solver, tables
+from nlpsf import scene as scenes
+from nlpsf.serialise import json_safe
 
 from . import liveness, models
 from .deps import ServicesDep, SettingsDep
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 
 router = APIRouter(prefix="/api/v1")
 
@@ -58,6 +60,23 @@ def _ma_table_summary(name: str) -> dict:
     }
 
 
+def scene_effects() -> list[dict[str, Any]]:
+    """The scene-effect registry (``nlpsf.scene.REGISTRY``) as JSON, in the order the effects act."""
+    return [
+        {
+            "name": e.name,
+            "fields": list(e.fields),
+            "nominal": json_safe(e.nominal),
+            "source": e.source,
+            "kind": e.kind,
+            "breaks_beta_q": e.breaks_beta_q,
+            "combines_with": e.combines_with,
+            "in_roman_preset": e.in_roman_preset,
+        }
+        for e in scenes.REGISTRY.values()
+    ]
+
+
 @router.get("/meta", response_model=models.Meta, summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
 def meta(settings: SettingsDep) -> SafeJSONResponse:
     table_set = tables.load_tables()
@@ -82,6 +101,8 @@ def meta(settings: SettingsDep) -> SafeJSONResponse:
             "beta_conventions": list(detector.BETA_CONVENTIONS),
             "ramp_fits": list(defaults.RAMP_FITS),
             "ma_tables": [_ma_table_summary(name) for name in models.SHIPPED_MA_TABLES],
+            "flag_codes": flags.catalogue(),
+            "scene_effects": scene_effects(),
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
                 "simulation": models.SimulationRequest().model_dump(),

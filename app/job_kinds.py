@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,6 +22,8 @@ from typing import Any
 from nlpsf import __version__, detector, experiment, fidelity, roman
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
+from nlpsf.request import RAMP_REQUEST_FIELDS, SolveRequest
+from nlpsf.serialise import json_safe
 
 from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
@@ -40,7 +41,7 @@ FIELD_FOR_ARGUMENT = {
 
 #: Request fields of an up-the-ramp exposure; absent from a final-frame request's normalised form
 #: (so its hash, the result cache's key, is what it was before ramps existed).
-RAMP_FIELDS = ("ramp", "ma_table", "ramp_fit", "read_noise")
+RAMP_FIELDS = RAMP_REQUEST_FIELDS
 
 
 class LimitError(InputError):
@@ -63,24 +64,37 @@ def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
 
 
-def check_scene_bounds(scene: scenes.SceneModel, full_well: float) -> None:
-    """Refuse (422) a scene whose detector effects leave the models' first-order regime inside the
-    full well, where every moment fit fails and the job could only end in an error: the higher NL
-    terms' share of the response slope, sum k |b_k| Q^(k-1), and the brighter-fatter area change
-    |bfe| Q must both stay below 1 at Q = full_well. (Checked here, before anything is queued.)"""
-    higher = sum(k * abs(b) * full_well ** (k - 1) for k, b in enumerate(scene.nl_coefficients, start=3))
-    if not higher < 1.0:
-        raise InputError(
-            "scene.nl_coefficients",
-            f"sum k |b_k| Q^(k-1) at the full well ({full_well:g} e-) is {higher:.3g}; it must stay below 1 "
-            "(the higher NL terms are a perturbation of the response, and dS/dQ must stay positive)",
-        )
-    if not abs(scene.bfe_coefficient) * full_well < 1.0:
-        raise InputError(
-            "scene.bfe",
-            f"|bfe| x full_well = {abs(scene.bfe_coefficient) * full_well:.3g}; it must stay below 1 "
-            f"(the first-order brighter-fatter model), i.e. |bfe| < {1.0 / full_well:.3g} 1/e- at this full well",
-        )
+#: Fields of POST /solve that are the service's, not the library request's.
+SOLVE_SERVICE_FIELDS = ("over_field",)
+
+
+def solve_body(fields: dict[str, Any], given: set[str]) -> dict[str, Any]:
+    """A solve's JSON fields as the library's request reads them: the service's own fields left
+    out, and ``exptime`` only when the client gave it (an MA table's exposure is otherwise its last read)."""
+    body = {k: v for k, v in fields.items() if k not in SOLVE_SERVICE_FIELDS}
+    if "exptime" not in given:
+        body.pop("exptime", None)
+    return body
+
+
+def solve_request(body: dict[str, Any]) -> SolveRequest:
+    """The library's typed request for a solve's JSON fields (:func:`solve_body`); a shipped MA
+    table's name becomes the table before the library sees it (no client string reaches a file call)."""
+    from .models import shipped_ma_table
+
+    if isinstance(body.get("ma_table"), str):
+        body = {**body, "ma_table": shipped_ma_table(body["ma_table"])}
+    request = SolveRequest.from_json(body)
+    if request.scene is not None:
+        scenes.check_first_order(request.scene, request.full_well)
+    return request
+
+
+def request_arguments(request: SolveRequest) -> dict[str, Any]:
+    """``request``'s fields as keyword arguments (for ``solver.solve_over_field``, which takes them)."""
+    from dataclasses import fields
+
+    return {f.name: getattr(request, f.name) for f in fields(request) if f.init}
 
 
 def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
@@ -88,8 +102,7 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     from .models import build_ramp
 
     level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
-    scene = build_scene(request.get("scene"))
-    check_scene_bounds(scene, request["full_well"])
+    scene = build_scene(request.get("scene"))  # SimulationConfig refuses one beyond first order (scene.check_first_order)
     ramp, exptime = build_ramp(
         request.get("ramp"),
         request.get("ma_table"),
@@ -260,7 +273,7 @@ SIMULATION_KIND = "simulation"
 
 
 def solve_job(arguments: dict[str, Any]) -> dict[str, Any]:
-    """The job request of a solve that needs a simulation (``arguments`` as ``solver.solve`` takes them)."""
+    """The job request of a solve that needs a simulation: ``{"request": JSON fields, "over_field": ...}``."""
     return {"kind": SOLVE_KIND, "solve": arguments}
 
 
@@ -279,7 +292,7 @@ def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[st
 
     arguments = dict(arguments)
     scene = build_scene(arguments.pop("scene"))
-    return _json_safe(impact.impact(scene=scene, progress=_steps(progress), **arguments))
+    return json_safe(impact.impact(scene=scene, progress=_steps(progress), **arguments))
 
 
 def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
@@ -287,33 +300,18 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
 
     if progress:
         progress(0.0, "simulating the slopes this solve needs")
-    arguments = dict(arguments)
-    ramp_request = arguments.pop("ramp_request", None)
-    if ramp_request is not None:
-        from .models import build_ramp
-
-        given = arguments["exptime"] if ramp_request["exptime_given"] else None
-        arguments["ramp"], arguments["exptime"] = build_ramp(
-            ramp_request["ramp"],
-            ramp_request["ma_table"],
-            ramp_request["ramp_fit"],
-            ramp_request["read_noise"],
-            given,
-            arguments["sca"],
-        )
-    scene_request = arguments.pop("scene_request", None)
-    over_field = arguments.pop("over_field", None)
-    if scene_request is not None:
-        arguments["scene"] = build_scene(scene_request)
+    request = solve_request(arguments["request"])
+    over_field = arguments.get("over_field")
     if over_field is not None:
-        band, sca = arguments.pop("band"), arguments.pop("sca")
+        rest = request_arguments(request)
+        band, sca = rest.pop("band"), rest.pop("sca")
         scas = "all" if over_field == "focal_plane" else [sca]
-        solution = solver.solve_over_field(band, scas, progress=_steps(progress), **arguments).to_dict()
+        solution = solver.solve_over_field(band, scas, progress=_steps(progress), **rest).to_dict()
     else:
-        solution = solver.solve(**arguments).to_dict()
+        solution = solver.answer(request).to_dict()
     if progress:
         progress(1.0, "done")
-    return _json_safe(solution)
+    return json_safe(solution)
 
 
 def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
@@ -349,15 +347,28 @@ def _run_simulation(normalised: dict[str, Any], progress: Progress | None) -> di
         )
     if progress:
         progress(1.0, "done")
-    rows = [_json_safe(r.to_dict()) for r in results]
+    rows = [json_safe(_result_row(r)) for r in results]
     return {
         "source": f"fresh simulation ({config.fidelity}, {config.realizations} realizations, seed {config.seed})",
         "fidelity": normalised["fidelity"],
-        "conditions": _json_safe(config.conditions()),
+        "conditions": json_safe(config.conditions()),
         "grid": {"magnitudes": magnitudes, "betas": betas, "sigma_betas": sigma_betas, "order": "sigma_beta, magnitude, beta"},
         "results": rows,
         "elapsed_s": time.perf_counter() - start,
     }
+
+
+#: The metrics of a simulation result row, each with mean, std, stderr (and std_error, added here).
+RESULT_METRICS = ("dR_over_R", "de1", "de2")
+
+
+def _result_row(result) -> dict[str, Any]:
+    """A simulation result as JSON, each metric with ``std_error``, the standard error of its
+    ``std`` (``Statistic.std_error``): the error bar of a scatter (sigma_beta > 0) point."""
+    row = result.to_dict()
+    for name in RESULT_METRICS:
+        row[name] = {**row[name], "std_error": getattr(result, name).std_error}
+    return row
 
 
 def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
@@ -367,35 +378,17 @@ def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any)
     return validate(payload, settings.limits, settings.job_memory_mb)
 
 
-#: Request fields of a solve that the job rebuilds from JSON rather than receiving as objects.
-_SOLVE_RAMP_FIELDS = ("ramp", "ma_table", "ramp_fit", "read_noise")
-
-
 def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
-    """A solve that needs simulated slopes: everything checked at table cost (the table solve of the
-    same question, the fidelity choice, ramp and scene), then the job's arguments."""
+    """A solve that needs simulated slopes: everything checked at table cost (the library's request,
+    the table solve of the same question, the fidelity choice), then the job's arguments: the
+    request's JSON fields, which the job process reads into the same typed request."""
     from nlpsf import solver
 
-    from .models import build_ramp
-
-    arguments = {k: v for k, v in fields.items() if k not in (*_SOLVE_RAMP_FIELDS, "scene", "over_field")}
-    ramp, arguments["exptime"] = build_ramp(
-        fields["ramp"], fields["ma_table"], fields["ramp_fit"], fields["read_noise"],
-        fields["exptime"] if "exptime" in given else None, fields["sca"],
-    )  # fmt: skip
-    scene = build_scene(fields["scene"]) if fields["scene"] is not None else None
-    if scene is not None:
-        check_scene_bounds(scene, fields["full_well"])
-    if scene is not None and ramp is not None:
-        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
-    checked = solver.solve(**{**arguments, "fidelity": "table", "accuracy": None, "pupil_scale": None})
-    solver.choose_fidelity(fields["fidelity"], fields["accuracy"], checked.band, checked.metric, checked.mode)
-    job = {**arguments, "band": checked.band, "scene_request": fields["scene"], "over_field": fields["over_field"]}
-    if ramp is not None:
-        # The worker rebuilds the ramp from the request's own (JSON) fields.
-        job["exptime"] = fields["exptime"]
-        job["ramp_request"] = {**{k: fields[k] for k in _SOLVE_RAMP_FIELDS}, "exptime_given": "exptime" in given}
-    return solve_job(job)
+    body = solve_body(fields, given)
+    request = solve_request(body)
+    checked = solver.answer(request.with_changes(fidelity="table", accuracy=None, pupil_scale=None, ramp=None, scene=None))
+    solver.choose_fidelity(request.fidelity, request.accuracy, checked.band, checked.metric, checked.mode)
+    return solve_job({"request": {**body, "band": request.band}, "over_field": fields["over_field"]})
 
 
 def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
@@ -414,7 +407,7 @@ def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> 
         )
     scene_request = arguments.pop("scene")
     scene = build_scene(scene_request)
-    check_scene_bounds(scene, defaults.FULL_WELL_E)  # the impact report simulates at the default full well
+    scenes.check_first_order(scene, defaults.FULL_WELL_E)  # the impact report simulates at the default full well
     wavelengths = scene.wavelengths(roman.check_band(arguments["band"]))
     if wavelengths > limits.max_wavelengths:
         raise LimitError(
@@ -451,14 +444,3 @@ def estimate(request: dict[str, Any]) -> float | None:
     """A job request's expected duration on one core, s (None when not priced)."""
     kind, arguments = _entry(request)
     return kind.estimate(arguments)
-
-
-def _json_safe(value: Any) -> Any:
-    """Non-finite floats become None: JSON has no NaN, and a silent 'Infinity' breaks clients."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value

@@ -194,13 +194,6 @@ class RampFields(BaseModel):
         "read noise per read in e- (optimal fit: > 0); default: the SCA's official value (CDS noise / sqrt 2)",
     )
 
-    def ramp_arguments(self, exptime: float, sca: int = defaults.SCA) -> tuple[object, float]:
-        """(ramps.Ramp or None, exposure time): the library's one rule for both (an MA table's
-        exposure is its last read unless the request gives ``exptime``)."""
-        table = self.ma_table.model_dump() if isinstance(self.ma_table, MATableSpec) else self.ma_table
-        given = exptime if "exptime" in self.model_fields_set else None
-        return build_ramp(self.ramp, table, self.ramp_fit, self.read_noise, given, sca)
-
 
 def shipped_ma_table(name: str) -> ramps.MATable:
     """A shipped MA table by its (validated) name, read from the package's own data folder only."""
@@ -341,6 +334,9 @@ class SolveResponse(BaseModel):
     applies_to: str = _f("what the tolerance applies to (text)")
     shear: dict[str, Any] | None = _f("shear-bias budget and the tolerance it implies (dimensionless values)")
     flags: list[str] = _f("warnings about the answer's validity (text)")
+    flag_codes: list[str] = _f(
+        "the code of each flag, in the same order (flag_codes[i] is flags[i]'s; the catalogue: GET /api/v1/meta → flag_codes)"
+    )
     fidelity: str = _f("the fidelity level used (no unit)")
     conditions: dict[str, Any] = _f("the conditions of the answer: band, SCA, exposure (s), beta0 (1/e-), settings")
 
@@ -411,6 +407,24 @@ class Health(BaseModel):
     )
 
 
+class FlagCatalogueEntry(BaseModel):
+    code: str = _f("the flag's code, stable across versions and languages (no unit)")
+    template: str = _f("the message's template; {name} is one of quotes (text)")
+    quotes: list[str] = _f("the values the message quotes (no unit)")
+    meaning: str = _f("what the flag means, in one sentence (text)")
+
+
+class SceneEffectEntry(BaseModel):
+    name: str = _f("the effect (no unit), as the impact report names it")
+    fields: list[str] = _f("the library's scene fields that set it (nlpsf.scene.SceneModel; no unit)")
+    nominal: dict[str, Any] = _f("the Roman value tried when a scene leaves it off, in the fields' units (null: none)")
+    source: str = _f("where the nominal value comes from (text)")
+    kind: Literal["optical", "detector"] = _f("optical: acts on the PSF before the pixels; detector: in the pixels")
+    breaks_beta_q: bool = _f("adds a flux dependence of its own (the tables' beta x flux rescaling then does not hold)")
+    combines_with: str = _f("what it can be simulated together with (text)")
+    in_roman_preset: bool = _f("part of the scene preset 'roman' at its nominal value")
+
+
 class Meta(BaseModel):
     model_config = ConfigDict(extra="allow")
 
@@ -428,6 +442,8 @@ class Meta(BaseModel):
     simulation_fidelities: list[str] = _f("simulation fidelity levels (no unit)")
     defaults: dict[str, Any] = _f("request defaults, in the units of the request fields")
     limits: dict[str, Any] = _f("service limits (counts, s, MB, bytes as named)")
+    flag_codes: list[FlagCatalogueEntry] = _f("every flag code an answer or a simulation result may carry (nlpsf.flags)")
+    scene_effects: list[SceneEffectEntry] = _f("the scene effects, in the order they act (nlpsf.scene.REGISTRY)")
 
 
 class TableJSON(BaseModel):
@@ -477,6 +493,7 @@ class LinearCurve(BaseModel):
     fidelity_relative_uncertainty: float | None = _f("the table level's measured relative error (dimensionless)", None)
     slope: float | None = _f("slope in e- (metric per 1/e-)")
     flags: list[str] = _f("validity warnings (text)")
+    flag_codes: list[str] = _f("the code of each flag, in the same order (catalogue: GET /api/v1/meta → flag_codes)")
     saturation_magnitude: float | None = _f("saturation magnitude in AB mag")
     conditions: dict[str, Any] = _f("conditions: exposure in s, beta0 in 1/e-, full well in e-, settings")
 

@@ -11,10 +11,11 @@ from starlette.concurrency import run_in_threadpool
 
 from nlpsf import defaults, solver
 from nlpsf.checks import InputError
+from nlpsf.serialise import json_safe
 
 from . import job_kinds, models
 from .deps import CallerDep, ServicesDep
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 from .params import ERRORS, JOB_ANSWER_RESPONSES
 from .simulations import job_answer
 
@@ -29,29 +30,22 @@ router = APIRouter(prefix="/api/v1")
 )
 async def solve(body: models.SolveRequest, services: ServicesDep, caller: CallerDep) -> Response:
     # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
-    ramp_keys = ("ramp", "ma_table", "ramp_fit", "read_noise")
-    scene_keys = ("scene", "over_field")
+    # The library's typed request checks every field, the ramp and the scene (and whether they combine).
     raw = body.model_dump()
-    arguments = {k: v for k, v in raw.items() if k not in ramp_keys and k not in scene_keys}
-    ramp, arguments["exptime"] = body.ramp_arguments(body.exptime, body.sca)  # validates the ramp
-    from .job_kinds import build_scene, check_scene_bounds
-
-    scene = build_scene(raw["scene"]) if raw["scene"] is not None else None  # validates the scene
-    if scene is not None:
-        check_scene_bounds(scene, body.full_well)
-    if scene is not None and ramp is not None:
-        raise InputError("scene", "a scene and a ramp cannot be combined yet; give one of them")
+    request = job_kinds.solve_request(job_kinds.solve_body(raw, body.model_fields_set))
     # Another pupil-scale rule than the tables' is simulated: a job, like a scene or a ramp.
-    tables_pupil = body.pupil_scale in (None, defaults.PUPIL_SCALE)
-    plain = ramp is None and scene is None and body.over_field is None and tables_pupil
-    if plain and body.fidelity in (None, "table") and body.accuracy is None:
-        return SafeJSONResponse(solver.solve(**arguments).to_dict())
-    if tables_pupil and body.over_field is not None and solver.over_field_from_tables(scene, body.fidelity, body.accuracy, ramp):
+    tables_pupil = request.pupil_scale in (None, defaults.PUPIL_SCALE)
+    plain = request.ramp is None and request.scene is None and body.over_field is None and tables_pupil
+    if plain and request.fidelity in (None, "table") and request.accuracy is None:
+        return SafeJSONResponse(solver.answer(request).to_dict())
+    over_field_tables = solver.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
+    if tables_pupil and body.over_field is not None and over_field_tables:
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
         # tens of milliseconds, so off the event loop but not a job.
-        scas = "all" if body.over_field == "focal_plane" else [body.sca]
-        rest = {k: v for k, v in arguments.items() if k not in ("band", "sca")}
-        answer = await run_in_threadpool(solver.solve_over_field, body.band, scas, **rest)
+        rest = job_kinds.request_arguments(request)
+        band, sca = rest.pop("band"), rest.pop("sca")
+        scas = "all" if body.over_field == "focal_plane" else [sca]
+        answer = await run_in_threadpool(solver.solve_over_field, band, scas, **rest)
         return SafeJSONResponse(answer.to_dict())
     # What remains -- a simulating level, an accuracy (its effects are measured by simulation even
     # when the table level meets it), a ramp, a scene, or an over-field answer the field-point tables
@@ -84,19 +78,16 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
         request = models.SolveRequest.model_validate(item)
     except ValidationError as invalid:
         return {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}
-    raw = request.model_dump()
-    job_only = ("ramp", "ma_table", "ramp_fit", "read_noise", "scene", "over_field")
-    arguments = {k: v for k, v in raw.items() if k not in job_only}
     try:
-        ramp, arguments["exptime"] = request.ramp_arguments(request.exptime, request.sca)
         for name in ("scene", "over_field"):
-            if raw[name] is not None:
+            if getattr(request, name) is not None:
                 raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
-        simulating = request.fidelity not in (None, "table") or request.pupil_scale not in (None, defaults.PUPIL_SCALE)
-        if ramp is not None or simulating or request.accuracy is not None:
+        solve = job_kinds.solve_request(job_kinds.solve_body(request.model_dump(), request.model_fields_set))
+        simulating = solve.fidelity not in (None, "table") or solve.pupil_scale not in (None, defaults.PUPIL_SCALE)
+        if solve.ramp is not None or simulating or solve.accuracy is not None:
             # A batch answers at table cost; a simulating solve is a job (POST /solve), one at a time.
             raise InputError("fidelity", "a batch solves from the tables only: send ramps and simulating levels to POST /solve")
-        return {"index": index, "ok": True, "solution": json_safe(solver.solve(**arguments).to_dict())}
+        return {"index": index, "ok": True, "solution": json_safe(solver.answer(solve).to_dict())}
     except InputError as error:
         return {"index": index, "ok": False, "error": input_error_body(error)}
     except SimulationError as error:

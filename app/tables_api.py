@@ -11,9 +11,10 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 
 from nlpsf import __version__, tables
+from nlpsf.serialise import json_safe
 
 from . import models
-from .errors import SafeJSONResponse, json_safe
+from .errors import SafeJSONResponse
 from .health_api import public_table_meta
 from .params import ERRORS, OptionalBand, OptionalSca
 

@@ -30,7 +30,7 @@ from dataclasses import replace
 
 from . import defaults, experiment, roman
 from . import scene as scenes
-from .checks import InputError, check_exptime, check_integer, check_number
+from .checks import InputError, check_beta0, check_exptime, check_integer
 
 #: Impact metrics: the contract's names, and the simulation metrics each combines.
 IMPACT_METRICS: dict[str, tuple[str, ...]] = defaults.METRIC_COLUMNS
@@ -76,10 +76,10 @@ def check_request(
         "magnitude": experiment.check_magnitudes([magnitude])[0],
         "metric": metric,
         "mode": mode,
-        "beta0": check_number(beta0, "beta0", 0.0, 1e-3, open_low=True),
+        "beta0": check_beta0(beta0),
         "exptime": check_exptime(exptime),
         "realizations": check_integer(realizations, "realizations", 2, 10_000),
-        "seed": check_integer(seed, "seed", 0, 2**63 - 1),
+        "seed": check_integer(seed, "seed", *defaults.SEED_RANGE),
     }
 
 

@@ -740,6 +740,26 @@ def charge_before_nl(psi: np.ndarray, charge_scale: float, model: SceneModel, ov
     return charge
 
 
+def check_first_order(scene: SceneModel, full_well: float) -> None:
+    """Refuse a scene whose detector effects leave the models' first-order regime inside the full
+    well, where every moment fit fails and a simulation could only end in an error: the higher NL
+    terms' share of the response slope, sum k |b_k| Q^(k-1), and the brighter-fatter area change
+    |bfe| Q must both stay below 1 at Q = ``full_well`` (e-). InputError naming ``scene.FIELD``."""
+    higher = sum(k * abs(b) * full_well ** (k - 1) for k, b in enumerate(scene.nl_coefficients, start=3))
+    if not higher < 1.0:
+        raise InputError(
+            "scene.nl_coefficients",
+            f"sum k |b_k| Q^(k-1) at the full well ({full_well:g} e-) is {higher:.3g}; it must stay below 1 "
+            "(the higher NL terms are a perturbation of the response, and dS/dQ must stay positive)",
+        )
+    if not abs(scene.bfe_coefficient) * full_well < 1.0:
+        raise InputError(
+            "scene.bfe",
+            f"|bfe| x full_well = {abs(scene.bfe_coefficient) * full_well:.3g}; it must stay below 1 "
+            f"(the first-order brighter-fatter model), i.e. |bfe| < {1.0 / full_well:.3g} 1/e- at this full well",
+        )
+
+
 def from_request(fields_: dict | None) -> SceneModel:
     """A scene from the REST API's ``scene`` object (no files on a server: tables and kernels inline).
 

@@ -30,17 +30,59 @@ const FIELD_NAMES = {
   nl_coefficients: "NL beyond the quadratic", bfe: "brighter-fatter coefficient", background: "sky background",
   scene: "scene", csv: "CSV", over_field: "over the field", throughput: "throughput",
 };
-const EFFECTS = {
+// The page's words for each scene effect, by the registry's name (GET /api/v1/meta → scene_effects,
+// nlpsf.scene.REGISTRY, is the list of effects and their facts); an effect without words here shows
+// under its registry name.
+const EFFECT_WORDS = {
   position: ["position on the detector", "the optics change across a detector: the PSF at a corner differs from the centre the tables hold"],
   sed: ["star colour (SED)", "a real star spans the band's wavelengths; the tables use one wavelength"],
-  jitter: ["pointing jitter", "the telescope's pointing wanders during the exposure and blurs the PSF (Roman: 0.014″ rms)"],
-  charge_diffusion: ["charge diffusion", "charge spreads to neighbouring pixels before it is collected (Roman: 0.1 px rms)"],
+  jitter: ["pointing jitter", "the telescope's pointing wanders during the exposure and blurs the PSF"],
+  charge_diffusion: ["charge diffusion", "charge spreads to neighbouring pixels before it is collected"],
   ipc: ["interpixel capacitance", "a pixel's signal leaks capacitively into its neighbours (a few per cent for Roman's detectors)"],
   nl_polynomial: ["NL beyond the quadratic", "the detector's response has cubic and higher terms besides S = Q − βQ²"],
-  brighter_fatter: ["brighter-fatter effect", "collected charge repels new charge, so bright stars look bigger; no Roman value is public, so it is measured only when you give a coefficient"],
+  brighter_fatter: ["brighter-fatter effect", "collected charge repels new charge, so bright stars look bigger"],
   background: ["sky background", "sky and dark current add charge under the star and move it up the nonlinear curve"],
-  pupil_scale: ["pupil-mask scale rule", "two readings of how the pupil mask is scaled; the difference measures the optical model's own uncertainty"],
 };
+// Not a scene effect, but explained beside them (the optical model's own uncertainty).
+const PUPIL_SCALE_WORDS = ["pupil-mask scale rule", "two readings of how the pupil mask is scaled; the difference measures the optical model's own uncertainty"];
+
+function effectWords(name) {
+  return EFFECT_WORDS[name] || [String(name).replace(/_/g, " "), ""];
+}
+
+// One registry entry in words: the page's wording, then the registry's facts.
+function effectExplanation(effect) {
+  const [name, about] = effectWords(effect.name);
+  const where = effect.kind === "optical" ? "optical: acts on the PSF before the pixels" : "detector: acts in the pixels";
+  const values = Object.entries(effect.nominal || {}).filter(([, v]) => typeof v === "number").map(([k, v]) => `${k} = ${fmt(v)}`);
+  return [name, `${about ? `${about}. ` : ""}${where}; the value tried when a scene leaves it off: ` +
+    `${values.length ? `${values.join(", ")}, ` : ""}${plainNote(effect.source)}; combines with ${effect.combines_with}`];
+}
+
+// Up the ramp a star is usable until its brightest pixel saturates in the resultant a slope needs
+// (usually the second: one resultant gives no slope; docs/ramps.md), named by the ramp's conditions.
+function limitResultantText(ramp) {
+  const k = ramp && ramp.limit_resultant;
+  if (!k) return "the resultant a slope needs";
+  const ordinal = ["first", "second", "third"][k - 1] || `${k}th`;
+  const end = ramp.limit_resultant_end_s;
+  return `its ${ordinal} resultant, the one a slope needs${end ? `, ends at ${fmt(end, 4)} s` : ""}`;
+}
+
+// Each flag on an answer: its message and, from the code catalogue (GET /api/v1/meta → flag_codes),
+// what it means, in a disclosure that opens by keyboard (Enter/Space on its summary).
+function flagsList(flags, codes) {
+  const catalogue = new Map(((state.meta && state.meta.flag_codes) || []).map((c) => [c.code, c.meaning]));
+  const items = flags.map((message, k) => {
+    const meaning = codes && catalogue.get(codes[k]);
+    const about = meaning
+      ? `<details class="flag-about"><summary>what this means</summary><span data-flag-code="${escapeHtml(codes[k])}">${escapeHtml(meaning)}</span></details>`
+      : "";
+    return `<li>${escapeHtml(plainWords(message))}${about}</li>`;
+  });
+  return `<ul class="flags" data-testid="answer-flags">${items.join("")}</ul>`;
+}
+
 const FIDELITIES = {
   table: ["tables", "the shipped slope tables, interpolated: instant; the uncertainty includes their measured error"],
   linear: ["linear response", "a fresh simulation of the first-order response to β: seconds"],
@@ -393,7 +435,9 @@ function pointSeries(label, color, size = 8) {
 // lines; `shades` = [{from, to, label, color, hatch}]: x ranges behind the curves. Their names go in
 // the key under the plot (never on the canvas, where they covered the answer).
 function drawPlot(name, opts) {
-  const { xLabel, yLabel, columns, logX = false, logY = false, markers = [], shades = [], cursorAt = null } = opts;
+  // noAnswer: the plot keeps its curves but its legend reads nothing until hovered (no value may
+  // look like the refused answer's, e.g. the previous answer's magnitude).
+  const { xLabel, yLabel, columns, logX = false, logY = false, markers = [], shades = [], cursorAt = null, noAnswer = false } = opts;
   const el = document.getElementById(`plot-${name}`);
   const usable = columns.map((c) => {
     const keep = c.x.map((x, i) => x !== null && c.y[i] !== null && c.y[i] !== undefined && (!logX || x > 0) && (!logY || c.y[i] > 0));
@@ -435,17 +479,18 @@ function drawPlot(name, opts) {
       y: { distr: logY ? 3 : 1 },
     },
     hooks: {
-      drawClear: [(u) => { drawShades(u, shades); drawMarkers(u, markers); drawBands(u, usable, halfWidths); }],
+      drawClear: [(u) => { drawShades(u, shades); drawMarkers(u, markers); drawBands(u, usable, halfWidths); drawWhiskers(u, usable, halfWidths); }],
       draw: [(u) => drawDirectLabels(u, usable)],
     },
     axes: [
       { label: xLabel, values: axisFormatter(logX), space: 60, ...logSplits(logX) },
       { label: yLabel, values: axisFormatter(logY), size: 72, space: 36, ...logSplits(logY) },
     ],
-    series: [{ label: xLabel, value: (u, v, si, i) => fmt(i == null ? u.data[0][defaultIdx] : v) },
+    series: [{ label: xLabel, value: (u, v, si, i) => (i == null && noAnswer ? "–" : fmt(i == null ? u.data[0][defaultIdx] : v)) },
       ...usable.map((c) => {
         const index = new Map(c.x.map((x, i) => [x, i]));
         return { ...c.series, value: (u, v, si, i) => {
+          if (i == null && noAnswer) return "–";
           let where = "";
           if (i == null) {
             i = nearestDefined(u.data[si], defaultIdx);
@@ -462,6 +507,7 @@ function drawPlot(name, opts) {
     cursor: { points: { size: 8 } },
   };
   const u = new uPlot(options, data, el);
+  el.classList.toggle("legend-void", noAnswer);
   state.plots[name] = u;
   u.defaultIdx = defaultIdx;
   u.halfWidths = halfWidths;
@@ -572,6 +618,36 @@ function drawBands(u, columns, halfWidths) {
     ctx.fillStyle = c.series.stroke || "#888";
     ctx.fill();
     ctx.restore();
+  });
+}
+
+// Points (a fresh simulation's) carry their 1σ error as a vertical bar with caps; u.whiskers keeps
+// what was drawn (data values) for the plot's table and for tests.
+function drawWhiskers(u, columns, halfWidths) {
+  const ctx = u.ctx;
+  const ratio = window.devicePixelRatio || 1;
+  u.whiskers = [];
+  columns.forEach((c, k) => {
+    if (c.band !== false || c.answer || !c.err) return;
+    const si = k + 1;
+    u.data[0].forEach((x, i) => {
+      const y = u.data[si][i];
+      const h = halfWidths[k][i];
+      if (y == null || !h) return;
+      const low = u.scales.y.distr === 3 ? Math.max(y - h, y * 1e-3) : y - h;
+      const px = u.valToPos(x, "x", true);
+      const [top, bottom] = [u.valToPos(y + h, "y", true), u.valToPos(low, "y", true)];
+      ctx.save();
+      ctx.strokeStyle = c.series.stroke || "#333";
+      ctx.lineWidth = 1.5 * ratio;
+      ctx.beginPath();
+      ctx.moveTo(px, top); ctx.lineTo(px, bottom);
+      ctx.moveTo(px - 4 * ratio, top); ctx.lineTo(px + 4 * ratio, top);
+      ctx.moveTo(px - 4 * ratio, bottom); ctx.lineTo(px + 4 * ratio, bottom);
+      ctx.stroke();
+      ctx.restore();
+      u.whiskers.push({ label: c.label, x, y, half: h });
+    });
   });
 }
 
@@ -1160,11 +1236,11 @@ function showAnswer(s) {
     ${uncertaintyParts.length && !noConstraint ? `<div class="muted">uncertainty parts (1σ): ${uncertaintyParts.map(([k, v]) =>
       `${k} ${fmt(v * scale, 2)}${unit}`).join(" · ")}</div>` : ""}
     <div>slope c(m) = ${escapeHtml(withUncertainty(s.slope, s.slope_uncertainty))} e⁻ · saturation at m = ${fmt(s.saturation_magnitude, 4)}${s.conditions.ramp
-        ? ` (first resultant; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude, 4)})` : ""}</div>
+        ? ` (${escapeHtml(limitResultantText(s.conditions.ramp))}; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude, 4)})` : ""}</div>
     ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
     <div class="muted">applies to ${escapeHtml(s.applies_to)}</div>
     ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
-    ${s.flags && s.flags.length ? `<ul class="flags">${s.flags.map((f) => `<li>${escapeHtml(plainWords(f))}</li>`).join("")}</ul>` : ""}
+    ${s.flags && s.flags.length ? flagsList(s.flags, s.flag_codes) : ""}
     <p class="scene-line" data-testid="scene-line">Scene: ${escapeHtml(sceneName(s))}
       ${sceneName(s) === PAPER_SCENE ? "" : '<button type="button" id="use-paper-scene">Use the paper\'s scene</button>'}</p>
     <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
@@ -1274,8 +1350,9 @@ async function failAnswer(error, shortReason = null, body = null) {
     const plot = state.exports[name];
     const el = document.getElementById(`plot-${name}`);
     delete el.dataset.point;
-    if (plot && plot.columns.some((c) => c.answer)) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer) });
-    else if (!plot) el.innerHTML = "";
+    // The curves stay; the answer's point and the legend's values at its magnitude go.
+    if (plot) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer), cursorAt: null, noAnswer: true });
+    else el.innerHTML = "";
     setNoAnswer(name, reason);
   }
   document.getElementById("req-readout").textContent = "";
@@ -1402,7 +1479,7 @@ async function drawCalculatorPlot(solution) {
   const markers = [{ x: solution.final_frame_saturation_magnitude ?? solution.saturation_magnitude,
     label: "saturation, final frame", color: "#555" }];
   if (ramp) {
-    markers.push({ x: solution.saturation_magnitude, label: "saturation, ramp (first resultant)", color: "#c00000", dash: [2, 3] });
+    markers.push({ x: solution.saturation_magnitude, label: `saturation, ramp (${limitResultantText(ramp)})`, color: "#c00000", dash: [2, 3] });
     if (data.ramp) {
       const rampLabel = `ramp ${ramp.ma_table} (tables at β_eff = ${fmt(data.ramp.factor)} β₀)`;
       columns.push({ label: rampLabel, tag: "ramp", x: data.ramp.magnitude, y: data.ramp.slope, err: data.ramp.statistical,
@@ -1478,10 +1555,11 @@ function simulationPoints(kind, band, metric, magnitude) {
   const rows = sim.results.filter((r) => r.band === band && Math.abs(r.magnitude - magnitude) < 1e-9 &&
     (kind === "beta" ? r.sigma_beta === 0 : r.sigma_beta > 0));
   if (rows.length === 0) return [];
-  // The standard error of a mean; for a spread over n draws, std / sqrt(2(n - 1)).
+  // Error bars from the API: the standard error of the mean, and of a spread its std_error (a result
+  // stored before std_error existed draws its point without a bar).
   const point = (r) => (kind === "beta"
     ? [r.beta, r[key].mean, r[key].stderr]
-    : [r.sigma_beta, r[key].std, r[key].std / Math.sqrt(2 * Math.max(r.realizations - 1, 1))]);
+    : [r.sigma_beta, r[key].std, r[key].std_error ?? null]);
   const groups = new Map();
   for (const r of rows) {
     const group = kind === "beta" ? `σβ = ${fmt(r.sigma_beta)}` : `β = ${fmt(r.beta)}`;
@@ -1791,7 +1869,7 @@ async function showImpact(report) {
   document.getElementById("impact-bars").innerHTML = report.effects
     .map((e, k) => {
       const v = values[k];
-      const [plain, about] = EFFECTS[e.name] || [e.name.replace(/_/g, " "), ""];
+      const [plain, about] = effectWords(e.name);
       const width = v === null ? 0 : (50 * Math.abs(v)) / largest;
       const side = v !== null && v < 0 ? "neg" : "pos";
       const change = v === null ? "" : `slope ${v > 0 ? "+" : ""}${fmt(100 * v, 3)} %`;
@@ -1816,7 +1894,8 @@ function plainNote(note) {
 
 function fillExplanations() {
   const dl = (entries) => entries.map(([k, [name, about]]) => `<dt>${escapeHtml(name)}</dt><dd>${escapeHtml(about)}</dd>`).join("");
-  document.getElementById("effect-explanations").innerHTML = dl(Object.entries(EFFECTS));
+  const effects = ((state.meta && state.meta.scene_effects) || []).map((e) => [e.name, effectExplanation(e)]);
+  document.getElementById("effect-explanations").innerHTML = dl([...effects, ["pupil_scale", PUPIL_SCALE_WORDS]]);
   document.getElementById("fidelity-explanations").innerHTML = dl(Object.entries(FIDELITIES));
 }
 

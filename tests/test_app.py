@@ -401,3 +401,205 @@ def test_responses_never_contain_non_finite_numbers(client):
             if response.status_code == 200:
                 value = response.json()["precision"]
                 assert value is None or math.isfinite(value)
+
+
+# --- the API builds the library's typed request -------------------------------------------------
+
+
+def _run_solve_job(client, body):
+    """A solve that is a job, validated as the endpoint does and run in this process."""
+    from nlpsf.web import job_kinds, models
+
+    model = models.SolveRequest.model_validate(body)
+    job = job_kinds.KINDS[job_kinds.SOLVE_KIND].validate(model.model_dump(), model.model_fields_set, client.app.state.settings)
+    return job_kinds.run(json.loads(json.dumps(job)))  # the job request travels as JSON
+
+
+def test_a_uniform_ols_ramp_solve_job_is_the_final_frame_at_beta_eff(client):
+    # Independent of the ramp code path: an N-read OLS ramp's magnitude equals the final frame's at
+    # beta_eff = (1 + 1/N) beta0 with the same precision (see tests/test_ramps.py).
+    n = 8
+    ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n})
+    frame = client.post(
+        "/api/v1/solve", json={"band": "H158", "precision": 0.01, "tolerance": 1e-4, "beta0": defaults.BETA0 * (1 + 1 / n)}
+    ).json()
+    assert ramp["conditions"]["ramp"]["ma_table"] == f"uniform-{n}"
+    assert ramp["magnitude"] == pytest.approx(frame["magnitude"], abs=1e-5)
+
+
+def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
+    from nlpsf import ramps
+
+    table = {"resultants": [[1], [2, 3], [4, 5, 6]], "frame_time_s": 3.04}
+    answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table})
+    assert answer["exptime"] == pytest.approx(ramps.MATable.from_dict(table).duration_s)
+    longer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "exptime": 30.0})
+    assert longer["exptime"] == 30.0
+
+
+@pytest.mark.parametrize("scene", [{"bfe": 1e-6}, {"ipc": "roman"}, {"background": 10.0}])
+def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
+    # The service holds no rule of its own: it refuses exactly what the library's request refuses.
+    from nlpsf.checks import InputError
+    from nlpsf.request import SolveRequest
+
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": scene}
+    try:
+        SolveRequest.from_json(body)
+        library = None
+    except InputError as error:
+        library = error
+    answer = client.post("/api/v1/solve", json=body)
+    if library is None:
+        assert answer.status_code in (200, 202), answer.text
+    else:
+        assert answer.status_code == 422
+        assert answer.json()["field"] == library.argument and library.reason in answer.json()["detail"]
+
+
+def test_service_json_has_no_nan_or_numpy_whatever_the_library_returns():
+    # JSON (RFC 8259) has no NaN or infinity; numpy integers are not JSON numbers. The service's
+    # responses and its job results go through the one json_safe (nlpsf.serialise).
+    import numpy as np
+    from nlpsf.web import job_kinds
+    from nlpsf.web.errors import SafeJSONResponse
+
+    payload = {"nan": float("nan"), "inf": np.float64("-inf"), "n": np.int64(3), "pair": (1.5, float("inf")), 2: "key"}
+    expected = {"nan": None, "inf": None, "n": 3, "pair": [1.5, None], "2": "key"}
+    assert json.loads(SafeJSONResponse(payload).body) == expected
+    assert json.loads(json.dumps(job_kinds.json_safe(payload), allow_nan=False)) == expected
+
+
+# --- flags as codes on the surface --------------------------------------------------------------
+
+
+def test_meta_serves_the_flag_catalogue_and_the_scene_effect_registry(client):
+    from nlpsf import flags
+    from nlpsf import scene as scenes
+
+    meta = client.get("/api/v1/meta").json()
+    served = {entry["code"]: entry for entry in meta["flag_codes"]}
+    assert set(served) == {code.value for code in flags.FlagCode}
+    assert all(entry["meaning"] and entry["template"] for entry in served.values())
+    effects = meta["scene_effects"]
+    assert [e["name"] for e in effects] == list(scenes.REGISTRY)  # the order they act in
+    by_name = {e["name"]: e for e in effects}
+    assert by_name["jitter"]["nominal"] == {"jitter_arcsec": scenes.ROMAN_JITTER_ARCSEC}
+    assert by_name["jitter"]["kind"] == "optical" and by_name["brighter_fatter"]["kind"] == "detector"
+    from nlpsf import ramps
+
+    for name, effect in by_name.items():  # what a ramp refuses says so
+        assert (name in ramps.RAMP_REFUSES) == ("not a ramp" in effect["combines_with"]), name
+
+
+def test_an_answers_flags_come_with_their_codes(client):
+    # A star brighter than its saturation magnitude is flagged saturated, whatever the words say.
+    body = {"band": "H158", "precision": 0.5, "magnitude": 17.0}
+    answer = client.post("/api/v1/solve", json=body).json()
+    assert answer["saturation_magnitude"] > 17.0
+    assert len(answer["flag_codes"]) == len(answer["flags"]) and "star_saturated" in answer["flag_codes"]
+    catalogue = {entry["code"] for entry in client.get("/api/v1/meta").json()["flag_codes"]}
+    assert set(answer["flag_codes"]) <= catalogue
+    schema = client.get("/openapi.json").json()["components"]["schemas"]
+    assert "flag_codes" in schema["SolveResponse"]["required"]
+    curve = client.get("/api/v1/curves/beta?band=H158&magnitude=17").json()
+    assert "star_saturated" in curve["flag_codes"] and len(curve["flag_codes"]) == len(curve["flags"])
+
+
+# --- one owner for each range: the library's and the service's entries refuse the same ----------
+
+
+@pytest.mark.parametrize(("beta0", "accepted"), [(5e-13, False), (defaults.BETA0_RANGE[0], True), (2e-3, False)])
+def test_impact_beta0_is_refused_alike_by_the_library_and_the_service(client, beta0, accepted):
+    from nlpsf import impact
+    from nlpsf.checks import InputError
+
+    if accepted:
+        assert impact.check_request(beta0=beta0)["beta0"] == beta0
+    else:
+        with pytest.raises(InputError) as refused:
+            impact.check_request(beta0=beta0)
+        assert refused.value.argument == "beta0"
+        answer = client.post("/api/v1/impact", json={"band": "H158", "magnitude": 18.3, "beta0": beta0})
+        assert answer.status_code == 422 and answer.json()["field"] == "beta0"
+
+
+def test_seeds_up_to_2_63_minus_1_at_every_library_entry():
+    from nlpsf import impact
+    from nlpsf.checks import InputError
+
+    top = 2**63 - 1  # numpy's SeedSequence takes it; one past is refused alike by both entries
+    assert impact.check_request(seed=top)["seed"] == top
+    experiment.SimulationConfig(seed=top)
+    for entry in (lambda: impact.check_request(seed=top + 1), lambda: experiment.SimulationConfig(seed=top + 1)):
+        with pytest.raises(InputError, match="seed"):
+            entry()
+
+
+@pytest.mark.parametrize(
+    ("scene", "field"), [({"bfe": 2e-5}, "scene.bfe"), ({"nl_coefficients": [1e-10]}, "scene.nl_coefficients")]
+)
+def test_a_scene_beyond_first_order_is_refused_by_the_library_and_the_service(client, scene, field):
+    # At the full well Q = 1.1e5 e-: |bfe| Q = 2.2 and 3 b3 Q^2 = 3.6, both past 1; at Q/10, 0.22 and 0.036.
+    from nlpsf import scene as scenes
+    from nlpsf.checks import InputError
+
+    model = scenes.from_request(scene)
+    with pytest.raises(InputError) as refused:
+        experiment.SimulationConfig(scene=model, full_well_e=defaults.FULL_WELL_E)
+    assert refused.value.argument == field
+    for path, body in (
+        ("/api/v1/simulations", {"band": "H158", "scene": scene, "realizations": 2}),
+        ("/api/v1/solve", {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": scene}),
+    ):
+        answer = client.post(path, json=body)
+        assert answer.status_code == 422 and answer.json()["field"] == field, answer.text
+    # The same scene at a tenth of the full well is within the first-order regime.
+    experiment.SimulationConfig(scene=model, full_well_e=defaults.FULL_WELL_E / 10, realizations=2)
+
+
+def test_a_simulation_result_carries_the_standard_error_of_each_spread(client):
+    from nlpsf.web import job_kinds, models
+
+    request = models.SimulationRequest.model_validate(
+        {"band": "H158", "magnitudes": [18.3], "betas": [5e-7], "sigma_betas": [5e-8], "realizations": 5, "stamp": 48,
+         "fidelity": "linear", "seed": 3}
+    )  # fmt: skip
+    job = job_kinds.KINDS[job_kinds.SIMULATION_KIND].validate(
+        request.model_dump(), request.model_fields_set, client.app.state.settings
+    )
+    (row,) = job_kinds.run(job)["results"]
+    for metric in job_kinds.RESULT_METRICS:
+        # Of n normal draws, the sample std's standard error is std / sqrt(2 (n - 1)).
+        assert row[metric]["std_error"] == pytest.approx(row[metric]["std"] / math.sqrt(2 * (5 - 1)), rel=1e-12)
+
+
+def test_std_error_is_the_spread_of_sample_standard_deviations():
+    # Independent of the formula: the scatter of many samples' std around sigma.
+    import numpy as np
+
+    from nlpsf.experiment.results import Statistic
+
+    rng = np.random.default_rng(5)
+    n = 20
+    samples = rng.normal(0.0, 2.0, size=(4000, n))
+    stds = samples.std(axis=1, ddof=1)
+    predicted = np.mean([Statistic.of(s).std_error for s in samples[:200]])
+    assert stds.std() == pytest.approx(predicted, rel=0.06)
+    assert Statistic.of(np.array([1.0])).std_error is None
+
+
+def test_every_service_setting_is_in_the_api_docs_configuration_list():
+    from pathlib import Path
+
+    from nlpsf.web.settings import Settings
+
+    text = (Path(__file__).parents[1] / "docs" / "api.md").read_text()
+    configuration = text.split("## Configuration", 1)[1]
+    for name, info in Settings.model_fields.items():
+        if name == "limits":
+            names = [f"NLPSF_{limit.upper()}" for limit in Settings().limits.to_dict()]
+        else:
+            names = [info.validation_alias if isinstance(info.validation_alias, str) else f"NLPSF_{name.upper()}"]
+        for variable in names:
+            assert f"`{variable}`" in configuration, variable

@@ -248,7 +248,9 @@ def test_ramp_choice_in_the_calculator_draws_both_saturation_limits(page):
     assert solution["conditions"]["ramp"]["ma_table"] == "uniform-8"
     expected = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=solver.ramps.Ramp.uniform(8, 168.1))
     assert solution["magnitude"] == pytest.approx(expected.magnitude, rel=1e-9)
-    assert "first resultant" in page.inner_text("#solve-result")
+    # The ramp's limit is the resultant a slope needs: the second of 8 uniform reads, at 2 T / 8.
+    text = page.inner_text("#solve-result")
+    assert "second resultant" in text and f"{2 * 168.1 / 8:.4g} s" in text and "first resultant" not in text
     # The plot is redrawn after the answer arrives (its curves are one more request): wait for both limits.
     page.wait_for_function("() => (state.exports.calc?.markers || []).length === 2")
     markers = page.evaluate("() => state.exports.calc.markers.map((m) => m.x)")

@@ -63,7 +63,16 @@ def test_a_failed_solve_clears_the_marker(page):  # noqa: F811
         assert page.get_attribute(f"#plot-{plot}", "data-answer") == "none"
         assert page.evaluate(f"() => state.exports.{plot}.columns.some((c) => c.answer)") is False
     assert page.is_hidden("#solve-result")
+    # The legends read nothing (no value left at the refused answer's magnitude) until hovered.
+    for plot in ("req", "calc"):
+        values = page.locator(f"#plot-{plot} .u-legend .u-value").all_inner_texts()
+        assert values and all(v == "–" for v in values), values
+        assert "legend-void" in page.get_attribute(f"#plot-{plot}", "class")
     page.fill("#solve-magnitude", "18.3")
+    solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
+    page.wait_for_function("() => document.getElementById('plot-req').dataset.answer === 'shown'")
+    assert "18.3" in page.inner_text("#plot-calc .u-legend")
+    assert "legend-void" not in (page.get_attribute("#plot-calc", "class") or "")
 
 
 def test_every_bad_field_is_reported_at_once(page):  # noqa: F811
@@ -100,6 +109,13 @@ def test_fresh_simulations_at_several_betas_are_all_shown(page):  # noqa: F811
     points = page.evaluate("() => state.exports.sigma.columns.filter((c) => c.label.startsWith('fresh')).map((c) => c.x.length)")
     assert points == [2, 2, 2]
     assert "3 series" in page.inner_text("#sigma-caption")
+    # Each scatter point has its error bar drawn, the API's std_error: std / sqrt(2 (n - 1)) over the
+    # n = 6 beta-map draws (the standard error of a normal sample's standard deviation).
+    whiskers = page.evaluate("() => state.plots.sigma.whiskers")
+    rows = page.evaluate("() => state.lastSimulation.results.filter((r) => r.sigma_beta > 0)")
+    assert len(whiskers) == len(rows) == 6
+    expected = sorted(r["dR_over_R"]["std"] / (2 * (6 - 1)) ** 0.5 for r in rows)
+    assert sorted(w["half"] for w in whiskers) == pytest.approx(expected, rel=1e-9)
     page.locator("#curves").screenshot(path=str(ARTIFACTS / "e2e-sigma-betas.png"))
     page.fill("#sim-sigma_betas", "0")
     page.select_option("#sim-fidelity", "monte_carlo")
@@ -144,3 +160,30 @@ def test_a_shear_budget_takes_the_place_of_the_tolerance(page):  # noqa: F811
     page.fill("#solve-tolerance", "1e-4")
     page.click("#solve-button")
     page.wait_for_selector("#solve-error", state="hidden")
+
+
+def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):  # noqa: F811
+    from nlpsf import flags
+
+    solution = solve_for(page, "tolerance", {"precision": "0.5", "magnitude": "17"})
+    assert "star_saturated" in solution["flag_codes"]
+    items = page.locator("[data-testid=answer-flags] li")
+    assert items.count() == len(solution["flags"])
+    index = solution["flag_codes"].index("star_saturated")
+    summary = items.nth(index).locator("summary")
+    summary.focus()
+    page.keyboard.press("Enter")
+    details = items.nth(index).locator("details")
+    assert details.get_attribute("open") is not None
+    meaning = {entry["code"]: entry["meaning"] for entry in flags.catalogue()}["star_saturated"]
+    assert items.nth(index).locator("[data-flag-code=star_saturated]").inner_text() == meaning
+
+
+def test_the_effect_explanations_list_the_registrys_effects(page):  # noqa: F811
+    from nlpsf import scene as scenes
+
+    terms = page.locator("#effect-explanations dt").all_inner_texts()
+    # One per registry effect (in the page's words), then the pupil-scale rule.
+    assert len(terms) == len(scenes.REGISTRY) + 1
+    text = page.evaluate("() => document.getElementById('effect-explanations').textContent")
+    assert f"jitter_arcsec = {scenes.ROMAN_JITTER_ARCSEC:g}" in text

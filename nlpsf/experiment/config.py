@@ -77,7 +77,7 @@ class SimulationConfig:
         object.__setattr__(self, "sca", roman.check_sca(self.sca))
         roman.check_throughput(self.throughput)
         check_integer(self.realizations, "realizations", 1, MAX_REALIZATIONS)
-        check_integer(self.seed, "seed", 0, 2**63 - 1)
+        check_integer(self.seed, "seed", *defaults.SEED_RANGE)
         render.Grid(self.oversampling, self.stamp)
         if self.realizations * self.stamp**2 * 8 > MAX_STAMP_BYTES:
             raise InputError(
@@ -87,6 +87,7 @@ class SimulationConfig:
             )
         check_exptime(self.exptime_s)
         check_full_well(self.full_well_e)
+        scenes.check_first_order(self.scene, self.full_well_e)  # the same refusal as the service's, at every entry
         check_choice(self.method, "method", METHODS)
         check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
         moments.MomentSettings(weight_cut_rho2=self.weight_cut_rho2)

@@ -31,6 +31,14 @@ class Statistic:
         std = float(values.std(ddof=1)) if values.size > 1 else 0.0
         return cls(float(values.mean()), std, std / math.sqrt(values.size), int(values.size))
 
+    @property
+    def std_error(self) -> float | None:
+        """The standard error of ``std`` itself, std / sqrt(2 (n - 1)): the large-n value for
+        normally distributed draws (None with fewer than two). A scatter point's error bar."""
+        if self.std is None or self.count < 2:
+            return None
+        return self.std / math.sqrt(2 * (self.count - 1))
+
     def to_dict(self) -> dict:
         return {"mean": self.mean, "std": self.std, "stderr": self.stderr}
 
