@@ -23,7 +23,11 @@ def test_requirement_plot_hover_reads_the_requirement(page):  # noqa: F811
     # Before any hover the legend shows numbers, not dashes.
     legend = page.inner_text("#plot-req .u-legend")
     assert "–" not in legend and any(ch.isdigit() for ch in legend)
-    box = page.locator("#plot-req .u-over").bounding_box()
+    # The plot may be redrawn once more after the answer (its curves are a second request): wait for it.
+    over = page.locator("#plot-req .u-over")
+    over.wait_for(state="visible")
+    box = over.bounding_box()
+    assert box is not None
     page.mouse.move(box["x"] + box["width"] * 0.7, box["y"] + box["height"] * 0.5)
     page.wait_for_function("() => document.getElementById('req-readout').dataset.magnitude !== undefined")
     readout = page.locator("#req-readout")
