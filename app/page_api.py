@@ -20,7 +20,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import PlainTextResponse, Response
 
-from nlpsf import relation, tables
+from nlpsf import defaults, relation, tables
 from nlpsf import solver as solver_module
 from nlpsf.checks import InputError
 
@@ -113,9 +113,9 @@ def limits_endpoint(
     sca: params.Sca = 18,
     metric: params.MetricQuery = "size",
     mode: params.ModeQuery = "bias",
-    exptime: params.Exptime = 168.1,
-    beta0: params.Beta0 = 5e-7,
-    full_well: params.FullWell = 1.1e5,
+    exptime: params.Exptime = defaults.EXPTIME_S,
+    beta0: params.Beta0 = defaults.BETA0,
+    full_well: params.FullWell = defaults.FULL_WELL_E,
 ) -> SafeJSONResponse:
     return SafeJSONResponse(json_safe(limits(band.upper(), sca, metric, mode, exptime, beta0, full_well)))
 
@@ -127,9 +127,9 @@ def requirement(
     sca: params.Sca = 18,
     metric: params.MetricQuery = "size",
     mode: params.ModeQuery = "bias",
-    exptime: params.Exptime = 168.1,
-    beta0: params.Beta0 = 5e-7,
-    full_well: params.FullWell = 1.1e5,
+    exptime: params.Exptime = defaults.EXPTIME_S,
+    beta0: params.Beta0 = defaults.BETA0,
+    full_well: params.FullWell = defaults.FULL_WELL_E,
     stars: Stars = 1,
     at: At = None,
     ramp_factor: RampFactor = None,
@@ -196,9 +196,9 @@ def slopes(
     metric: params.MetricQuery = "size",
     mode: params.ModeQuery = "bias",
     sca: params.Sca = 18,
-    exptime: params.Exptime = 168.1,
-    beta0: params.Beta0 = 5e-7,
-    full_well: params.FullWell = 1.1e5,
+    exptime: params.Exptime = defaults.EXPTIME_S,
+    beta0: params.Beta0 = defaults.BETA0,
+    full_well: params.FullWell = defaults.FULL_WELL_E,
     at: At = None,
 ) -> SafeJSONResponse:
     out = []
