@@ -1,14 +1,9 @@
 """Slope tables over the field: the candidate Roman default scene, a grid of positions per SCA, and
 interpolation across it.
 
-The scene (issue 17, item 2; the switch of the default is a later step). :func:`roman_scene` is the
-candidate "Roman star as it flies", built from existing parts without changing ``nlpsf.scene``:
-``scene.preset("roman")`` (flat-f_nu SED, jitter 0.014", charge diffusion 0.1 px, GalSim's IPC
-kernel after the NL) at the star's position, the background of ``backgrounds`` preset
-``roman-typical`` (twice the minimum zodiacal light, thermal, dark), romanisim's default imaging MA
-table ``C2A_IMG_HLWAS`` (romanisim-4, 139.1 s) read by the likelihood ("optimal") fit with
-romancal's saturation rules, and the ``official`` pupil scale. The values are the preset's; which
-ones the default finally takes (diffusion in particular) is decided where the default is switched.
+The scene is the Roman default's (``nlpsf.roman_default``: its optics at the star's position,
+the official pupil scale, a K0V star, jitter, charge diffusion, IPC, the background and the HLWAS
+ramp), one table per grid node.
 
 The grid. GalSim interpolates the Zernikes of an SCA *bilinearly* between its four corner field
 points (``galsim.roman.roman_psfs._interp_aberrations_bilinear``, mirrored by
@@ -27,13 +22,12 @@ magnitude grid and its slope columns in float32, and the metadata as JSON.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from . import backgrounds, roman
-from . import scene as scenes
+from . import roman
 from .checks import InputError, check_integer
 
 #: Interpolation schemes across the field grid.
@@ -42,11 +36,6 @@ SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
 GRID_SIZES: tuple[int, ...] = (2, 3, 5, 7, 9)
 #: The scene names a table build understands ("paper": the shipped tables' idealised scene).
 TABLE_SCENES: tuple[str, ...] = ("paper", "roman")
-#: The candidate default's readout (romanisim's default imaging table) and its fit (romancal's).
-ROMAN_MA_TABLE = "C2A_IMG_HLWAS"
-ROMAN_RAMP_FIT = "optimal"
-ROMAN_BACKGROUND = backgrounds.DEFAULT_PRESET
-ROMAN_PUPIL_SCALE = "official"
 #: Runtime format tag of a field-grid file.
 FORMAT = "nlpsf-field-grid-1"
 
@@ -67,36 +56,6 @@ def grid_positions(n: int) -> list[tuple[int, int, tuple[float, float]]]:
     """Every node (i along x, j along y, (x, y) pixels) of the n x n grid, the same on every SCA."""
     axis = grid_axis(n)
     return [(i, j, (float(axis[i]), float(axis[j]))) for j in range(n) for i in range(n)]
-
-
-@dataclass(frozen=True)
-class RomanReadout:
-    """The readout and the background of the candidate default scene for one (band, SCA)."""
-
-    ramp: object  # ramps.Ramp
-    exptime_s: float
-    background_e: float
-
-
-def roman_exptime_s() -> float:
-    """The exposure of the candidate readout: the MA table's last read (139.1 s for C2A_IMG_HLWAS)."""
-    from . import ramps
-
-    return float(ramps.load_ma_table(ROMAN_MA_TABLE).duration_s)
-
-
-def roman_readout(band: str, sca: int, exptime_s: float | None = None) -> RomanReadout:
-    """The HLWAS ramp (likelihood fit, the SCA's official read noise) and its exposure's background;
-    ``exptime_s`` None: the table's own exposure (``ramps.build`` refuses one the table does not fit)."""
-    from . import ramps
-
-    ramp, exptime = ramps.build(ma_table=ROMAN_MA_TABLE, fit=ROMAN_RAMP_FIT, sca=sca, exptime_s=exptime_s)
-    return RomanReadout(ramp, exptime, backgrounds.background_electrons(ROMAN_BACKGROUND, band, sca, exptime))
-
-
-def roman_scene(band: str, sca: int, position: tuple[float, float] | None, background_e: float) -> scenes.SceneModel:
-    """``scene.preset("roman")`` at ``position`` (None: the SCA centre) with the background added."""
-    return replace(scenes.preset("roman"), position=position, background_e=float(background_e), name="roman-candidate")
 
 
 # --- interpolation across the grid -----------------------------------------------------------

@@ -26,7 +26,7 @@ import numpy as np
 from astropy.table import Table, vstack
 from scipy.interpolate import CubicSpline
 
-from . import __version__, cluster, defaults, experiment, fidelity, fieldgrid, photometry, roman
+from . import __version__, cluster, defaults, experiment, fidelity, fieldgrid, photometry, roman, roman_default
 from .checks import InputError, SimulationError
 from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion
 
@@ -55,11 +55,14 @@ class TableSettings:
     #: Throughput data (``defaults.THROUGHPUTS``): the per-SCA official curves by default.
     throughput: str = defaults.THROUGHPUT
     #: ``fieldgrid.TABLE_SCENES``: "paper" (the shipped tables) or "roman", the candidate Roman default
-    #: (``fieldgrid.roman_scene``; ``TableSettings.roman`` sets the HLWAS exposure).
+    #: (``nlpsf.roman_default``; ``TableSettings.roman`` sets its exposure, pupil scale and state).
     scene: str = "paper"
     #: The fidelity level the slopes are computed at: "linear" (the tables') or "polychromatic"
     #: (Monte Carlo on the PSF integrated over 8 wavelengths, ``fidelity.simulation_settings``).
     fidelity: str = "linear"
+    #: Where the slopes are taken (``experiment.LINEARISE_STATES``): "beta0" (the paper's) or
+    #: "corrected" (the Roman default's).
+    linearise_at: str = "beta0"
 
     def __post_init__(self) -> None:
         roman.check_throughput(self.throughput)
@@ -67,12 +70,21 @@ class TableSettings:
             raise InputError("scene", f"tables are built for the scenes {', '.join(fieldgrid.TABLE_SCENES)}, got {self.scene!r}")
         if self.fidelity not in ("linear", "polychromatic"):
             raise InputError("fidelity", f"tables are built at fidelity linear or polychromatic, got {self.fidelity!r}")
+        if self.linearise_at not in experiment.LINEARISE_STATES:
+            raise InputError(
+                "linearise_at", f"must be one of {', '.join(experiment.LINEARISE_STATES)}, got {self.linearise_at!r}"
+            )
 
     @classmethod
     def roman(cls, **changes) -> TableSettings:
         """Settings for the candidate Roman default scene (official pupil scale and the HLWAS
         exposure unless given)."""
-        base = {"scene": "roman", "pupil_scale": fieldgrid.ROMAN_PUPIL_SCALE, "exptime_s": fieldgrid.roman_exptime_s()}
+        base = {
+            "scene": "roman",
+            "pupil_scale": roman_default.PUPIL_SCALE,
+            "exptime_s": roman_default.exptime_s(),
+            "linearise_at": roman_default.LINEARISE_AT,
+        }
         return cls(**(base | changes))
 
     def config(
@@ -84,9 +96,9 @@ class TableSettings:
             position = field_position(sca, point)
         exptime, ramp = self.exptime_s, None
         if self.scene == "roman":
-            readout = fieldgrid.roman_readout(band, sca, self.exptime_s)
+            readout = roman_default.readout(band, sca, self.exptime_s)
             exptime, ramp = readout.exptime_s, readout.ramp
-            scene = fieldgrid.roman_scene(band, sca, position, readout.background_e)
+            scene = roman_default.scene(position, readout.background_e)
         else:
             scene = experiment.scenes.SceneModel(position=position) if position else experiment.PAPER_SCENE
         level = fidelity.simulation_settings(self.fidelity)
@@ -114,7 +126,7 @@ class TableSettings:
         Fields added after the shipped tables were built enter only when they differ from their
         default, so the paper tables keep their fingerprints."""
         settings = asdict(self)
-        for name, default in (("scene", "paper"), ("fidelity", "linear")):
+        for name, default in (("scene", "paper"), ("fidelity", "linear"), ("linearise_at", "beta0")):
             if settings[name] == default:
                 settings.pop(name)
         text = json.dumps({**settings, "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
@@ -188,7 +200,9 @@ def compute_table(
     config = settings.config(band, sca, point, position)
     scene = experiment.prepare(config)
     m_sat, magnitudes = table_magnitudes(scene, settings)
-    results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress)
+    results = experiment.slopes(
+        config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress, linearise_at=settings.linearise_at
+    )
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
     for metric in COLUMN_METRICS:
         for mode in MODES:

@@ -2,7 +2,7 @@
 
 ``--cost``: the CPU cost of one slope table (one band, SCA, position; the tables' magnitude grid,
 linear response at beta0 x {0.99, 1, 1.01}... as ``tablebuild.compute_table``) for the paper's scene
-and for the candidate Roman scene (``fieldgrid.roman_scene``), each in a fresh process, in one run;
+and for the candidate Roman scene (``roman_default.scene``), each in a fresh process, in one run;
 the Roman scene at the polychromatic level (Monte Carlo, 8 wavelengths) is projected from a few of
 the grid's magnitudes (prepare + per-magnitude cost x the grid's count, said so in the output). Also
 the float32 storage loss on the Roman table.
@@ -141,7 +141,7 @@ def measure_interpolation(args) -> dict:
     mags = np.asarray(args.magnitudes, dtype=float)
     report: dict = {
         "what": "the candidate Roman scene's bias slopes interpolated across the SCA, against fresh simulations",
-        "scene": "fieldgrid.roman_scene: preset roman + position + roman-typical background, HLWAS ramp "
+        "scene": "roman_default.scene: preset roman + position + roman-typical background, HLWAS ramp "
         "(optimal fit), official pupil scale",
         "fidelity": "linear",
         "realizations": args.realizations,
