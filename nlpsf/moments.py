@@ -19,6 +19,11 @@ Perturbations. For the difference between the fit of I + dI and the fit of I, th
 step from the reference solution is taken with the residual of dI alone (the reference's own
 roundoff is left out), which resolves the difference to float64 precision *relative to the
 difference* however small dI is. Larger perturbations are then iterated to convergence as usual.
+
+Why one module of ~660 lines: the fit, the perturbed fit and the pixel response share the same
+private kernels (the weight window, the raw moments, the residual of the five equations and its
+analytic Jacobian). Split, those kernels would become a public interface that only this code uses;
+kept together, each is private and changes in one place.
 """
 
 from __future__ import annotations
