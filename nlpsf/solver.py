@@ -261,7 +261,7 @@ def solve(
 
     ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
     answer models only the effects whose measured impact at the point exceeds it (see
-    :func:`nlpsf.model_part.select_scene`) and its uncertainty gains a ``model`` part for those left out.
+    :func:`nlpsf.accuracy.select`) and its uncertainty gains a ``model`` part for those left out.
 
     ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``) is the pupil-mask scale rule of fresh
     simulations; None is the tables' own (galsim). Another rule is not in the tables, so a table
@@ -306,7 +306,10 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
                 request.with_changes(fidelity="table", accuracy=None, ramp=None, scene=None, pupil_scale=None), tables_set
             )
             point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
-        simulated_scene, model_info = model_part.select_scene(scene, request, float(point))
+        from .accuracy import select  # impacts measured inside the full scene; the simulator is loaded there
+
+        selection = select(request, float(point), tables_set)
+        chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
     elif scene is not None and not scene.is_paper:
         simulated_scene = scene
     if tables_set is None and simulated_scene is not None:
