@@ -110,6 +110,7 @@ class _Slopes:
         throughput: str | None = None,
         scene=None,
         pupil_scale: str | None = None,
+        realizations: int | None = None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
@@ -117,6 +118,8 @@ class _Slopes:
         self.ramp, self.full_well = ramp, full_well
         self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
         self.table = tableset.get(band, sca)
+        #: Centroids of the fresh simulations (the plan's, else the tables' own).
+        self.realizations = int(realizations or self.table.settings["realizations"])
         #: Magnitudes the table was relabelled by for another throughput's photometry (0: none).
         self.relabel_shift = 0.0
         if throughput is not None:
@@ -144,6 +147,7 @@ class _Slopes:
             throughput=request.throughput,
             scene=the_plan.scene,
             pupil_scale=request.pupil_scale,
+            realizations=the_plan.realizations,
         )
 
     @property
@@ -207,6 +211,7 @@ class _Slopes:
             throughput=self.table.throughput,
             method=level.method,
             n_wavelengths=level.n_wavelengths,
+            realizations=self.realizations,
             **({} if self.pupil_scale is None else {"pupil_scale": self.pupil_scale}),
             **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
             **({} if self.scene_model is None else {"scene": self.scene_model}),
@@ -287,6 +292,8 @@ class SolvePlan:
     #: What the answer leaves out of a Roman scene (measured with ``accuracy``, else shipped).
     model: dict
     notes: tuple[Flag, ...]
+    #: Centroids of the fresh simulations (None: the tables' own; ``accuracy`` sets its own).
+    realizations: int | None = None
 
     @property
     def reads(self) -> str:
@@ -335,7 +342,8 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
-    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes))
+    realizations = selection.realizations if request.accuracy is not None else None
+    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations)
 
 
 @dataclass(frozen=True)
@@ -537,7 +545,7 @@ def _conditions(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> 
 
 def _simulation_conditions(conditions: dict, the_plan: SolvePlan, slopes: _Slopes) -> None:
     if the_plan.fidelity != "table":
-        conditions["realizations"] = int(slopes.table.settings["realizations"])
+        conditions["realizations"] = slopes.realizations
         # What the optics evaluated (a scene's SED integrates the band even at linear fidelity).
         simulated = slopes.prepared  # the prepared simulation, None where none ran
         conditions["n_wavelengths"] = (
@@ -592,7 +600,7 @@ def _ramp_basis(slopes: _Slopes) -> str:
             if slopes.fidelity == "table"
             else ("the scene has no table" if slopes.scene_model is not None else f"fidelity {slopes.fidelity} asked for")
         )
-        parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
+        parts.append(f"fresh {level} simulations of the ramp ({why}; {slopes.realizations} realizations)")
     return "; ".join(parts) or "none needed"
 
 

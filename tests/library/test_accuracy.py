@@ -33,7 +33,6 @@ def _probe(request, seed=None, realizations=accuracy.PROBE_REALIZATIONS):
     return probe
 
 
-@pytest.mark.slow
 def test_effects_that_share_a_sign_are_not_left_out_together():
     # K213 size (issue 17: four effects each under 1 %, same sign, 1.8 % together). In the Roman
     # default here the SED, IPC and jitter all lower the size slope; at A = 2 % each is below A alone.
@@ -57,7 +56,6 @@ def test_effects_that_share_a_sign_are_not_left_out_together():
     assert FlagCode.ACCURACY_SCENE in codes(selection.notes)
 
 
-@pytest.mark.slow
 def test_interacting_effects_are_measured_inside_the_scene():
     # W146 e2 with only a position (issue 17: jitter and diffusion measured alone in the paper scene
     # were small and left out; with the SED on they move the slope far more).
@@ -111,7 +109,6 @@ def _full_scene_reference(request, realizations=30, seed=4242):
     return result.slope(request.mode, defaults.METRIC_COLUMNS[request.metric])
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     ("band", "sca", "metric", "magnitude", "position"),
     [("J129", 9, "size", 19.5, (1500.0, 2600.0)), ("Z087", 12, "e1", 20.0, (700.0, 900.0))],
