@@ -108,7 +108,9 @@ def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene(
                 spread,
             )
             assert answer.uncertainty >= spread
-        assert included[0] <= included[1] <= included[2] and len(included[2]) > len(included[0])
+        # A tighter accuracy never leaves out more (nlpsf.accuracy: where the full scene is affordable,
+        # every accuracy simulates all of it).
+        assert included[0] <= included[1] <= included[2]
 
 
 def test_over_field_answers_for_the_worst_field_point():
