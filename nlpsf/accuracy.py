@@ -271,8 +271,10 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
 
 def _search(probe: Probe, full: FullScene, band, metric, mode, accuracy: float, level: Level):
     """Grow the left-out set from the smallest impact up, keeping an effect only while the set's
-    impact, measured as a set, plus the level's error (for the scene then simulated) stays within A."""
-    candidates = _removable(full.scene)
+    impact, measured as a set, plus the level's error (for the scene then simulated) stays within A,
+    and the level does not get dearer. A band-integrated level integrates the band anyway: the SED
+    is no candidate there (leaving it out would save nothing)."""
+    candidates = [n for n in _removable(full.scene) if not (n == "sed" and level.name == "polychromatic")]
     alone = {name: probe.impact([name]) for name in candidates}
     effects = [{"name": n, "impact_alone": v, "uncertainty": e} for n, (v, e) in alone.items()]
     order = sorted((n for n in candidates if alone[n][0] is not None), key=lambda n: abs(alone[n][0]))
@@ -284,7 +286,8 @@ def _search(probe: Probe, full: FullScene, band, metric, mode, accuracy: float, 
         if value is None:
             continue
         trial_level, met = level_for(full, probe.without(trial), band, metric, mode, accuracy)
-        if met and trial_level.error + abs(value) + error <= accuracy:
+        cheaper = levels.LEVELS.index(trial_level.name) <= levels.LEVELS.index(level.name)
+        if met and cheaper and trial_level.error + abs(value) + error <= accuracy:
             left, combined, level = trial, (value, error), trial_level
     return left, combined, level, effects
 

@@ -394,7 +394,10 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     if "relabelled_from" in slopes.table.settings:
         flags.append(_relabel_flag(request, slopes))
     limits = _limits(request, the_plan, slopes)
-    systematic, systematic_note = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode)
+    level = the_plan.model.get("level")  # an accuracy answer's level error, for the scene it simulates
+    systematic, systematic_note = (
+        (level["error"], None) if level else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode)
+    )
     if systematic_note:
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
