@@ -295,6 +295,7 @@ def _search(probe: Probe, full: FullScene, band, metric, mode, accuracy: float, 
 def _model_info(request, full: FullScene, magnitude, left, combined, level: Level, effects, probe, accuracy) -> dict:
     """The answer's model part (``model_part.model_at`` reads it): the left-out set as one entry,
     its measured combined impact, and what was measured on the way."""
+    alone = {e["name"]: e["impact_alone"] for e in effects}
     parts = []
     if left:
         parts.append(
@@ -334,7 +335,8 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
             "ramp": None if full.ramp is None else full.ramp.conditions(full.exptime),
         },
         "level": {"name": level.name, "error": level.error, "basis": level.basis},
-        "included": [{"name": n, "impact": None} for n in _removable(full.scene) if n not in left],
+        # Simulated effects, with the impact of removing each alone where the search measured it.
+        "included": [{"name": n, "impact": alone.get(n)} for n in _removable(full.scene) if n not in left],
         "left_out": parts,
         "left_out_impact": combined[0] or 0.0,
         "left_out_impact_uncertainty": combined[1] or 0.0,
