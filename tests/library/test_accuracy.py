@@ -140,3 +140,21 @@ def test_accuracy_answer_lands_within_a_of_the_full_scene(band, sca, metric, mag
     reference, reference_error = _full_scene_reference(request)
     statistical = abs(answer.slope_uncertainty / answer.slope) + abs(reference_error / reference)
     assert abs(answer.slope / reference - 1.0) <= 0.01 + 2 * statistical, (answer.slope, reference, statistical)
+
+
+def test_a_roman_default_fidelity_entry_is_read_when_shipped(monkeypatch):
+    from nlpsf import fidelity
+
+    shipped = fidelity.measured()
+    readout = roman_default.readout("H158", 18)
+    ramp = {"ramp": readout.ramp, "exptime": readout.exptime_s}
+    request = SolveRequest("H158", 18, magnitude=19.0, precision=0.01, accuracy=0.01, **ramp)
+    before = accuracy.select(request, 19.0)
+    assert FlagCode.FIDELITY_FROM_PAPER in codes(before.notes)
+    # A Roman-default measurement where the linear level misses 1 % and Monte Carlo meets it.
+    errors = {"linear": 0.02, "monte_carlo": 0.004, "polychromatic": 0.001}
+    roman = {"date": "test", "errors": {"H158": {"bias": {"size": errors}}}}
+    monkeypatch.setattr(fidelity, "measured", lambda: {**shipped, "scenes": {"roman": roman}})
+    after = accuracy.select(request, 19.0, search="never")
+    assert FlagCode.FIDELITY_FROM_PAPER not in codes(after.notes)
+    assert after.fidelity == "monte_carlo" and after.model["level"]["error"] == 0.004
