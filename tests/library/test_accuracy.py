@@ -54,6 +54,9 @@ def test_effects_that_share_a_sign_are_not_left_out_together():
     check = _probe(request, seed=977, realizations=40)
     value, error = check.impact(left)
     assert abs(value) + selection.model["level"]["error"] <= a + 2 * error, (left, value)
+    # The realization noise of the measured impacts is far below A (same draws for every variant).
+    assert all(e["uncertainty"] < a / 100 for e in selection.model["measured"])
+    assert abs(value - selection.model["left_out_impact"]) < a / 100
     assert FlagCode.ACCURACY_SCENE in codes(selection.notes)
 
 
