@@ -122,7 +122,8 @@ def _full_scene_reference(request, realizations=30, seed=4242):
         method="monte_carlo", n_wavelengths=16, realizations=realizations, seed=seed,
         scene=replace(request.scene, n_wavelengths=16), ramp=request.ramp, full_well_e=request.full_well,
     )  # fmt: skip
-    result = experiment.slopes(config, [request.magnitude], beta0=request.beta0)[0]
+    state = getattr(request, "linearise_at", None) or "beta0"  # the state the solver linearises at
+    result = experiment.slopes(config, [request.magnitude], beta0=request.beta0, linearise_at=state)[0]
     return result.slope(request.mode, defaults.METRIC_COLUMNS[request.metric])
 
 
