@@ -48,8 +48,8 @@ PROBE_REALIZATIONS = 20
 #: of the tables' 100 centroids' cost. Monte Carlo levels keep the tables' count.
 ANSWER_REALIZATIONS = 25
 #: Where ``fidelity.json`` holds the Roman default's measurement (same shape as the top level:
-#: ``errors[band][mode][metric][level]``, ``date``, ``reference``).
-ROMAN_ENTRY = ("scenes", "roman")
+#: ``errors[band][mode][metric][level]``, ``date``, ``reference``; ``tradeoff(default="roman")``).
+ROMAN_ENTRY = ("roman",)
 #: Wavelengths from which a band-integrated simulation is the measured ``polychromatic`` level.
 BAND_INTEGRATED_WAVELENGTHS = levels.POLYCHROMATIC_WAVELENGTHS
 #: ``search`` choices of :func:`select`.

@@ -158,7 +158,7 @@ def test_a_roman_default_fidelity_entry_is_read_when_shipped(monkeypatch):
     # A Roman-default measurement where the linear level misses 1 % and Monte Carlo meets it.
     errors = {"linear": 0.02, "monte_carlo": 0.004, "polychromatic": 0.001}
     roman = {"date": "test", "errors": {"H158": {"bias": {"size": errors}}}}
-    monkeypatch.setattr(fidelity, "measured", lambda: {**shipped, "scenes": {"roman": roman}})
+    monkeypatch.setattr(fidelity, "measured", lambda: {**shipped, "roman": roman})
     after = accuracy.select(request, 19.0, search="never")
     assert FlagCode.FIDELITY_FROM_PAPER not in codes(after.notes)
     assert after.fidelity == "monte_carlo" and after.model["level"]["error"] == 0.004
