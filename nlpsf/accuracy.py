@@ -122,7 +122,9 @@ def level_error(full: FullScene, simulated: scenes.SceneModel | None, band: str,
     data, own = _measurement(full)
     errors = data["errors"][band][mode][metric]
     if own:
-        return Level(level, float(errors[level]), f"Roman default's measurement ({data.get('date', 'undated')})")
+        value = errors.get(level)  # a level the measurement leaves out is never chosen
+        basis = f"Roman default's measurement ({data.get('date', 'undated')})"
+        return Level(level, math.inf if value is None else float(value), basis if value is not None else "not measured")
     if level in ("linear", "monte_carlo") and _band_integrated(simulated):
         # Band-integrated like the measured polychromatic level (which is Monte Carlo at 8 wavelengths
         # against the linear response at 16: an upper bound for the linear response at >= 8).
