@@ -102,13 +102,13 @@ class Level:
     basis: str
 
 
-def _measurement(full: FullScene) -> tuple[dict, bool]:
+def _measurement(full: FullScene, band: str) -> tuple[dict, bool]:
     """(the measurement a level's error is read from, whether it is the Roman default's own)."""
     data = levels.measured()
     entry = data
     for key in ROMAN_ENTRY:
         entry = entry.get(key, {}) if isinstance(entry, dict) else {}
-    if full.is_roman_default and entry.get("errors"):
+    if full.is_roman_default and band in entry.get("errors", {}):
         return entry, True
     return data, False
 
@@ -119,7 +119,7 @@ def _band_integrated(scene: scenes.SceneModel | None) -> bool:
 
 def level_error(full: FullScene, simulated: scenes.SceneModel | None, band: str, metric: str, mode: str, level: str) -> Level:
     """The measured relative error of ``level`` on a simulation of ``simulated`` (see the module docstring)."""
-    data, own = _measurement(full)
+    data, own = _measurement(full, band)
     errors = data["errors"][band][mode][metric]
     if own:
         value = errors.get(level)  # a level the measurement leaves out is never chosen
@@ -235,7 +235,7 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
     full = replace(full, scene=_with_band_integration(full.scene))
     notes: list[Flag] = []
     level, met = level_for(full, full.scene, band, metric, mode, accuracy)
-    own = _measurement(full)[1]
+    own = _measurement(full, band)[1]
     if not own:
         notes.append(make(FlagCode.FIDELITY_FROM_PAPER, scene=full.source, level=level.name, error=level.error))
     left: list[str] = []
