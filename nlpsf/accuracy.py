@@ -232,10 +232,13 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
     band, metric, mode = request.band, request.metric, request.mode
     table = (tables_set or tables.load_tables()).get(band, request.sca)
     full = full_scene(request, table)
-    full = replace(full, scene=_with_band_integration(full.scene))
+    own = _measurement(full, band)[1]
+    if not own:
+        # The paper's measurement covers a band-integrated scene at >= 8 wavelengths (level_error); the
+        # Roman default's own measurement is of the levels as the default runs them.
+        full = replace(full, scene=_with_band_integration(full.scene))
     notes: list[Flag] = []
     level, met = level_for(full, full.scene, band, metric, mode, accuracy)
-    own = _measurement(full, band)[1]
     if not own:
         notes.append(make(FlagCode.FIDELITY_FROM_PAPER, scene=full.source, level=level.name, error=level.error))
     left: list[str] = []
