@@ -42,6 +42,8 @@ class FlagCode(StrEnum):
     FIDELITY_CHOSEN = "fidelity_chosen"
     FIDELITY_NONE_MEETS = "fidelity_none_meets"
     FIDELITY_ERROR_UNKNOWN = "fidelity_error_unknown"
+    FIDELITY_FROM_PAPER = "fidelity_from_paper"
+    ACCURACY_SCENE = "accuracy_scene"
     SCENE_SIMULATED = "scene_simulated"
     PUPIL_SCALE_SIMULATED = "pupil_scale_simulated"
     BETA_Q_RULE_BROKEN = "beta_q_rule_broken"
@@ -165,6 +167,18 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "no measured fidelity error for this band is shipped, so the uncertainty is statistical only",
         (),
         "The fidelity level's error is not measured here: the uncertainty lacks that part.",
+    ),
+    FlagCode.FIDELITY_FROM_PAPER: FlagSpec(
+        "no measured fidelity errors for the {scene} scene are shipped: level {level} is chosen on the paper scene's "
+        "measurement (relative error {error:.2g})",
+        ("scene", "level", "error"),
+        "The fidelity level's error is read from the paper scene's measurement, not the simulated scene's own.",
+    ),
+    FlagCode.ACCURACY_SCENE: FlagSpec(
+        "accuracy {accuracy:g}: fidelity {level} (measured error {level_error:.2g}); left out of the full scene: "
+        "{left_out} (measured together: {impact:+.2g}); total {total:.2g}",
+        ("accuracy", "level", "level_error", "left_out", "impact", "total"),
+        "What an accuracy answer simulates: its level's error and the measured impact of the effects it leaves out.",
     ),
     FlagCode.SCENE_SIMULATED: FlagSpec(
         "the tables hold the paper's scene only (at the SCA centre and its corner field points): "

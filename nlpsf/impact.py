@@ -217,7 +217,9 @@ def left_out(report: dict, accuracy: float) -> tuple[list[dict], list[dict]]:
     """Split the report's effects at ``accuracy`` on the request's metric: (include, leave out).
 
     An effect is included when |impact| on the request's metric exceeds the accuracy asked for;
-    an effect whose impact could not be measured is left out and says so.
+    an effect whose impact could not be measured is left out and says so. This is not how
+    ``accuracy`` decides (``nlpsf.accuracy``: impacts inside the full scene, a left-out set
+    measured as a set), since effects that share a sign or interact make this split miss A.
     """
     metric = report["conditions"]["metric"]
     include, leave = [], []

@@ -1,11 +1,11 @@
 """The model part of an answer: what a solve leaves out of a Roman scene, and what that adds to
 its uncertainty.
 
-With ``accuracy`` the effects are measured at the answer's point (:func:`select_scene`, via
-``nlpsf.impact``) and the larger ones simulated; otherwise what is left out is read from the shipped
-measurement (:func:`shipped_model`). :func:`model_at` states the parts relative to the answer's slope.
-``slopes`` arguments are the solver's c(m) at the request (``band``, ``metric``, ``mode``, ``table``,
-``exptime``, ``table_beta0``).
+With ``accuracy`` the full scene is simulated, or a set of effects whose combined impact is
+measured within the accuracy is left out (``nlpsf.accuracy.select``, which builds the model
+part); otherwise what is left out is read from the shipped measurement (:func:`shipped_model`).
+:func:`model_at` states the parts relative to the answer's slope. ``slopes`` arguments are the
+solver's c(m) at the request (``band``, ``metric``, ``mode``, ``table``, ``exptime``, ``table_beta0``).
 """
 
 from __future__ import annotations
@@ -17,74 +17,6 @@ import numpy as np
 
 from . import fidelity as levels
 from . import roman, tables
-
-
-def select_scene(scene, request, magnitude: float):
-    """Model only what the scene requires: (scene to simulate, the model part's report).
-
-    The impact of every effect is measured at the point (``nlpsf.impact``, linear response). An
-    effect is simulated when |impact| on the request's metric exceeds ``accuracy`` -- at the scene's
-    value, or at its nominal Roman value when the scene leaves it off (no scene: a Roman star). The
-    others are left out and their impacts added in quadrature to the answer's relative model
-    uncertainty, together with two model choices the answer cannot make for the user: where on
-    the SCA the star is when no position is given (centre vs corner) and the pupil-mask scale rule
-    (``galsim`` vs ``header``, measured here).
-    """
-
-    from . import experiment, impact
-    from . import scene as scenes
-
-    band, sca, metric, mode = request.band, request.sca, request.metric, request.mode
-    beta0, exptime, accuracy = request.beta0, request.exptime, float(request.accuracy)
-    scene = scene if scene is not None else scenes.SceneModel()
-    report = impact.impact(band, sca, magnitude, scene=scene, metric=metric, mode=mode, beta0=beta0, exptime=exptime)
-    include, leave = impact.left_out(report, accuracy)
-    simulated = scenes.SceneModel()
-    names = []
-    for effect in include:
-        name = effect["name"]
-        if name == "position" and not scene.effects_on()["position"]:
-            leave.append(effect)  # no position given: the spread over the SCA is uncertainty, not a guess
-            continue
-        source = scene if scene.effects_on()[name] else scene.with_nominal(name)
-        simulated = with_effect(simulated, source, name)
-        if name == "sed" and simulated.n_wavelengths is None:
-            # Integrate the band finely enough for the accuracy asked for (scene.binning_error).
-            n, _ = scenes.choose_wavelengths(band, simulated.spectrum(), accuracy)
-            simulated = replace(simulated, n_wavelengths=n)
-        names.append(name)
-    parts = []
-    for effect in leave:
-        value = effect["impact"][metric]
-        parts.append(
-            {
-                "name": effect["name"],
-                "impact": value,
-                "why": (
-                    "spread over the SCA: no position given (centre vs corner)"
-                    if effect["name"] == "position" and not effect["on"]
-                    else ("below the accuracy" if value is not None else effect["note"])
-                ),
-            }
-        )
-    # The pupil-mask scale rule (nlpsf/data/SOURCES.md): the same point with the other rule.
-    runs = {}
-    for rule in ("galsim", "header"):
-        config = impact.point_config(band, sca, exptime, 50, pupil_scale=rule, scene=simulated)
-        runs[rule] = impact.slope_values(experiment.slopes(config, [magnitude], beta0=beta0)[0], mode)[metric][0]
-    pupil = None if not runs["galsim"] or runs["header"] is None else runs["header"] / runs["galsim"] - 1
-    parts.append({"name": "pupil_scale", "impact": pupil, "why": "pupil-mask scale rule: galsim (used) vs header"})
-    info = {
-        "accuracy": accuracy,
-        "magnitude_measured_at": magnitude,
-        "included": [{"name": e["name"], "impact": e["impact"][metric]} for e in include if e["name"] in names],
-        "left_out": parts,
-        "stated_against": "slope",
-        "combine": "quadrature",
-        "basis": "impact of each effect on the slope at this point (nlpsf impact, linear response), added in quadrature",
-    }
-    return simulated, info
-
 
 #: The model part's two relative pieces (see :func:`model_at`).
 MODEL_PARTS = ("effects_relative", "pupil_scale_relative")

@@ -110,6 +110,7 @@ class _Slopes:
         throughput: str | None = None,
         scene=None,
         pupil_scale: str | None = None,
+        realizations: int | None = None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
@@ -117,6 +118,8 @@ class _Slopes:
         self.ramp, self.full_well = ramp, full_well
         self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
         self.table = tableset.get(band, sca)
+        #: Centroids of the fresh simulations (the plan's, else the tables' own).
+        self.realizations = int(realizations or self.table.settings["realizations"])
         #: Magnitudes the table was relabelled by for another throughput's photometry (0: none).
         self.relabel_shift = 0.0
         if throughput is not None:
@@ -144,6 +147,7 @@ class _Slopes:
             throughput=request.throughput,
             scene=the_plan.scene,
             pupil_scale=request.pupil_scale,
+            realizations=the_plan.realizations,
         )
 
     @property
@@ -207,6 +211,7 @@ class _Slopes:
             throughput=self.table.throughput,
             method=level.method,
             n_wavelengths=level.n_wavelengths,
+            realizations=self.realizations,
             **({} if self.pupil_scale is None else {"pupil_scale": self.pupil_scale}),
             **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
             **({} if self.scene_model is None else {"scene": self.scene_model}),
@@ -261,7 +266,7 @@ def solve(
 
     ``scene`` (``nlpsf.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
     answer models only the effects whose measured impact at the point exceeds it (see
-    :func:`nlpsf.model_part.select_scene`) and its uncertainty gains a ``model`` part for those left out.
+    :func:`nlpsf.accuracy.select`) and its uncertainty gains a ``model`` part for those left out.
 
     ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``) is the pupil-mask scale rule of fresh
     simulations; None is the tables' own (galsim). Another rule is not in the tables, so a table
@@ -287,6 +292,8 @@ class SolvePlan:
     #: What the answer leaves out of a Roman scene (measured with ``accuracy``, else shipped).
     model: dict
     notes: tuple[Flag, ...]
+    #: Centroids of the fresh simulations (None: the tables' own; ``accuracy`` sets its own).
+    realizations: int | None = None
 
     @property
     def reads(self) -> str:
@@ -306,7 +313,10 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
                 request.with_changes(fidelity="table", accuracy=None, ramp=None, scene=None, pupil_scale=None), tables_set
             )
             point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
-        simulated_scene, model_info = model_part.select_scene(scene, request, float(point))
+        from .accuracy import select  # impacts measured inside the full scene; the simulator is loaded there
+
+        selection = select(request, float(point), tables_set)
+        chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
     elif scene is not None and not scene.is_paper:
         simulated_scene = scene
     if tables_set is None and simulated_scene is not None:
@@ -332,7 +342,8 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
-    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes))
+    realizations = selection.realizations if request.accuracy is not None else None
+    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations)
 
 
 @dataclass(frozen=True)
@@ -383,7 +394,10 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     if "relabelled_from" in slopes.table.settings:
         flags.append(_relabel_flag(request, slopes))
     limits = _limits(request, the_plan, slopes)
-    systematic, systematic_note = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode)
+    level = the_plan.model.get("level")  # an accuracy answer's level error, for the scene it simulates
+    systematic, systematic_note = (
+        (level["error"], None) if level else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode)
+    )
     if systematic_note:
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
@@ -534,7 +548,7 @@ def _conditions(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> 
 
 def _simulation_conditions(conditions: dict, the_plan: SolvePlan, slopes: _Slopes) -> None:
     if the_plan.fidelity != "table":
-        conditions["realizations"] = int(slopes.table.settings["realizations"])
+        conditions["realizations"] = slopes.realizations
         # What the optics evaluated (a scene's SED integrates the band even at linear fidelity).
         simulated = slopes.prepared  # the prepared simulation, None where none ran
         conditions["n_wavelengths"] = (
@@ -589,7 +603,7 @@ def _ramp_basis(slopes: _Slopes) -> str:
             if slopes.fidelity == "table"
             else ("the scene has no table" if slopes.scene_model is not None else f"fidelity {slopes.fidelity} asked for")
         )
-        parts.append(f"fresh {level} simulations of the ramp ({why}; {int(slopes.table.settings['realizations'])} realizations)")
+        parts.append(f"fresh {level} simulations of the ramp ({why}; {slopes.realizations} realizations)")
     return "; ".join(parts) or "none needed"
 
 
