@@ -594,7 +594,7 @@ def test_every_service_setting_is_in_the_api_docs_configuration_list():
 
     from nlpsf.web.settings import Settings
 
-    text = (Path(__file__).parents[1] / "docs" / "api.md").read_text()
+    text = (Path(__file__).parents[2] / "docs" / "api.md").read_text()
     configuration = text.split("## Configuration", 1)[1]
     for name, info in Settings.model_fields.items():
         if name == "limits":

@@ -7,8 +7,8 @@ import signal
 
 import pytest
 
-from .servers import free_port, start_server
-from .test_e2e_browser import page  # noqa: F401  (fixture; it uses this module's server)
+from ..servers import free_port, start_server
+from .test_page_calculator import page  # noqa: F401  (fixture; it uses this module's server)
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

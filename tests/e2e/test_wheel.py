@@ -15,7 +15,7 @@ import pytest
 
 from nlpsf import solve
 
-from .servers import ROOT, free_port, wait_for
+from ..servers import ROOT, free_port, wait_for
 
 pytestmark = pytest.mark.slow
 

@@ -18,7 +18,7 @@ from contextlib import closing, suppress
 import httpx
 import pytest
 
-from .servers import free_port, start_server, wait_for
+from ..servers import free_port, start_server, wait_for
 
 pytestmark = pytest.mark.slow
 

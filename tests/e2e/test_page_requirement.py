@@ -8,7 +8,7 @@ import pytest
 
 from nlpsf import solver
 
-from .test_e2e_browser import ARTIFACTS, answer_point_is_drawn, page, server, solve_for  # noqa: F401  (fixtures)
+from .test_page_calculator import ARTIFACTS, answer_point_is_drawn, page, server, solve_for  # noqa: F401  (fixtures)
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

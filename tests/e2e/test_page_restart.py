@@ -9,8 +9,8 @@ import signal
 import httpx
 import pytest
 
-from .servers import free_port, start_server, wait_for
-from .test_e2e_browser import ARTIFACTS, page  # noqa: F401  (fixture; it uses this module's server)
+from ..servers import free_port, start_server, wait_for
+from .test_page_calculator import ARTIFACTS, page  # noqa: F401  (fixture; it uses this module's server)
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

@@ -6,7 +6,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("check_docs", ROOT / "scripts" / "check_docs.py")
 check_docs = importlib.util.module_from_spec(_spec)
 sys.modules["check_docs"] = check_docs  # its dataclasses look their module up by name

@@ -19,7 +19,7 @@ import pytest
 
 from nlpsf import solver
 
-from .servers import ROOT, free_port, start_server
+from ..servers import ROOT, free_port, start_server
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

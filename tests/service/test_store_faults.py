@@ -22,7 +22,7 @@ from fastapi.testclient import TestClient
 from nlpsf.web.main import create_app
 from nlpsf.web.settings import Settings
 
-from .servers import wait_for
+from ..servers import wait_for
 
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
 SOLVE = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from .test_e2e_browser import ARTIFACTS, page, server  # noqa: F401  (fixtures)
+from .test_page_calculator import ARTIFACTS, page, server  # noqa: F401  (fixtures)
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 

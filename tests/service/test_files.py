@@ -18,7 +18,7 @@ import pytest
 
 from nlpsf import ramps
 
-from .servers import free_port, start_server
+from ..servers import free_port, start_server
 
 pytestmark = pytest.mark.slow
 

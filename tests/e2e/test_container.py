@@ -15,7 +15,7 @@ import pytest
 
 from nlpsf import solver, tables
 
-from .servers import ROOT, free_port, wait_for
+from ..servers import ROOT, free_port, wait_for
 
 pytestmark = [pytest.mark.container, pytest.mark.slow]
 

@@ -21,7 +21,7 @@ import time
 import httpx
 import pytest
 
-from .servers import free_port, http_workers, start_server, wait_for
+from ..servers import free_port, http_workers, start_server, wait_for
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ from nlpsf.web.settings import Settings
 from nlpsf import cli, experiment, solver
 from nlpsf import scene as scenes
 
-from .servers import finished_job
+from ..servers import finished_job
 
 
 def run_cli(capsys, *argv):

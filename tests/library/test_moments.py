@@ -8,7 +8,7 @@ import pytest
 from nlpsf import moments
 from nlpsf.moments import MomentSettings, MomentStatus
 
-from .conftest import requires_galsim
+from ..conftest import requires_galsim
 
 
 def gaussian(n, sx, sy, rho=0.0, x0=0.0, y0=0.0, flux=1.0):

@@ -18,7 +18,7 @@ from nlpsf.web.store import Store
 from nlpsf import defaults, solver
 from nlpsf.checks import InputError
 
-from .servers import ROOT, finished_job
+from ..servers import ROOT, finished_job
 
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
 

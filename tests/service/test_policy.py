@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 from nlpsf.web.main import create_app
 from nlpsf.web.settings import Limits, Settings
 
-from .servers import wait_for
+from ..servers import wait_for
 
 SOLVE = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 #: About a minute of work on one core: always cancelled or ended, never waited for.

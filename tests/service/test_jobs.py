@@ -15,7 +15,7 @@ from nlpsf.web.main import create_app
 from nlpsf.web.settings import Limits, Settings
 from nlpsf.web.store import Store
 
-from .servers import crash, free_port, start_server, wait_for
+from ..servers import crash, free_port, start_server, wait_for
 
 #: About a minute of work on one core: it is always cancelled or interrupted, never waited for.
 LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0 + 0.1 * k for k in range(60)], "seed": 11}

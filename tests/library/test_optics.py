@@ -10,7 +10,7 @@ from scipy.special import j1
 from nlpsf import optics, render, roman
 from nlpsf.checks import InputError
 
-from .conftest import requires_galsim
+from ..conftest import requires_galsim
 
 
 def circular_pupil(n_across: int = 400, diameter_m: float = 2.36) -> roman.Pupil:

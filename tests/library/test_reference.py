@@ -17,7 +17,7 @@ import pytest
 
 from nlpsf import experiment, moments, reference
 
-from .conftest import requires_galsim
+from ..conftest import requires_galsim
 
 pytestmark = [requires_galsim, pytest.mark.reference, pytest.mark.slow]
 

@@ -16,7 +16,7 @@ from nlpsf.web.settings import Settings
 from nlpsf import solver
 from nlpsf.checks import InputError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

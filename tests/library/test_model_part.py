@@ -20,7 +20,7 @@ import pytest
 from nlpsf import impact, roman, solver
 from nlpsf import scene as scenes
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "model_uncertainty.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "model_uncertainty.py"
 
 
 @pytest.fixture(scope="module")

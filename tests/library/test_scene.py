@@ -12,7 +12,7 @@ from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig
 
-from .conftest import requires_galsim
+from ..conftest import requires_galsim
 
 NO_CUT = moments.MomentSettings(weight_cut_rho2=math.inf)
 

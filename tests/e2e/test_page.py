@@ -16,7 +16,7 @@ import pytest
 from nlpsf import solver
 from nlpsf.checks import InputError
 
-from .test_e2e_browser import ARTIFACTS, page, server, solve_for  # noqa: F401  (fixtures)
+from .test_page_calculator import ARTIFACTS, page, server, solve_for  # noqa: F401  (fixtures)
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -298,7 +298,7 @@ def test_the_user_guide_is_reachable(page, server):  # noqa: F811
     page.click("#guide-link")
     page.wait_for_selector("body[data-ready='true']")
     assert page.locator("#guide h1").count() == 1
-    source = (Path(__file__).resolve().parent.parent / "docs" / "guide.md").read_text().splitlines()[0]
+    source = (Path(__file__).resolve().parents[2] / "docs" / "guide.md").read_text().splitlines()[0]
     assert page.inner_text("#guide h1") == source.lstrip("# ").strip()
     page.go_back()
     page.wait_for_selector("body[data-ready='true']")
