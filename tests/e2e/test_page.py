@@ -16,7 +16,7 @@ import pytest
 from nlpsf import solver
 from nlpsf.checks import InputError
 
-from .test_page_calculator import ARTIFACTS, page, server, solve_for  # noqa: F401  (fixtures)
+from .browser import ARTIFACTS, solve_for
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -37,13 +37,13 @@ def download(tab, selector: str):
     return value.suggested_filename, data.decode() if not value.suggested_filename.endswith(".png") else data
 
 
-def reset(page, server):  # noqa: F811
+def reset(page, server):
     page.goto(server)
     page.wait_for_selector("body[data-ready='true']", timeout=30_000)
     page.evaluate("() => { localStorage.removeItem('nlpsf-pinned'); state.pinned = []; renderComparison(); }")
 
 
-def test_url_round_trip_restores_every_input_and_the_answer(page, server):  # noqa: F811
+def test_url_round_trip_restores_every_input_and_the_answer(page, server):
     reset(page, server)
     page.select_option("#solve-band", "J129")
     page.select_option("#solve-sca", "5")
@@ -72,7 +72,7 @@ def test_url_round_trip_restores_every_input_and_the_answer(page, server):  # no
     assert page.get_attribute("#link-status", "data-link") == page.url
 
 
-def test_percent_in_and_out_and_no_constraint(page, server):  # noqa: F811
+def test_percent_in_and_out_and_no_constraint(page, server):
     reset(page, server)
     by_percent = solve_for(page, "tolerance", {"precision": "1 %", "magnitude": "20"})
     assert "read as 1 %" in page.inner_text("#hint-precision")
@@ -102,7 +102,7 @@ def test_percent_in_and_out_and_no_constraint(page, server):  # noqa: F811
     assert magnitude["magnitude"] == pytest.approx(solver.solve("H158", precision=0.01, tolerance=1e-4).magnitude, rel=1e-9)
 
 
-def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, server):  # noqa: F811
+def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, server):
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     page.fill("#solve-magnitude", "5")
@@ -138,7 +138,7 @@ def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, se
     page.fill("#solve-shear_c", "")
 
 
-def test_a_shear_budget_shows_the_tolerance_it_sets_greyed(page, server):  # noqa: F811
+def test_a_shear_budget_shows_the_tolerance_it_sets_greyed(page, server):
     reset(page, server)
     page.select_option("#req-preset", "roman-m")
     source = page.inner_text("[data-testid=preset-source]")
@@ -158,7 +158,7 @@ def test_a_shear_budget_shows_the_tolerance_it_sets_greyed(page, server):  # noq
     assert page.input_value("#solve-metric") == "e" and page.input_value("#solve-tolerance") == "0.000047"
 
 
-def test_comparison_table_and_every_download(page, server, tmp_path):  # noqa: F811
+def test_comparison_table_and_every_download(page, server, tmp_path):
     from astropy.table import Table
 
     reset(page, server)
@@ -206,7 +206,7 @@ def test_comparison_table_and_every_download(page, server, tmp_path):  # noqa: F
 
 
 @pytest.mark.parametrize("kind", ["csv", "png"])
-def test_every_plot_download_has_its_own_name(page, server, kind):  # noqa: F811
+def test_every_plot_download_has_its_own_name(page, server, kind):
     # One page load per kind: Chromium throttles more than about ten downloads from one page load.
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
@@ -221,7 +221,7 @@ def test_every_plot_download_has_its_own_name(page, server, kind):  # noqa: F811
         assert len(DOWNLOADS) >= 14 and len(set(DOWNLOADS.values())) == len(DOWNLOADS), f"download names collide: {DOWNLOADS}"
 
 
-def test_plots_are_readable(page, server):  # noqa: F811
+def test_plots_are_readable(page, server):
     reset(page, server)
     solution = solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     # Legend values at the answer's magnitude, not at a grid point next to it.
@@ -257,7 +257,7 @@ def test_plots_are_readable(page, server):  # noqa: F811
     assert "saturated stars" in key and "quadratic NL model invalid" in key
 
 
-def test_impact_in_requirement_terms(page, server):  # noqa: F811
+def test_impact_in_requirement_terms(page, server):
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "19"})
     page.select_option("#scene-preset", "roman")
@@ -275,7 +275,7 @@ def test_impact_in_requirement_terms(page, server):  # noqa: F811
     page.locator("#scene").screenshot(path=str(ARTIFACTS / "e2e-impact-terms.png"))
 
 
-def test_batch_csv_upload(page, server, tmp_path):  # noqa: F811
+def test_batch_csv_upload(page, server, tmp_path):
     reset(page, server)
     upload = tmp_path / "requests.csv"
     upload.write_text("band,precision,tolerance,magnitude\nH158,,1e-4,18.3\nJ129,1%,,19\nH158,,1e-4,5\n")
@@ -293,7 +293,7 @@ def test_batch_csv_upload(page, server, tmp_path):  # noqa: F811
     assert rows[2]["ok"] == "False" and "too bright" in rows[2]["error"]
 
 
-def test_the_user_guide_is_reachable(page, server):  # noqa: F811
+def test_the_user_guide_is_reachable(page, server):
     reset(page, server)
     page.click("#guide-link")
     page.wait_for_selector("body[data-ready='true']")
@@ -304,7 +304,7 @@ def test_the_user_guide_is_reachable(page, server):  # noqa: F811
     page.wait_for_selector("body[data-ready='true']")
 
 
-def test_default_view_names_its_scene(page, server):  # noqa: F811
+def test_default_view_names_its_scene(page, server):
     reset(page, server)
     page.wait_for_selector("[data-testid=scene-line]")
     line = page.inner_text("[data-testid=scene-line]")
@@ -316,7 +316,7 @@ def test_default_view_names_its_scene(page, server):  # noqa: F811
         assert named in line and page.locator("#use-paper-scene").count() == 1
 
 
-def test_the_page_on_a_phone(page, server):  # noqa: F811
+def test_the_page_on_a_phone(page, server):
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     page.click("#pin-answer")
@@ -342,7 +342,7 @@ def test_the_page_on_a_phone(page, server):  # noqa: F811
         page.set_viewport_size({"width": 1280, "height": 1000})
 
 
-def test_axe_core_finds_no_violations(page, server):  # noqa: F811
+def test_axe_core_finds_no_violations(page, server):
     axe = pytest.importorskip("axe_playwright_python.sync_playwright")
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
@@ -356,7 +356,7 @@ def test_axe_core_finds_no_violations(page, server):  # noqa: F811
     assert results.violations_count == 0, results.generate_report()
 
 
-def test_simulation_refusals_in_plain_words(page, server):  # noqa: F811
+def test_simulation_refusals_in_plain_words(page, server):
     reset(page, server)
     page.fill("#sim-betas", "abc")
     page.click("#sim-button")

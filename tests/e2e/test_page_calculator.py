@@ -9,111 +9,16 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import shutil
-import signal
-import tempfile
 from pathlib import Path
 
 import pytest
 
 from nlpsf import solver
 
-from ..servers import ROOT, free_port, start_server
+from .browser import ARTIFACTS, answer_point_is_drawn, solve_for
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
-
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARTIFACTS = ROOT / "test-artifacts"
-FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
-
-
-def _browser_missing() -> str | None:
-    try:
-        import playwright  # noqa: F401
-    except ImportError:
-        return "the playwright package is not installed (pip install playwright; never `playwright install`)"
-    if not os.path.exists(CHROMIUM):
-        return "Debian's chromium is not installed (apt-get install -y chromium)"
-    return None
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    directory = tmp_path_factory.mktemp("e2e")
-    port = free_port()
-    process = start_server(directory / "jobs.sqlite3", port, log=directory / "server.log")
-    yield f"http://127.0.0.1:{port}/"
-    process.send_signal(signal.SIGTERM)
-    process.wait(20)
-
-
-@pytest.fixture(scope="module")
-def page(server):
-    missing = _browser_missing()
-    if missing:
-        if os.environ.get("CI"):
-            pytest.fail(f"browser tests must run in CI: {missing}")
-        pytest.skip(missing)
-    from playwright.sync_api import sync_playwright
-
-    ARTIFACTS.mkdir(exist_ok=True)
-    profile = tempfile.mkdtemp(prefix="nlpsf-chromium-")
-    errors: list[str] = []
-    with sync_playwright() as playwright:
-        # A persistent context is how Playwright takes a --user-data-dir: a fresh one per run.
-        context = playwright.chromium.launch_persistent_context(
-            profile,
-            executable_path=CHROMIUM,
-            headless=True,
-            args=FLAGS,
-            viewport={"width": 1280, "height": 1000},
-            accept_downloads=True,
-        )
-        tab = context.new_page()
-        tab.on("pageerror", lambda error: errors.append(str(error)))
-        tab.goto(server)
-        tab.wait_for_selector("body[data-ready='true']", timeout=30_000)
-        yield tab
-        tab.screenshot(path=str(ARTIFACTS / "e2e-page.png"), full_page=True)
-        context.close()
-    shutil.rmtree(profile, ignore_errors=True)
-    assert not errors, f"JavaScript errors on the page: {errors}"
-
-
-def answer_point_is_drawn(page) -> bool:
-    """True when the canvas pixel at the answer's (magnitude, |slope|) is the marker's red."""
-    return page.evaluate(
-        """() => {
-            const u = state.plots.calc;
-            const marker = u.data[2].findIndex((v) => v != null);
-            const x = u.valToPos(u.data[0][marker], "x", true);
-            const y = u.valToPos(u.data[2][marker], "y", true);
-            const [r, g, b] = u.ctx.getImageData(Math.round(x), Math.round(y), 1, 1).data;
-            return r > 150 && g < 80 && b < 80;
-        }"""
-    )
-
-
-def solve_for(page, unknown: str, given: dict[str, str]) -> str:
-    page.check(f"#solve-for-{unknown}")
-    for name, value in given.items():
-        page.fill(f"#solve-{name}", value)
-    with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
-        page.click("#solve-button")
-    assert response.value.status == 200, response.value.text()
-    page.wait_for_function("() => document.getElementById('plot-calc').dataset.point !== undefined")
-    page.wait_for_selector("[data-testid=solve-answer]")
-    return response.value.json()
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,6 @@ import signal
 import pytest
 
 from ..servers import free_port, start_server
-from .test_page_calculator import page  # noqa: F401  (fixture; it uses this module's server)
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -23,7 +22,7 @@ def server(tmp_path_factory):
     process.wait(20)
 
 
-def test_a_solve_answered_with_a_job_is_followed_to_its_answer(page):  # noqa: F811
+def test_a_solve_answered_with_a_job_is_followed_to_its_answer(page):
     page.check("#solve-for-precision")
     page.fill("#solve-tolerance", "1e-4")
     page.fill("#solve-magnitude", "19")

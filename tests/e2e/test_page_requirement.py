@@ -8,12 +8,12 @@ import pytest
 
 from nlpsf import solver
 
-from .test_page_calculator import ARTIFACTS, answer_point_is_drawn, page, server, solve_for  # noqa: F401  (fixtures)
+from .browser import ARTIFACTS, answer_point_is_drawn, solve_for
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 
-def test_requirement_plot_hover_reads_the_requirement(page):  # noqa: F811
+def test_requirement_plot_hover_reads_the_requirement(page):
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "19"})
     page.wait_for_function("() => document.getElementById('plot-req').dataset.answer === 'shown'")
     labels = page.evaluate("() => state.exports.req.columns.map((c) => c.label)")
@@ -48,14 +48,14 @@ def test_requirement_plot_hover_reads_the_requirement(page):  # noqa: F811
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_magnitude_answer_names_the_binding_limit(page):  # noqa: F811
+def test_magnitude_answer_names_the_binding_limit(page):
     solution = solve_for(page, "magnitude", {"precision": "0.01", "tolerance": "1e-4"})
     assert solution["binding_limit"] in ("saturation", "nonlinearity")
     text = page.inner_text("[data-testid=binding-limit]")
     assert ("saturation binds" in text) == (solution["binding_limit"] == "saturation")
 
 
-def test_a_failed_solve_clears_the_marker(page):  # noqa: F811
+def test_a_failed_solve_clears_the_marker(page):
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     assert answer_point_is_drawn(page)
     page.fill("#solve-magnitude", "12")  # valid text, refused by the server: brighter than the tables reach
@@ -79,7 +79,7 @@ def test_a_failed_solve_clears_the_marker(page):  # noqa: F811
     assert "legend-void" not in (page.get_attribute("#plot-calc", "class") or "")
 
 
-def test_every_bad_field_is_reported_at_once(page):  # noqa: F811
+def test_every_bad_field_is_reported_at_once(page):
     page.check("#solve-for-precision")
     page.fill("#solve-beta0", "five")
     page.fill("#solve-exptime", "")
@@ -98,7 +98,7 @@ def test_every_bad_field_is_reported_at_once(page):  # noqa: F811
     page.wait_for_selector("#solve-error", state="hidden")
 
 
-def test_fresh_simulations_at_several_betas_are_all_shown(page):  # noqa: F811
+def test_fresh_simulations_at_several_betas_are_all_shown(page):
     page.fill("#sim-magnitudes", "18.3")
     page.fill("#sim-betas", "2.5e-7, 5e-7, 1e-6")
     page.fill("#sim-sigma_betas", "2e-8, 5e-8")
@@ -125,7 +125,7 @@ def test_fresh_simulations_at_several_betas_are_all_shown(page):  # noqa: F811
     page.select_option("#sim-fidelity", "monte_carlo")
 
 
-def test_the_page_at_420_px(page):  # noqa: F811
+def test_the_page_at_420_px(page):
     page.set_viewport_size({"width": 420, "height": 900})
     try:
         page.wait_for_timeout(400)  # the plots resize after 150 ms
@@ -147,7 +147,7 @@ def test_the_page_at_420_px(page):  # noqa: F811
         page.set_viewport_size({"width": 1280, "height": 1000})
 
 
-def test_a_shear_budget_takes_the_place_of_the_tolerance(page):  # noqa: F811
+def test_a_shear_budget_takes_the_place_of_the_tolerance(page):
     page.check("#solve-for-precision")
     page.fill("#solve-magnitude", "19")
     page.fill("#solve-shear_m", "2e-3")
@@ -166,7 +166,7 @@ def test_a_shear_budget_takes_the_place_of_the_tolerance(page):  # noqa: F811
     page.wait_for_selector("#solve-error", state="hidden")
 
 
-def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):  # noqa: F811
+def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):
     from nlpsf import flags
 
     solution = solve_for(page, "tolerance", {"precision": "0.5", "magnitude": "17"})
@@ -183,7 +183,7 @@ def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):  # noqa: F8
     assert items.nth(index).locator("[data-flag-code=star_saturated]").inner_text() == meaning
 
 
-def test_the_effect_explanations_list_the_registrys_effects(page):  # noqa: F811
+def test_the_effect_explanations_list_the_registrys_effects(page):
     from nlpsf import scene as scenes
 
     terms = page.locator("#effect-explanations dt").all_inner_texts()

@@ -10,7 +10,7 @@ import httpx
 import pytest
 
 from ..servers import free_port, start_server, wait_for
-from .test_page_calculator import ARTIFACTS, page  # noqa: F401  (fixture; it uses this module's server)
+from .browser import ARTIFACTS
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -72,7 +72,7 @@ def job_record(restartable, job_id: str) -> dict:
     return httpx.get(f"{restartable.url}api/v1/simulations/{job_id}", timeout=10).json()
 
 
-def test_server_stopped_mid_simulation_and_started_again(page, restartable):  # noqa: F811
+def test_server_stopped_mid_simulation_and_started_again(page, restartable):
     page.fill("#sim-magnitudes", "18, 18.5, 19, 19.5, 20")
     page.fill("#sim-betas", "2.5e-7, 5e-7, 1e-6")
     page.fill("#sim-realizations", "150")
@@ -102,7 +102,7 @@ def test_server_stopped_mid_simulation_and_started_again(page, restartable):  # 
     assert not page.evaluate("() => sessionStorage.getItem('nlpsf-job')")
 
 
-def test_server_stopped_mid_solve_and_started_again(page, restartable):  # noqa: F811
+def test_server_stopped_mid_solve_and_started_again(page, restartable):
     page.check("#solve-for-precision")
     page.fill("#solve-tolerance", "1e-4")
     page.fill("#solve-magnitude", "19.25")
@@ -137,7 +137,7 @@ def test_server_stopped_mid_solve_and_started_again(page, restartable):  # noqa:
     page.select_option("#solve-fidelity", "table")
 
 
-def test_a_reload_follows_the_same_simulation(page, restartable):  # noqa: F811
+def test_a_reload_follows_the_same_simulation(page, restartable):
     page.fill("#sim-magnitudes", "18, 18.5, 19, 19.5")
     page.fill("#sim-betas", "2.5e-7, 5e-7, 1e-6")
     page.fill("#sim-realizations", "150")

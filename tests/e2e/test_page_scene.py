@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from .test_page_calculator import ARTIFACTS, page, server  # noqa: F401  (fixtures)
+from .browser import ARTIFACTS
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 
-def test_impact_bar_chart_and_scene_errors(page):  # noqa: F811
+def test_impact_bar_chart_and_scene_errors(page):
     page.fill("#solve-magnitude", "19")
     page.fill("#scene-jitter", "0.02")
     with page.expect_response(lambda r: r.url.endswith("/api/v1/impact"), timeout=180_000) as response:

@@ -1,4 +1,7 @@
-"""The ``nlpsf`` command-line contract that other tools call."""
+"""The ``nlpsf`` command-line contract that other tools call, with the scene options, the impact report and
+the field: the same numbers as the library, bad input named."""
+
+from __future__ import annotations
 
 import json
 import subprocess
@@ -6,7 +9,8 @@ import sys
 
 import pytest
 
-from nlpsf import cli
+from nlpsf import cli, experiment, solver
+from nlpsf import scene as scenes
 
 SIMULATE_FIELDS = {
     "band",
@@ -242,3 +246,109 @@ def test_every_pupil_scale_rule_reaches_the_simulation(capsys):
     with pytest.raises(SystemExit) as refused:
         cli.main(["simulate", "--pupil-scale", "hubble"])
     assert refused.value.code == 2 and "--pupil-scale" in capsys.readouterr().err
+
+
+def test_cli_simulate_with_scene_options_matches_the_library(capsys):
+    code, out, _ = run(
+        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json"
+    )
+    assert code == 0
+    got = json.loads(out)
+    model = scenes.SceneModel(position=(100.0, 200.0), jitter_arcsec=0.014, ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman")
+    want = experiment.simulate(experiment.SimulationConfig(realizations=4, scene=model), [18.3], [5e-7])[0]
+    assert got["dR_over_R"]["mean"] == want.dR_over_R.mean
+    assert got["conditions"]["scene"]["effects_on"]["ipc"] is True
+
+
+def test_cli_nl_coefficients_set_beta_and_higher_orders(capsys, tmp_path):
+    saved = tmp_path / "scene.json"
+    code, out, _ = run(
+        capsys,
+        "slopes",
+        "--realizations",
+        "4",
+        "--magnitude",
+        "20",
+        "--nl-coefficients",
+        "4e-7,1e-13",
+        "--save-scene",
+        str(saved),
+        "--method",
+        "linear",
+        "--json",
+    )
+    assert code == 0
+    got = json.loads(out)[0]
+    assert got["beta0"] == 4e-7 and got["conditions"]["scene"]["nl_coefficients"] == [1e-13]
+    assert scenes.load(str(saved)).nl_coefficients == (1e-13,)
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (("--jitter", "-0.1"), "--jitter"),
+        (("--sed", "vega"), "--sed"),
+        (("--position", "0,10"), "--position"),
+        (("--position", "nan,10"), "--position"),
+        (("--scene", "nominal"), "--scene"),
+        (("--background", "-1"), "--background"),
+        (("--bfe", "nan"), "--bfe"),
+        (("--nl-coefficients", "5e-7", "--beta", "4e-7"), "--nl-coefficients"),
+    ],
+)
+def test_cli_bad_scene_input_exits_2_naming_the_option(capsys, argv, option):
+    code, _, err = run(capsys, "simulate", "--realizations", "2", *argv)
+    assert code == 2 and option in err
+
+
+def test_cli_two_by_two_ipc_file_exits_2(capsys, tmp_path):
+    path = tmp_path / "k.txt"
+    path.write_text("0 0.01\n0.01 1\n")
+    code, _, err = run(capsys, "slopes", "--ipc", str(path))
+    assert code == 2 and "--ipc" in err and "3x3" in err
+
+
+def test_cli_impact_contract(capsys):
+    code, out, _ = run(
+        capsys,
+        "impact",
+        "--band",
+        "H158",
+        "--sca",
+        "18",
+        "--magnitude",
+        "18.3",
+        "--realizations",
+        "6",
+        "--scene",
+        "roman",
+        "--json",
+    )
+    assert code == 0
+    report = json.loads(out)
+    assert [e["name"] for e in report["effects"]] == list(scenes.EFFECTS)
+    for effect in report["effects"]:
+        assert set(effect["impact"]) == {"size", "e1", "e2", "e"} and isinstance(effect["on"], bool)
+        assert "cost_s" in effect
+    assert report["conditions"]["scene"]["name"] == "roman"
+
+
+def test_cli_over_field_and_sca_all(capsys):
+    code, out, _ = run(
+        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"
+    )
+    assert code == 0
+    got = json.loads(out)
+    assert len(got["conditions"]["over_field"]) == 5 and got["flag_codes"][0] == "worst_over_field"
+    code, _, err = run(capsys, "solve", "--band", "J129", "--sca", "all", "--magnitude", "19", "--tolerance", "1e-4")
+    assert code == 2 and "--sca" in err
+    # The options the plain solve takes reach the over-field answer too (they were once dropped).
+    options = ["--magnitude", "19", "--tolerance", "1e-4", "--mode", "scatter", "--stars", "16", "--throughput", "galsim-2021"]
+    code, out, err = run(capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json")
+    assert code == 0, err
+    got = json.loads(out)
+    library = solver.solve_over_field(
+        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4
+    )
+    assert got["precision"] == pytest.approx(library.precision, rel=1e-12)
+    assert got["conditions"]["throughput"] == "galsim-2021" and got["conditions"]["stars"] == 16

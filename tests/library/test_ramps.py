@@ -2,7 +2,9 @@
 
 The checks are analytic (one pixel's ramp done by hand), against an independent fit (numpy's
 polyfit, an explicit generalised least-squares solve), or against the final-frame simulator
-through the exact beta_eff mapping.
+through the exact beta_eff mapping. The last tests are the slope a calibration error acts through:
+linearised at the uncorrected beta0 (the paper) or at the corrected detector (a residual NL), with a
+ramp's saturation flags set by the raw beta0 either way.
 """
 
 import json
@@ -465,34 +467,6 @@ def test_cli_simulate_and_slopes_with_a_ramp_match_the_library(capsys):
     assert code == 0 and json.loads(out)[0]["conditions"]["ramp"]["fit"] == "optimal"
 
 
-def test_service_takes_a_ramp_in_solve_and_simulations(tmp_path):
-    from fastapi.testclient import TestClient
-    from nlpsf.web.main import create_app
-    from nlpsf.web.settings import Limits, Settings
-
-    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4, limits=Limits(max_realizations=50))
-    with TestClient(create_app(settings)) as client:
-        meta = client.get("/api/v1/meta").json()
-        assert {t["name"] for t in meta["ma_tables"]} == set(ramps.shipped_table_names())
-        assert meta["ramp_fits"] == list(ramps.RAMP_FITS)
-        answer = client.post("/api/v1/solve", json={"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": 8})
-        assert answer.status_code == 200
-        assert answer.json()["slope"] == solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8)).slope
-        question = {"band": "H158", "precision": 0.01, "magnitude": 19.0}
-        bad = client.post("/api/v1/solve", json={**question, "ma_table": {"resultants": [[1], []]}})
-        assert bad.status_code == 422 and bad.json()["field"].startswith("ma_table")
-        files = client.post("/api/v1/solve", json={**question, "ma_table": "/etc/x.json"})
-        assert files.status_code == 422 and files.json()["field"] == "ma_table"  # the service reads no files
-        body = {"band": "H158", "magnitudes": [19.0], "realizations": 4, "fidelity": "linear", "ma_table": "romanisim-110"}
-        job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
-        assert job["status"] == "done", job
-        table = ramps.load_ma_table("romanisim-110")
-        config = SimulationConfig(realizations=4, method="linear", exptime_s=table.duration_s, ramp=ramps.Ramp(table))
-        expected = simulate(config, [19.0], [BETA])[0]
-        assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(expected.dR_over_R.mean, rel=1e-12)
-        assert job["result"]["conditions"]["ramp"]["ma_table"] == "romanisim-110"
-
-
 # --- read noise: the SCA's official value unless given ------------------------------------------
 
 
@@ -611,3 +585,39 @@ def test_cli_slopes_takes_the_linearisation_state(capsys):
     assert "linearised_at" not in raw["conditions"]
     # At m = 18 the NL is not linear in beta: the slope at beta0 is measurably not the corrected one.
     assert raw["bias_slope"]["dR_over_R"]["mean"] != pytest.approx(corrected["bias_slope"]["dR_over_R"]["mean"], rel=1e-3)
+
+
+@pytest.fixture(scope="module")
+def h158():
+    config = SimulationConfig(band="H158", realizations=12)
+    return config, experiment.prepare(config)
+
+
+def test_the_corrected_state_is_the_first_order_slope_at_vanishing_nl(h158):
+    # Independent of the finite difference: metric(b) / b at b = 1e-4 beta0 is the slope at beta -> 0 to
+    # 1e-4 of its curvature; the corrected state (residual 1e-2 beta0) must sit within 1e-2 of the 3.4 %
+    # that separates the two states, and the paper state must not.
+    config, scene = h158
+    tiny = 1e-4 * BETA
+    first_order = simulate(config, [18.3], [tiny], scene=scene)[0].dR_over_R.mean / tiny
+    corrected = slopes(config, [18.3], scene=scene, linearise_at="corrected")[0]
+    paper = slopes(config, [18.3], scene=scene)[0]
+    assert corrected.bias["dR_over_R"].mean == pytest.approx(first_order, rel=1e-3)
+    assert paper.bias["dR_over_R"].mean / first_order - 1 > 0.02
+    assert corrected.conditions["linearised_at"]["state"] == "corrected"
+
+
+def test_a_ramp_keeps_the_raw_saturation_flags_in_the_corrected_state(h158):
+    _config, scene = h158
+    table = ramps.load_ma_table("romanisim-110")
+    ramp = ramps.Ramp(table, "ols", 10.0, saturation="signal", single_resultant="unusable")
+    cfg = SimulationConfig(band="H158", realizations=12, exptime_s=table.duration_s, ramp=ramp)
+    prepared = experiment.Scene(cfg, scene.psf, scene.offsets, scene.stamps, scene.reference, 0.0)
+    magnitude = 16.0  # between the limits: the core drops resultants
+    paper = slopes(cfg, [magnitude], scene=prepared)[0]
+    corrected = slopes(cfg, [magnitude], scene=prepared, linearise_at="corrected")[0]
+    assert paper.extras["ramp"]["fitted_on_fewer"] > 0
+    assert corrected.extras["ramp"] == paper.extras["ramp"]
+    # Flagging at the residual instead (what the raw detector does not do) keeps more resultants.
+    residual = simulate(cfg, [magnitude], [1e-2 * BETA], scene=prepared)[0]
+    assert residual.extras["ramp"]["pixels_by_resultants"] != paper.extras["ramp"]["pixels_by_resultants"]

@@ -7,10 +7,13 @@ import io
 import json
 import math
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from nlpsf import cli, defaults, experiment, roman, solver, tables
+from nlpsf import cli, defaults, experiment, ramps, roman, solver, tables
+from nlpsf import scene as scenes
+from nlpsf.checks import InputError
 
 
 def post_raw(client: TestClient, path: str, text: str):
@@ -440,7 +443,6 @@ def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
 @pytest.mark.parametrize("scene", [{"bfe": 1e-6}, {"ipc": "roman"}, {"background": 10.0}])
 def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
     # The service holds no rule of its own: it refuses exactly what the library's request refuses.
-    from nlpsf.checks import InputError
     from nlpsf.request import SolveRequest
 
     body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": scene}
@@ -460,7 +462,6 @@ def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
 def test_service_json_has_no_nan_or_numpy_whatever_the_library_returns():
     # JSON (RFC 8259) has no NaN or infinity; numpy integers are not JSON numbers. The service's
     # responses and its job results go through the one json_safe (nlpsf.serialise).
-    import numpy as np
     from nlpsf.web import job_kinds
     from nlpsf.web.errors import SafeJSONResponse
 
@@ -475,7 +476,6 @@ def test_service_json_has_no_nan_or_numpy_whatever_the_library_returns():
 
 def test_meta_serves_the_flag_catalogue_and_the_scene_effect_registry(client):
     from nlpsf import flags
-    from nlpsf import scene as scenes
 
     meta = client.get("/api/v1/meta").json()
     served = {entry["code"]: entry for entry in meta["flag_codes"]}
@@ -512,7 +512,6 @@ def test_an_answers_flags_come_with_their_codes(client):
 @pytest.mark.parametrize(("beta0", "accepted"), [(5e-13, False), (defaults.BETA0_RANGE[0], True), (2e-3, False)])
 def test_impact_beta0_is_refused_alike_by_the_library_and_the_service(client, beta0, accepted):
     from nlpsf import impact
-    from nlpsf.checks import InputError
 
     if accepted:
         assert impact.check_request(beta0=beta0)["beta0"] == beta0
@@ -526,7 +525,6 @@ def test_impact_beta0_is_refused_alike_by_the_library_and_the_service(client, be
 
 def test_seeds_up_to_2_63_minus_1_at_every_library_entry():
     from nlpsf import impact
-    from nlpsf.checks import InputError
 
     top = 2**63 - 1  # numpy's SeedSequence takes it; one past is refused alike by both entries
     assert impact.check_request(seed=top)["seed"] == top
@@ -541,8 +539,6 @@ def test_seeds_up_to_2_63_minus_1_at_every_library_entry():
 )
 def test_a_scene_beyond_first_order_is_refused_by_the_library_and_the_service(client, scene, field):
     # At the full well Q = 1.1e5 e-: |bfe| Q = 2.2 and 3 b3 Q^2 = 3.6, both past 1; at Q/10, 0.22 and 0.036.
-    from nlpsf import scene as scenes
-    from nlpsf.checks import InputError
 
     model = scenes.from_request(scene)
     with pytest.raises(InputError) as refused:
@@ -576,7 +572,6 @@ def test_a_simulation_result_carries_the_standard_error_of_each_spread(client):
 
 def test_std_error_is_the_spread_of_sample_standard_deviations():
     # Independent of the formula: the scatter of many samples' std around sigma.
-    import numpy as np
 
     from nlpsf.experiment.results import Statistic
 
@@ -603,3 +598,52 @@ def test_every_service_setting_is_in_the_api_docs_configuration_list():
             names = [info.validation_alias if isinstance(info.validation_alias, str) else f"NLPSF_{name.upper()}"]
         for variable in names:
             assert f"`{variable}`" in configuration, variable
+
+
+def test_web_request_takes_the_new_fields_and_refuses_a_file():
+    pytest.importorskip("fastapi")
+    from fastapi.testclient import TestClient
+    from nlpsf.web.main import create_app
+
+    client = TestClient(create_app())
+    body = {"band": "H158", "magnitude": 19.0, "shear_m": 1e-3, "size_ratio": [[1.2, 1.0], [2.0, 1.0]]}
+    answer = client.post("/api/v1/solve", json=body)
+    assert answer.status_code == 200, answer.text
+    assert answer.json()["shear"]["m"] == 1e-3
+    scatter = client.post(
+        "/api/v1/solve", json={"band": "H158", "mode": "scatter", "magnitude": 19.0, "tolerance": 1e-4, "stars": 4}
+    )
+    assert scatter.status_code == 200 and scatter.json()["stars"] == 4
+    refused = client.post("/api/v1/solve", json={**body, "size_ratio": "@/etc/passwd"})
+    assert refused.status_code == 422
+
+
+def test_service_takes_a_ramp_in_solve_and_simulations(tmp_path):
+    from fastapi.testclient import TestClient
+    from nlpsf.web.main import create_app
+    from nlpsf.web.settings import Limits, Settings
+
+    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4, limits=Limits(max_realizations=50))
+    with TestClient(create_app(settings)) as client:
+        meta = client.get("/api/v1/meta").json()
+        assert {t["name"] for t in meta["ma_tables"]} == set(ramps.shipped_table_names())
+        assert meta["ramp_fits"] == list(ramps.RAMP_FITS)
+        answer = client.post("/api/v1/solve", json={"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": 8})
+        assert answer.status_code == 200
+        assert (
+            answer.json()["slope"]
+            == solver.solve("H158", precision=0.01, magnitude=19.0, ramp=ramps.Ramp.uniform(8, defaults.EXPTIME_S)).slope
+        )
+        question = {"band": "H158", "precision": 0.01, "magnitude": 19.0}
+        bad = client.post("/api/v1/solve", json={**question, "ma_table": {"resultants": [[1], []]}})
+        assert bad.status_code == 422 and bad.json()["field"].startswith("ma_table")
+        files = client.post("/api/v1/solve", json={**question, "ma_table": "/etc/x.json"})
+        assert files.status_code == 422 and files.json()["field"] == "ma_table"  # the service reads no files
+        body = {"band": "H158", "magnitudes": [19.0], "realizations": 4, "fidelity": "linear", "ma_table": "romanisim-110"}
+        job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
+        assert job["status"] == "done", job
+        table = ramps.load_ma_table("romanisim-110")
+        config = experiment.SimulationConfig(realizations=4, method="linear", exptime_s=table.duration_s, ramp=ramps.Ramp(table))
+        expected = experiment.simulate(config, [19.0], [defaults.BETA0])[0]
+        assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(expected.dR_over_R.mean, rel=1e-12)
+        assert job["result"]["conditions"]["ramp"]["ma_table"] == "romanisim-110"

@@ -1,109 +1,16 @@
-"""The scene through the CLI and the REST API: the same library numbers, bad input named."""
+"""The scene, the impact report and the field through the REST API: the same library numbers, bad input named."""
 
 from __future__ import annotations
-
-import json
 
 import pytest
 from fastapi.testclient import TestClient
 from nlpsf.web.main import create_app
 from nlpsf.web.settings import Settings
 
-from nlpsf import cli, experiment, solver
+from nlpsf import experiment, solver
 from nlpsf import scene as scenes
 
 from ..servers import finished_job
-
-
-def run_cli(capsys, *argv):
-    code = cli.main(list(argv))
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def test_cli_simulate_with_scene_options_matches_the_library(capsys):
-    code, out, _ = run_cli(
-        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json"
-    )
-    assert code == 0
-    got = json.loads(out)
-    model = scenes.SceneModel(position=(100.0, 200.0), jitter_arcsec=0.014, ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman")
-    want = experiment.simulate(experiment.SimulationConfig(realizations=4, scene=model), [18.3], [5e-7])[0]
-    assert got["dR_over_R"]["mean"] == want.dR_over_R.mean
-    assert got["conditions"]["scene"]["effects_on"]["ipc"] is True
-
-
-def test_cli_nl_coefficients_set_beta_and_higher_orders(capsys, tmp_path):
-    saved = tmp_path / "scene.json"
-    code, out, _ = run_cli(
-        capsys,
-        "slopes",
-        "--realizations",
-        "4",
-        "--magnitude",
-        "20",
-        "--nl-coefficients",
-        "4e-7,1e-13",
-        "--save-scene",
-        str(saved),
-        "--method",
-        "linear",
-        "--json",
-    )
-    assert code == 0
-    got = json.loads(out)[0]
-    assert got["beta0"] == 4e-7 and got["conditions"]["scene"]["nl_coefficients"] == [1e-13]
-    assert scenes.load(str(saved)).nl_coefficients == (1e-13,)
-
-
-@pytest.mark.parametrize(
-    ("argv", "option"),
-    [
-        (("--jitter", "-0.1"), "--jitter"),
-        (("--sed", "vega"), "--sed"),
-        (("--position", "0,10"), "--position"),
-        (("--position", "nan,10"), "--position"),
-        (("--scene", "nominal"), "--scene"),
-        (("--background", "-1"), "--background"),
-        (("--bfe", "nan"), "--bfe"),
-        (("--nl-coefficients", "5e-7", "--beta", "4e-7"), "--nl-coefficients"),
-    ],
-)
-def test_cli_bad_scene_input_exits_2_naming_the_option(capsys, argv, option):
-    code, _, err = run_cli(capsys, "simulate", "--realizations", "2", *argv)
-    assert code == 2 and option in err
-
-
-def test_cli_two_by_two_ipc_file_exits_2(capsys, tmp_path):
-    path = tmp_path / "k.txt"
-    path.write_text("0 0.01\n0.01 1\n")
-    code, _, err = run_cli(capsys, "slopes", "--ipc", str(path))
-    assert code == 2 and "--ipc" in err and "3x3" in err
-
-
-def test_cli_impact_contract(capsys):
-    code, out, _ = run_cli(
-        capsys,
-        "impact",
-        "--band",
-        "H158",
-        "--sca",
-        "18",
-        "--magnitude",
-        "18.3",
-        "--realizations",
-        "6",
-        "--scene",
-        "roman",
-        "--json",
-    )
-    assert code == 0
-    report = json.loads(out)
-    assert [e["name"] for e in report["effects"]] == list(scenes.EFFECTS)
-    for effect in report["effects"]:
-        assert set(effect["impact"]) == {"size", "e1", "e2", "e"} and isinstance(effect["on"], bool)
-        assert "cost_s" in effect
-    assert report["conditions"]["scene"]["name"] == "roman"
 
 
 def test_api_simulation_with_scene_matches_the_library(client):
@@ -174,27 +81,6 @@ def test_api_impact_is_a_job_not_work_in_the_http_worker(tmp_path):
         # Bad input is refused before anything is queued.
         refused = test_client.post("/api/v1/impact", json={**body, "magnitude": 99.0})
         assert refused.status_code == 422 and refused.json()["field"] == "magnitude"
-
-
-def test_cli_over_field_and_sca_all(capsys):
-    code, out, _ = run_cli(
-        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"
-    )
-    assert code == 0
-    got = json.loads(out)
-    assert len(got["conditions"]["over_field"]) == 5 and got["flag_codes"][0] == "worst_over_field"
-    code, _, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "all", "--magnitude", "19", "--tolerance", "1e-4")
-    assert code == 2 and "--sca" in err
-    # The options the plain solve takes reach the over-field answer too (they were once dropped).
-    options = ["--magnitude", "19", "--tolerance", "1e-4", "--mode", "scatter", "--stars", "16", "--throughput", "galsim-2021"]
-    code, out, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json")
-    assert code == 0, err
-    got = json.loads(out)
-    library = solver.solve_over_field(
-        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4
-    )
-    assert got["precision"] == pytest.approx(library.precision, rel=1e-12)
-    assert got["conditions"]["throughput"] == "galsim-2021" and got["conditions"]["stars"] == 16
 
 
 def test_api_solve_over_field_and_with_scene(client):
