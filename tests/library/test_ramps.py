@@ -470,11 +470,7 @@ def test_cli_simulate_and_slopes_with_a_ramp_match_the_library(capsys):
 # --- read noise: the SCA's official value unless given ------------------------------------------
 
 
-def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_from(capsys, tmp_path):
-    from fastapi.testclient import TestClient
-    from nlpsf.web.main import create_app
-    from nlpsf.web.settings import Settings
-
+def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_from(capsys, tmp_path, make_client):
     from nlpsf import backgrounds
 
     # Library: the SCA's median CDS noise / sqrt(2) (backgrounds, checked against the CDS table there).
@@ -511,8 +507,7 @@ def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_f
     assert code == 0
     assert [row["solution"]["conditions"]["ramp"]["read_noise_e"] for row in json.loads(out)] == [official[1], official[3]]
     # Web: the same rule in /solve (and the simulation models).
-    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4)
-    with TestClient(create_app(settings)) as client:
+    with make_client() as client:
         body = {"band": "H158", "sca": 3, "precision": 0.01, "magnitude": 19.0, "ramp": 8}
         answer = client.post("/api/v1/solve", json=body)
         assert answer.status_code == 200, answer.text

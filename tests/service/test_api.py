@@ -600,12 +600,7 @@ def test_every_service_setting_is_in_the_api_docs_configuration_list():
             assert f"`{variable}`" in configuration, variable
 
 
-def test_web_request_takes_the_new_fields_and_refuses_a_file():
-    pytest.importorskip("fastapi")
-    from fastapi.testclient import TestClient
-    from nlpsf.web.main import create_app
-
-    client = TestClient(create_app())
+def test_web_request_takes_the_new_fields_and_refuses_a_file(client):
     body = {"band": "H158", "magnitude": 19.0, "shear_m": 1e-3, "size_ratio": [[1.2, 1.0], [2.0, 1.0]]}
     answer = client.post("/api/v1/solve", json=body)
     assert answer.status_code == 200, answer.text
@@ -618,13 +613,10 @@ def test_web_request_takes_the_new_fields_and_refuses_a_file():
     assert refused.status_code == 422
 
 
-def test_service_takes_a_ramp_in_solve_and_simulations(tmp_path):
-    from fastapi.testclient import TestClient
-    from nlpsf.web.main import create_app
-    from nlpsf.web.settings import Limits, Settings
+def test_service_takes_a_ramp_in_solve_and_simulations(make_client):
+    from nlpsf.web.settings import Limits
 
-    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=4, limits=Limits(max_realizations=50))
-    with TestClient(create_app(settings)) as client:
+    with make_client(limits=Limits(max_realizations=50)) as client:
         meta = client.get("/api/v1/meta").json()
         assert {t["name"] for t in meta["ma_tables"]} == set(ramps.shipped_table_names())
         assert meta["ramp_fits"] == list(ramps.RAMP_FITS)

@@ -7,18 +7,13 @@ import json
 
 import pytest
 from astropy.table import Table
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
-from nlpsf.web.settings import Settings
 
 from nlpsf import roman, solver
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    settings = Settings(db_path=str(tmp_path_factory.mktemp("contract") / "jobs.sqlite3"), job_workers=1)
-    with TestClient(create_app(settings)) as client:
-        yield client
+def client_settings():
+    return {}  # the service's own limits
 
 
 @pytest.fixture(scope="module")

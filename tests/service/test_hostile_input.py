@@ -10,8 +10,6 @@ import time
 from pathlib import Path
 
 import pytest
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
 from nlpsf.web.settings import Limits, Settings
 from nlpsf.web.store import Store
 
@@ -23,16 +21,12 @@ from ..servers import ROOT, finished_job
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
 
 
-def settings_for(tmp_path: Path, **overrides) -> Settings:
-    values = {"db_path": str(tmp_path / "jobs.sqlite3"), "job_workers": 1, "max_queue": 8, "limits": Limits(max_realizations=500)}
-    values.update(overrides)
-    return Settings(**values)
+SETTINGS = {"limits": Limits(max_realizations=500)}
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with TestClient(create_app(settings_for(tmp_path_factory.mktemp("db")))) as test_client:
-        yield test_client
+def client_settings():
+    return SETTINGS
 
 
 # --- bodies and echoes -------------------------------------------------------------------------
@@ -142,9 +136,9 @@ def test_no_server_path_in_any_response(client):
 # --- jobs belong to whoever submitted them ------------------------------------------------------
 
 
-def test_a_job_id_is_a_capability_and_listing_hides_others_jobs(tmp_path):
+def test_a_job_id_is_a_capability_and_listing_hides_others_jobs(make_client):
     keys = ["alice-key-0123456789", "bob-key-0123456789ab"]
-    with TestClient(create_app(settings_for(tmp_path, api_keys=",".join(keys)))) as client:
+    with make_client(**SETTINGS | {"api_keys": ",".join(keys)}) as client:
         alice, bob = ({"Authorization": f"Bearer {k}"} for k in keys)
         assert client.get("/api/v1/health").status_code == 200  # probes need no key
         assert client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}).status_code == 401
@@ -160,14 +154,14 @@ def test_a_job_id_is_a_capability_and_listing_hides_others_jobs(tmp_path):
         client.delete(f"/api/v1/simulations/{theirs['id']}", headers=bob)
 
 
-def test_listing_every_job_is_an_operator_option(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path, list_all_jobs=True))) as client:
+def test_listing_every_job_is_an_operator_option(make_client):
+    with make_client(**SETTINGS | {"list_all_jobs": True}) as client:
         client.post("/api/v1/simulations", json=SMALL, params={"wait": 60})
         assert len(client.get("/api/v1/simulations").json()["jobs"]) == 1
 
 
-def test_host_header_check(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path, allowed_hosts="nlpsf.example.org"))) as client:
+def test_host_header_check(make_client):
+    with make_client(**SETTINGS | {"allowed_hosts": "nlpsf.example.org"}) as client:
         assert client.get("/api/v1/health").status_code == 400  # the TestClient's Host is "testserver"
         assert client.get("/api/v1/health", headers={"Host": "nlpsf.example.org"}).status_code == 200
 
@@ -188,9 +182,9 @@ def test_settings_come_from_the_environment(monkeypatch):
 # --- simulating solves are jobs -----------------------------------------------------------------
 
 
-def test_a_simulating_solve_is_a_job_not_work_in_the_http_worker(tmp_path):
+def test_a_simulating_solve_is_a_job_not_work_in_the_http_worker(make_client):
     body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "fidelity": "linear"}
-    with TestClient(create_app(settings_for(tmp_path, solve_wait_s=0.0))) as client:
+    with make_client(**SETTINGS | {"solve_wait_s": 0.0}) as client:
         queued = client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
         job = queued.json()
@@ -206,8 +200,8 @@ def test_a_simulating_solve_is_a_job_not_work_in_the_http_worker(tmp_path):
 # --- memory ------------------------------------------------------------------------------------
 
 
-def test_a_request_over_the_memory_budget_is_refused_naming_it(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path, job_memory_mb=64))) as client:
+def test_a_request_over_the_memory_budget_is_refused_naming_it(make_client):
+    with make_client(**SETTINGS | {"job_memory_mb": 64}) as client:
         response = client.post("/api/v1/simulations", json={**SMALL, "realizations": 400})
         assert response.status_code == 422
         assert response.json()["limit"] == "job_memory_mb"
@@ -270,7 +264,7 @@ def test_meta_reports_the_service_limits(client):
     assert json.dumps(limits)
 
 
-def test_waiters_share_one_poll(tmp_path):
+def test_waiters_share_one_poll(make_client):
     """?wait= costs one query per poll interval however many clients wait (it was a connection per
     waiter every 50 ms: 200 waiters cut the calculator's throughput by 85 %)."""
     from concurrent.futures import ThreadPoolExecutor
@@ -278,7 +272,7 @@ def test_waiters_share_one_poll(tmp_path):
     # 200 cells (the grid limit) of 500 realizations: the job outlasts the 2 s wait several times over.
     betas = [4e-7 + 2e-8 * k for k in range(10)]
     long = {"band": "H158", "realizations": 500, "magnitudes": [18.0 + 0.1 * k for k in range(20)], "betas": betas, "seed": 5}
-    with TestClient(create_app(settings_for(tmp_path, max_queue=64))) as client:
+    with make_client(**SETTINGS | {"max_queue": 64}) as client:
         store = client.app.state.store
         calls = []
         original = store.statuses
@@ -302,10 +296,10 @@ def test_waiters_share_one_poll(tmp_path):
             client.delete(f"/api/v1/simulations/{answer['id']}")
 
 
-def test_a_solve_with_an_accuracy_is_a_job_even_when_the_tables_meet_it(tmp_path):
+def test_a_solve_with_an_accuracy_is_a_job_even_when_the_tables_meet_it(make_client):
     # The accuracy's effects are measured by simulation (nlpsf.impact), never inside the HTTP worker.
     body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5}
-    with TestClient(create_app(settings_for(tmp_path, solve_wait_s=0.0))) as client:
+    with make_client(**SETTINGS | {"solve_wait_s": 0.0}) as client:
         queued = client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
         result = finished_job(client, queued.json()["id"]).json()["result"]

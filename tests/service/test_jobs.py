@@ -6,13 +6,10 @@ from __future__ import annotations
 import os
 import signal
 import time
-from pathlib import Path
 
 import httpx
 import pytest
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
-from nlpsf.web.settings import Limits, Settings
+from nlpsf.web.settings import Limits
 from nlpsf.web.store import Store
 
 from ..servers import crash, free_port, start_server, wait_for
@@ -22,16 +19,11 @@ LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0 + 0.1 * k for 
 SMALL = {"band": "Y106", "magnitudes": [19.5], "betas": [5e-7], "realizations": 8, "seed": 3}
 
 
-def settings_for(tmp_path: Path, **overrides) -> Settings:
-    values = {
-        "db_path": str(tmp_path / "jobs.sqlite3"),
-        "job_workers": 1,
-        "max_queue": 4,
-        "max_queue_per_client": 4,  # one client here; fair sharing has its own tests (test_service_fairness.py)
-        "limits": Limits(max_realizations=5000, max_stamp_pixels=10**9, max_work=10**12),
-    }
-    values.update(overrides)
-    return Settings(**values)
+SETTINGS = {
+    "max_queue": 4,
+    "max_queue_per_client": 4,  # one client here; fair sharing has its own test (test_policy.py)
+    "limits": Limits(max_realizations=5000, max_stamp_pixels=10**9, max_work=10**12),
+}
 
 
 def job_status(client, job_id: str) -> dict:
@@ -58,8 +50,8 @@ def pid_alive(pid: int) -> bool:
 
 
 @pytest.mark.slow
-def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path, max_queue=1))) as client:
+def test_pool_bound_queue_bound_cancel_and_dedupe(make_client):
+    with make_client(**SETTINGS | {"max_queue": 1}) as client:
         first = client.post("/api/v1/simulations", json=LONG)
         assert first.status_code == 202
         long_job = first.json()
@@ -106,8 +98,8 @@ def test_pool_bound_queue_bound_cancel_and_dedupe(tmp_path):
         assert listing["jobs"] == [] and listing["counts"] == {}
 
 
-def test_cancel_a_queued_job(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path))) as client:
+def test_cancel_a_queued_job(make_client):
+    with make_client(**SETTINGS) as client:
         long_job = client.post("/api/v1/simulations", json=LONG).json()
         queued = client.post("/api/v1/simulations", json=SMALL).json()
         assert queued["status"] == "queued"
@@ -117,8 +109,8 @@ def test_cancel_a_queued_job(tmp_path):
         client.delete(f"/api/v1/simulations/{long_job['id']}")
 
 
-def test_repeated_request_is_answered_from_stored_results(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path))) as client:
+def test_repeated_request_is_answered_from_stored_results(make_client):
+    with make_client(**SETTINGS) as client:
         first = client.post("/api/v1/simulations", params={"wait": 120}, json=SMALL)
         assert first.status_code == 200 and first.json()["status"] == "done"
         assert first.json()["cached"] is False
@@ -136,9 +128,9 @@ def test_repeated_request_is_answered_from_stored_results(tmp_path):
 
 
 @pytest.mark.slow
-def test_progress_rises_to_one(tmp_path):
+def test_progress_rises_to_one(make_client):
     body = {"band": "H158", "magnitudes": [18.0 + 0.05 * k for k in range(60)], "betas": [4e-7, 5e-7, 6e-7], "realizations": 200}
-    with TestClient(create_app(settings_for(tmp_path, limits=Limits(max_grid=500)))) as client:
+    with make_client(**SETTINGS | {"limits": Limits(max_grid=500)}) as client:
         job = client.post("/api/v1/simulations", json=body).json()
         seen = []
         while job["status"] in ("queued", "running"):
@@ -152,8 +144,8 @@ def test_progress_rises_to_one(tmp_path):
         assert len(job["result"]["results"]) == 180
 
 
-def test_a_killed_worker_is_reported_as_failed(tmp_path):
-    with TestClient(create_app(settings_for(tmp_path))) as client:
+def test_a_killed_worker_is_reported_as_failed(make_client):
+    with make_client(**SETTINGS) as client:
         job = client.post("/api/v1/simulations", json=LONG).json()
         until_status(client, job["id"], "running")
         pid = wait_for(lambda: Store(client.app.state.settings.db_path).get(job["id"])["pid"])
@@ -162,16 +154,16 @@ def test_a_killed_worker_is_reported_as_failed(tmp_path):
         assert "ended unexpectedly" in failed["message"]
 
 
-def test_graceful_shutdown_queues_running_jobs_again(tmp_path):
-    settings = settings_for(tmp_path)
-    with TestClient(create_app(settings)) as client:
+def test_graceful_shutdown_queues_running_jobs_again(tmp_path, make_client):
+    db = tmp_path / "jobs.sqlite3"
+    with make_client(db_path=db, **SETTINGS) as client:
         job = client.post("/api/v1/simulations", json=LONG).json()
         until_status(client, job["id"], "running")
-    stored = Store(settings.db_path).get(job["id"])
+    stored = Store(db).get(job["id"])
     assert stored["status"] == "queued" and stored["attempts"] == 1
     assert "queued again" in stored["message"]
     # The next start runs it (and stopping again hands it back once more).
-    with TestClient(create_app(settings)) as client:
+    with make_client(db_path=db, **SETTINGS) as client:
         running = until_status(client, job["id"], "running")
         assert running["started_at"] is not None
         client.delete(f"/api/v1/simulations/{job['id']}")

@@ -9,9 +9,6 @@ import io
 from pathlib import Path
 
 import pytest
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
-from nlpsf.web.settings import Settings
 
 from nlpsf import solver
 from nlpsf.checks import InputError
@@ -20,10 +17,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    settings = Settings(db_path=str(tmp_path_factory.mktemp("page-api") / "jobs.sqlite3"), job_workers=1)
-    with TestClient(create_app(settings)) as client:
-        yield client
+def client_settings():
+    return {}  # the service's own limits
 
 
 def test_requirement_curves_scale_with_the_tolerance_and_stop_at_saturation(client):

@@ -8,11 +8,8 @@ import os
 import signal
 import sqlite3
 import time
-from pathlib import Path
 
 import pytest
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
 from nlpsf.web.settings import Limits, Settings
 
 from ..servers import wait_for
@@ -23,20 +20,13 @@ LONG = {"band": "H158", "realizations": 3000, "magnitudes": [18.0 + 0.1 * k for 
 KEYS = ["client-a-key-0123456789", "client-b-key-0123456789"]
 
 
-def settings_for(tmp_path: Path, **overrides) -> Settings:
-    values = {
-        "db_path": str(tmp_path / "jobs.sqlite3"),
-        "job_workers": 1,
-        "max_queue": 8,
-        "limits": Limits(max_realizations=5000, max_stamp_pixels=10**9, max_work=10**12),
-    }
-    return Settings(**{**values, **overrides})
+#: Limits wide enough for LONG: these tests are about policy, not size.
+SETTINGS = {"limits": Limits(max_realizations=5000, max_stamp_pixels=10**9, max_work=10**12)}
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    with TestClient(create_app(settings_for(tmp_path_factory.mktemp("db")))) as test_client:
-        yield test_client
+def client_settings():
+    return SETTINGS
 
 
 # --- 2. nothing accepted that fails later --------------------------------------------------------
@@ -79,9 +69,8 @@ def test_a_range_refusal_is_the_schemas_range(client):
 # --- 5. fair sharing -----------------------------------------------------------------------------
 
 
-def test_one_client_cannot_hold_the_queue(tmp_path):
-    settings = settings_for(tmp_path, api_keys=KEYS, max_queue=8, max_queue_per_client=2)
-    with TestClient(create_app(settings)) as client:
+def test_one_client_cannot_hold_the_queue(make_client):
+    with make_client(**SETTINGS | {"api_keys": KEYS, "max_queue": 8, "max_queue_per_client": 2}) as client:
         a, b = ({"X-API-Key": key} for key in KEYS)
         tickets = [client.post("/api/v1/simulations", json=LONG, headers=a).json()["id"]]  # runs
         wait_for(lambda: client.get(f"/api/v1/simulations/{tickets[0]}", headers=a).json()["status"] == "running")
@@ -105,9 +94,9 @@ def test_one_client_cannot_hold_the_queue(tmp_path):
 # --- 3. a stuck job is ended and its place freed ----------------------------------------------------
 
 
-def test_a_stopped_job_is_ended_and_the_queue_moves_on(tmp_path):
-    settings = settings_for(tmp_path, job_stall_s=2.0)
-    with TestClient(create_app(settings)) as client:
+def test_a_stopped_job_is_ended_and_the_queue_moves_on(make_client):
+    with make_client(**SETTINGS | {"job_stall_s": 2.0}) as client:
+        settings = client.app.state.settings
         stuck = client.post("/api/v1/simulations", json=LONG).json()
         pid = wait_for(lambda: client.app.state.store.get(stuck["id"])["pid"])
         wait_for(lambda: client.get(f"/api/v1/simulations/{stuck['id']}").json()["status"] == "running")
@@ -139,9 +128,9 @@ def test_the_wall_time_limit_grows_with_the_job():
 # --- 6. damage to the database shows in /health within a heartbeat or two ---------------------------
 
 
-def test_a_damaged_table_shows_in_health_within_two_seconds(tmp_path):
+def test_a_damaged_table_shows_in_health_within_two_seconds(tmp_path, make_client):
     db = tmp_path / "jobs.sqlite3"
-    with TestClient(create_app(settings_for(tmp_path))) as client:
+    with make_client(db_path=db, **SETTINGS) as client:
         assert client.get("/api/v1/health").json()["status"] == "ok"
         with contextlib.closing(sqlite3.connect(db)) as handle:
             handle.execute("PRAGMA wal_checkpoint(TRUNCATE)")

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import pytest
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
-from nlpsf.web.settings import Settings
 
 from nlpsf import experiment, solver
 from nlpsf import scene as scenes
@@ -58,13 +55,12 @@ def test_api_impact(client):
     assert client.post("/api/v1/impact", json={"realizations": 501}).json()["limit"] == "max_realizations"
 
 
-def test_api_impact_is_a_job_not_work_in_the_http_worker(tmp_path):
+def test_api_impact_is_a_job_not_work_in_the_http_worker(make_client):
 
     from nlpsf import impact
 
     body = {"band": "J129", "sca": 3, "magnitude": 19.5, "realizations": 4, "scene": {"ipc": "roman"}}
-    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=8, solve_wait_s=0.0)
-    with TestClient(create_app(settings)) as test_client:
+    with make_client(solve_wait_s=0.0) as test_client:
         queued = test_client.post("/api/v1/impact", json=body)
         assert queued.status_code == 202, queued.text
         job = queued.json()
@@ -99,10 +95,9 @@ def test_api_solve_over_field_and_with_scene(client):
 
 
 @pytest.mark.slow
-def test_api_solve_with_another_pupil_scale_is_a_job_and_a_batch_refuses_it(tmp_path):
+def test_api_solve_with_another_pupil_scale_is_a_job_and_a_batch_refuses_it(make_client):
     body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "pupil_scale": "official"}
-    settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=8, solve_wait_s=0.0)
-    with TestClient(create_app(settings)) as test_client:
+    with make_client(solve_wait_s=0.0) as test_client:
         queued = test_client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
         result = finished_job(test_client, queued.json()["id"]).json()["result"]

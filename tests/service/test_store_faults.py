@@ -18,9 +18,6 @@ import time
 from pathlib import Path
 
 import pytest
-from fastapi.testclient import TestClient
-from nlpsf.web.main import create_app
-from nlpsf.web.settings import Settings
 
 from ..servers import wait_for
 
@@ -84,12 +81,8 @@ def exercise_fault(client, caplog, db: Path, inject, restore, reason: str, reads
     assert any("usable again" in r.getMessage() for r in caplog.records if r.name == "nlpsf.store")
 
 
-def app_for(db: Path):
-    return create_app(Settings(db_path=str(db), job_workers=1, max_queue=8))
-
-
 @pytest.mark.slow
-def test_deleted_database(tmp_path, caplog):
+def test_deleted_database(tmp_path, caplog, make_client):
     db = tmp_path / "jobs.sqlite3"
     aside = tmp_path / "aside"
     aside.mkdir()
@@ -97,7 +90,7 @@ def test_deleted_database(tmp_path, caplog):
     def files():
         return [p for p in tmp_path.iterdir() if p.name.startswith("jobs.sqlite3")]
 
-    with TestClient(app_for(db)) as client:
+    with make_client(db_path=db) as client:
         exercise_fault(
             client,
             caplog,
@@ -109,7 +102,7 @@ def test_deleted_database(tmp_path, caplog):
 
 
 @pytest.mark.slow
-def test_corrupted_database(tmp_path, caplog):
+def test_corrupted_database(tmp_path, caplog, make_client):
     db = tmp_path / "jobs.sqlite3"
     backup = tmp_path / "backup.sqlite3"
 
@@ -118,12 +111,12 @@ def test_corrupted_database(tmp_path, caplog):
         with open(db, "r+b") as handle:
             handle.write(b"this is not a database at all" * 200)
 
-    with TestClient(app_for(db)) as client:
+    with make_client(db_path=db) as client:
         exercise_fault(client, caplog, db, inject=corrupt, restore=lambda: shutil.copy(backup, db), reason="corrupt")
 
 
 @pytest.mark.slow
-def test_read_only_database(tmp_path, caplog):
+def test_read_only_database(tmp_path, caplog, make_client):
     with small_filesystem(tmp_path / "fs") as directory:
         db = directory / "jobs.sqlite3"
 
@@ -135,12 +128,12 @@ def test_read_only_database(tmp_path, caplog):
 
             wait_for(done, timeout=20, interval=0.05)
 
-        with TestClient(app_for(db)) as client:
+        with make_client(db_path=db) as client:
             exercise_fault(client, caplog, db, inject=lambda: remount("ro"), restore=lambda: remount("rw"), reason="read-only")
 
 
 @pytest.mark.slow
-def test_full_disk(tmp_path, caplog):
+def test_full_disk(tmp_path, caplog, make_client):
     with small_filesystem(tmp_path / "fs", size="1m") as directory:
         db = directory / "jobs.sqlite3"
         filler = directory / "filler"
@@ -152,7 +145,7 @@ def test_full_disk(tmp_path, caplog):
                     handle.write(b"\0" * 4096)
                     handle.flush()
 
-        with TestClient(app_for(db)) as client:
+        with make_client(db_path=db) as client:
             # A burst of submissions grows the database until the disk is full.
             def inject():
                 fill()
@@ -162,10 +155,10 @@ def test_full_disk(tmp_path, caplog):
             exercise_fault(client, caplog, db, inject=inject, restore=lambda: filler.unlink(), reason="full")
 
 
-def test_corrupt_database_at_start_leaves_the_calculator_running(tmp_path, caplog):
+def test_corrupt_database_at_start_leaves_the_calculator_running(tmp_path, caplog, make_client):
     db = tmp_path / "jobs.sqlite3"
     db.write_bytes(b"garbage, not SQLite" * 100)
-    with TestClient(app_for(db)) as client:
+    with make_client(db_path=db) as client:
         state = health(client)
         assert state["status"] == "degraded" and "corrupt" in state["job_store"]["reason"]
         assert client.post("/api/v1/solve", json=SOLVE).status_code == 200
