@@ -1,9 +1,11 @@
-"""Serving policy under abuse, in process (issue 19, items 2-7): complete validation before anything
-is queued, fair sharing of the queue, stuck jobs ended, database damage noticed, HTTP semantics."""
+"""Serving policy under abuse, in process: complete validation before anything is queued (numbers at
+the edges too: subnormals, absurd accuracy targets), fair sharing of the queue, stuck jobs ended,
+database damage noticed, HTTP semantics, and the settings and limits the service runs under."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import sqlite3
@@ -11,6 +13,9 @@ import time
 
 import pytest
 from nlpsf.web.settings import Limits, Settings
+
+from nlpsf import defaults, solver
+from nlpsf.checks import InputError
 
 from ..servers import wait_for
 
@@ -181,3 +186,54 @@ def test_bodies_on_get_and_duplicate_keys_are_refused(client):
     body = b'{"band": "H158", "band": "J129", "magnitude": 18.3, "tolerance": 1e-4}'
     response = client.post("/api/v1/solve", content=body, headers={"content-type": "application/json"})
     assert response.status_code == 422 and "'band' twice" in response.json()["detail"]
+
+
+# --- numbers at the edges, and the settings themselves ---------------------------------------------
+
+SUBNORMALS = [5e-324, 1e-320, 2.2e-308]
+
+
+@pytest.mark.parametrize("value", SUBNORMALS)
+@pytest.mark.parametrize("field", ["exptime", "full_well"])
+def test_subnormal_exposure_or_full_well_is_a_422_naming_it(client, field, value):
+    response = client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, field: value})
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == field
+    for path in ("slope", "beta", "sigma_beta"):
+        response = client.get(f"/api/v1/curves/{path}", params={field: value})
+        assert response.status_code == 422, (path, response.text)
+        assert response.json()["field"] == field
+
+
+@pytest.mark.parametrize("field", ["exptime", "full_well"])
+def test_the_library_refuses_subnormals_itself(field):
+    # Validated at the library's entry point, so the CLI and Python callers are covered too.
+    with pytest.raises(InputError, match=field):
+        solver.solve("H158", magnitude=18.3, tolerance=1e-4, **{field: 5e-324})
+
+
+@pytest.mark.parametrize("accuracy", [1e-320, 5e-324, 1e-9])
+def test_an_absurd_accuracy_is_refused_clearly(client, accuracy):
+    response = client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": accuracy})
+    assert response.status_code == 422
+    assert response.json()["field"] == "accuracy"
+    assert f"{defaults.ACCURACY_RANGE[0]:g}" in response.json()["message"]
+
+
+def test_settings_come_from_the_environment(monkeypatch):
+    monkeypatch.setenv("NLPSF_MAX_GRID", "7")
+    monkeypatch.setenv("NLPSF_ALLOWED_HOSTS", "a.example, b.example")
+    monkeypatch.setenv("NLPSF_MAX_WAIT", "5")
+    settings = Settings()
+    assert settings.limits.max_grid == 7
+    assert settings.allowed_hosts == ["a.example", "b.example"]
+    assert settings.max_wait_s == 5.0
+    monkeypatch.setenv("NLPSF_MAX_GRID", "0")
+    with pytest.raises(ValueError, match="max_grid"):
+        Settings()
+
+
+def test_meta_reports_the_service_limits(client):
+    limits = client.get("/api/v1/meta").json()["limits"]
+    assert limits["max_body_bytes"] == client.app.state.settings.max_body_bytes
+    assert json.dumps(limits)
