@@ -420,7 +420,7 @@ def _run_solve_job(client, body):
 
 def test_a_uniform_ols_ramp_solve_job_is_the_final_frame_at_beta_eff(client):
     # Independent of the ramp code path: an N-read OLS ramp's magnitude equals the final frame's at
-    # beta_eff = (1 + 1/N) beta0 with the same precision (see tests/test_ramps.py).
+    # beta_eff = (1 + 1/N) beta0 with the same precision (see tests/library/test_ramps.py).
     n = 8
     ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n})
     frame = client.post(
