@@ -13,11 +13,13 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, solver, tablebuild, tables
+from nlpsf import experiment, ramps, solver, tablebuild
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 from nlpsf.flags import FlagCode, codes
+
+from . import shipped
 
 T = 168.1
 FULL_WELL = 1.1e5
@@ -393,11 +395,14 @@ def test_solver_takes_a_scene_with_a_ramp_where_the_ramp_can_read_it_out():
     # resultant a slope needs, so the star's limit is a peak charge W / tau - b over the exposure
     # (the final frame's: W - b), read off the same photometry at those charges.
     n, background = 8, 2000.0
-    table = tables.load_tables().get("H158", 18)
     ramp = uniform(n, saturation="charge")
     answer = solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(background_e=background))
-    assert answer.saturation_magnitude == pytest.approx(table.saturation(T, FULL_WELL / (2 / n) - background), abs=1e-9)
-    assert answer.final_frame_saturation_magnitude == pytest.approx(table.saturation(T, FULL_WELL - background), abs=1e-12)
+    # The peak charge of the shipped table's stars (astropy), scaled as 10^(-0.4 m): the limits.
+    limit = shipped.saturation_magnitude("H158", 18, FULL_WELL / (2 / n) - background, T)
+    assert answer.saturation_magnitude == pytest.approx(limit, abs=1e-9)
+    assert answer.final_frame_saturation_magnitude == pytest.approx(
+        shipped.saturation_magnitude("H158", 18, FULL_WELL - background, T), abs=1e-12
+    )
     assert answer.fidelity == "linear" and "the scene has no table" in answer.conditions["ramp_slopes_from"]
     assert answer.conditions["scene"]["background_e"] == background and answer.tolerance > 0
     # IPC goes through the ramp too; brighter-fatter is the one effect a ramp refuses (ramps.check_scene).
