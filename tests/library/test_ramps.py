@@ -19,7 +19,7 @@ from nlpsf.checks import InputError
 from nlpsf.experiment import SimulationConfig, simulate, slopes
 from nlpsf.flags import FlagCode, codes
 
-from . import shipped
+from .. import shipped
 
 T = 168.1
 FULL_WELL = 1.1e5

@@ -8,7 +8,7 @@ import pytest
 from nlpsf import relation, solver, tables
 from nlpsf.checks import InputError
 
-from . import shipped
+from .. import shipped
 
 TABLES = tables.load_tables()
 

@@ -13,7 +13,7 @@ from nlpsf import cli, roman, shear, solver, tables
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode, codes
 
-from . import shipped
+from .. import shipped
 
 TABLES = tables.load_tables()
 

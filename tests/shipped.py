@@ -58,13 +58,16 @@ def peak_electrons(band: str, sca: int, magnitude, exptime: float | None = None)
 
 def slope(band: str, sca: int, metric: str, mode: str, magnitude) -> np.ndarray:
     """The tabulated slope (``mode`` "bias" or "scatter", ``metric`` "size", "e1" or "e2") at the
-    table's own exposure: the not-a-knot cubic of slope / flux in flux, times the flux."""
+    table's own exposure: the not-a-knot cubic of slope / flux in flux, times the flux; fainter than
+    the grid slope / flux stays at its faintest value (the linear regime), brighter has none (NaN)."""
     from scipy.interpolate import CubicSpline
 
     rows = _rows(band, sca)
+    fluxes = rows["flux_electrons"]
     at = flux(band, sca, magnitude)
-    spline = CubicSpline(rows["flux_electrons"], rows[f"{mode}_{metric}"] / rows["flux_electrons"])
-    return spline(at) * at
+    spline = CubicSpline(fluxes, rows[f"{mode}_{metric}"] / fluxes)
+    value = spline(np.clip(at, fluxes[0], fluxes[-1])) * at
+    return np.where(at > fluxes[-1] * (1 + 1e-9), np.nan, value)
 
 
 def saturation_magnitude(band: str, sca: int, full_well: float, exptime: float | None = None) -> float:
