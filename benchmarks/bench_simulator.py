@@ -267,7 +267,7 @@ def main() -> None:
         )
     print(
         "\n(GalSim's default getPSF interpolates a Nyquist-sampled PSF; the differences above are that, see"
-        " tests/test_reference.py, where GalSim with a finer pupil plane agrees with nlpsf to <1e-4.)"
+        " tests/library/test_reference.py, where GalSim with a finer pupil plane agrees with nlpsf to <1e-4.)"
     )
 
 

@@ -61,7 +61,7 @@ def _rate_by_filter(name: str) -> dict[str, float]:
 @cache
 def _per_sca(name: str, column: str) -> tuple[float, ...]:
     # The per-SCA summaries are ECSV whose body is comma-separated under a header row: the standard
-    # library reads it, so a ramp's default read noise costs no astropy import (tests/test_backgrounds.py
+    # library reads it, so a ramp's default read noise costs no astropy import (tests/library/test_backgrounds.py
     # checks this reading against astropy's ECSV reader).
     with open(roman.official_data_dir() / name, newline="") as handle:
         rows = list(csv.reader(line for line in handle if line.strip() and not line.startswith("#")))

@@ -22,7 +22,7 @@ The two references differ by 6.6e-5 mag (3630.78 vs 3631 Jy).
 
 The arithmetic is in SI with the constants written out (the 2019 SI fixes h exactly), not through
 astropy.units: importing astropy.units costs 0.3-0.4 s of CPU, more than a one-band simulation's
-photometry is worth, in every ``nlpsf simulate`` process. ``tests/test_data.py`` checks the
+photometry is worth, in every ``nlpsf simulate`` process. ``tests/library/test_data.py`` checks the
 numbers against astropy's units and constants.
 """
 

@@ -52,7 +52,7 @@ class Grid:
         native pixel's width, so that the periodic copies of the truncated PSF never reach the
         stamp. What is left converges slowly with the margin (truncating the PSF's wings leaves a
         ~1e-6-of-peak ripple); at 8 native pixels Delta R / R is within 1e-6 of its limit
-        (``tests/test_experiment.py::test_optics_field_margin_does_not_move_results``).
+        (``tests/library/test_experiment.py::test_optics_field_margin_does_not_move_results``).
         """
         return self.extent_arcsec + 2 * margin_native_pixels * PIXEL_SCALE_ARCSEC
 

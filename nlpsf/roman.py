@@ -319,7 +319,7 @@ def _pupil_from_companion(sca: int, kind: str) -> tuple[np.ndarray, float]:
 
 def write_pupil_companion() -> Path:
     """Pack every SCA's binned masks from the FITS files (``python -c 'from nlpsf import roman;
-    roman.write_pupil_companion()'`` after the masks change); ``tests/test_data.py`` checks it."""
+    roman.write_pupil_companion()'`` after the masks change); ``tests/library/test_data.py`` checks it."""
     arrays: dict[str, np.ndarray] = {}
     for sca in range(1, N_SCA + 1):
         for kind in ("short", "long"):

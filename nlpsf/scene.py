@@ -38,7 +38,7 @@ the right is centred at x_ij + p, and x_ij + p is the centre of fine pixel (i, j
 pixels are p / N apart. So the oversampled stamp is the interleave of N^2 native-pixel images
 (one per sub-pixel phase), and a kernel that couples native pixels -- IPC, brighter-fatter --
 acts on each interleaved image separately, i.e. on the fine grid its taps are N fine pixels apart.
-``tests/test_scene.py`` checks this against GalSim's ``applyIPC`` on the de-interleaved images.
+``tests/library/test_scene.py`` checks this against GalSim's ``applyIPC`` on the de-interleaved images.
 
 Rescaling rules. The tables' exposure and beta0 rescaling rests on the metrics depending on beta
 and flux only through beta Q. Position, SED, jitter, diffusion and IPC (either order) are linear in
@@ -92,7 +92,7 @@ MAX_IPC_ALPHA = 0.2
 WAVELENGTH_ACCURACY = 1e-2
 #: Empirical factor between the relative error of the NL slopes from one wavelength and the band's
 #: photon-weighted var / lambda^2 (measured on H158, W146 and R062 in
-#: ``tests/test_scene.py::test_wavelength_count_meets_its_stated_accuracy``).
+#: ``tests/library/test_scene.py::test_wavelength_count_meets_its_stated_accuracy``).
 SLOPE_BINNING_FACTOR = 4.0
 
 
@@ -410,7 +410,7 @@ def binning_error(band: str, spectrum, n: int, sca: int = 18, source: str | None
     misses var / lambda^2 of its squared size (var the photon-weighted variance of the wavelength);
     the slopes respond a few times more strongly (:data:`SLOPE_BINNING_FACTOR`). Measured, the
     error then falls as 1/n, not as the 1/n^2 of a smooth integrand
-    (``tests/test_scene.py::test_wavelength_count_meets_its_stated_accuracy`` shows the convergence
+    (``tests/library/test_scene.py::test_wavelength_count_meets_its_stated_accuracy`` shows the convergence
     against 32 wavelengths), so the estimate is that single-bin figure divided by n. n = 1 with a
     flat f_nu SED is the achromatic PSF at the band's effective wavelength, which this does not cover.
     """

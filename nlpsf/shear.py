@@ -45,7 +45,7 @@ A distribution of galaxy sizes. m and c are averages over the galaxies used for 
 by their shear weights w; both are linear in ρ⁻², so a distribution acts through the effective
 ratio ρ_eff = ⟨ρ⁻²⟩_w^(−1/2) (small galaxies dominate). ``SizeRatio`` holds the ratios and weights.
 
-The test (tests/test_shear.py) simulates a Gaussian galaxy convolved with a Gaussian PSF, measures
+The test (tests/library/test_shear.py) simulates a Gaussian galaxy convolved with a Gaussian PSF, measures
 it with our adaptive moments, corrects with a PSF model with and without a size or ellipticity
 error, and checks m and c against these formulas to their stated order (1 %, for errors of 1e-3
 and |e_psf| <= 0.06); GalSim's HSM PSF corrections (BJ, REGAUSS, KSB) of the same galaxies agree too.

@@ -24,7 +24,7 @@ Why the plain sum. The effects are not independent errors that might partly canc
 goes through all of them at once, and at a given point their signs are fixed and often the same
 (W146 SCA 18, e2 bias: position, SED, jitter, diffusion and IPC all negative). A full Roman scene
 at a corner of W146 SCA 18 moved the e2 slope by 1.4 times the quadrature sum
-(``tests/test_model_uncertainty.py``); the plain sum of the worst impacts bounds it to first order.
+(``tests/library/test_model_part.py``); the plain sum of the worst impacts bounds it to first order.
 """
 
 from __future__ import annotations

@@ -1,4 +1,8 @@
+"""Fixtures every folder shares: the paper's prepared scene, GalSim's marker, and the one factory of the
+service in process (``make_client``, and ``client`` built with it for a module's tests)."""
+
 import importlib.util
+from pathlib import Path
 
 import pytest
 
@@ -6,6 +10,9 @@ from nlpsf import experiment
 
 HAVE_GALSIM = importlib.util.find_spec("galsim") is not None
 requires_galsim = pytest.mark.skipif(not HAVE_GALSIM, reason="GalSim not installed (pip install nlpsf[reference])")
+
+#: The in-process service's settings under every test's own: one job worker and a short queue.
+SERVICE_SETTINGS = {"job_workers": 1, "max_queue": 8}
 
 
 @pytest.fixture(scope="session")
@@ -19,18 +26,37 @@ def paper_scene(paper_config):
     return experiment.prepare(paper_config)
 
 
-@pytest.fixture(scope="module")
-def client(tmp_path_factory):
-    """The service in-process (TestClient), with small limits; one per test module."""
+def _service_client(db_path: Path, overrides: dict):
+    """A TestClient of the whole app (its lifespan runs on ``with``), on the job store at ``db_path``."""
     from fastapi.testclient import TestClient
     from nlpsf.web.main import create_app
-    from nlpsf.web.settings import Limits, Settings
+    from nlpsf.web.settings import Settings
 
-    settings = Settings(
-        db_path=str(tmp_path_factory.mktemp("db") / "jobs.sqlite3"),
-        job_workers=1,
-        max_queue=8,
-        limits=Limits(max_realizations=500, max_stamp=128, max_grid=50),
-    )
-    with TestClient(create_app(settings)) as test_client:
+    return TestClient(create_app(Settings(**{"db_path": str(db_path), **SERVICE_SETTINGS, **overrides})))
+
+
+@pytest.fixture
+def make_client(tmp_path_factory):
+    """``with make_client(**settings) as client:``: the service in process on a job store of its own (or
+    the one at ``db_path=``, to start it again on the same store), with ``settings`` over SERVICE_SETTINGS."""
+
+    def make(db_path: Path | str | None = None, **overrides):
+        return _service_client(db_path or tmp_path_factory.mktemp("service") / "jobs.sqlite3", overrides)
+
+    return make
+
+
+@pytest.fixture(scope="module")
+def client_settings() -> dict:
+    """The settings of a module's shared ``client``: small limits. A module that needs others overrides
+    this fixture (not ``client``)."""
+    from nlpsf.web.settings import Limits
+
+    return {"limits": Limits(max_realizations=500, max_stamp=128, max_grid=50)}
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory, client_settings):
+    """The service in process, shared by one module's tests, on its own job store."""
+    with _service_client(tmp_path_factory.mktemp("service") / "jobs.sqlite3", client_settings) as test_client:
         yield test_client

@@ -1,0 +1,100 @@
+"""The package as a user installs it: a wheel, in a fresh venv outside the checkout, serving the
+page, a solve and a finished simulation with no environment variables."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import httpx
+import pytest
+
+from nlpsf import solve
+
+from ..servers import ROOT, free_port, wait_for
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("dist")
+    subprocess.run(
+        [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(ROOT)], check=True, capture_output=True, timeout=600
+    )
+    (path,) = out.glob("nlpsf-*.whl")
+    return path
+
+
+def test_wheel_holds_the_web_package_and_the_page_and_no_top_level_app(wheel):
+    names = zipfile.ZipFile(wheel).namelist()
+    assert "nlpsf/web/main.py" in names and "nlpsf/web/static/index.html" in names
+    assert "nlpsf/web/static/vendor/uPlot.iife.min.js" in names
+    assert "nlpsf/data/tables/slopes.npz" in names and "nlpsf/py.typed" in names
+    # Without them --over-field would quietly simulate instead of reading tables.
+    assert {"nlpsf/data/tables/field_slopes.ecsv.gz", "nlpsf/data/tables/field_slopes.npz"} <= set(names)
+    assert "nlpsf/data/ma_tables/romanisim-109.json" in names
+    # --pupil-scale official reads these at run time.
+    assert {f"nlpsf/data/rti_pupil_masks/pupilmask_obsc_{m}_mask.ecsv" for m in ("skinny", "F184")} <= set(names)
+    assert not any(n.startswith(("app/", "static/", "tests/")) for n in names)
+
+
+def test_installed_wheel_serves_page_solve_and_simulation(wheel, tmp_path):
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    pip = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", str(wheel)], capture_output=True, text=True, timeout=900)
+    assert pip.returncode == 0, pip.stderr[-3000:]
+    home = tmp_path / "home"
+    home.mkdir()
+    # Nothing of the checkout or of the test's environment: a clean HOME, no NLPSF_* variables.
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NLPSF_", "PYTHON", "VIRTUAL_ENV"))}
+    env.update(HOME=str(home), XDG_STATE_HOME=str(home / "state"))
+    port = free_port()
+    server = subprocess.Popen(
+        [str(venv / "bin" / "nlpsf"), "serve", "--port", str(port), "--workers", "1"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    base = f"http://127.0.0.1:{port}"
+
+    def up() -> bool:
+        assert server.poll() is None, server.stdout.read().decode(errors="replace")[-3000:]
+        try:
+            return httpx.get(f"{base}/api/v1/health", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    try:
+        wait_for(up, timeout=120, interval=0.3)
+        page = httpx.get(f"{base}/", timeout=10)
+        assert page.status_code == 200 and "nlpsf" in page.text and "app.js" in page.text
+        assert httpx.get(f"{base}/app.js", timeout=10).status_code == 200
+        solved = httpx.post(f"{base}/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}, timeout=30)
+        # The installed copy answers as the checkout's library does (same tables, same code).
+        expected = solve("H158", magnitude=18.3, tolerance=1e-4).precision
+        assert solved.status_code == 200 and solved.json()["precision"] == pytest.approx(expected, rel=1e-12)
+        body = {"band": "H158", "magnitudes": [19.0], "betas": [5e-7], "realizations": 3, "fidelity": "linear"}
+        job = httpx.post(f"{base}/api/v1/simulations", params={"wait": 120}, json=body, timeout=180)
+        assert job.status_code in (200, 202), job.text
+        payload = job.json()
+        location = job.headers.get("location") or f"/api/v1/simulations/{payload['id']}"
+
+        def finished():
+            current = httpx.get(f"{base}{location}" if location.startswith("/") else location, timeout=10).json()
+            return current if current["status"] in ("done", "failed") else None
+
+        final = payload if payload.get("status") == "done" else wait_for(finished, timeout=180, interval=0.5)
+        assert final["status"] == "done", final
+        assert final["result"]["results"][0]["dR_over_R"]["mean"] > 0
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(30)
+        except subprocess.TimeoutExpired:
+            server.kill()
