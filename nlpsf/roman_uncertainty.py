@@ -16,8 +16,8 @@ choices and vintage (the default's value is a best estimate; the truth lies in a
       against the K0V (5270 K) default; the larger change of the two ends.
     - ``jitter``: 3.4 mas (the official PSF products' 8 mas FWHM) and 14 mas (GalSim's) rms against
       the default's 6 mas; the larger.
-    - ``charge_diffusion``: 0.30 px rms against the default's 0.332 px (Givans et al. 2022's C11
-      alone, sqrt(0.1066) = 0.33, against their mean; 0.30 is the lower edge quoted for the lot).
+    - ``charge_diffusion``: 0.30 px rms (STPSF's 0.033", the alternative nlpsf/data/SOURCES.md
+      quotes) against the default's 0.332 px (Givans et al. 2022, one detector).
     - ``pupil_scale``: the pupil-mask scale rule, ``header`` against the ``official`` one used.
 effects left out (present in every real star, with a sign the physics fixes)
     - ``brighter_fatter``: a ramp refuses it (``ramps.RAMP_REFUSES``), so it is measured on the
@@ -26,7 +26,10 @@ effects left out (present in every real star, with a sign the physics fixes)
       area grows by 3.54e-7 per electron in a neighbour, SCA 20829, not IPC-deconvolved), against
       without.
     - ``nl_shape``: the NL beyond the quadratic, b3 = 1e-13 and b4 = 1e-18 per e- (each 0.1 % of
-      the signal at 1e5 e-), against the quadratic alone.
+      the signal at 1e5 e-), present in the image, against the quadratic alone. At the corrected
+      state the slope hardly depends on the image's NL (it changes the image by ~0.1 %), so this
+      part is small; the shape of the calibration *error* itself (a cubic error instead of a
+      quadratic one) is a different question, not measured here.
 
 How they combine (:func:`combine`): the choices are independent unknowns, so they add in
 quadrature; the effects left out are present in every star with fixed signs, so their moduli add
@@ -60,7 +63,7 @@ MODES = ("bias", "scatter")
 SED_RANGE_K = (3500.0, 10000.0)
 #: Jitter per axis [arcsec rms]: the official PSF products' 8 mas FWHM and GalSim's 14 mas.
 JITTER_RANGE_ARCSEC = (0.0034, 0.014)
-#: The other charge diffusion [native px rms].
+#: The other charge diffusion [native px rms]: STPSF's 0.033" on 0.11" pixels.
 DIFFUSION_ALTERNATIVE_PX = 0.30
 #: The other pupil-scale rule.
 PUPIL_ALTERNATIVE = "header"
@@ -86,7 +89,7 @@ PARTS: tuple[Part, ...] = (
     ),
     Part("sed", "choice", "blackbody 3500 K and 10000 K against the K0V (5270 K) default; the larger"),
     Part("jitter", "choice", "3.4 mas and 14 mas rms against the default's 6 mas; the larger"),
-    Part("charge_diffusion", "choice", "0.30 px against the default's 0.332 px rms"),
+    Part("charge_diffusion", "choice", "0.30 px (STPSF's 0.033\") against the default's 0.332 px rms"),
     Part("pupil_scale", "choice", "pupil-mask scale rule header against official (used)"),
     Part(
         "brighter_fatter",
