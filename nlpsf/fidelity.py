@@ -104,9 +104,10 @@ def level_error(band: str, metric: str, mode: str, level: str, default: str = "p
     return float(measured_for(default)["errors"][band][mode][metric][level])
 
 
-def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str) -> tuple[str, str]:
-    """The cheapest level whose measured relative error on this band is below ``accuracy``."""
-    data = measured()
+def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str, default: str = "paper") -> tuple[str, str]:
+    """The cheapest level whose measured relative error on this band is below ``accuracy``
+    (``default``: the scene's measurement, :func:`measured_for`)."""
+    data = measured_for(default)
     errors = data["errors"][band][mode][metric]
     for level in LEVELS:
         if errors[level] <= accuracy:
@@ -142,12 +143,14 @@ def write_measured(result: dict, default: str = "paper") -> Path:
     return path
 
 
-def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+def choose_fidelity(
+    level: str | None, accuracy: float | None, band: str, metric: str, mode: str, default: str = "paper"
+) -> tuple[str, list[str]]:
     """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
     if accuracy is None:
         return check_level(level or "table"), []
     accuracy = check_number(accuracy, "accuracy", *ACCURACY_RANGE)
-    chosen, note = cheapest_meeting(accuracy, band, metric, mode)
+    chosen, note = cheapest_meeting(accuracy, band, metric, mode, default)
     return chosen, [note]
 
 

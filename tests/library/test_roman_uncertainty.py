@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import experiment, fidelity, model_part, roman_default, tablebuild
+from nlpsf import experiment, fidelity, flags, model_part, roman_default, tablebuild
 from nlpsf import roman_uncertainty as ru
 
 
@@ -149,6 +149,10 @@ def test_the_roman_fidelity_measurement_sits_beside_the_papers(tmp_path, monkeyp
         assert fidelity.level_error("H158", "size", "bias", "linear", default="roman") == 0.02
         fidelity.write_measured({**paper, "date": "z"})  # a paper rewrite keeps the Roman section
         assert fidelity.measured_for("roman")["date"] == "y"
+        # --accuracy picks from the scene's own measurement.
+        assert fidelity.cheapest_meeting(0.05, "H158", "size", "bias", default="roman")[0] == "table"
+        _, note = fidelity.cheapest_meeting(0.05, "H158", "size", "bias")  # the paper's 10 %: none meets
+        assert flags.code_of(note) == flags.FlagCode.FIDELITY_NONE_MEETS.value
     finally:
         fidelity.measured.cache_clear()
 
