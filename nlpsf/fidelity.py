@@ -82,14 +82,32 @@ def measured() -> dict:
     return json.loads(path.read_text())
 
 
-def level_error(band: str, metric: str, mode: str, level: str) -> float:
-    """Measured relative error of ``level`` on this band's slopes (worst of its test points)."""
-    return float(measured()["errors"][band][mode][metric][level])
+#: ``measured()`` keys: the paper scene's measurement is the file's top level (as it always was);
+#: the Roman default's sits under ``"roman"`` with the same structure (``tradeoff(default="roman")``).
+DEFAULT_SCENES = ("paper", "roman")
 
 
-def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str) -> tuple[str, str]:
-    """The cheapest level whose measured relative error on this band is below ``accuracy``."""
+def measured_for(default: str = "paper") -> dict:
+    """The tradeoff measurement for a default scene: "paper" (the top level) or "roman"."""
+    if default not in DEFAULT_SCENES:
+        raise InputError("default", f"must be one of {', '.join(DEFAULT_SCENES)}, got {default!r}")
     data = measured()
+    if default == "paper":
+        return data
+    if "roman" not in data:
+        raise SimulationError("no fidelity errors are shipped for the Roman default; run `nlpsf tradeoff --scene roman --write`")
+    return data["roman"]
+
+
+def level_error(band: str, metric: str, mode: str, level: str, default: str = "paper") -> float:
+    """Measured relative error of ``level`` on this band's slopes (worst of its test points)."""
+    return float(measured_for(default)["errors"][band][mode][metric][level])
+
+
+def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str, default: str = "paper") -> tuple[str, str]:
+    """The cheapest level whose measured relative error on this band is below ``accuracy``
+    (``default``: the scene's measurement, :func:`measured_for`)."""
+    data = measured_for(default)
     errors = data["errors"][band][mode][metric]
     for level in LEVELS:
         if errors[level] <= accuracy:
@@ -109,26 +127,37 @@ def cheapest_meeting(accuracy: float, band: str, metric: str, mode: str) -> tupl
     )
 
 
-def write_measured(result: dict) -> Path:
-    """Store a tradeoff measurement where ``measured`` reads it."""
+def write_measured(result: dict, default: str = "paper") -> Path:
+    """Store a tradeoff measurement where ``measured`` reads it: the paper scene's as the file's top
+    level (keeping a stored Roman one), the Roman default's under ``"roman"`` (keeping the rest)."""
     path = _fidelity_path()
-    path.write_text(json.dumps(result, indent=1) + "\n")
+    if default == "roman":
+        data = json.loads(path.read_text()) if path.exists() else {}
+        data["roman"] = result
+    else:
+        data = dict(result)
+        if path.exists() and "roman" in (old := json.loads(path.read_text())):
+            data["roman"] = old["roman"]
+    path.write_text(json.dumps(data, indent=1) + "\n")
     measured.cache_clear()
     return path
 
 
-def choose_fidelity(level: str | None, accuracy: float | None, band: str, metric: str, mode: str) -> tuple[str, list[str]]:
+def choose_fidelity(
+    level: str | None, accuracy: float | None, band: str, metric: str, mode: str, default: str = "paper"
+) -> tuple[str, list[str]]:
     """The fidelity level a solve uses (``accuracy`` picks the cheapest meeting it), and a note on why."""
     if accuracy is None:
         return check_level(level or "table"), []
     accuracy = check_number(accuracy, "accuracy", *ACCURACY_RANGE)
-    chosen, note = cheapest_meeting(accuracy, band, metric, mode)
+    chosen, note = cheapest_meeting(accuracy, band, metric, mode, default)
     return chosen, [note]
 
 
-def fidelity_error(level: str, band: str, metric: str, mode: str) -> tuple[float | None, str | None]:
-    """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown."""
+def fidelity_error(level: str, band: str, metric: str, mode: str, default: str = "paper") -> tuple[float | None, str | None]:
+    """The level's measured relative error on this slope (``nlpsf tradeoff``), or why it is unknown;
+    ``default``: the scene's measurement ("paper" or "roman")."""
     try:
-        return level_error(band, metric, mode, level), None
+        return level_error(band, metric, mode, level, default), None
     except (SimulationError, KeyError):
         return None, make(FlagCode.FIDELITY_ERROR_UNKNOWN)

@@ -17,6 +17,11 @@ import numpy as np
 
 from . import fidelity as levels
 from . import roman, tables
+from . import roman_uncertainty as roman_parts
+
+#: ``shipped_model``'s ``default`` for the Roman default (``roman_default.NAME``; kept literal so
+#: that this module does not import the default's readout machinery).
+ROMAN_DEFAULT = "roman"
 
 #: The model part's two relative pieces (see :func:`model_at`).
 MODEL_PARTS = ("effects_relative", "pupil_scale_relative")
@@ -31,12 +36,32 @@ COMBINATION = (
 COMBINE = {"quadrature": lambda values: math.sqrt(math.fsum(v * v for v in values)), "sum": math.fsum}
 
 
-def shipped_model(band: str, sca: int, metric: str, mode: str, scene, fidelity: str) -> dict:
-    """The model part of an answer without ``accuracy``: what it leaves out, from the shipped
-    measurement (``scene.shipped_model_uncertainty``). Effects the scene (or the polychromatic
-    level's flat-f_nu band integration) simulates are not left out; the position's spread over the
-    SCA is left out unless a position is given. An SCA the measurement covers reads its own values,
-    any other the worst over those it covers."""
+def shipped_model(
+    band: str,
+    sca: int,
+    metric: str,
+    mode: str,
+    scene,
+    fidelity: str,
+    *,
+    default: str = "paper",
+    pupil_scale: str | None = None,
+) -> dict:
+    """The model part of an answer without ``accuracy``, from a shipped measurement.
+
+    ``default="roman"`` (``roman_default.NAME``): the Roman default's parts
+    (:func:`roman_default_model`, ``nlpsf/data/roman_model_uncertainty.json``). ``default="paper"``
+    (the paper scene, unchanged): what the paper's scene leaves out
+    (``scene.shipped_model_uncertainty``). Effects the scene (or the polychromatic level's flat-f_nu
+    band integration) simulates are not left out; the position's spread over the SCA is left out
+    unless a position is given. An SCA the measurement covers reads its own values, any other the
+    worst over those it covers. ``pupil_scale``: the rule the answer uses (None: the library's
+    default), which the pupil part's label names."""
+    if default == ROMAN_DEFAULT:
+        return roman_default_model(band, sca, metric, mode, scene)
+    if default != "paper":
+        raise ValueError(f"default must be 'paper' or {ROMAN_DEFAULT!r}, got {default!r}")
+    from . import defaults
     from . import scene as scenes
 
     shipped = scenes.shipped_model_uncertainty()
@@ -62,7 +87,13 @@ def shipped_model(band: str, sca: int, metric: str, mode: str, scene, fidelity: 
         else:
             why = f"not simulated; measured at {measured_at[name]}"
         parts.append({"name": name, "impact": value, "why": why})
-    parts.append({"name": "pupil_scale", "impact": entry["pupil_scale"], "why": "pupil-mask scale rule: galsim (used) vs header"})
+    used = pupil_scale or defaults.PUPIL_SCALE
+    why = (
+        "pupil-mask scale rule: galsim (used) vs header"
+        if used == "galsim"
+        else f"pupil-mask scale rule: {used} used; the part measured is header vs galsim (scripts/model_uncertainty.py)"
+    )
+    parts.append({"name": "pupil_scale", "impact": entry["pupil_scale"], "why": why})
     return {
         "included": [{"name": name, "impact": None} for name in scenes.EFFECTS if on[name]],
         "left_out": parts,
@@ -81,8 +112,14 @@ def model_at(info: dict, slopes, magnitude: float) -> dict:
     relative uncertainty of the effects left out and of the pupil-scale rule (:data:`MODEL_PARTS`).
 
     A shipped e1 / e2 impact is stated against |c_e| and scaled here by |c_e| / |c_ei|, as the
-    optical model's part is."""
+    optical model's part is. The Roman default's parts (``combine == "roman"``) are read at the
+    magnitude (``roman_uncertainty.at_magnitude``) and combined by its rule; the optical model's
+    vintage and the pupil rule are among them, so ``effects_relative`` holds the whole model part,
+    ``pupil_scale_relative`` is 0 and ``optical_model_included`` tells the caller not to add
+    ``optical_model_relative`` again."""
     scale = component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
+    if info["combine"] == "roman":
+        return _roman_model_at(info, magnitude, scale)
     left = [{**p, "impact": None if p["impact"] is None else p["impact"] * scale} for p in info["left_out"]]
     effects = COMBINE[info["combine"]]([abs(p["impact"]) for p in left if p["impact"] is not None and p["name"] != "pupil_scale"])
     pupil = next((abs(p["impact"]) for p in left if p["name"] == "pupil_scale" and p["impact"] is not None), 0.0)
@@ -100,10 +137,14 @@ def with_effect(target, source, name: str):
     return replace(target, **{f: getattr(source, f) for f in REGISTRY[name].fields})
 
 
-def optical_model_relative(slopes, magnitude: float | None) -> float:
+def optical_model_relative(slopes, magnitude: float | None, model_info: dict | None = None) -> float:
     """Relative slope uncertainty from the optical model (``roman.optical_model_uncertainty``).
 
-    For one ellipticity component it is stated against |c_e|, so it grows as |c_e| / |c_ei|."""
+    For one ellipticity component it is stated against |c_e|, so it grows as |c_e| / |c_ei|.
+    Zero when ``model_info`` (:func:`model_at`'s) already holds the optical model's part (the Roman
+    default's vintage part)."""
+    if model_info is not None and model_info.get("optical_model_included"):
+        return 0.0
     relative = roman.optical_model_uncertainty(slopes.band, slopes.metric)
     if "relabelled_from" in slopes.table.settings:
         relative = math.hypot(relative, tables.RELABEL_ERROR[slopes.band][0 if slopes.metric == "size" else 1])
@@ -120,3 +161,70 @@ def component_scale(slopes, magnitude: float | None) -> float:
     if np.isfinite(modulus[0]) and abs(component[0]) > 0:
         return float(modulus[0] / abs(component[0]))
     return 1.0
+
+
+#: Scene fields a request may set that decide a Roman-default part: when the request's value differs
+#: from the default's, the star is the user's and that spread is not the default's uncertainty.
+_CHOSEN_BY_REQUEST = {"sed": "sed", "jitter": "jitter_arcsec", "charge_diffusion": "charge_diffusion_px"}
+
+
+def roman_default_model(band: str, sca: int, metric: str, mode: str, scene) -> dict:
+    """The Roman default's model part: its parts (``nlpsf.roman_uncertainty``) for this band, SCA,
+    mode and metric, each by name with its value over the measured magnitudes. A part the request
+    fixes (its own SED, jitter or diffusion; brighter-fatter or an NL polynomial simulated) is not
+    counted, and says so."""
+    from . import roman_default
+
+    defaults_scene = roman_default.base_scene()
+    entry, where = roman_parts.entry(band, sca, mode, metric)
+    conditions = roman_parts.shipped()["conditions"]
+    parts, included = [], []
+    for part in roman_parts.PARTS:
+        shipped = entry["parts"][part.name]
+        field = _CHOSEN_BY_REQUEST.get(part.name)
+        chosen = scene is not None and field is not None and getattr(scene, field) != getattr(defaults_scene, field)
+        simulated = scene is not None and (
+            (part.name == "brighter_fatter" and scene.bfe_coefficient != 0)
+            or (part.name == "nl_shape" and any(c != 0 for c in scene.nl_coefficients))
+        )
+        if chosen or simulated:
+            included.append({"name": part.name, "impact": None, "why": "set by the request" if chosen else "simulated"})
+            continue
+        parts.append(
+            {
+                "name": part.name,
+                "kind": part.kind,
+                "impact": shipped["value"],
+                "by_magnitude": [[row[0], row[1]] for row in shipped["by_magnitude"]],
+                "why": shipped.get("why", part.measured_as),
+            }
+        )
+    return {
+        "included": included,
+        "left_out": parts,
+        "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
+        "combine": "roman",
+        "basis": (
+            f"shipped measurement of the Roman default's parts ({conditions['script']}, {conditions['measured_utc']}, "
+            f"code {conditions['code_version']}) on {where}, SCA centre, m = {conditions['magnitudes']}, "
+            f"{conditions['method']}; combined: {roman_parts.COMBINATION}"
+        ),
+    }
+
+
+def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
+    """:func:`model_at` for the Roman default's parts: each read at ``magnitude`` (the larger of the
+    measured magnitudes around it), restated against this metric's slope, combined by the rule."""
+    left = []
+    values: dict[str, float | None] = {}
+    for part in info["left_out"]:
+        value = roman_parts.at_magnitude(part["by_magnitude"], magnitude)
+        value = None if value is None else value * scale
+        values[part["name"]] = value
+        left.append({**part, "impact": value})
+    relative = roman_parts.combine(values)
+    out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": relative, "pupil_scale_relative": 0.0}
+    out.update(relative_uncertainty=relative, combination=roman_parts.COMBINATION, optical_model_included=True)
+    if scale != 1.0:
+        out["component_scale"] = scale
+    return out

@@ -114,6 +114,20 @@ def psf_statistics(
     pupil_scale: str = "galsim",
 ) -> dict[str, PSFStatistics]:
     """nlpsf's PSF statistics under the official conditions, for both centrings."""
+    optical = official_condition_psf(band, sca, sed, n_wavelengths, jitter_fwhm_arcsec, throughput, pupil_scale)
+    return statistics_of(optical, band, sca)
+
+
+def official_condition_psf(
+    band: str,
+    sca: int,
+    sed: str = "K0V",
+    n_wavelengths: int = 10,
+    jitter_fwhm_arcsec: float = OFFICIAL_JITTER_FWHM_ARCSEC,
+    throughput: str = roman.DEFAULT_THROUGHPUT,
+    pupil_scale: str = "galsim",
+) -> optics.EffectivePSF:
+    """nlpsf's optical PSF (no pixel) under the official conditions, on the official image field."""
     band, sca = roman.check_band(band), roman.check_sca(sca)
     if sed not in SEDS:
         raise InputError("sed", f"must be one of {', '.join(SEDS)}, got {sed!r}")
@@ -123,9 +137,14 @@ def psf_statistics(
     pupil = roman.pupil(sca, band, 4, pupil_scale)
     aberrations = roman.aberrations(sca)
     field = OFFICIAL_IMAGE_PIXELS * roman.PIXEL_SCALE_ARCSEC
-    optical = _gaussian_blur(
+    return _gaussian_blur(
         optics.psf_from_pupil(pupil, aberrations, wavelengths, weights, field, pixel_response=False), jitter_fwhm_arcsec
     )
+
+
+def statistics_of(optical: optics.EffectivePSF, band: str, sca: int) -> dict[str, PSFStatistics]:
+    """FWHM, N_eff, peak and flux of an optical PSF as the official table states them."""
+    wavelengths, weights, field = optical.wavelengths_nm, optical.weights, optical.field_arcsec
     # The FWHM of the 8x oversampled optical PSF, centred on the image as STPSF's is.
     fine = render.Grid(8, 64)
     fwhm = fwhm_gaussian_fit(render.draw(optical, fine, np.zeros((1, 2)))[0], fine.scale_arcsec)
@@ -149,6 +168,46 @@ def psf_statistics(
             total_flux=float(image.sum()),
         )
     return out
+
+
+#: The probing blur of :func:`width_gap` [arcsec rms]: about the size of the gaps it measures.
+WIDTH_PROBE_SIGMA_ARCSEC = 0.015
+
+
+def width_gap(band: str, sca: int, pupil_scale: str = "official") -> dict:
+    """How far nlpsf's PSF width is from the official statistics, as a Gaussian variance.
+
+    ``n_eff_variance_arcsec2``: the variance of a Gaussian that, convolved with nlpsf's PSF (negative:
+    removed from it), brings its N_eff (geometric mean of the two centrings) to the official one,
+    linear in the variance from one probing blur (:data:`WIDTH_PROBE_SIGMA_ARCSEC`);
+    ``fwhm_variance_arcsec2``: the same for the FWHM, (FWHM_off^2 - FWHM^2) / (8 ln 2) as for a
+    Gaussian; ``variance_arcsec2``: the larger in modulus (the size residual the model must be
+    perturbed by). Only SCAs with official statistics (1 and 18)."""
+    official = official_statistics()
+    if (sca, band, "center") not in official:
+        raise InputError("sca", f"the official statistics cover SCA {sorted({k[0] for k in official})}, got {sca}")
+    optical = official_condition_psf(band, sca, pupil_scale=pupil_scale)
+    ours = statistics_of(optical, band, sca)
+    probe = statistics_of(scenes.blur(optical, WIDTH_PROBE_SIGMA_ARCSEC), band, sca)
+
+    def mean_n_eff(stats: dict[str, PSFStatistics]) -> float:
+        return math.sqrt(stats["center"].n_eff_pixels * stats["corner"].n_eff_pixels)
+
+    theirs_n = math.sqrt(official[(sca, band, "center")].n_eff_pixels * official[(sca, band, "corner")].n_eff_pixels)
+    n0, n1 = mean_n_eff(ours), mean_n_eff(probe)
+    n_variance = WIDTH_PROBE_SIGMA_ARCSEC**2 * math.log(theirs_n / n0) / math.log(n1 / n0)
+    f0, f_off = ours["center"].fwhm_arcsec, official[(sca, band, "center")].fwhm_arcsec
+    f_variance = (f_off**2 - f0**2) / (8.0 * math.log(2.0))
+    return {
+        "band": band,
+        "sca": sca,
+        "pupil_scale": pupil_scale,
+        "n_eff_ratio": n0 / theirs_n,
+        "fwhm_ratio": f0 / f_off,
+        "n_eff_variance_arcsec2": n_variance,
+        "fwhm_variance_arcsec2": f_variance,
+        "variance_arcsec2": max(n_variance, f_variance, key=abs),
+    }
 
 
 def as_dict(stats: PSFStatistics) -> dict:
