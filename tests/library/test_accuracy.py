@@ -153,12 +153,15 @@ def test_a_roman_default_fidelity_entry_is_read_when_shipped(monkeypatch):
     readout = roman_default.readout("H158", 18)
     ramp = {"ramp": readout.ramp, "exptime": readout.exptime_s}
     request = SolveRequest("H158", 18, magnitude=19.0, precision=0.01, accuracy=0.01, **ramp)
+    # Without a Roman-default entry, the paper scene's measurement is used, and the answer says so.
+    paper_only = {k: v for k, v in shipped.items() if k != "roman"}
+    monkeypatch.setattr(fidelity, "measured", lambda: paper_only)
     before = accuracy.select(request, 19.0)
     assert FlagCode.FIDELITY_FROM_PAPER in codes(before.notes)
     # A Roman-default measurement where the linear level misses 1 % and Monte Carlo meets it.
     errors = {"linear": 0.02, "monte_carlo": 0.004, "polychromatic": 0.001}
     roman = {"date": "test", "errors": {"H158": {"bias": {"size": errors}}}}
-    monkeypatch.setattr(fidelity, "measured", lambda: {**shipped, "roman": roman})
+    monkeypatch.setattr(fidelity, "measured", lambda: {**paper_only, "roman": roman})
     after = accuracy.select(request, 19.0, search="never")
     assert FlagCode.FIDELITY_FROM_PAPER not in codes(after.notes)
     assert after.fidelity == "monte_carlo" and after.model["level"]["error"] == 0.004
