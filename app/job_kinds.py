@@ -386,7 +386,7 @@ def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> d
 
     body = solve_body(fields, given)
     request = solve_request(body)
-    checked = solver.answer(request.with_changes(fidelity="table", accuracy=None, pupil_scale=None, ramp=None, scene=None))
+    checked = solver.answer(request.table_pass())
     solver.choose_fidelity(request.fidelity, request.accuracy, checked.band, checked.metric, checked.mode)
     return solve_job({"request": {**body, "band": request.band}, "over_field": fields["over_field"]})
 

@@ -100,13 +100,19 @@ Throughput = Literal[roman.THROUGHPUTS]  # type: ignore[valid-type]
 RampFit = Literal[defaults.RAMP_FITS]  # type: ignore[valid-type]
 
 
+ScenePreset = Literal["roman", "paper", "galsim-roman"]
+
+
 class SceneRequest(BaseModel):
     """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
 
     model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
 
-    preset: Literal["paper", "roman"] | None = Field(
-        None, description="(no unit) roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
+    preset: ScenePreset | None = Field(
+        None,
+        description="(no unit) the base the other fields change: roman (the Roman default, nlpsf.roman_default; the "
+        "default), paper (the paper's idealised scene), galsim-roman (jitter 0.014 arcsec, charge diffusion 0.1 px, "
+        "GalSim's IPC kernel, flat f_nu SED)",
     )
     position: list[_Number((1.0, float(roman.SCA_PIXELS)))] | None = Field(
         None, min_length=2, max_length=2, description=f"X, Y on the SCA in pixels (1-{roman.SCA_PIXELS})"
@@ -252,8 +258,16 @@ class SolveRequest(RampFields):
         "relative accuracy target (dimensionless fraction): picks the cheapest fidelity meeting it, "
         "simulates only the scene effects whose measured impact exceeds it and adds the others to the uncertainty's model part",
     )
-    scene: SceneRequest | None = Field(
-        None, description="what the star goes through (default the paper's scene; units per field)"
+    scene: ScenePreset | SceneRequest | None = Field(
+        None,
+        description="what the star goes through: a preset's name or its fields (units per field); default the Roman "
+        "default (nlpsf.roman_default: its scene at the position, the HLWAS readout, official pupil scale, linearised at "
+        "corrected; without a position, the most demanding of the SCA's field-grid nodes); 'paper': the paper's "
+        "idealised scene and the shipped tables",
+    )
+    linearise_at: Literal["beta0", "corrected"] | None = Field(
+        None,
+        description="(no unit) the detector state the slope is taken at: null for the scene's (roman: corrected; paper: beta0)",
     )
     over_field: Literal["sca", "focal_plane"] | None = Field(
         None,

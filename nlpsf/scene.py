@@ -117,7 +117,7 @@ class SceneEffect:
     breaks_beta_q: bool
     combines_with: str
     is_on: Callable[[SceneModel], bool]
-    #: Part of the "roman" preset (at its nominal value).
+    #: Part of the "galsim-roman" preset (at its nominal value).
     in_roman_preset: bool = False
 
 
@@ -516,15 +516,23 @@ def brighter_fatter(charge: np.ndarray, coefficient: float, oversampling: int) -
 
 
 def preset(name: str) -> SceneModel:
-    # "roman": the registry's effects marked for it, at their nominal (GalSim Roman) values.
-    roman_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
-    presets = {"paper": SceneModel(name="paper"), "roman": SceneModel(name="roman", **roman_values)}
+    """A named scene: "roman", the Roman default's effects (``nlpsf.roman_default``, without the
+    background, which depends on the band, SCA and exposure); "paper", the paper's idealised scene;
+    "galsim-roman", GalSim's Roman constants (the registry's effects marked for it at their nominal
+    values: jitter 0.014", diffusion 0.1 px, flat f_nu, GalSim's IPC), which the GalSim cross-checks use."""
+    if name == "roman":
+        from . import roman_default
+
+        return roman_default.base_scene()
+    galsim_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
+    presets = {"paper": SceneModel(name="paper"), "galsim-roman": SceneModel(name="galsim-roman", **galsim_values)}
     if name not in presets:
-        raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(presets)}, or a JSON file")
+        raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(PRESETS)}, or a JSON file")
     return presets[name]
 
 
-PRESETS = ("paper", "roman")
+#: Scene presets by name ("roman" is the default's scene, "galsim-roman" GalSim's Roman constants).
+PRESETS = ("paper", "roman", "galsim-roman")
 
 
 def to_json(scene: SceneModel) -> str:

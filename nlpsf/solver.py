@@ -54,9 +54,9 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-from . import __version__, defaults, model_part, ramps, shear, tables
+from . import __version__, defaults, model_part, ramps, roman_default, shear, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
@@ -71,9 +71,12 @@ from .magnitude_scan import scan_magnitude
 from .over_field import (  # noqa: F401
     _corner_tables,
     _tables_hold,
+    default_grid,
     field_points,
     field_tables,
+    grid_size,
     over_field_from_tables,
+    sca_range,
     worst_over_field,
 )
 from .request import SolveRequest
@@ -110,8 +113,15 @@ class _Slopes:
         throughput: str | None = None,
         scene=None,
         pupil_scale: str | None = None,
+        linearise_at: str = "beta0",
+        grid=None,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
+        self.linearise_at = linearise_at  # the detector state of the fresh simulations' slopes
+        #: The Roman default's field grid where it holds the request (``roman_default.field_grid``), else None.
+        self.grid = grid
+        #: Magnitudes the grid did not cover (outside a node's magnitude grid): simulated instead.
+        self.grid_misses: list[float] = []
         self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
         self.ramp, self.full_well = ramp, full_well
@@ -144,6 +154,8 @@ class _Slopes:
             throughput=request.throughput,
             scene=the_plan.scene,
             pupil_scale=request.pupil_scale,
+            linearise_at=request.linearise_at,
+            grid=the_plan.grid,
         )
 
     @property
@@ -172,12 +184,26 @@ class _Slopes:
 
     def at(self, magnitude: float) -> tuple[float, float, int]:
         """(slope, uncertainty, region): region -1 brighter than the grid, 0 in it, +1 fainter."""
+        if self.grid is not None:
+            return self._from_grid(magnitude)
         if self.ramp is not None:
             return self._ramp_at(magnitude)
         value, error, region = self.from_table(magnitude)
         if self.fidelity == "table" or region < 0:
             return value, error, region
         return (*self._simulated(magnitude), region)
+
+    def _from_grid(self, magnitude: float) -> tuple[float, float, int]:
+        """The Roman default's slope from its field grid at the scene's position; a magnitude outside
+        a node's grid is simulated (and noted)."""
+        column = f"{self.mode}_{defaults.METRIC_COLUMNS[self.metric][0]}"
+        position = self.scene_model.position
+        value = self.grid.slope(self.band, self.sca, position, magnitude, column)
+        error = self.grid.slope(self.band, self.sca, position, magnitude, column + "_err")
+        if math.isfinite(value) and math.isfinite(error):
+            return value, abs(error), 0
+        self.grid_misses.append(magnitude)
+        return (*self._simulated(magnitude), 0)
 
     def _ramp_at(self, magnitude: float) -> tuple[float, float, int]:
         exact = self.fidelity == "table" and self.ramp_factor is not None and magnitude >= self.exact_from()
@@ -213,7 +239,7 @@ class _Slopes:
         )
         if self._scene is None or self._scene.config != config:
             self._scene = experiment.prepare(config)  # magnitude-independent: once per request
-        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene)[0]
+        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene, linearise_at=self.linearise_at)[0]
         value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
@@ -226,7 +252,7 @@ def solve(
     metric: str = "size",
     mode: str = "bias",
     beta0: float = defaults.BETA0,
-    exptime: float = defaults.EXPTIME_S,
+    exptime: float | None = None,
     precision: float | None = None,
     tolerance: float | None = None,
     magnitude: float | None = None,
@@ -242,6 +268,8 @@ def solve(
     throughput: str | None = None,
     scene=None,
     pupil_scale: str | None = None,
+    linearise_at: str | None = None,
+    preset: str | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
@@ -264,12 +292,20 @@ def solve(
     :func:`nlpsf.model_part.select_scene`) and its uncertainty gains a ``model`` part for those left out.
 
     ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``) is the pupil-mask scale rule of fresh
-    simulations; None is the tables' own (galsim). Another rule is not in the tables, so a table
-    solve is then simulated (fidelity linear).
+    simulations; None is the preset's (roman: official; paper: the tables' own, galsim). Another
+    rule than the tables' is not in them, so a table solve is then simulated (fidelity linear).
+
+    The Roman default. ``scene`` None (or "roman") is the Roman star as observed
+    (``nlpsf.roman_default``): its scene at the position, the HLWAS readout and exposure unless
+    ``ramp`` / ``exptime`` are given, the official pupil scale and the corrected state
+    (``linearise_at``); without a position the answer is the most demanding of the SCA's field-grid
+    nodes, with the range in ``conditions["sca_range"]``. ``scene="paper"`` is the paper's
+    idealised scene and final frame (the shipped tables, today's answers), ``"galsim-roman"``
+    GalSim's Roman constants on it; ``preset`` names the base when ``scene`` is a ``SceneModel``.
     """
     request = SolveRequest(
         band, sca, metric, mode, beta0, exptime, precision, tolerance, magnitude, full_well, fidelity, accuracy,
-        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale,
+        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale, linearise_at, preset,
     )  # fmt: skip
     return answer(request, tables_set)
 
@@ -287,6 +323,8 @@ class SolvePlan:
     #: What the answer leaves out of a Roman scene (measured with ``accuracy``, else shipped).
     model: dict
     notes: tuple[Flag, ...]
+    #: The Roman default's field grid the slopes are read from (None: tables or simulations).
+    grid: object | None = None
 
     @property
     def reads(self) -> str:
@@ -302,9 +340,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         point = request.magnitude
         if point is None:
             # The effects are measured where the answer will be: a first, table-level pass finds it.
-            first = answer(
-                request.with_changes(fidelity="table", accuracy=None, ramp=None, scene=None, pupil_scale=None), tables_set
-            )
+            first = answer(request.table_pass(), tables_set)
             point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
         simulated_scene, model_info = model_part.select_scene(scene, request, float(point))
     elif scene is not None and not scene.is_paper:
@@ -313,17 +349,27 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         # A star at a corner field point: its own shipped table holds it.
         tables_set = _corner_tables(simulated_scene, request.sca)
     tables_set = tables_set or tables.load_tables()
+    grid, grid_miss = (None, None) if request.preset != roman_default.NAME else default_grid(request, chosen)
     needs_simulation = (
         simulated_scene is not None
         and not simulated_scene.is_paper
         and not _tables_hold(simulated_scene, tables_set, request.band, request.sca)
     )
-    if chosen == "table" and needs_simulation:
-        notes.append(make(FlagCode.SCENE_SIMULATED))
+    if grid is not None:
+        notes.append(make(FlagCode.DEFAULT_FROM_GRID, grid=grid_size(grid, request), scheme="lagrange",
+                          x=request.scene.position[0], y=request.scene.position[1]))  # fmt: skip
+    elif chosen == "table" and needs_simulation:
+        if request.preset == roman_default.NAME:
+            notes.append(make(FlagCode.DEFAULT_SIMULATED, why=grid_miss))
+        else:
+            notes.append(make(FlagCode.SCENE_SIMULATED))
         chosen = "linear"
     table_rule = str(tables_set.get(request.band, request.sca).settings["pupil_scale"])
-    if request.pupil_scale is not None and request.pupil_scale != table_rule and chosen == "table":
+    if grid is None and request.pupil_scale is not None and request.pupil_scale != table_rule and chosen == "table":
         notes.append(make(FlagCode.PUPIL_SCALE_SIMULATED, table_rule=table_rule, rule=request.pupil_scale))
+        chosen = "linear"
+    if grid is None and request.linearise_at != "beta0" and chosen == "table":
+        notes.append(make(FlagCode.LINEARISED_SIMULATED, state=request.linearise_at))
         chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
@@ -332,7 +378,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
-    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes))
+    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), grid)
 
 
 @dataclass(frozen=True)
@@ -377,6 +423,10 @@ class _Answer:
 def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty."""
     start = time.perf_counter()
+    if request.preset == roman_default.NAME and request.scene is not None and request.scene.position is None:
+        # The Roman default depends on the position: without one, the range over the SCA.
+        ranged = sca_range(answer, request, tables_set)
+        return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
     slopes = _Slopes.for_request(request, the_plan)
@@ -391,6 +441,8 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
+    if slopes.grid_misses:
+        flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
     conditions = _conditions(request, the_plan, slopes)
     shear_answer = None
     if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
@@ -517,6 +569,17 @@ def _conditions(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> 
     conditions.update(
         fidelity=the_plan.fidelity, code_version=__version__, relation=relation, stars=request.stars, applies_to=applies_to
     )
+    # Which scene the answer is for, and the detector state its slope is taken at.
+    conditions["scene_name"] = request.preset
+    conditions["linearise_at"] = request.linearise_at
+    if request.preset == roman_default.NAME:
+        conditions["roman_default"] = roman_default.conditions()
+        own = roman_default.fill(roman_default.NAME, request.band, request.sca, request.exptime, None, None, None)
+        conditions["roman_default_changed"] = not roman_default.is_default_scene(request.scene, own.background_e) or (
+            request.ramp != own.ramp
+        )
+    if the_plan.grid is not None:
+        conditions["slopes_from"] = f"the Roman default's field grid ({roman_default.GRID_FILE})"
     ramp = request.ramp
     if ramp is None:
         conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"

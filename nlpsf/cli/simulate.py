@@ -32,7 +32,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from .. import experiment
 
-    config = config_from(args)
+    config = config_from(args, roman_default_applies=True)
     magnitudes = args.magnitude or [defaults.MAGNITUDE]
     betas = args.beta or [defaults.BETA0 if args.beta_convention == "paper" else -defaults.BETA0]
     b2 = scene_from(args)[1]

@@ -34,16 +34,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--linearise-at",
         choices=LINEARISE_STATES,
-        default="beta0",
-        help="where the slope is taken: beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
+        default=None,
+        help="where the slope is taken (default corrected for the Roman default, beta0 for --scene paper): "
+        "beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
         "linearity correction: a residual NL of 1%% of beta0, saturation flagged at the raw beta0)",
     )
+
+
+def _state(args: argparse.Namespace) -> str:
+    from .. import roman_default
+    from .options import simulation_preset
+
+    return roman_default.LINEARISE_AT if simulation_preset(args) == roman_default.NAME else "beta0"
 
 
 def run(args: argparse.Namespace) -> int:
     from .. import experiment
 
-    config = config_from(args)
+    config = config_from(args, roman_default_applies=True)
     args.beta0 = beta_from_coefficients(args.beta0, scene_from(args)[1], defaults.BETA0)
     magnitudes = args.magnitude or list(defaults.PAPER_MAGNITUDES)
     results = experiment.slopes(
@@ -52,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         beta0=args.beta0,
         sigma_beta=args.sigma_beta,
         beta_convention=args.beta_convention,
-        linearise_at=args.linearise_at,
+        linearise_at=args.linearise_at or _state(args),
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:
