@@ -106,13 +106,13 @@ def test_slopes_command(capsys):
 
 def test_readable_table_without_json(capsys):
     # m = 17.5 is just past saturation (m = 18.03): flagged, but the moments still converge.
-    code, out, _ = run(capsys, "simulate", "--magnitude", "17.5", "--realizations", "3")
+    code, out, _ = run(capsys, "simulate", "--magnitude", "17.5", "--realizations", "3", "--scene", "paper")
     assert code == 0 and "dR/R" in out and "saturated" in out and "±" in out
 
 
 def test_every_realization_failing_exits_1(capsys):
     # m = 14 drives 1 - 2 beta Q negative at the core: every adaptive-moment fit fails.
-    code, out, err = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3")
+    code, out, err = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3", "--scene", "paper")
     assert code == 1 and "failed in 3 of 3" in out and "every realization" in err
 
 
@@ -214,15 +214,15 @@ def test_solve_batch_answers_each_csv_row_on_its_own(capsys, tmp_path):
 
     batch = tmp_path / "requests.csv"
     batch.write_text("band,metric,magnitude,tolerance,precision\nH158,size,18.3,1e-4,\nJ129,e1,,1e-4,0.01\nH158,size,abc,1e-4,\n")
-    code, out, err = run(capsys, "solve", "--batch", str(batch))
+    code, out, err = run(capsys, "solve", "--batch", str(batch), "--scene", "paper")
     assert code == 1 and "1 of 3 rows" in err
     rows = list(csv.DictReader(io.StringIO(out)))
     assert [r["error_field"] for r in rows] == ["", "", "magnitude"]
-    assert float(rows[0]["precision"]) == pytest.approx(solve("H158", magnitude=18.3, tolerance=1e-4).precision, rel=1e-12)
-    expected = solve("J129", metric="e1", tolerance=1e-4, precision=0.01)
+    assert float(rows[0]["precision"]) == pytest.approx(solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper").precision, rel=1e-12)
+    expected = solve("J129", metric="e1", tolerance=1e-4, precision=0.01, scene="paper")
     assert rows[1]["solved_for"] == "magnitude" and float(rows[1]["magnitude"]) == pytest.approx(expected.magnitude, rel=1e-12)
     assert rows[1]["binding_limit"] == (expected.binding_limit or "")
-    code, out, _ = run(capsys, "solve", "--batch", str(batch), "--json")
+    code, out, _ = run(capsys, "solve", "--batch", str(batch), "--json", "--scene", "paper")
     answers = json.loads(out)
     assert [a["ok"] for a in answers] == [True, True, False] and answers[2]["error"]["field"] == "magnitude"
 
