@@ -218,7 +218,8 @@ def test_solve_batch_answers_each_csv_row_on_its_own(capsys, tmp_path):
     assert code == 1 and "1 of 3 rows" in err
     rows = list(csv.DictReader(io.StringIO(out)))
     assert [r["error_field"] for r in rows] == ["", "", "magnitude"]
-    assert float(rows[0]["precision"]) == pytest.approx(solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper").precision, rel=1e-12)
+    paper = solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper")
+    assert float(rows[0]["precision"]) == pytest.approx(paper.precision, rel=1e-12)
     expected = solve("J129", metric="e1", tolerance=1e-4, precision=0.01, scene="paper")
     assert rows[1]["solved_for"] == "magnitude" and float(rows[1]["magnitude"]) == pytest.approx(expected.magnitude, rel=1e-12)
     assert rows[1]["binding_limit"] == (expected.binding_limit or "")
