@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from nlpsf import defaults, detector, fidelity, ramps, roman, shear, solver
+from nlpsf import defaults, detector, fidelity, ramps, roman, roman_default, shear, solver
 from nlpsf import scene as scenes
 from nlpsf.request import MAX_STARS
 
@@ -234,7 +234,12 @@ class SolveRequest(RampFields):
     beta0: float = _within(
         defaults.BETA0_RANGE, "NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)", _SOLVE_DEFAULTS["beta0"]
     )
-    exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", _SOLVE_DEFAULTS["exptime"])
+    exptime: float = _within(
+        defaults.EXPTIME_RANGE_S,
+        "exposure time in s; not given: the scene's (the Roman default's HLWAS table's last read, 139.149 s; the "
+        "paper's 168.1 s)",
+        roman_default.exptime_s(),
+    )
     precision: float | None = _within(
         defaults.PRECISION_RANGE,
         "calibration precision, dimensionless fraction: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)",

@@ -50,7 +50,10 @@ TOLERANCE_FACTORS = (0.1, 1 / 3, 1.0, 3.0, 10.0)
 
 
 def _args(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: float, full_well: float) -> dict[str, Any]:
-    return {"band": band, "sca": sca, "metric": metric, "mode": mode, "exptime": exptime, "beta0": beta0, "full_well": full_well}
+    # The plots are the shipped tables' curves: the paper's scene (the calculator's answer, POST
+    # /solve, is the Roman default's unless the page asks for the paper's).
+    common = {"band": band, "sca": sca, "metric": metric, "mode": mode, "exptime": exptime, "beta0": beta0}
+    return {**common, "full_well": full_well, "scene": "paper"}
 
 
 def _grid(curve: dict[str, Any], at: float | None) -> list[float]:

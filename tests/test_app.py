@@ -10,7 +10,7 @@ import math
 import pytest
 from fastapi.testclient import TestClient
 
-from nlpsf import cli, defaults, experiment, roman, solver, tables
+from nlpsf import cli, defaults, experiment, roman, roman_default, solver, tables
 
 
 def post_raw(client: TestClient, path: str, text: str):
@@ -37,7 +37,7 @@ def test_meta_lists_what_the_library_offers(client):
     assert list(meta["throughputs"]) == list(roman.THROUGHPUTS) and meta["default_throughput"] == "roman-2024"
     assert meta["tables"]["fingerprint"] == tables.load_tables().meta["fingerprint"]
     assert meta["defaults"]["solve"]["beta0"] == 5e-7
-    assert meta["defaults"]["solve"]["exptime"] == defaults.EXPTIME_S
+    assert meta["defaults"]["solve"]["exptime"] == roman_default.exptime_s()  # the Roman default's (paper: 168.1 s)
     assert meta["limits"]["max_realizations"] == 500
     assert meta["limits"]["max_queue"] == 8
 
@@ -51,16 +51,52 @@ def cli_solve_json(capsys, arguments: list[str]) -> dict:
     ("body", "arguments"),
     [
         (
-            {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4},
-            ["--band", "H158", "--magnitude", "18.3", "--tolerance", "1e-4"],
+            {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"},
+            ["--band", "H158", "--magnitude", "18.3", "--tolerance", "1e-4", "--scene", "paper"],
         ),
         (
-            {"band": "J129", "sca": 3, "metric": "e2", "mode": "scatter", "precision": 0.05, "magnitude": 20.0},
-            ["--band", "J129", "--sca", "3", "--metric", "e2", "--mode", "scatter", "--precision", "0.05", "--magnitude", "20"],
+            {"band": "J129", "sca": 3, "metric": "e2", "mode": "scatter", "precision": 0.05, "magnitude": 20.0, "scene": "paper"},
+            [
+                "--band",
+                "J129",
+                "--sca",
+                "3",
+                "--metric",
+                "e2",
+                "--mode",
+                "scatter",
+                "--precision",
+                "0.05",
+                "--magnitude",
+                "20",
+                "--scene",
+                "paper",
+            ],
         ),
         (
-            {"band": "Y106", "metric": "size", "precision": 0.01, "tolerance": 1e-4, "beta0": 1e-6, "exptime": 300.0},
-            ["--band", "Y106", "--precision", "0.01", "--tolerance", "1e-4", "--beta0", "1e-6", "--exptime", "300"],
+            {
+                "band": "Y106",
+                "metric": "size",
+                "precision": 0.01,
+                "tolerance": 1e-4,
+                "beta0": 1e-6,
+                "exptime": 300.0,
+                "scene": "paper",
+            },
+            [
+                "--band",
+                "Y106",
+                "--precision",
+                "0.01",
+                "--tolerance",
+                "1e-4",
+                "--beta0",
+                "1e-6",
+                "--exptime",
+                "300",
+                "--scene",
+                "paper",
+            ],
         ),
     ],
 )
@@ -79,21 +115,17 @@ def test_solve_returns_what_the_cli_prints(client, capsys, body, arguments):
 @pytest.mark.parametrize("mode", solver.MODES)
 def test_solve_each_unknown_round_trips(client, metric, mode):
     """Solve for each member from the other two; feeding the answer back returns the third member."""
-    given = {"band": "H158", "metric": metric, "mode": mode}
+    given = {"band": "H158", "metric": metric, "mode": mode, "scene": "paper"}
     start = client.post("/api/v1/solve", json={**given, "magnitude": 20.0, "precision": 0.02})
     assert start.status_code == 200, start.text
     first = start.json()
     assert first["solved_for"] == "tolerance"
     assert all(first[k] is not None for k in ("precision", "tolerance", "magnitude", "slope", "saturation_magnitude"))
     assert first["conditions"]["band"] == "H158" and first["fidelity"] == "table"
-    back = client.post(
-        "/api/v1/solve", json={"band": "H158", "metric": metric, "mode": mode, "magnitude": 20.0, "tolerance": first["tolerance"]}
-    ).json()
+    back = client.post("/api/v1/solve", json={**given, "magnitude": 20.0, "tolerance": first["tolerance"]}).json()
     assert back["solved_for"] == "precision"
     assert back["precision"] == pytest.approx(0.02, rel=1e-9)
-    magnitude = client.post(
-        "/api/v1/solve", json={"band": "H158", "metric": metric, "mode": mode, "precision": 0.02, "tolerance": first["tolerance"]}
-    ).json()
+    magnitude = client.post("/api/v1/solve", json={**given, "precision": 0.02, "tolerance": first["tolerance"]}).json()
     assert magnitude["solved_for"] == "magnitude"
     assert isinstance(magnitude["flags"], list)
     if magnitude["magnitude"] is not None and not magnitude["flags"]:
@@ -230,7 +262,7 @@ def test_slope_curves_cover_every_band_at_the_requested_conditions(client):
 def test_beta_curves_are_the_table_slope_times_the_axis(client, path, mode, axis, metric):
     data = client.get(f"/api/v1/curves/{path}", params={"band": "F184", "metric": metric, "magnitude": 20.0}).json()
     assert "first order" in data["source"]
-    solution = solver.solve("F184", metric=metric, mode=mode, magnitude=20.0, precision=1.0).to_dict()
+    solution = solver.solve("F184", metric=metric, mode=mode, magnitude=20.0, precision=1.0, scene="paper").to_dict()
     for x, y, error in zip(data[axis], data["values"], data["uncertainty"], strict=True):
         # Signed: NL makes Delta e1 negative here, and the curve must say so.
         assert y == pytest.approx(solution["slope"] * x, rel=1e-9, abs=1e-300)
@@ -270,7 +302,7 @@ def test_small_simulation_answered_synchronously_matches_the_library(client):
 
 
 def test_solve_takes_a_throughput_and_names_it(client):
-    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"}
     default = client.post("/api/v1/solve", json=body).json()
     galsim = client.post("/api/v1/solve", json={**body, "throughput": "galsim-2021"}).json()
     assert default["conditions"]["throughput"] == "roman-2024" and galsim["conditions"]["throughput"] == "galsim-2021"
@@ -394,7 +426,7 @@ def test_responses_never_contain_non_finite_numbers(client):
 
     for metric in ("e1", "e2"):
         for magnitude in (16.0, 22.0, 27.5):
-            body = {"band": "W146", "metric": metric, "magnitude": magnitude, "tolerance": 1e-3}
+            body = {"band": "W146", "metric": metric, "magnitude": magnitude, "tolerance": 1e-3, "scene": "paper"}
             response = client.post("/api/v1/solve", json=body)
             assert response.status_code in (200, 422)
             json.loads(response.text, parse_constant=refuse)
@@ -419,9 +451,10 @@ def test_a_uniform_ols_ramp_solve_job_is_the_final_frame_at_beta_eff(client):
     # Independent of the ramp code path: an N-read OLS ramp's magnitude equals the final frame's at
     # beta_eff = (1 + 1/N) beta0 with the same precision (see tests/test_ramps.py).
     n = 8
-    ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n})
+    ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n, "scene": "paper"})
     frame = client.post(
-        "/api/v1/solve", json={"band": "H158", "precision": 0.01, "tolerance": 1e-4, "beta0": defaults.BETA0 * (1 + 1 / n)}
+        "/api/v1/solve",
+        json={"band": "H158", "precision": 0.01, "tolerance": 1e-4, "beta0": defaults.BETA0 * (1 + 1 / n)} | {"scene": "paper"},
     ).json()
     assert ramp["conditions"]["ramp"]["ma_table"] == f"uniform-{n}"
     assert ramp["magnitude"] == pytest.approx(frame["magnitude"], abs=1e-5)
@@ -431,9 +464,11 @@ def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
     from nlpsf import ramps
 
     table = {"resultants": [[1], [2, 3], [4, 5, 6]], "frame_time_s": 3.04}
-    answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table})
+    answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "scene": "paper"})
     assert answer["exptime"] == pytest.approx(ramps.MATable.from_dict(table).duration_s)
-    longer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "exptime": 30.0})
+    longer = _run_solve_job(
+        client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "exptime": 30.0, "scene": "paper"}
+    )
     assert longer["exptime"] == 30.0
 
 
@@ -443,7 +478,7 @@ def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
     from nlpsf.checks import InputError
     from nlpsf.request import SolveRequest
 
-    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": scene}
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": {**scene, "preset": "paper"}}
     try:
         SolveRequest.from_json(body)
         library = None
@@ -494,7 +529,7 @@ def test_meta_serves_the_flag_catalogue_and_the_scene_effect_registry(client):
 
 def test_an_answers_flags_come_with_their_codes(client):
     # A star brighter than its saturation magnitude is flagged saturated, whatever the words say.
-    body = {"band": "H158", "precision": 0.5, "magnitude": 17.0}
+    body = {"band": "H158", "precision": 0.5, "magnitude": 17.0, "scene": "paper"}
     answer = client.post("/api/v1/solve", json=body).json()
     assert answer["saturation_magnitude"] > 17.0
     assert len(answer["flag_codes"]) == len(answer["flags"]) and "star_saturated" in answer["flag_codes"]
@@ -550,7 +585,7 @@ def test_a_scene_beyond_first_order_is_refused_by_the_library_and_the_service(cl
     assert refused.value.argument == field
     for path, body in (
         ("/api/v1/simulations", {"band": "H158", "scene": scene, "realizations": 2}),
-        ("/api/v1/solve", {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": scene}),
+        ("/api/v1/solve", {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": {**scene, "preset": "paper"}}),
     ):
         answer = client.post(path, json=body)
         assert answer.status_code == 422 and answer.json()["field"] == field, answer.text

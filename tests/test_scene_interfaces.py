@@ -23,8 +23,9 @@ def run_cli(capsys, *argv):
 
 def test_cli_simulate_with_scene_options_matches_the_library(capsys):
     code, out, _ = run_cli(
-        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json"
-    )
+        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json",
+        "--scene", "paper",
+    )  # fmt: skip
     assert code == 0
     got = json.loads(out)
     model = scenes.SceneModel(position=(100.0, 200.0), jitter_arcsec=0.014, ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman")
@@ -178,8 +179,9 @@ def test_api_impact_is_a_job_not_work_in_the_http_worker(tmp_path):
 
 def test_cli_over_field_and_sca_all(capsys):
     code, out, _ = run_cli(
-        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"
-    )
+        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json",
+        "--scene", "paper",
+    )  # fmt: skip
     assert code == 0
     got = json.loads(out)
     assert len(got["conditions"]["over_field"]) == 5 and got["flag_codes"][0] == "worst_over_field"
@@ -187,40 +189,47 @@ def test_cli_over_field_and_sca_all(capsys):
     assert code == 2 and "--sca" in err
     # The options the plain solve takes reach the over-field answer too (they were once dropped).
     options = ["--magnitude", "19", "--tolerance", "1e-4", "--mode", "scatter", "--stars", "16", "--throughput", "galsim-2021"]
-    code, out, err = run_cli(capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json")
+    code, out, err = run_cli(
+        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json", "--scene", "paper"
+    )
     assert code == 0, err
     got = json.loads(out)
     library = solver.solve_over_field(
-        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4
+        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4, scene="paper"
     )
     assert got["precision"] == pytest.approx(library.precision, rel=1e-12)
     assert got["conditions"]["throughput"] == "galsim-2021" and got["conditions"]["stars"] == 16
 
 
 def test_api_solve_over_field_and_with_scene(client):
-    body = {"band": "J129", "sca": 3, "magnitude": 19.0, "tolerance": 1e-4, "over_field": "sca"}
+    body = {"band": "J129", "sca": 3, "magnitude": 19.0, "tolerance": 1e-4, "over_field": "sca", "scene": "paper"}
     response = client.post("/api/v1/solve", json=body)
     assert response.status_code == 200, response.text
     assert len(response.json()["conditions"]["over_field"]) == 5
     # From the shipped field-point tables, answered at once (not a job): the library's answer.
     assert response.json()["conditions"]["fidelity"] == "table"
-    assert response.json()["precision"] == solver.solve_over_field("J129", [3], magnitude=19.0, tolerance=1e-4).precision
+    assert (
+        response.json()["precision"]
+        == solver.solve_over_field("J129", [3], magnitude=19.0, tolerance=1e-4, scene="paper").precision
+    )
     focal_plane = client.post("/api/v1/solve", json={**body, "over_field": "focal_plane"})
     assert focal_plane.status_code == 200 and len(focal_plane.json()["conditions"]["over_field"]) == 90
-    with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
+    with_scene = client.post(
+        "/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014, "preset": "paper"}}
+    ).json()
     assert with_scene["fidelity"] == "linear" and with_scene["conditions"]["scene"]["jitter_arcsec"] == 0.014
     assert client.post("/api/v1/solve", json={**body, "over_field": "everywhere"}).status_code == 422
 
 
 @pytest.mark.slow
 def test_api_solve_with_another_pupil_scale_is_a_job_and_a_batch_refuses_it(tmp_path):
-    body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "pupil_scale": "official"}
+    body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "pupil_scale": "official", "scene": "paper"}
     settings = Settings(db_path=str(tmp_path / "jobs.sqlite3"), job_workers=1, max_queue=8, solve_wait_s=0.0)
     with TestClient(create_app(settings)) as test_client:
         queued = test_client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
         result = finished_job(test_client, queued.json()["id"]).json()["result"]
-        direct = solver.solve("H158", magnitude=20.0, precision=0.01, pupil_scale="official")
+        direct = solver.solve("H158", magnitude=20.0, precision=0.01, pupil_scale="official", scene="paper")
         assert result["conditions"]["pupil_scale"] == "official" and result["tolerance"] == pytest.approx(direct.tolerance)
         # The tables' own rule stays an instant table answer.
         plain = test_client.post("/api/v1/solve", json={**body, "pupil_scale": "galsim"})
