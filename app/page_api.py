@@ -291,11 +291,11 @@ PRESETS: list[dict[str, Any]] = [
 
 def scene_presets() -> dict[str, Any]:
     """The scene form's fields for each library scene preset, and the name the library gives the scene."""
-    from nlpsf import scene
+    from nlpsf import roman_default
 
     out = {}
-    for name in scene.PRESETS:
-        model = scene.preset(name)
+    for name in roman_default.PRESETS:
+        model = roman_default.preset_base(name)
         out[name] = {
             "description": model.describe(),
             "fields": {

@@ -121,7 +121,6 @@ class SolveRequest:
         """The scene choice, validated once: the preset's readout, exposure, pupil rule, state and
         (for the Roman default) scene and background wherever the request leaves them unset."""
         from . import roman_default
-        from .experiment.config import LINEARISE_STATES
 
         scene, preset = self.scene, self.preset
         if isinstance(scene, str):
@@ -136,6 +135,8 @@ class SolveRequest:
         if scene is not None and not isinstance(scene, _scene_type()):
             raise InputError("scene", "must be a preset's name or a scene description (nlpsf.scene.SceneModel)")
         if self.linearise_at is not None:
+            from .experiment.config import LINEARISE_STATES  # only when one is given: the simulator is heavy
+
             check_choice(self.linearise_at, "linearise_at", LINEARISE_STATES)
         if self.ramp is not None and not isinstance(self.ramp, ramps.Ramp):
             raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
@@ -284,9 +285,13 @@ def _preset_of(scene, preset: str | None) -> str:
 def _scene_from_json(fields_: Mapping[str, Any] | None):
     if not fields_:
         return None
+    from . import roman_default
     from . import scene as scenes
 
+    data = dict(fields_)
+    named = data.pop("preset", None)
     try:
-        return scenes.from_request(dict(fields_))
+        base = roman_default.preset_base(named) if named is not None else None
+        return scenes.from_request(data, base=base)
     except InputError as error:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None

@@ -176,6 +176,20 @@ def preset_scene(preset: str, position=None, background_e: float = 0.0) -> scene
     return None if position is None else scenes.SceneModel(position=position)
 
 
+def preset_base(name: str) -> scenes.SceneModel:
+    """A preset's scene effects without position or sky: "roman" the default's (:func:`base_scene`),
+    "paper" and "galsim-roman" ``scene.preset``'s."""
+    name = check_preset(name)
+    return base_scene() if name == NAME else scenes.preset(name)
+
+
+def load_scene(name_or_path: str) -> scenes.SceneModel:
+    """A preset's base scene (:func:`preset_base`) or a scene saved as JSON (``scene.load``)."""
+    if isinstance(name_or_path, str) and name_or_path.strip().lower() in PRESETS:
+        return preset_base(name_or_path)
+    return scenes.load(name_or_path)
+
+
 def is_default_scene(model, background_e: float) -> bool:
     """Whether ``model`` is the Roman default's scene (any position) with this background."""
     return model is not None and replace(model, position=None) == scene(None, background_e)

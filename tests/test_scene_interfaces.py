@@ -108,10 +108,10 @@ def test_cli_impact_contract(capsys):
 
 
 def test_api_simulation_with_scene_matches_the_library(client):
-    body = {"magnitudes": [19.0], "betas": [5e-7], "realizations": 4, "scene": {"preset": "roman", "position": [300, 400]}}
+    body = {"magnitudes": [19.0], "betas": [5e-7], "realizations": 4, "scene": {"preset": "galsim-roman", "position": [300, 400]}}
     job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
     assert job["status"] == "done", job
-    model = scenes.from_request({"preset": "roman", "position": [300, 400]})
+    model = scenes.from_request({"preset": "galsim-roman", "position": [300, 400]})
     want = experiment.simulate(experiment.SimulationConfig(realizations=4, scene=model), [19.0], [5e-7])[0]
     assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(want.dR_over_R.mean, rel=1e-12)
 

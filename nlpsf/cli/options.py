@@ -213,8 +213,13 @@ def scene_from(args: argparse.Namespace):
         b2, higher = values[0], values[1:]
         if getattr(args, "beta_convention", "paper") == "galsim":
             higher = tuple(-c for c in higher)  # the scene holds the paper's convention
+    base = getattr(args, "scene", None)
+    if isinstance(base, str):
+        from .. import roman_default
+
+        base = roman_default.load_scene(base)  # a preset's scene (the default's "roman" included) or a file
     model = scenes.from_options(
-        getattr(args, "scene", None),
+        base,
         position=getattr(args, "position", None),
         sed=getattr(args, "sed", None),
         sed_units=getattr(args, "sed_units", "flambda"),
