@@ -272,8 +272,9 @@ class _Answer:
 def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty."""
     start = time.perf_counter()
-    if request.preset == roman_default.NAME and request.scene is not None and request.scene.position is None:
-        # The Roman default depends on the position: without one, the range over the SCA.
+    if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
+        # The Roman default depends on the position: without one, the range over the SCA. (With an
+        # accuracy, model_part.select_scene quotes the spread over the SCA as a part of the uncertainty.)
         ranged = sca_range(answer, request, tables_set)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set)

@@ -304,7 +304,7 @@ def test_waiters_share_one_poll(tmp_path):
 
 def test_a_solve_with_an_accuracy_is_a_job_even_when_the_tables_meet_it(tmp_path):
     # The accuracy's effects are measured by simulation (nlpsf.impact), never inside the HTTP worker.
-    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5}
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5, "scene": "paper"}
     with TestClient(create_app(settings_for(tmp_path, solve_wait_s=0.0))) as client:
         queued = client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
