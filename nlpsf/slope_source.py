@@ -114,10 +114,7 @@ class Slopes:
     def _from_grid(self, magnitude: float) -> tuple[float, float, int]:
         """The Roman default's slope from its field grid at the scene's position; a magnitude outside
         a node's grid is simulated (and noted)."""
-        column = f"{self.mode}_{defaults.METRIC_COLUMNS[self.metric][0]}"
-        position = self.scene_model.position
-        value = self.grid.slope(self.band, self.sca, position, magnitude, column)
-        error = self.grid.slope(self.band, self.sca, position, magnitude, column + "_err")
+        value, error = grid_slope(self.grid, self.band, self.sca, self.scene_model.position, self.metric, self.mode, magnitude)
         if math.isfinite(value) and math.isfinite(error):
             return value, abs(error), 0
         self.grid_misses.append(magnitude)
@@ -162,3 +159,20 @@ class Slopes:
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
+
+
+def grid_slope(grid, band: str, sca: int, position, metric: str, mode: str, magnitude: float) -> tuple[float, float]:
+    """(slope, standard error) of a field grid (``fieldgrid.FieldGrid``) at a position and magnitude.
+
+    Reads either side of the grid's reader: ``slope(band, sca, position, metric, mode, magnitude)``
+    returning both (the reader that also has ``column_value``), or the column reader
+    ``slope(band, sca, position, magnitude, column)``, whose node errors (statistical and magnitude
+    interpolation, in quadrature) are then interpolated like the slope."""
+    if hasattr(grid, "column_value"):
+        value, error = grid.slope(band, sca, position, metric, mode, magnitude)
+        return float(value), float(error)
+    column = f"{mode}_{metric}"
+    value = grid.slope(band, sca, position, magnitude, column)
+    parts = [c for c in (f"{column}_err", f"{column}_interp") if c in grid.meta["columns"]]
+    error = math.hypot(*(grid.slope(band, sca, position, magnitude, c) for c in parts))
+    return float(value), float(error)
