@@ -116,6 +116,7 @@ class Slopes:
         a node's grid is simulated (and noted)."""
         value, error = grid_slope(self.grid, self.band, self.sca, self.scene_model.position, self.metric, self.mode, magnitude)
         if math.isfinite(value) and math.isfinite(error):
+            self.ramp_bases.add("grid")
             return value, abs(error), 0
         self.grid_misses.append(magnitude)
         return (*self._simulated(magnitude), 0)

@@ -488,6 +488,8 @@ _fidelity_error = fidelity_error  # the old private name (app/api.py calls it)
 
 def _ramp_basis(slopes: _Slopes) -> str:
     parts = []
+    if "grid" in slopes.ramp_bases:
+        parts.append("the Roman default's field grid (its ramp simulated at every node)")
     if "table" in slopes.ramp_bases:
         parts.append(
             f"tables at beta_eff = {slopes.ramp_factor:.6g} beta0 "
