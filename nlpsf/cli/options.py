@@ -295,6 +295,18 @@ def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
     )
 
 
+def with_default_conditions(payloads: list[dict], args: argparse.Namespace) -> list[dict]:
+    """Results of the Roman default (``simulate``, ``slopes``) with its values and their sources in
+    their conditions, as a solve quotes them; other presets' results as they are."""
+    from .. import roman_default
+
+    if simulation_preset(args) != roman_default.NAME:
+        return payloads
+    values = roman_default.conditions()
+    return [{**p, "conditions": {**p.get("conditions", {}), "scene_name": roman_default.NAME, "roman_default": values}}
+            for p in payloads]  # fmt: skip
+
+
 def print_json(payload: Any) -> None:
     print(json.dumps(payload, indent=2, allow_nan=False))
 

@@ -6,7 +6,15 @@ import argparse
 
 from .. import defaults
 from . import progress_printer
-from .options import add_simulation_options, beta_from_coefficients, config_from, print_json, scene_from, with_error
+from .options import (
+    add_simulation_options,
+    beta_from_coefficients,
+    config_from,
+    print_json,
+    scene_from,
+    with_default_conditions,
+    with_error,
+)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -64,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:
-        print_json([r.to_dict() for r in results])
+        print_json(with_default_conditions([r.to_dict() for r in results], args))
         return 0
     print(
         f"{config.band} SCA {config.sca}, beta0={args.beta0:g} /e- ({args.beta_convention} convention), {config.exptime_s:g} s, "
