@@ -61,6 +61,7 @@ def _linear_curve(
         precision=1.0,
         magnitude=magnitude,
         full_well=full_well,
+        scene="paper",  # the shipped tables' curve (the paper's scene)
     ).to_dict()
     # The statistical part per point, the fidelity part as one relative number (the page shows both).
     at_beta0 = solution["tolerance"]

@@ -58,8 +58,13 @@ def request_field(argument: str) -> str:
 
 def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
     """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``."""
+    from nlpsf import roman_default
+
+    data = dict(fields or {})
+    named = data.pop("preset", None)
     try:
-        return scenes.from_request(fields)
+        base = roman_default.preset_base(named) if named is not None else None
+        return scenes.from_request(data, base=base)
     except InputError as error:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
 
@@ -386,7 +391,7 @@ def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> d
 
     body = solve_body(fields, given)
     request = solve_request(body)
-    checked = solver.answer(request.with_changes(fidelity="table", accuracy=None, pupil_scale=None, ramp=None, scene=None))
+    checked = solver.answer(request.table_pass())
     solver.choose_fidelity(request.fidelity, request.accuracy, checked.band, checked.metric, checked.mode)
     return solve_job({"request": {**body, "band": request.band}, "over_field": fields["over_field"]})
 

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from nlpsf import defaults, detector, fidelity, ramps, roman, shear, solver
+from nlpsf import defaults, detector, fidelity, ramps, roman, roman_default, shear, solver
 from nlpsf import scene as scenes
 from nlpsf.request import MAX_STARS
 
@@ -100,13 +100,19 @@ Throughput = Literal[roman.THROUGHPUTS]  # type: ignore[valid-type]
 RampFit = Literal[defaults.RAMP_FITS]  # type: ignore[valid-type]
 
 
+ScenePreset = Literal["roman", "paper", "galsim-roman"]
+
+
 class SceneRequest(BaseModel):
     """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
 
     model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
 
-    preset: Literal["paper", "roman"] | None = Field(
-        None, description="(no unit) roman: jitter 0.014 arcsec, charge diffusion 0.1 px, GalSim's IPC kernel, flat f_nu SED"
+    preset: ScenePreset | None = Field(
+        None,
+        description="(no unit) the base the other fields change: roman (the Roman default, nlpsf.roman_default; the "
+        "default), paper (the paper's idealised scene), galsim-roman (jitter 0.014 arcsec, charge diffusion 0.1 px, "
+        "GalSim's IPC kernel, flat f_nu SED)",
     )
     position: list[_Number((1.0, float(roman.SCA_PIXELS)))] | None = Field(
         None, min_length=2, max_length=2, description=f"X, Y on the SCA in pixels (1-{roman.SCA_PIXELS})"
@@ -228,7 +234,12 @@ class SolveRequest(RampFields):
     beta0: float = _within(
         defaults.BETA0_RANGE, "NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)", _SOLVE_DEFAULTS["beta0"]
     )
-    exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", _SOLVE_DEFAULTS["exptime"])
+    exptime: float = _within(
+        defaults.EXPTIME_RANGE_S,
+        "exposure time in s; not given: the scene's (the Roman default's HLWAS table's last read, 139.149 s; the "
+        "paper's 168.1 s)",
+        roman_default.exptime_s(),
+    )
     precision: float | None = _within(
         defaults.PRECISION_RANGE,
         "calibration precision, dimensionless fraction: dbeta/beta0 (bias) or sigma_beta/beta0 (scatter)",
@@ -252,8 +263,16 @@ class SolveRequest(RampFields):
         "relative accuracy target (dimensionless fraction): picks the cheapest fidelity meeting it, "
         "simulates only the scene effects whose measured impact exceeds it and adds the others to the uncertainty's model part",
     )
-    scene: SceneRequest | None = Field(
-        None, description="what the star goes through (default the paper's scene; units per field)"
+    scene: ScenePreset | SceneRequest | None = Field(
+        None,
+        description="what the star goes through: a preset's name or its fields (units per field); default the Roman "
+        "default (nlpsf.roman_default: its scene at the position, the HLWAS readout, official pupil scale, linearised at "
+        "corrected; without a position, the most demanding of the SCA's field-grid nodes); 'paper': the paper's "
+        "idealised scene and the shipped tables",
+    )
+    linearise_at: Literal["beta0", "corrected"] | None = Field(
+        None,
+        description="(no unit) the detector state the slope is taken at: null for the scene's (roman: corrected; paper: beta0)",
     )
     over_field: Literal["sca", "focal_plane"] | None = Field(
         None,

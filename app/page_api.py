@@ -50,7 +50,10 @@ TOLERANCE_FACTORS = (0.1, 1 / 3, 1.0, 3.0, 10.0)
 
 
 def _args(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: float, full_well: float) -> dict[str, Any]:
-    return {"band": band, "sca": sca, "metric": metric, "mode": mode, "exptime": exptime, "beta0": beta0, "full_well": full_well}
+    # The plots are the shipped tables' curves: the paper's scene (the calculator's answer, POST
+    # /solve, is the Roman default's unless the page asks for the paper's).
+    common = {"band": band, "sca": sca, "metric": metric, "mode": mode, "exptime": exptime, "beta0": beta0}
+    return {**common, "full_well": full_well, "scene": "paper"}
 
 
 def _grid(curve: dict[str, Any], at: float | None) -> list[float]:
@@ -288,11 +291,11 @@ PRESETS: list[dict[str, Any]] = [
 
 def scene_presets() -> dict[str, Any]:
     """The scene form's fields for each library scene preset, and the name the library gives the scene."""
-    from nlpsf import scene
+    from nlpsf import roman_default
 
     out = {}
-    for name in scene.PRESETS:
-        model = scene.preset(name)
+    for name in roman_default.PRESETS:
+        model = roman_default.preset_base(name)
         out[name] = {
             "description": model.describe(),
             "fields": {

@@ -9,7 +9,7 @@ from fastapi import APIRouter
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
-from nlpsf import defaults, solver
+from nlpsf import defaults, roman_default, solver
 from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
 
@@ -79,10 +79,18 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
     except ValidationError as invalid:
         return {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}
     try:
-        for name in ("scene", "over_field"):
-            if getattr(request, name) is not None:
-                raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
+        if request.over_field is not None or not (request.scene is None or isinstance(request.scene, str)):
+            name = "over_field" if request.over_field is not None else "scene"
+            raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
         solve = job_kinds.solve_request(job_kinds.solve_body(request.model_dump(), request.model_fields_set))
+        if solve.preset == roman_default.NAME and roman_default.field_grid() is None:
+            raise InputError(
+                "scene",
+                "the Roman default's field grid is not installed, so it is simulated: a batch solves from the tables "
+                "only; give scene 'paper' for the paper's tables or send it to POST /solve",
+            )
+        if solve.preset == roman_default.NAME:
+            return {"index": index, "ok": True, "solution": json_safe(solver.answer(solve).to_dict())}
         simulating = solve.fidelity not in (None, "table") or solve.pupil_scale not in (None, defaults.PUPIL_SCALE)
         if solve.ramp is not None or simulating or solve.accuracy is not None:
             # A batch answers at table cost; a simulating solve is a job (POST /solve), one at a time.

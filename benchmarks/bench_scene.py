@@ -31,9 +31,13 @@ def configurations() -> dict[str, scenes.SceneModel]:
         out[name] = model
     out["sed (6 wavelengths)"] = replace(out["sed"], n_wavelengths=6)
     out["ipc before"] = replace(out["ipc"], ipc_order="before")
-    out["roman preset"] = scenes.preset("roman")
+    out["roman preset"] = scenes.preset("galsim-roman")
     out["everything"] = replace(
-        scenes.preset("roman"), position=(4.0, 4.0), nl_coefficients=(1e-13, 1e-18), bfe_coefficient=1e-7, background_e=100.0
+        scenes.preset("galsim-roman"),
+        position=(4.0, 4.0),
+        nl_coefficients=(1e-13, 1e-18),
+        bfe_coefficient=1e-7,
+        background_e=100.0,
     )
     return out
 

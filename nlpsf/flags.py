@@ -63,6 +63,11 @@ class FlagCode(StrEnum):
     OUTSIDE_LINEAR_REGIME = "outside_linear_regime"
     SHEAR_CROSS_TERM = "shear_cross_term"
     WORST_OVER_FIELD = "worst_over_field"
+    # The Roman default (nlpsf.roman_default)
+    DEFAULT_FROM_GRID = "default_from_grid"
+    DEFAULT_SIMULATED = "default_simulated"
+    LINEARISED_SIMULATED = "linearised_simulated"
+    SCA_RANGE = "sca_range"
 
 
 @dataclass(frozen=True)
@@ -290,6 +295,28 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "{low:.4g} to {high:.4g}",
         ("points", "where", "sca", "x", "y", "solved", "low", "high"),
         "The answer is that of the most demanding field point; the range over the points follows.",
+    ),
+    FlagCode.DEFAULT_FROM_GRID: FlagSpec(
+        "slopes from the Roman default's field grid ({grid} x {grid} nodes, {scheme} across the SCA) at pixel ({x:.0f}, {y:.0f})",
+        ("grid", "scheme", "x", "y"),
+        "The Roman default's slope is read from the shipped field grid of its scene, interpolated to the position.",
+    ),
+    FlagCode.DEFAULT_SIMULATED: FlagSpec(
+        "no shipped field grid holds the Roman default at this point ({why}): its scene is simulated (fidelity linear)",
+        ("why",),
+        "The Roman default is not in a shipped table here, so its slope is a fresh linear-response simulation.",
+    ),
+    FlagCode.LINEARISED_SIMULATED: FlagSpec(
+        "the tables hold the slope at beta0: linearised at {state}, the slopes are simulated (fidelity linear)",
+        ("state",),
+        "A slope taken at another detector state than the tables' is simulated with the linear response.",
+    ),
+    FlagCode.SCA_RANGE: FlagSpec(
+        "no position given: the answer holds everywhere on SCA {sca}, the most demanding of {points} positions, at pixel "
+        "({x:.0f}, {y:.0f}); {solved} ranges {least:.4g} (least demanding, at ({lx:.0f}, {ly:.0f})) to {most:.4g}",
+        ("sca", "points", "x", "y", "solved", "least", "lx", "ly", "most"),
+        "Without a position the Roman default answers for the SCA's most demanding grid node; the least demanding "
+        "node and every node's value are in conditions['sca_range'].",
     ),
 }
 

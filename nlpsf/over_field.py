@@ -4,13 +4,19 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from . import roman, tables
 from .checks import InputError
 from .flags import FlagCode, make
 from .serialise import json_number
 from .solution import Solution
+
+
+@dataclass(frozen=True)
+class _Where:
+    band: str
+    sca: int
 
 
 def _tables_hold(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
@@ -69,23 +75,42 @@ def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **
     flag. ``solve`` is ``nlpsf.solver.solve`` (passed in: this module sits below the solver).
     """
 
+    from . import roman_default
     from . import scene as scenes
 
     chosen = list(range(1, roman.N_SCA + 1)) if scas == "all" else [roman.check_sca(s) for s in scas]
-    base = scene if scene is not None else scenes.SceneModel()
-    if base.position is not None:
+    preset = request.get("preset") or (scene if isinstance(scene, str) else None)
+    if isinstance(scene, str):
+        scene = None
+    if preset is None:
+        name = getattr(scene, "name", None)
+        preset = name if name in roman_default.PRESETS else roman_default.NAME
+    request["preset"] = roman_default.check_preset(preset)
+    default = request["preset"] == roman_default.NAME
+    base = scene if scene is not None else (roman_default.preset_scene(preset) or scenes.SceneModel())
+    if base is not None and base.position is not None:
         raise InputError("position", "give a position or ask for the worst over the field, not both")
-    # Each corner's own table is found by ``solve`` from the position (``_corner_tables``).
-    corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
-    if corners is None and request.get("fidelity") in (None, "table"):
-        # Without field-point tables (or with a scene they do not hold) every point is simulated.
-        request["fidelity"] = "linear"
     answers = []
-    points = [(s, p) for s in chosen for p in field_points(s)]
+    if default:
+        # The Roman default: the nodes of each SCA's field grid (read from the shipped grid where it
+        # holds them, else simulated by the solver, which says so); the default's sky per SCA.
+        points = []
+        for sca in chosen:
+            for position in range_positions(_Where(band, sca)):
+                points.append((sca, position))
+    else:
+        # Each corner's own table is found by ``solve`` from the position (``_corner_tables``).
+        corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
+        if corners is None and request.get("fidelity") in (None, "table"):
+            # Without field-point tables (or with a scene they do not hold) every point is simulated.
+            request["fidelity"] = "linear"
+        points = [(s, p) for s in chosen for p in field_points(s)]
     for index, (sca, position) in enumerate(points):
         if progress:
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
-        answers.append((sca, position, solve(band, sca, scene=replace(base, position=position), **request)))
+        # The default's own scene at bg 0 is filled by the request with that SCA's sky.
+        point_scene = roman_default.scene(position, 0.0) if default and scene is None else replace(base, position=position)
+        answers.append((sca, position, solve(band, sca, scene=point_scene, **request)))
     if progress:
         progress(len(points), len(points), "done")
     solved = answers[0][2].solved_for
@@ -117,3 +142,117 @@ def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **
         high=max(finite),
     )
     return replace(worst, flags=[flag, *worst.flags], conditions=conditions)
+
+
+# --- the Roman default over an SCA -----------------------------------------------------------
+
+
+def default_grid(request, fidelity: str):
+    """(the Roman default's field grid, None) where it holds ``request`` -- the default's scene
+    unmodified at a position, its readout, exposure, beta0, full well, pupil rule and state, the
+    table level -- else (None, why not) for the flag that says the point is simulated."""
+    from . import roman_default
+
+    if fidelity != "table" or request.accuracy is not None:
+        return None, f"fidelity {fidelity}" if request.accuracy is None else "an accuracy is measured by simulation"
+    grid = roman_default.field_grid()
+    if grid is None:
+        return None, "none installed"
+    scene = request.scene
+    key = f"{request.band}_{request.sca:02d}"
+    entry = grid.meta["tables"].get(key)
+    if entry is None:
+        return None, f"the grid has no {request.band} SCA {request.sca}"
+    settings = entry.get("settings", {})
+    filled = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
+    if not roman_default.is_default_scene(scene, filled.background_e) or scene.position is None:
+        return None, "the scene differs from the default's"
+    if request.ramp != filled.ramp or not math.isclose(request.exptime, filled.exptime, rel_tol=1e-9):
+        return None, "the readout differs from the default's"
+    wanted = {
+        "exptime_s": request.exptime, "beta0": request.beta0, "full_well_e": request.full_well,
+        "pupil_scale": request.pupil_scale, "linearise_at": request.linearise_at, "scene": roman_default.NAME,
+    }  # fmt: skip
+    for name, value in wanted.items():
+        held = settings.get(name)
+        numeric = isinstance(value, float) and held is not None
+        same = math.isclose(float(held), float(value), rel_tol=1e-6) if numeric else held == value
+        if not same:
+            return None, f"the grid's {name} is {held!r}, the request's {value!r}"
+    if request.throughput not in (None, settings.get("throughput")):
+        return None, f"the grid's throughput is {settings.get('throughput')!r}"
+    if request.metric == "e" and not hasattr(grid, "column_value"):
+        return None, "the grid holds e1 and e2, not the modulus"
+    return grid, None
+
+
+def grid_size(grid, request) -> int:
+    return int(grid.meta["tables"][f"{request.band}_{request.sca:02d}"]["grid"])
+
+
+#: Nodes of the SCA range when no field grid gives its own: the 3 x 3 grid of ``nlpsf.fieldgrid``.
+RANGE_GRID = 3
+
+
+def range_positions(request) -> list[tuple[float, float]]:
+    """Where the SCA range looks: the field grid's nodes of this (band, SCA), else the 3 x 3 grid
+    (corners, edge midpoints, centre), on which the Zernikes take their extremes (bilinear)."""
+    from . import fieldgrid, roman_default
+
+    grid = roman_default.field_grid()
+    key = f"{request.band}_{request.sca:02d}"
+    if grid is not None and f"{key}/positions" in grid.arrays:
+        nodes = grid.arrays[f"{key}/positions"].reshape(-1, 2)
+        return [(float(x), float(y)) for x, y in nodes]
+    return [p for _, _, p in fieldgrid.grid_positions(RANGE_GRID)]
+
+
+def _demand(solved: str):
+    def demand(solution: Solution) -> float:
+        value = getattr(solution, solved)
+        if value is None or not math.isfinite(value):
+            return -math.inf
+        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+
+    return demand
+
+
+def _node(position, solution: Solution, solved: str) -> dict:
+    value, error = getattr(solution, solved), solution.uncertainty
+    fidelity = solution.fidelity
+    return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
+
+
+def sca_range(answer, request, tables_set=None) -> Solution:
+    """The Roman default without a position: the answer at every node of the SCA's field grid, the
+    most demanding one returned (it holds everywhere on the SCA: the smallest precision, the largest
+    tolerance, the faintest brightest-usable star), the least demanding and every node's value in
+    ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solver.answer`` (passed in)."""
+    positions = range_positions(request)
+    answers = [(p, answer(request.with_changes(scene=replace(request.scene, position=p)), tables_set)) for p in positions]
+    solved = answers[0][1].solved_for
+    demand = _demand(solved)
+    ranked = sorted(answers, key=lambda item: demand(item[1]))
+    (least_at, least), (most_at, most) = ranked[0], ranked[-1]
+    conditions = dict(most.conditions)
+    conditions["sca_range"] = {
+        "primary": "most demanding: the requirement that holds everywhere on the SCA",
+        "solved_for": solved,
+        "most_demanding": {"position": list(most_at), solved: json_number(getattr(most, solved))},
+        "least_demanding": {"position": list(least_at), solved: json_number(getattr(least, solved))},
+        "nodes": [_node(p, a, solved) for p, a in answers],
+        "slopes_from": sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers}),
+    }
+    flag = make(
+        FlagCode.SCA_RANGE,
+        sca=request.sca,
+        points=len(positions),
+        x=most_at[0],
+        y=most_at[1],
+        solved=solved,
+        least=getattr(least, solved),
+        lx=least_at[0],
+        ly=least_at[1],
+        most=getattr(most, solved),
+    )
+    return replace(most, flags=[flag, *most.flags], conditions=conditions)

@@ -52,7 +52,8 @@ class SolveRequest:
     metric: str = "size"
     mode: str = "bias"
     beta0: float = defaults.BETA0
-    exptime: float = defaults.EXPTIME_S
+    #: None: the preset's (roman: the HLWAS table's last read, 139.1 s; paper: 168.1 s).
+    exptime: float | None = None
     precision: float | None = None
     tolerance: float | None = None
     magnitude: float | None = None
@@ -65,8 +66,16 @@ class SolveRequest:
     stars: int = 1
     ramp: ramps.Ramp | None = None
     throughput: str | None = None
+    #: The scene: None (the Roman default), a preset's name (``roman_default.PRESETS``: "roman",
+    #: "paper", "galsim-roman") or a ``scene.SceneModel`` (its effects as given).
     scene: Any = None
     pupil_scale: str | None = None
+    #: Where the slope is taken (``experiment.LINEARISE_STATES``); None: the preset's (roman
+    #: "corrected", paper "beta0").
+    linearise_at: str | None = None
+    #: The preset whose readout, exposure, pupil rule and state fill what the request leaves unset
+    #: (``roman_default.fill``); None: the scene's name when it names one, else "roman".
+    preset: str | None = None
     #: The shear budget (``shear_m`` / ``shear_c`` with ``size_ratio``) and the size ratio, checked.
     budget: shear.Budget | None = field(default=None, init=False, compare=False, repr=False)
     ratio: shear.SizeRatio | None = field(default=None, init=False, compare=False, repr=False)
@@ -75,6 +84,7 @@ class SolveRequest:
     def __post_init__(self) -> None:
         self._set("band", roman.check_band(self.band))
         self._set("sca", roman.check_sca(self.sca))
+        self._fill_preset()
         check_choice(self.metric, "metric", defaults.METRICS)
         check_choice(self.mode, "mode", defaults.MODES)
         self._set("beta0", check_beta0(self.beta0))
@@ -101,13 +111,51 @@ class SolveRequest:
             roman.check_throughput(self.throughput)
         if self.pupil_scale is not None:
             check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
-        if self.scene is not None and not isinstance(self.scene, _scene_type()):
-            raise InputError("scene", "must be a scene description (nlpsf.scene.SceneModel)")
         if self.scene is not None and self.ramp is not None:
             ramps.check_scene(self.scene)  # the one rule of what a ramp combines with (brighter-fatter: not yet)
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
+
+    def _fill_preset(self) -> None:
+        """The scene choice, validated once: the preset's readout, exposure, pupil rule, state and
+        (for the Roman default) scene and background wherever the request leaves them unset."""
+        from . import roman_default
+
+        scene, preset = self.scene, self.preset
+        if isinstance(scene, str):
+            scene = roman_default.check_preset(scene)
+            if preset is not None and roman_default.check_preset(preset) != scene:
+                raise InputError("scene", f"scene {scene!r} and preset {preset!r} disagree; give one")
+            preset, scene = scene, None
+        elif preset is None:
+            name = getattr(scene, "name", None)
+            preset = name if name in roman_default.PRESETS else roman_default.NAME
+        preset = roman_default.check_preset(preset)
+        if scene is not None and not isinstance(scene, _scene_type()):
+            raise InputError("scene", "must be a preset's name or a scene description (nlpsf.scene.SceneModel)")
+        if self.linearise_at is not None:
+            from .experiment.config import LINEARISE_STATES  # only when one is given: the simulator is heavy
+
+            check_choice(self.linearise_at, "linearise_at", LINEARISE_STATES)
+        if self.ramp is not None and not isinstance(self.ramp, ramps.Ramp):
+            raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
+        if self.exptime is not None:
+            self._set("exptime", check_exptime(self.exptime))
+        filled = roman_default.fill(preset, self.band, self.sca, self.exptime, self.ramp, self.pupil_scale, self.linearise_at)
+        if preset == roman_default.NAME and (scene is None or (scene.name == roman_default.NAME and not scene.background_e)):
+            # The default's scene (or its preset unmodified, at a position) with the sky over this exposure.
+            scene = roman_default.scene(None if scene is None else scene.position, filled.background_e)
+        elif scene is None and preset == "galsim-roman":
+            scene = roman_default.preset_scene(preset)
+        elif preset == "paper" and scene is not None and scene.is_paper:
+            scene = None  # the paper's scene is the solver's plain path (today's answers, bit for bit)
+        self._set("preset", preset)
+        self._set("scene", scene)
+        self._set("exptime", filled.exptime)
+        self._set("ramp", filled.ramp)
+        self._set("pupil_scale", filled.pupil_scale)
+        self._set("linearise_at", filled.linearise_at)
 
     def _check_budget(self) -> None:
         if self.shear_m is not None or self.shear_c is not None:
@@ -157,6 +205,14 @@ class SolveRequest:
         """Another request, validated again (``dataclasses.replace``)."""
         return replace(self, **changes)
 
+    def table_pass(self) -> SolveRequest:
+        """This request on the paper's tables (no ramp, scene, other pupil rule or state): the cheap
+        first pass that finds where a magnitude answer lies."""
+        return replace(
+            self, fidelity="table", accuracy=None, ramp=None, scene="paper", preset="paper", pupil_scale=None,
+            linearise_at=None,
+        )  # fmt: skip
+
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any]) -> SolveRequest:
         """The request from a mapping of ``solver.solve``'s keyword arguments (the CLI's options,
@@ -175,34 +231,67 @@ class SolveRequest:
         :meth:`from_mapping` with the ramp as :data:`RAMP_REQUEST_FIELDS` (``ramps.build``: an MA
         table's exposure is its last read unless ``exptime`` is given) and the scene as its JSON
         object (``scene.from_request``; errors name ``scene.FIELD``). Files only with ``allow_files``."""
+        from . import roman_default
+
         data = dict(data)
+        scene = data.pop("scene", None)
+        preset = _preset_of(scene, data.get("preset"))
+        data["preset"] = preset
         ramp_fields = {k: data.pop(k, None) for k in RAMP_REQUEST_FIELDS}
         given_exptime = data.get("exptime")
-        ramp, exptime = ramps.build(
-            ramp_fields["ramp"],
-            ramp_fields["ma_table"],
-            ramp_fields["ramp_fit"] or "ols",
-            ramp_fields["read_noise"],
-            given_exptime,
-            allow_files=allow_files,
-            sca=data.get("sca", defaults.SCA),
-            **{rule: ramp_fields[name] for name, rule in RAMP_RULE_FIELDS.items() if ramp_fields[name] is not None},
-        )
-        data["exptime"], data["ramp"] = exptime, ramp
-        scene = data.pop("scene", None)
-        if isinstance(scene, Mapping) or scene is None:
-            data["scene"] = _scene_from_json(scene)
+        sca = data.get("sca", defaults.SCA)
+        if ramp_fields["ramp"] is not None or ramp_fields["ma_table"] is not None or preset != roman_default.NAME:
+            # A ramp given replaces the preset's readout; the Roman default's fit is romancal's likelihood fit.
+            default_fit = roman_default.RAMP_FIT if preset == roman_default.NAME else "ols"
+            ramp, exptime = ramps.build(
+                ramp_fields["ramp"],
+                ramp_fields["ma_table"],
+                ramp_fields["ramp_fit"] or default_fit,
+                ramp_fields["read_noise"],
+                given_exptime,
+                allow_files=allow_files,
+                sca=sca,
+                **{rule: ramp_fields[name] for name, rule in RAMP_RULE_FIELDS.items() if ramp_fields[name] is not None},
+            )
+            data["exptime"], data["ramp"] = exptime, ramp
+        if isinstance(scene, Mapping) and scene:
+            fields_ = {k: v for k, v in scene.items() if k != "preset"}
+            model = _scene_from_json({**fields_, "preset": preset})
+            if preset == roman_default.NAME and fields_.get("background") is None:
+                # The user's changes to the default keep its sky over this request's exposure.
+                filled = roman_default.fill(
+                    preset, roman.check_band(data.get("band", "")), roman.check_sca(sca), data.get("exptime"),
+                    data.get("ramp"), None, None,
+                )  # fmt: skip
+                model = replace(model, background_e=filled.background_e)
+            data["scene"] = model
+        elif isinstance(scene, Mapping) or scene is None or isinstance(scene, str):
+            data["scene"] = None if isinstance(scene, Mapping) else scene
         else:
             data["scene"] = scene
         return cls.from_mapping(data)
 
 
+def _preset_of(scene, preset: str | None) -> str:
+    """The preset a JSON request builds on: the scene's name or its ``preset`` key, else the default."""
+    from . import roman_default
+
+    named = scene if isinstance(scene, str) else scene.get("preset") if isinstance(scene, Mapping) else None
+    if named is not None and preset is not None and roman_default.check_preset(named) != roman_default.check_preset(preset):
+        raise InputError("scene", f"scene preset {named!r} and preset {preset!r} disagree; give one")
+    return roman_default.check_preset(named or preset or roman_default.NAME)
+
+
 def _scene_from_json(fields_: Mapping[str, Any] | None):
     if not fields_:
         return None
+    from . import roman_default
     from . import scene as scenes
 
+    data = dict(fields_)
+    named = data.pop("preset", None)
     try:
-        return scenes.from_request(dict(fields_))
+        base = roman_default.preset_base(named) if named is not None else None
+        return scenes.from_request(data, base=base)
     except InputError as error:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None

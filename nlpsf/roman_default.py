@@ -114,3 +114,110 @@ def scene(position: tuple[float, float] | None, background_e: float) -> scenes.S
 def conditions() -> list[dict]:
     """Every value of the default with its source, as an answer's conditions quote them."""
     return [v.as_dict() for v in VALUES]
+
+
+# --- what a request leaves unset -------------------------------------------------------------
+
+#: The scene presets a request may name: the Roman default; the paper's idealised scene (today's
+#: answers, bit for bit); GalSim's Roman constants (jitter 0.014", diffusion 0.1 px, flat f_nu, IPC,
+#: on the paper's final frame), the scene the GalSim cross-checks use.
+PRESETS: tuple[str, ...] = (NAME, "paper", "galsim-roman")
+
+
+def check_preset(name: str) -> str:
+    from .checks import InputError
+
+    if not isinstance(name, str) or name.strip().lower() not in PRESETS:
+        raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(PRESETS)}")
+    return name.strip().lower()
+
+
+@dataclass(frozen=True)
+class Filled:
+    """What a preset fills in where a request leaves it unset (None: keep the request's)."""
+
+    exptime: float
+    ramp: object  # ramps.Ramp | None
+    pupil_scale: str | None
+    linearise_at: str
+    background_e: float | None
+
+
+def fill(preset: str, band: str, sca: int, exptime: float | None, ramp, pupil_scale: str | None,
+         linearise_at: str | None) -> Filled:  # fmt: skip
+    """The request's readout, exposure, pupil rule and state with the preset's values where unset.
+
+    ``roman``: the HLWAS readout unless a ramp is given (``--ramp`` / ``--ma-table`` replace it),
+    its exposure (139.1 s) unless ``exptime`` is given (``ramps.build``'s rule: the table's last read
+    must fall within it), the official pupil scale, the corrected state, and the background over
+    that exposure. ``paper`` and ``galsim-roman``: the paper's final frame of 168.1 s, the tables'
+    pupil rule and the state beta0 -- today's request exactly."""
+    from . import defaults
+
+    if preset != NAME:
+        if exptime is None:
+            exptime = float(ramp.table.duration_s) if ramp is not None else defaults.EXPTIME_S
+        return Filled(exptime, ramp, pupil_scale, linearise_at or "beta0", None)
+    if ramp is None:
+        chosen = readout(band, sca, exptime)
+        ramp, exptime = chosen.ramp, chosen.exptime_s
+    elif exptime is None:
+        exptime = float(ramp.table.duration_s)
+    background = backgrounds.background_electrons(BACKGROUND, band, sca, exptime)
+    return Filled(float(exptime), ramp, pupil_scale or PUPIL_SCALE, linearise_at or LINEARISE_AT, background)
+
+
+def preset_scene(preset: str, position=None, background_e: float = 0.0) -> scenes.SceneModel | None:
+    """The scene of a preset (None for ``paper``: the solver's plain path, today's answers)."""
+    if preset == NAME:
+        return scene(position, background_e)
+    if preset == "galsim-roman":
+        return replace(scenes.preset("galsim-roman"), position=position)
+    return None if position is None else scenes.SceneModel(position=position)
+
+
+def preset_base(name: str) -> scenes.SceneModel:
+    """A preset's scene effects without position or sky: "roman" the default's (:func:`base_scene`),
+    "paper" and "galsim-roman" ``scene.preset``'s."""
+    name = check_preset(name)
+    return base_scene() if name == NAME else scenes.preset(name)
+
+
+def load_scene(name_or_path: str) -> scenes.SceneModel:
+    """A preset's base scene (:func:`preset_base`) or a scene saved as JSON (``scene.load``)."""
+    if isinstance(name_or_path, str) and name_or_path.strip().lower() in PRESETS:
+        return preset_base(name_or_path)
+    return scenes.load(name_or_path)
+
+
+def is_default_scene(model, background_e: float) -> bool:
+    """Whether ``model`` is the Roman default's scene (any position) with this background."""
+    return model is not None and replace(model, position=None) == scene(None, background_e)
+
+
+# --- the shipped field grid of the default ----------------------------------------------------
+
+#: The shipped 3 x 3 field grid of the default scene (built by ``nlpsf tables build --scene roman``).
+GRID_FILE = "roman_field_grid.npz"
+
+
+def grid_path():
+    from importlib import resources
+
+    return resources.files("nlpsf") / "data" / "tables" / GRID_FILE
+
+
+_GRID: dict = {}
+
+
+def field_grid():
+    """The shipped field grid of the default (``fieldgrid.FieldGrid``), None where none is installed."""
+    path = grid_path()
+    if not path.is_file():
+        return None
+    key = str(path)
+    if key not in _GRID:
+        from .fieldgrid import FieldGrid
+
+        _GRID[key] = FieldGrid.load(str(path))
+    return _GRID[key]

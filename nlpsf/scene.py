@@ -117,7 +117,7 @@ class SceneEffect:
     breaks_beta_q: bool
     combines_with: str
     is_on: Callable[[SceneModel], bool]
-    #: Part of the "roman" preset (at its nominal value).
+    #: Part of the "galsim-roman" preset (at its nominal value).
     in_roman_preset: bool = False
 
 
@@ -516,15 +516,21 @@ def brighter_fatter(charge: np.ndarray, coefficient: float, oversampling: int) -
 
 
 def preset(name: str) -> SceneModel:
-    # "roman": the registry's effects marked for it, at their nominal (GalSim Roman) values.
-    roman_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
-    presets = {"paper": SceneModel(name="paper"), "roman": SceneModel(name="roman", **roman_values)}
+    """A named scene of this module: "paper", the paper's idealised scene; "galsim-roman", GalSim's
+    Roman constants (the registry's effects marked for it at their nominal values: jitter 0.014",
+    diffusion 0.1 px, flat f_nu, GalSim's IPC), which the GalSim cross-checks use. The Roman
+    default's scene ("roman") is ``nlpsf.roman_default``'s (``roman_default.preset_base``), which
+    builds on this module."""
+    galsim_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
+    presets = {"paper": SceneModel(name="paper"), "galsim-roman": SceneModel(name="galsim-roman", **galsim_values)}
     if name not in presets:
-        raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(presets)}, or a JSON file")
+        hint = "; the Roman default's scene is nlpsf.roman_default.preset_base('roman')" if name == "roman" else ""
+        raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(PRESETS)}, or a JSON file{hint}")
     return presets[name]
 
 
-PRESETS = ("paper", "roman")
+#: This module's scene presets by name ("roman", the default's scene, is ``nlpsf.roman_default``'s).
+PRESETS = ("paper", "galsim-roman")
 
 
 def to_json(scene: SceneModel) -> str:
@@ -760,18 +766,21 @@ def check_first_order(scene: SceneModel, full_well: float) -> None:
         )
 
 
-def from_request(fields_: dict | None) -> SceneModel:
+def from_request(fields_: dict | None, base: SceneModel | None = None) -> SceneModel:
     """A scene from the REST API's ``scene`` object (no files on a server: tables and kernels inline).
 
     Keys: ``preset`` (paper | roman), ``position`` [x, y], ``sed`` (flat | blackbody:TEFF),
     ``sed_table`` [[nm, flux], ...] with ``sed_units``, ``jitter``, ``charge_diffusion``, ``ipc``
     (roman | alpha | 3x3 rows), ``ipc_order``, ``nl_coefficients`` (b3, b4, ...), ``bfe``,
-    ``background``, ``n_wavelengths``. Unset keys keep the preset's value.
+    ``background``, ``n_wavelengths``. Unset keys keep the preset's value. ``base``: the scene the
+    keys change when the caller resolved the preset (``nlpsf.roman_default.preset_base``).
     """
     if not fields_:
-        return SceneModel()
+        return base or SceneModel()
     data = {k: v for k, v in fields_.items() if v is not None}
-    base = preset(data.pop("preset")) if "preset" in data else SceneModel()
+    named = data.pop("preset", None)
+    if base is None:
+        base = preset(named) if named is not None else SceneModel()
     changes: dict = {}
     if "sed_table" in data:
         rows = data.pop("sed_table")

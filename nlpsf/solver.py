@@ -54,13 +54,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-from . import __version__, defaults, model_part, ramps, shear, tables
+from . import __version__, defaults, model_part, ramps, roman_default, shear, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
-    SimulationError,
 )
 from .fidelity import choose_fidelity, fidelity_error
 from .flags import Flag, FlagCode, make
@@ -71,12 +70,16 @@ from .magnitude_scan import scan_magnitude
 from .over_field import (  # noqa: F401
     _corner_tables,
     _tables_hold,
+    default_grid,
     field_points,
     field_tables,
+    grid_size,
     over_field_from_tables,
+    sca_range,
     worst_over_field,
 )
 from .request import SolveRequest
+from .slope_source import Slopes as _Slopes
 from .solution import Solution, Uncertainty
 from .solve_validity import (  # noqa: F401
     LINEAR_REGIME_LIMIT,
@@ -92,146 +95,13 @@ MODES = defaults.MODES
 FIDELITIES = levels.LEVELS
 
 
-class _Slopes:
-    """c(m) at the request's conditions, from the tables or from fresh simulations."""
-
-    def __init__(
-        self,
-        band: str,
-        sca: int,
-        metric: str,
-        mode: str,
-        beta0: float,
-        exptime: float,
-        fidelity: str,
-        tableset,
-        ramp: ramps.Ramp | None = None,
-        full_well: float = defaults.FULL_WELL_E,
-        throughput: str | None = None,
-        scene=None,
-        pupil_scale: str | None = None,
-        realizations: int | None = None,
-    ):
-        self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
-        self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
-        self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
-        self.ramp, self.full_well = ramp, full_well
-        self.scene_model = scene  # nlpsf.scene.SceneModel of the simulated levels (None: the paper's)
-        self.table = tableset.get(band, sca)
-        #: Centroids of the fresh simulations (the plan's, else the tables' own).
-        self.realizations = int(realizations or self.table.settings["realizations"])
-        #: Magnitudes the table was relabelled by for another throughput's photometry (0: none).
-        self.relabel_shift = 0.0
-        if throughput is not None:
-            self.table, self.relabel_shift = tables.with_throughput(self.table, throughput)
-        self._cache: dict[float, tuple[float, float]] = {}
-        self._scene = None  # experiment.Scene of the fresh simulations, prepared once per request
-        #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
-        self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
-        #: How the ramp's slopes were obtained in this request ("table", "simulation").
-        self.ramp_bases: set[str] = set()
-
-    @classmethod
-    def for_request(cls, request: SolveRequest, the_plan: SolvePlan) -> _Slopes:
-        return cls(
-            request.band,
-            request.sca,
-            request.metric,
-            request.mode,
-            request.beta0,
-            request.exptime,
-            the_plan.fidelity,
-            the_plan.tables,
-            request.ramp,
-            request.full_well,
-            throughput=request.throughput,
-            scene=the_plan.scene,
-            pupil_scale=request.pupil_scale,
-            realizations=the_plan.realizations,
-        )
-
-    @property
-    def prepared(self):
-        """The prepared simulation (``experiment.Scene``) of this request, None where none ran."""
-        return self._scene
-
-    @property
-    def table_beta0(self) -> float:
-        """The beta0 the tables are read at: beta_eff for a ramp that maps exactly."""
-        return self.beta0 * (self.ramp_factor or 1.0)
-
-    def range(self) -> tuple[float, float]:
-        return self.table.grid_range(self.exptime, self.table_beta0)
-
-    def exact_from(self) -> float:
-        """Faintest-side limit of the exact ramp mapping: brighter than this, the brightest pixel's
-        last resultant passes the full well and drops out of its fit."""
-        last = self.ramp.table.duration_s / self.exptime
-        return self.table.saturation(self.exptime, self.full_well) - 2.5 * math.log10(1.0 / last)
-
-    def from_table(self, magnitude: float) -> tuple[float, float, int]:
-        value, error, region = self.table.slope(self.metric, self.mode, magnitude, self.exptime, self.table_beta0)
-        scale = self.ramp_factor or 1.0  # d/d beta = c_2 d/d beta_eff
-        return float(value[0]) * scale, float(error[0]) * scale, int(region[0])
-
-    def at(self, magnitude: float) -> tuple[float, float, int]:
-        """(slope, uncertainty, region): region -1 brighter than the grid, 0 in it, +1 fainter."""
-        if self.ramp is not None:
-            return self._ramp_at(magnitude)
-        value, error, region = self.from_table(magnitude)
-        if self.fidelity == "table" or region < 0:
-            return value, error, region
-        return (*self._simulated(magnitude), region)
-
-    def _ramp_at(self, magnitude: float) -> tuple[float, float, int]:
-        exact = self.fidelity == "table" and self.ramp_factor is not None and magnitude >= self.exact_from()
-        if exact:
-            self.ramp_bases.add("table")
-            return self.from_table(magnitude)
-        self.ramp_bases.add("simulation")
-        hi = self.table.grid_range(self.exptime, self.beta0)[1]
-        return (*self._simulated(magnitude), 1 if magnitude > hi else 0)
-
-    def _simulated(self, magnitude: float) -> tuple[float, float]:
-        key = round(magnitude, 9)
-        if key not in self._cache:
-            self._cache[key] = self._simulate(magnitude)
-        return self._cache[key]
-
-    def _simulate(self, magnitude: float) -> tuple[float, float]:
-        from . import experiment  # the simulator: only fresh-simulation levels need it
-
-        # A ramp that the tables do not map exactly is simulated with the linear response.
-        level = levels.simulation_settings("linear" if self.fidelity == "table" else self.fidelity)
-        config = experiment.SimulationConfig.from_table(
-            self.table.settings,
-            band=self.band,
-            sca=self.sca,
-            exptime_s=self.exptime,
-            throughput=self.table.throughput,
-            method=level.method,
-            n_wavelengths=level.n_wavelengths,
-            realizations=self.realizations,
-            **({} if self.pupil_scale is None else {"pupil_scale": self.pupil_scale}),
-            **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
-            **({} if self.scene_model is None else {"scene": self.scene_model}),
-        )
-        if self._scene is None or self._scene.config != config:
-            self._scene = experiment.prepare(config)  # magnitude-independent: once per request
-        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene)[0]
-        value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
-        if value is None:
-            raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
-        return value, error
-
-
 def solve(
     band: str,
     sca: int = 18,
     metric: str = "size",
     mode: str = "bias",
     beta0: float = defaults.BETA0,
-    exptime: float = defaults.EXPTIME_S,
+    exptime: float | None = None,
     precision: float | None = None,
     tolerance: float | None = None,
     magnitude: float | None = None,
@@ -247,6 +117,8 @@ def solve(
     throughput: str | None = None,
     scene=None,
     pupil_scale: str | None = None,
+    linearise_at: str | None = None,
+    preset: str | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
@@ -269,12 +141,20 @@ def solve(
     :func:`nlpsf.accuracy.select`) and its uncertainty gains a ``model`` part for those left out.
 
     ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``) is the pupil-mask scale rule of fresh
-    simulations; None is the tables' own (galsim). Another rule is not in the tables, so a table
-    solve is then simulated (fidelity linear).
+    simulations; None is the preset's (roman: official; paper: the tables' own, galsim). Another
+    rule than the tables' is not in them, so a table solve is then simulated (fidelity linear).
+
+    The Roman default. ``scene`` None (or "roman") is the Roman star as observed
+    (``nlpsf.roman_default``): its scene at the position, the HLWAS readout and exposure unless
+    ``ramp`` / ``exptime`` are given, the official pupil scale and the corrected state
+    (``linearise_at``); without a position the answer is the most demanding of the SCA's field-grid
+    nodes, with the range in ``conditions["sca_range"]``. ``scene="paper"`` is the paper's
+    idealised scene and final frame (the shipped tables, today's answers), ``"galsim-roman"``
+    GalSim's Roman constants on it; ``preset`` names the base when ``scene`` is a ``SceneModel``.
     """
     request = SolveRequest(
         band, sca, metric, mode, beta0, exptime, precision, tolerance, magnitude, full_well, fidelity, accuracy,
-        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale,
+        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale, linearise_at, preset,
     )  # fmt: skip
     return answer(request, tables_set)
 
@@ -294,6 +174,8 @@ class SolvePlan:
     notes: tuple[Flag, ...]
     #: Centroids of the fresh simulations (None: the tables' own; ``accuracy`` sets its own).
     realizations: int | None = None
+    #: The Roman default's field grid the slopes are read from (None: tables or simulations).
+    grid: object | None = None
 
     @property
     def reads(self) -> str:
@@ -309,9 +191,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         point = request.magnitude
         if point is None:
             # The effects are measured where the answer will be: a first, table-level pass finds it.
-            first = answer(
-                request.with_changes(fidelity="table", accuracy=None, ramp=None, scene=None, pupil_scale=None), tables_set
-            )
+            first = answer(request.table_pass(), tables_set)
             point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
         from .accuracy import select  # impacts measured inside the full scene; the simulator is loaded there
 
@@ -323,17 +203,27 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         # A star at a corner field point: its own shipped table holds it.
         tables_set = _corner_tables(simulated_scene, request.sca)
     tables_set = tables_set or tables.load_tables()
+    grid, grid_miss = (None, None) if request.preset != roman_default.NAME else default_grid(request, chosen)
     needs_simulation = (
         simulated_scene is not None
         and not simulated_scene.is_paper
         and not _tables_hold(simulated_scene, tables_set, request.band, request.sca)
     )
-    if chosen == "table" and needs_simulation:
-        notes.append(make(FlagCode.SCENE_SIMULATED))
+    if grid is not None:
+        notes.append(make(FlagCode.DEFAULT_FROM_GRID, grid=grid_size(grid, request), scheme="lagrange",
+                          x=request.scene.position[0], y=request.scene.position[1]))  # fmt: skip
+    elif chosen == "table" and needs_simulation:
+        if request.preset == roman_default.NAME:
+            notes.append(make(FlagCode.DEFAULT_SIMULATED, why=grid_miss))
+        else:
+            notes.append(make(FlagCode.SCENE_SIMULATED))
         chosen = "linear"
     table_rule = str(tables_set.get(request.band, request.sca).settings["pupil_scale"])
-    if request.pupil_scale is not None and request.pupil_scale != table_rule and chosen == "table":
+    if grid is None and request.pupil_scale is not None and request.pupil_scale != table_rule and chosen == "table":
         notes.append(make(FlagCode.PUPIL_SCALE_SIMULATED, table_rule=table_rule, rule=request.pupil_scale))
+        chosen = "linear"
+    if grid is None and request.linearise_at != "beta0" and chosen == "table":
+        notes.append(make(FlagCode.LINEARISED_SIMULATED, state=request.linearise_at))
         chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
@@ -343,7 +233,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
     realizations = selection.realizations if request.accuracy is not None else None
-    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations)
+    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations=realizations, grid=grid)
 
 
 @dataclass(frozen=True)
@@ -388,6 +278,11 @@ class _Answer:
 def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty."""
     start = time.perf_counter()
+    if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
+        # The Roman default depends on the position: without one, the range over the SCA. (With an
+        # accuracy, the answer is for the SCA centre: nlpsf.accuracy measures inside that full scene.)
+        ranged = sca_range(answer, request, tables_set)
+        return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
     slopes = _Slopes.for_request(request, the_plan)
@@ -405,6 +300,8 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
+    if slopes.grid_misses:
+        flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
     conditions = _conditions(request, the_plan, slopes)
     shear_answer = None
     if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
@@ -531,6 +428,17 @@ def _conditions(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> 
     conditions.update(
         fidelity=the_plan.fidelity, code_version=__version__, relation=relation, stars=request.stars, applies_to=applies_to
     )
+    # Which scene the answer is for, and the detector state its slope is taken at.
+    conditions["scene_name"] = request.preset
+    conditions["linearise_at"] = request.linearise_at
+    if request.preset == roman_default.NAME:
+        conditions["roman_default"] = roman_default.conditions()
+        own = roman_default.fill(roman_default.NAME, request.band, request.sca, request.exptime, None, None, None)
+        conditions["roman_default_changed"] = not roman_default.is_default_scene(request.scene, own.background_e) or (
+            request.ramp != own.ramp
+        )
+    if the_plan.grid is not None:
+        conditions["slopes_from"] = f"the Roman default's field grid ({roman_default.GRID_FILE})"
     ramp = request.ramp
     if ramp is None:
         conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
@@ -589,6 +497,8 @@ _fidelity_error = fidelity_error  # the old private name (app/api.py calls it)
 
 def _ramp_basis(slopes: _Slopes) -> str:
     parts = []
+    if "grid" in slopes.ramp_bases:
+        parts.append("the Roman default's field grid (its ramp simulated at every node)")
     if "table" in slopes.ramp_bases:
         parts.append(
             f"tables at beta_eff = {slopes.ramp_factor:.6g} beta0 "

@@ -79,8 +79,9 @@ def add_ramp_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--ramp-fit",
         choices=defaults.RAMP_FITS,
-        default="ols",
-        help="slope fit: ols (ordinary least squares) or optimal (read + Poisson noise weighting)",
+        default=None,
+        help="slope fit: ols (ordinary least squares) or optimal (read + Poisson noise weighting); default ols, "
+        "optimal (romancal's likelihood fit) for the Roman default's solve",
     )
     parser.add_argument(
         "--read-noise",
@@ -107,8 +108,8 @@ def add_ramp_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def ramp_from(args: argparse.Namespace):
-    """(ramps.Ramp or None, exposure time [s]) for these options."""
+def ramp_from(args: argparse.Namespace, default_fit: str = "ols"):
+    """(ramps.Ramp or None, exposure time [s]) for these options (``default_fit`` unless --ramp-fit)."""
     from ..ramps import build
 
     sca = getattr(args, "sca", None)
@@ -116,7 +117,7 @@ def ramp_from(args: argparse.Namespace):
     return build(
         args.ramp,
         args.ma_table,
-        args.ramp_fit,
+        args.ramp_fit or default_fit,
         args.read_noise,
         args.exptime if args.exptime_given else None,
         sca=sca if isinstance(sca, int) else defaults.SCA,  # the official read noise of this SCA unless given
@@ -153,8 +154,9 @@ def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = Tru
     parser.add_argument(
         "--pupil-scale",
         choices=defaults.PUPIL_SCALE_RULES,
-        default=defaults.PUPIL_SCALE,
-        help="pupil mask scale rule (see nlpsf/data/SOURCES.md)",
+        default=None,
+        help="pupil mask scale rule (see nlpsf/data/SOURCES.md); default official for the Roman default, "
+        f"{defaults.PUPIL_SCALE} for --scene paper",
     )
     add_throughput(parser)
     parser.add_argument(
@@ -174,7 +176,11 @@ def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = Tru
 def add_scene_options(parser: argparse.ArgumentParser) -> None:
     """The scene effects (``nlpsf.scene``): all off unless asked for; a preset or file first, then overrides."""
     group = parser.add_argument_group("scene", "effects beyond the paper's scene (all off by default)")
-    group.add_argument("--scene", help="a preset (paper; roman: Roman's jitter, diffusion, IPC, flat f_nu) or a JSON file")
+    group.add_argument(
+        "--scene",
+        help="a preset (roman: the Roman default, solve's default; paper: the paper's idealised scene and final frame; "
+        "galsim-roman: GalSim's Roman jitter 0.014\", diffusion 0.1 px, IPC, flat f_nu) or a JSON file",
+    )
     group.add_argument("--position", help="X,Y on the SCA [pixels, 1-4088] (default the centre)")
     group.add_argument("--sed", help="star SED: flat (f_nu), blackbody:TEFF, or a two-column file (nm, flux)")
     group.add_argument("--sed-units", choices=("flambda", "fnu"), default="flambda", help="what a SED file's flux column is")
@@ -207,8 +213,13 @@ def scene_from(args: argparse.Namespace):
         b2, higher = values[0], values[1:]
         if getattr(args, "beta_convention", "paper") == "galsim":
             higher = tuple(-c for c in higher)  # the scene holds the paper's convention
+    base = getattr(args, "scene", None)
+    if isinstance(base, str):
+        from .. import roman_default
+
+        base = roman_default.load_scene(base)  # a preset's scene (the default's "roman" included) or a file
     model = scenes.from_options(
-        getattr(args, "scene", None),
+        base,
         position=getattr(args, "position", None),
         sed=getattr(args, "sed", None),
         sed_units=getattr(args, "sed_units", "flambda"),
@@ -236,20 +247,64 @@ def beta_from_coefficients(given: float | None, b2: float | None, default: float
     return b2
 
 
-def config_from(args: argparse.Namespace):
-    """The simulator's configuration for these options (validated by the library)."""
+def simulation_preset(args: argparse.Namespace) -> str:
+    """The preset a simulating command builds on: the Roman default unless ``--scene`` names
+    another preset or a file (a file's scene on the paper's readout, as before)."""
+    from .. import roman_default
+
+    given = getattr(args, "scene", None)
+    if given is None or given.strip().lower() == roman_default.NAME:
+        return roman_default.NAME
+    return given.strip().lower() if given.strip().lower() in roman_default.PRESETS else "paper"
+
+
+def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
+    """The simulator's configuration for these options (validated by the library).
+
+    ``roman_default_applies`` (``simulate``, ``slopes``): without ``--scene`` (or with ``--scene
+    roman``) the star is the Roman default's (``nlpsf.roman_default``: its scene at ``--position``
+    or the SCA centre, its sky, the HLWAS readout and exposure unless ``--ramp`` / ``--ma-table`` /
+    ``--exptime`` are given, the official pupil scale unless ``--pupil-scale``); the scene options
+    change only what they name. Otherwise (and with ``--scene paper``) the paper's, as before."""
+    from .. import roman_default
     from ..experiment import SimulationConfig
 
-    ramp, exptime = ramp_from(args)
+    preset = simulation_preset(args) if roman_default_applies else "paper"
+    settings = dict(vars(args))
+    if preset == roman_default.NAME:
+        ramp, exptime = ramp_from(args, roman_default.RAMP_FIT)
+        sca = args.sca if isinstance(args.sca, int) else defaults.SCA
+        filled = roman_default.fill(
+            preset, args.band, sca, exptime if ramp is not None or args.exptime_given else None, ramp, None, None
+        )
+        ramp, exptime = filled.ramp, filled.exptime
+        scene = scene_from(argparse.Namespace(**{**settings, "scene": roman_default.scene(None, filled.background_e)}))[0]
+        settings["pupil_scale"] = args.pupil_scale or filled.pupil_scale
+    else:
+        ramp, exptime = ramp_from(args)
+        scene = scene_from(args)[0]
+        settings["pupil_scale"] = args.pupil_scale or defaults.PUPIL_SCALE
     # The options named as the fields are taken as they are; these differ in name or meaning.
     return SimulationConfig.from_settings(
-        vars(args),
+        settings,
         exptime_s=exptime,
         full_well_e=args.full_well,
         weight_cut_rho2=args.weight_cut,
-        scene=scene_from(args)[0],
+        scene=scene,
         ramp=ramp,
     )
+
+
+def with_default_conditions(payloads: list[dict], args: argparse.Namespace) -> list[dict]:
+    """Results of the Roman default (``simulate``, ``slopes``) with its values and their sources in
+    their conditions, as a solve quotes them; other presets' results as they are."""
+    from .. import roman_default
+
+    if simulation_preset(args) != roman_default.NAME:
+        return payloads
+    values = roman_default.conditions()
+    return [{**p, "conditions": {**p.get("conditions", {}), "scene_name": roman_default.NAME, "roman_default": values}}
+            for p in payloads]  # fmt: skip
 
 
 def print_json(payload: Any) -> None:

@@ -7,7 +7,16 @@ import sys
 
 from .. import defaults
 from . import progress_printer
-from .options import add_simulation_options, beta_from_coefficients, config_from, number, print_json, scene_from, with_error
+from .options import (
+    add_simulation_options,
+    beta_from_coefficients,
+    config_from,
+    number,
+    print_json,
+    scene_from,
+    with_default_conditions,
+    with_error,
+)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +41,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from .. import experiment
 
-    config = config_from(args)
+    config = config_from(args, roman_default_applies=True)
     magnitudes = args.magnitude or [defaults.MAGNITUDE]
     betas = args.beta or [defaults.BETA0 if args.beta_convention == "paper" else -defaults.BETA0]
     b2 = scene_from(args)[1]
@@ -48,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     )
     all_failed = all(r.dR_over_R.count == 0 for r in results)
     if args.json:
-        payload = [r.to_dict() for r in results]
+        payload = with_default_conditions([r.to_dict() for r in results], args)
         print_json(payload[0] if len(payload) == 1 else payload)
     else:
         _print_table(config, results, args.sigma_beta)

@@ -6,7 +6,15 @@ import argparse
 
 from .. import defaults
 from . import progress_printer
-from .options import add_simulation_options, beta_from_coefficients, config_from, print_json, scene_from, with_error
+from .options import (
+    add_simulation_options,
+    beta_from_coefficients,
+    config_from,
+    print_json,
+    scene_from,
+    with_default_conditions,
+    with_error,
+)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -34,16 +42,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--linearise-at",
         choices=LINEARISE_STATES,
-        default="beta0",
-        help="where the slope is taken: beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
+        default=None,
+        help="where the slope is taken (default corrected for the Roman default, beta0 for --scene paper): "
+        "beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
         "linearity correction: a residual NL of 1%% of beta0, saturation flagged at the raw beta0)",
     )
+
+
+def _state(args: argparse.Namespace) -> str:
+    from .. import roman_default
+    from .options import simulation_preset
+
+    return roman_default.LINEARISE_AT if simulation_preset(args) == roman_default.NAME else "beta0"
 
 
 def run(args: argparse.Namespace) -> int:
     from .. import experiment
 
-    config = config_from(args)
+    config = config_from(args, roman_default_applies=True)
     args.beta0 = beta_from_coefficients(args.beta0, scene_from(args)[1], defaults.BETA0)
     magnitudes = args.magnitude or list(defaults.PAPER_MAGNITUDES)
     results = experiment.slopes(
@@ -52,11 +68,11 @@ def run(args: argparse.Namespace) -> int:
         beta0=args.beta0,
         sigma_beta=args.sigma_beta,
         beta_convention=args.beta_convention,
-        linearise_at=args.linearise_at,
+        linearise_at=args.linearise_at or _state(args),
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:
-        print_json([r.to_dict() for r in results])
+        print_json(with_default_conditions([r.to_dict() for r in results], args))
         return 0
     print(
         f"{config.band} SCA {config.sca}, beta0={args.beta0:g} /e- ({args.beta_convention} convention), {config.exptime_s:g} s, "

@@ -80,6 +80,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help=f"pupil mask scale rule of fresh simulations: default the tables' own ({defaults.PUPIL_SCALE}); "
         "another one simulates (fidelity linear); see nlpsf/data/SOURCES.md",
     )
+    from ..experiment.config import LINEARISE_STATES
+
+    parser.add_argument(
+        "--linearise-at",
+        choices=LINEARISE_STATES,
+        default=None,
+        help="the detector state the slope is taken at: corrected (after the pipeline's linearity correction; the "
+        "Roman default's) or beta0 (the uncorrected detector; the paper's, --scene paper's default)",
+    )
     add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
     parser.add_argument(
@@ -130,8 +139,17 @@ ANSWER_COLUMNS = (
 #: The options that are SolveRequest fields as they are (exptime, scene and ramp are built from others).
 _REQUEST_OPTIONS = (
     "band", "sca", "metric", "mode", "beta0", "precision", "tolerance", "magnitude", "full_well", "fidelity",
-    "accuracy", "throughput", "shear_m", "shear_c", "size_ratio", "stars", "pupil_scale",
+    "accuracy", "throughput", "shear_m", "shear_c", "size_ratio", "stars", "pupil_scale", "linearise_at",
 )  # fmt: skip
+
+
+def _readout(args: argparse.Namespace, preset: str):
+    """(ramp, exptime) of the options: None, None where the preset's own readout applies (the Roman
+    default's HLWAS ramp and exposure; the paper's 168.1 s final frame)."""
+    from ..roman_default import NAME, RAMP_FIT
+
+    ramp, exptime = ramp_from(args, RAMP_FIT if preset == NAME else "ols")
+    return ramp, (exptime if ramp is not None or args.exptime_given else None)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -140,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.batch:
         return run_batch(args)
-    ramp, exptime = ramp_from(args)
+    scene, preset = _scene(args)
+    ramp, exptime = _readout(args, preset)
     if args.over_field:
         if ramp is not None:
             from ..checks import InputError
@@ -149,7 +168,9 @@ def run(args: argparse.Namespace) -> int:
         solution = solve_over_field(
             args.band,
             "all" if args.sca == "all" else [args.sca],
-            scene=_scene(args),
+            scene=scene,
+            preset=preset,
+            linearise_at=args.linearise_at,
             progress=progress_printer(not args.json),
             metric=args.metric,
             mode=args.mode,
@@ -177,12 +198,13 @@ def run(args: argparse.Namespace) -> int:
         {
             **{name: getattr(args, name) for name in _REQUEST_OPTIONS},
             "exptime": exptime,
-            "scene": _scene(args),
+            "scene": scene,
+            "preset": preset,
             "ramp": ramp,
         }
     )
     solution = answer(request)
-    return _report(solution, args, ramp)
+    return _report(solution, args, request.ramp)
 
 
 def _report(solution, args: argparse.Namespace, ramp=None) -> int:
@@ -194,6 +216,10 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
         f"{solution.band} SCA {solution.sca}, {solution.metric} {solution.mode}, beta0={solution.beta0:g} /e-, "
         f"{solution.exptime:g} s, full well {solution.full_well:.4g} e-, fidelity {solution.fidelity}"
     )
+    if solution.conditions.get("scene_name") == "roman":
+        changed = " (changed by the options given)" if solution.conditions.get("roman_default_changed") else ""
+        scene = solution.conditions.get("scene_description", "")
+        print(f"  scene      the Roman default{changed}: {scene}; linearised at {solution.conditions['linearise_at']}")
     units = {"precision": "(fraction of beta0)", "tolerance": _tolerance_unit(solution.metric), "magnitude": "AB"}
     for name in ("precision", "tolerance", "magnitude"):
         value = payload[name]
@@ -246,7 +272,38 @@ def _percent(value: float | None, signed: bool = True) -> str:
 
 
 def _scene(args: argparse.Namespace):
-    """The scene options, or None when none was given (the paper's scene, the tables' answer)."""
+    """(scene, preset): the scene options on their base -- the Roman default unless ``--scene``
+    names another preset or a file -- or (None, preset) when no effect was changed (the preset's
+    own scene: the Roman default's at the star's position, or the paper's)."""
+    from .. import roman_default
+
+    preset = roman_default.NAME
+    if args.scene is not None and args.scene.strip().lower() in roman_default.PRESETS:
+        preset = roman_default.check_preset(args.scene)
+    changed = any(
+        getattr(args, name, None) is not None
+        for name in ("position", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background")
+    )
+    if not changed and (args.scene is None or preset != roman_default.NAME or args.scene.strip().lower() == preset):
+        return None, preset  # the preset's own scene (the request fills it)
+    if preset == roman_default.NAME and (args.scene is None or args.scene.strip().lower() == preset):
+        # Options change only what they name of the Roman default; its sky stays unless --background.
+        return _default_with_changes(args), preset
+    return _scene_of_options(args), preset
+
+
+def _default_with_changes(args: argparse.Namespace):
+    from .. import roman_default
+
+    sca = args.sca if isinstance(args.sca, int) else 18
+    ramp, exptime = _readout(args, roman_default.NAME)
+    filled = roman_default.fill(roman_default.NAME, args.band, sca, exptime, ramp, None, None)
+    base = roman_default.scene(None, filled.background_e)
+    return _scene_of_options(argparse.Namespace(**{**vars(args), "scene": base}))
+
+
+def _scene_of_options(args: argparse.Namespace):
+    """The scene options on ``args.scene`` (a preset, a file or a SceneModel), or None when none was given."""
     given = any(
         getattr(args, name, None) is not None
         for name in (
@@ -317,7 +374,8 @@ def run_batch(args: argparse.Namespace) -> int:
     from ..request import SolveRequest
     from ..solver import answer
 
-    ramp, exptime = ramp_from(args)
+    scene, preset = _scene(args)
+    ramp, exptime = _readout(args, preset)
     try:
         with open(args.batch, newline="", encoding="utf-8") as handle:
             rows = list(csv.DictReader(handle))
@@ -330,8 +388,11 @@ def run_batch(args: argparse.Namespace) -> int:
             row_ramp = ramp
             if ramp is not None and args.read_noise is None and arguments["sca"] != args.sca:
                 # No read noise given: each row's ramp fit uses its own SCA's official value.
-                row_ramp = ramp_from(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}))[0]
-            request = SolveRequest.from_mapping({**arguments, "ramp": row_ramp, "pupil_scale": args.pupil_scale})
+                row_ramp = _readout(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}), preset)[0]
+            request = SolveRequest.from_mapping(
+                {**arguments, "ramp": row_ramp, "pupil_scale": args.pupil_scale, "scene": scene, "preset": preset,
+                 "linearise_at": args.linearise_at}
+            )  # fmt: skip
             solution = answer(request)
             answers.append({"index": index, "ok": True, "solution": solution.to_dict()})
         except (InputError, SimulationError) as error:

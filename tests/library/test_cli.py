@@ -110,13 +110,13 @@ def test_slopes_command(capsys):
 
 def test_readable_table_without_json(capsys):
     # m = 17.5 is just past saturation (m = 18.03): flagged, but the moments still converge.
-    code, out, _ = run(capsys, "simulate", "--magnitude", "17.5", "--realizations", "3")
+    code, out, _ = run(capsys, "simulate", "--magnitude", "17.5", "--realizations", "3", "--scene", "paper")
     assert code == 0 and "dR/R" in out and "saturated" in out and "±" in out
 
 
 def test_every_realization_failing_exits_1(capsys):
     # m = 14 drives 1 - 2 beta Q negative at the core: every adaptive-moment fit fails.
-    code, out, err = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3")
+    code, out, err = run(capsys, "simulate", "--magnitude", "14", "--realizations", "3", "--scene", "paper")
     assert code == 1 and "failed in 3 of 3" in out and "every realization" in err
 
 
@@ -218,15 +218,16 @@ def test_solve_batch_answers_each_csv_row_on_its_own(capsys, tmp_path):
 
     batch = tmp_path / "requests.csv"
     batch.write_text("band,metric,magnitude,tolerance,precision\nH158,size,18.3,1e-4,\nJ129,e1,,1e-4,0.01\nH158,size,abc,1e-4,\n")
-    code, out, err = run(capsys, "solve", "--batch", str(batch))
+    code, out, err = run(capsys, "solve", "--batch", str(batch), "--scene", "paper")
     assert code == 1 and "1 of 3 rows" in err
     rows = list(csv.DictReader(io.StringIO(out)))
     assert [r["error_field"] for r in rows] == ["", "", "magnitude"]
-    assert float(rows[0]["precision"]) == pytest.approx(solve("H158", magnitude=18.3, tolerance=1e-4).precision, rel=1e-12)
-    expected = solve("J129", metric="e1", tolerance=1e-4, precision=0.01)
+    paper = solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper")
+    assert float(rows[0]["precision"]) == pytest.approx(paper.precision, rel=1e-12)
+    expected = solve("J129", metric="e1", tolerance=1e-4, precision=0.01, scene="paper")
     assert rows[1]["solved_for"] == "magnitude" and float(rows[1]["magnitude"]) == pytest.approx(expected.magnitude, rel=1e-12)
     assert rows[1]["binding_limit"] == (expected.binding_limit or "")
-    code, out, _ = run(capsys, "solve", "--batch", str(batch), "--json")
+    code, out, _ = run(capsys, "solve", "--batch", str(batch), "--json", "--scene", "paper")
     answers = json.loads(out)
     assert [a["ok"] for a in answers] == [True, True, False] and answers[2]["error"]["field"] == "magnitude"
 
@@ -250,8 +251,9 @@ def test_every_pupil_scale_rule_reaches_the_simulation(capsys):
 
 def test_cli_simulate_with_scene_options_matches_the_library(capsys):
     code, out, _ = run(
-        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json"
-    )
+        capsys, "simulate", "--realizations", "4", "--jitter", "0.014", "--ipc", "roman", "--position", "100,200", "--json",
+        "--scene", "paper",
+    )  # fmt: skip
     assert code == 0
     got = json.loads(out)
     model = scenes.SceneModel(position=(100.0, 200.0), jitter_arcsec=0.014, ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman")
@@ -335,8 +337,9 @@ def test_cli_impact_contract(capsys):
 
 def test_cli_over_field_and_sca_all(capsys):
     code, out, _ = run(
-        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json"
-    )
+        capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", "--magnitude", "19", "--tolerance", "1e-4", "--json",
+        "--scene", "paper",
+    )  # fmt: skip
     assert code == 0
     got = json.loads(out)
     assert len(got["conditions"]["over_field"]) == 5 and got["flag_codes"][0] == "worst_over_field"
@@ -344,11 +347,11 @@ def test_cli_over_field_and_sca_all(capsys):
     assert code == 2 and "--sca" in err
     # The options the plain solve takes reach the over-field answer too (they were once dropped).
     options = ["--magnitude", "19", "--tolerance", "1e-4", "--mode", "scatter", "--stars", "16", "--throughput", "galsim-2021"]
-    code, out, err = run(capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json")
+    code, out, err = run(capsys, "solve", "--band", "J129", "--sca", "3", "--over-field", *options, "--json", "--scene", "paper")
     assert code == 0, err
     got = json.loads(out)
     library = solver.solve_over_field(
-        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4
+        "J129", [3], mode="scatter", stars=16, throughput="galsim-2021", magnitude=19.0, tolerance=1e-4, scene="paper"
     )
     assert got["precision"] == pytest.approx(library.precision, rel=1e-12)
     assert got["conditions"]["throughput"] == "galsim-2021" and got["conditions"]["stars"] == 16

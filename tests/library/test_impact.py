@@ -1,15 +1,19 @@
 """The impact report: its contract, and its linear-response numbers against Monte Carlo."""
 
+import functools
 import json
 import math
 from dataclasses import replace
 
 import pytest
 
-from nlpsf import experiment, impact
+from nlpsf import experiment, impact, solver
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode
+
+# The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
+paper_solve = functools.partial(solver.solve, preset="paper")
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +84,6 @@ def test_bad_requests_are_refused_by_name():
 def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene():
     import numpy as np
 
-    from nlpsf import solver
-
     full = scenes.SceneModel()
     for name in ("sed", "jitter", "charge_diffusion", "ipc", "nl_polynomial", "background"):
         full = full.with_nominal(name)
@@ -89,11 +91,11 @@ def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene(
     rng = np.random.default_rng(8)
     points = [("H158", 18, float(18.3 + rng.uniform(0, 2))), ("J129", int(rng.integers(1, 19)), float(19 + rng.uniform(0, 2)))]
     for band, sca, magnitude in points:
-        reference = solver.solve(band, sca, magnitude=magnitude, tolerance=1e-4, fidelity="monte_carlo", scene=full)
+        reference = paper_solve(band, sca, magnitude=magnitude, tolerance=1e-4, fidelity="monte_carlo", scene=full)
         included = []
         for accuracy in (0.1, 0.01, 0.002):
             # Held to this test's full scene (without a scene, accuracy is held to the Roman default's).
-            answer = solver.solve(band, sca, magnitude=magnitude, tolerance=1e-4, accuracy=accuracy, scene=full)
+            answer = paper_solve(band, sca, magnitude=magnitude, tolerance=1e-4, accuracy=accuracy, scene=full)
             included.append({e["name"] for e in answer.model["included"]})
             left = [p for p in answer.model["left_out"] if p["impact"] is not None]
             assert all(abs(p["impact"]) <= accuracy for p in left if p["name"] not in ("position", "pupil_scale"))
@@ -117,7 +119,7 @@ def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene(
 def test_over_field_answers_for_the_worst_field_point():
     from nlpsf import solver
 
-    worst = solver.solve_over_field("H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4)
+    worst = solver.solve_over_field("H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4, preset="paper")
     points = worst.conditions["over_field"]
     assert len(points) == 5 and {tuple(p["position"]) for p in points} == set(solver.field_points(18))
     assert worst.precision == min(p["precision"] for p in points)
@@ -126,20 +128,22 @@ def test_over_field_answers_for_the_worst_field_point():
     # which finds that corner's shipped table by itself.
     assert worst.conditions["fidelity"] == "table"
     corner = points[1]
-    direct = solver.solve("H158", 18, "e1", magnitude=18.3, tolerance=1e-4, scene=scenes.SceneModel(position=corner["position"]))
+    direct = paper_solve("H158", 18, "e1", magnitude=18.3, tolerance=1e-4, scene=scenes.SceneModel(position=corner["position"]))
     assert direct.precision == corner["precision"] and direct.conditions["fidelity"] == "table"
     # Elsewhere on the SCA no table holds the star: it is simulated.
-    between = solver.solve("H158", 18, "e1", magnitude=18.3, tolerance=1e-4, scene=scenes.SceneModel(position=(1000.0, 1000.0)))
+    between = paper_solve("H158", 18, "e1", magnitude=18.3, tolerance=1e-4, scene=scenes.SceneModel(position=(1000.0, 1000.0)))
     assert between.conditions["fidelity"] == "linear"
     # A point's position is given, so its spread over the SCA is not in the model uncertainty.
     assert "position" not in {part["name"] for part in direct.model["left_out"]}
     # Simulating every point instead (linear response, same centroids) gives the same answers
     # within the tables' own statistical + interpolation error.
-    simulated = solver.solve_over_field("H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4, fidelity="linear")
+    simulated = solver.solve_over_field(
+        "H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4, fidelity="linear", preset="paper"
+    )
     for tabulated, fresh in zip(points, simulated.conditions["over_field"], strict=True):
         assert tabulated["position"] == fresh["position"]
         here = scenes.SceneModel(position=tabulated["position"])
-        at = solver.solve("H158", 18, "e1", magnitude=18.3, tolerance=1e-4, scene=here)
+        at = paper_solve("H158", 18, "e1", magnitude=18.3, tolerance=1e-4, scene=here)
         assert abs(tabulated["precision"] - fresh["precision"]) <= 3 * at.uncertainty_statistical
     with pytest.raises(InputError, match="position"):
         solver.solve_over_field("H158", [18], scene=scenes.SceneModel(position=(5.0, 5.0)), magnitude=18.3, tolerance=1e-4)
@@ -148,17 +152,15 @@ def test_over_field_answers_for_the_worst_field_point():
 def test_background_moves_the_saturation_limit_and_stops_the_table_rescaling():
     import math
 
-    from nlpsf import solver
-
-    plain = solver.solve("H158", magnitude=19.0, tolerance=1e-4)
-    with_background = solver.solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=5e4))
+    plain = paper_solve("H158", magnitude=19.0, tolerance=1e-4)
+    with_background = paper_solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=5e4))
     # The star saturates where its peak reaches the well minus the background: a flux ratio.
     shift = with_background.saturation_magnitude - plain.saturation_magnitude
     assert shift == pytest.approx(2.5 * math.log10(1.1e5 / 6e4), rel=1e-9)
     assert with_background.fidelity == "linear"
     assert any(f.code == FlagCode.BETA_Q_RULE_BROKEN and f.values["names"] == ["background"] for f in with_background.flags)
     with pytest.raises(InputError, match="background"):
-        solver.solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=2e5))
+        paper_solve("H158", magnitude=19.0, tolerance=1e-4, scene=scenes.SceneModel(background_e=2e5))
 
 
 def test_a_capped_sed_says_it_has_fewer_wavelengths_than_its_accuracy_needs():

@@ -9,6 +9,7 @@ uncertainty covers a full Roman-scene simulation at random points.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import math
 from dataclasses import replace
@@ -19,6 +20,9 @@ import pytest
 
 from nlpsf import impact, roman, solver
 from nlpsf import scene as scenes
+
+# The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
+paper_solve = functools.partial(solver.solve, preset="paper")
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "model_uncertainty.py"
 
@@ -71,7 +75,7 @@ def test_every_band_mode_and_metric_is_shipped_with_brighter_fatter_unmeasured(s
 
 
 def test_a_table_answer_carries_the_shipped_model_part(shipped):
-    answer = solver.solve("H158", 18, "size", magnitude=20.0, precision=0.01)
+    answer = paper_solve("H158", 18, "size", magnitude=20.0, precision=0.01)
     entry = shipped["per_band"]["H158"]["bias"]["size"]["per_sca"]["18"]
     model = answer.model
     # The effects left out add up (a Roman star has them all at once): their plain sum.
@@ -88,29 +92,29 @@ def test_a_table_answer_carries_the_shipped_model_part(shipped):
     expected = math.hypot(answer.uncertainty_statistical, answer.uncertainty_fidelity, effects, optics)
     assert answer.uncertainty == pytest.approx(expected, rel=1e-12)
     # An SCA the measurement does not cover reads the worst over those it does.
-    other = solver.solve("H158", 5, "size", magnitude=20.0, precision=0.01).model
+    other = paper_solve("H158", 5, "size", magnitude=20.0, precision=0.01).model
     worst = shipped["per_band"]["H158"]["bias"]["size"]
     assert other["effects_relative"] == pytest.approx(worst["effects_bound"]) and "SCA 5 is not measured" in other["basis"]
 
 
 def test_e_components_are_scaled_from_the_modulus_as_the_optical_part_is():
-    answer = solver.solve("H158", 18, "e1", magnitude=20.0, precision=0.01)
+    answer = paper_solve("H158", 18, "e1", magnitude=20.0, precision=0.01)
     ratio = answer.uncertainty_optical_model / (answer.tolerance * roman.optical_model_uncertainty("H158", "e1"))
     assert answer.model["component_scale"] == pytest.approx(ratio, rel=1e-12) and ratio > 1
 
 
 def test_effects_the_scene_simulates_are_not_left_out():
     given = scenes.SceneModel(jitter_arcsec=0.014, position=(100.0, 200.0))
-    answer = solver.solve("H158", 18, "size", magnitude=20.0, precision=0.01, scene=given)
+    answer = paper_solve("H158", 18, "size", magnitude=20.0, precision=0.01, scene=given)
     names = {p["name"] for p in answer.model["left_out"]}
     assert "jitter" not in names and "position" not in names and "ipc" in names
     assert {e["name"] for e in answer.model["included"]} == {"jitter", "position"}
-    poly = solver.solve("H158", 18, "size", magnitude=20.0, precision=0.01, fidelity="polychromatic")
+    poly = paper_solve("H158", 18, "size", magnitude=20.0, precision=0.01, fidelity="polychromatic")
     assert "sed" not in {p["name"] for p in poly.model["left_out"]}
 
 
 def test_a_magnitude_answer_divides_by_the_log_slope():
-    answer = solver.solve("H158", 18, "size", precision=0.01, tolerance=1e-4)
+    answer = paper_solve("H158", 18, "size", precision=0.01, tolerance=1e-4)
     assert answer.binding_limit == "nonlinearity"
     # |d ln c / dm| = statistical part's ratio (relative slope error / magnitude error).
     log_derivative = (answer.slope_uncertainty / abs(answer.slope)) / answer.uncertainty_statistical
@@ -140,7 +144,7 @@ def test_a_table_answers_uncertainty_covers_the_full_roman_scene():
         metric, mode = str(rng.choice(solver.METRICS)), str(rng.choice(solver.MODES))
         saturation = solver.tables.load_tables().get(band, sca).saturation(168.1, 1.1e5)
         magnitude = float(saturation + 0.5 + rng.uniform(0, 3))
-        table = solver.solve(band, sca, metric, mode, magnitude=magnitude, precision=0.01)
+        table = paper_solve(band, sca, metric, mode, magnitude=magnitude, precision=0.01)
         parts = math.hypot(
             table.uncertainty_statistical, table.uncertainty_fidelity or 0.0, table.tolerance * table.model["effects_relative"]
         )
@@ -148,7 +152,7 @@ def test_a_table_answers_uncertainty_covers_the_full_roman_scene():
         corner = solver.field_points(sca)[int(rng.integers(1, 5))]
         for position in (None, corner):
             scene = replace(ROMAN, position=position)
-            full = solver.solve(band, sca, metric, mode, magnitude=magnitude, precision=0.01, fidelity="linear", scene=scene)
+            full = paper_solve(band, sca, metric, mode, magnitude=magnitude, precision=0.01, fidelity="linear", scene=scene)
             spread = math.hypot(parts, full.uncertainty_statistical)
             where = (band, sca, metric, mode, round(magnitude, 2), position)
             assert abs(full.tolerance - table.tolerance) <= spread, (where, table.tolerance, full.tolerance, spread)

@@ -7,6 +7,7 @@ linearised at the uncorrected beta0 (the paper) or at the corrected detector (a 
 ramp's saturation flags set by the raw beta0 either way.
 """
 
+import functools
 import json
 import math
 
@@ -20,6 +21,9 @@ from nlpsf.experiment import SimulationConfig, simulate, slopes
 from nlpsf.flags import FlagCode, codes
 
 from .. import shipped
+
+# The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
+paper_solve = functools.partial(solver.solve, preset="paper")
 
 T = 168.1
 FULL_WELL = 1.1e5
@@ -333,14 +337,14 @@ def test_optimal_ramp_runs_through_both_methods_and_names_itself(paper_config, p
 
 def test_solver_reads_a_uniform_ols_ramp_from_the_tables_at_beta_eff():
     n = 8
-    ramp = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n))
+    ramp = paper_solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n))
     # Same tables at beta_eff = (1 + 1/n) beta0: d/d beta = (1 + 1/n) d/d beta_eff.
-    frame = solver.solve("H158", precision=0.01, magnitude=19.0, beta0=BETA * (1 + 1 / n))
+    frame = paper_solve("H158", precision=0.01, magnitude=19.0, beta0=BETA * (1 + 1 / n))
     assert ramp.slope == pytest.approx((1 + 1 / n) * frame.slope, rel=1e-12)
     assert ramp.conditions["ramp_slopes_from"].startswith("tables at beta_eff")
     assert ramp.conditions["ramp"]["ma_table"] == f"uniform-{n}"
     # Checked against a fresh linear-response simulation of the ramp itself.
-    fresh = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n), fidelity="linear")
+    fresh = paper_solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n), fidelity="linear")
     assert "simulations" in fresh.conditions["ramp_slopes_from"]
     assert fresh.slope == pytest.approx(ramp.slope, abs=3 * ramp.slope_uncertainty)
 
@@ -349,19 +353,19 @@ def test_solver_magnitude_for_an_ols_ramp_is_the_final_frames_at_beta_eff():
     # |c_ramp(m)| p beta0 = T with c_ramp(m) = c c(m; c beta0) is the final frame's equation at
     # beta0' = c beta0 with the same precision p: the same magnitude.
     n = 8
-    ramp = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=uniform(n))
-    frame = solver.solve("H158", precision=0.01, tolerance=1e-4, beta0=BETA * (1 + 1 / n))
+    ramp = paper_solve("H158", precision=0.01, tolerance=1e-4, ramp=uniform(n))
+    frame = paper_solve("H158", precision=0.01, tolerance=1e-4, beta0=BETA * (1 + 1 / n))
     assert ramp.binding_limit == frame.binding_limit == "nonlinearity"
     assert ramp.magnitude == pytest.approx(frame.magnitude, abs=1e-5)
-    optimal = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=uniform(n, "optimal"))
+    optimal = paper_solve("H158", precision=0.01, tolerance=1e-4, ramp=uniform(n, "optimal"))
     assert "simulations" in optimal.conditions["ramp_slopes_from"]
     assert optimal.magnitude == pytest.approx(ramp.magnitude, abs=3 * ramp.uncertainty)
 
 
 def test_solver_saturation_rules_and_stars_between_them():
     n = 8
-    plain = solver.solve("H158", precision=0.01, magnitude=17.0)
-    ramp = solver.solve("H158", precision=0.01, magnitude=17.0, ramp=uniform(n))
+    plain = paper_solve("H158", precision=0.01, magnitude=17.0)
+    ramp = paper_solve("H158", precision=0.01, magnitude=17.0, ramp=uniform(n))
     payload = json.loads(json.dumps(ramp.to_dict()))
     assert payload["final_frame_saturation_magnitude"] == pytest.approx(plain.saturation_magnitude)
     # A slope needs two resultants (romancal); the second ends at tau = 2/n of the exposure. romancal's
@@ -372,7 +376,7 @@ def test_solver_saturation_rules_and_stars_between_them():
     shift = 2.5 * math.log10(x / (2 / n * FULL_WELL))
     assert shift > 2.5 * math.log10(n / 2) + 0.05  # the linear estimate is this much too faint
     assert payload["saturation_magnitude"] == pytest.approx(plain.saturation_magnitude - shift, abs=1e-9)
-    charge = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n, saturation="charge"))
+    charge = paper_solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(n, saturation="charge"))
     assert charge.saturation_magnitude == pytest.approx(plain.saturation_magnitude - 2.5 * math.log10(n / 2), abs=1e-9)
     assert "ramp" in ramp.conditions["saturation_rule"] and "final frame" in plain.conditions["saturation_rule"]
     # m = 17 lies between the two limits: an answer from a fresh simulation, flagged as such.
@@ -381,12 +385,12 @@ def test_solver_saturation_rules_and_stars_between_them():
     assert FlagCode.BETWEEN_SATURATION_LIMITS in codes(ramp.flags)
     assert "simulations" in ramp.conditions["ramp_slopes_from"] and ramp.tolerance > 0
     # When saturation binds, the brightest usable star is the ramp's limit, not the final frame's.
-    loose = solver.solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
+    loose = paper_solve("H158", precision=1e-4, tolerance=1e-3, ramp=uniform(n))
     assert loose.binding_limit == "saturation"
     assert loose.brightest_usable_magnitude == pytest.approx(loose.saturation_magnitude)
     assert loose.brightest_usable_magnitude == pytest.approx(loose.final_frame_saturation_magnitude - shift)
     with pytest.raises(InputError) as error:
-        solver.solve("H158", precision=0.01, magnitude=10.0, ramp=uniform(n))
+        paper_solve("H158", precision=0.01, magnitude=10.0, ramp=uniform(n))
     assert error.value.argument == "magnitude"
 
 
@@ -396,7 +400,7 @@ def test_solver_takes_a_scene_with_a_ramp_where_the_ramp_can_read_it_out():
     # (the final frame's: W - b), read off the same photometry at those charges.
     n, background = 8, 2000.0
     ramp = uniform(n, saturation="charge")
-    answer = solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(background_e=background))
+    answer = paper_solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(background_e=background))
     # The peak charge of the shipped table's stars (astropy), scaled as 10^(-0.4 m): the limits.
     limit = shipped.saturation_magnitude("H158", 18, FULL_WELL / (2 / n) - background, T)
     assert answer.saturation_magnitude == pytest.approx(limit, abs=1e-9)
@@ -407,14 +411,14 @@ def test_solver_takes_a_scene_with_a_ramp_where_the_ramp_can_read_it_out():
     assert answer.conditions["scene"]["background_e"] == background and answer.tolerance > 0
     # IPC goes through the ramp too; brighter-fatter is the one effect a ramp refuses (ramps.check_scene).
     ipc = scenes.SceneModel(ipc=((0.0, 0.02, 0.0), (0.02, 0.92, 0.02), (0.0, 0.02, 0.0)))
-    assert solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=ipc).tolerance > 0
+    assert paper_solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=ipc).tolerance > 0
     with pytest.raises(InputError) as error:
-        solver.solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(bfe_coefficient=1e-7))
+        paper_solve("H158", precision=0.01, magnitude=20.0, ramp=ramp, scene=scenes.SceneModel(bfe_coefficient=1e-7))
     assert error.value.argument == "scene" and "brighter_fatter" in error.value.reason
 
 
 def test_solver_without_a_ramp_reports_one_saturation_rule():
-    s = solver.solve("H158", precision=0.01, magnitude=19.0)
+    s = paper_solve("H158", precision=0.01, magnitude=19.0)
     assert s.final_frame_saturation_magnitude == s.saturation_magnitude and "ramp" not in s.conditions
 
 
@@ -424,7 +428,8 @@ def test_solver_without_a_ramp_reports_one_saturation_rule():
 def _cli_json(capsys, *argv):
     from nlpsf import cli
 
-    code = cli.main(list(argv))
+    # The ramp's own rules on the paper's scene (the default is the Roman star's).
+    code = cli.main([*argv, "--scene", "paper"] if argv[0] in ("solve", "simulate", "slopes") else list(argv))
     out = capsys.readouterr()
     return code, out.out, out.err
 
@@ -433,7 +438,7 @@ def test_cli_solve_with_a_ramp_reports_both_saturation_rules(capsys):
     code, out, _ = _cli_json(capsys, "solve", "--precision", "0.01", "--magnitude", "19", "--ramp", "8", "--json")
     assert code == 0
     payload = json.loads(out)
-    library = solver.solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8))
+    library = paper_solve("H158", precision=0.01, magnitude=19.0, ramp=uniform(8))
     assert payload["tolerance"] == library.tolerance
     x = (1 - math.sqrt(1 - 4 * BETA * FULL_WELL)) / (2 * BETA)  # romancal's signal rule at the second read
     shift = 2.5 * math.log10(x / (2 / 8 * FULL_WELL))
@@ -513,7 +518,7 @@ def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_f
     assert [row["solution"]["conditions"]["ramp"]["read_noise_e"] for row in json.loads(out)] == [official[1], official[3]]
     # Web: the same rule in /solve (and the simulation models).
     with make_client() as client:
-        body = {"band": "H158", "sca": 3, "precision": 0.01, "magnitude": 19.0, "ramp": 8}
+        body = {"band": "H158", "sca": 3, "precision": 0.01, "magnitude": 19.0, "ramp": 8, "scene": "paper"}
         answer = client.post("/api/v1/solve", json=body)
         assert answer.status_code == 200, answer.text
         assert answer.json()["conditions"]["ramp"]["read_noise_e"] == official[3]
@@ -549,7 +554,7 @@ def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
     from nlpsf.request import SolveRequest
 
     n = 8
-    frame = solver.solve("H158", precision=0.01, magnitude=19.0).saturation_magnitude
+    frame = paper_solve("H158", precision=0.01, magnitude=19.0).saturation_magnitude
     for single, needed in (("unusable", 2), ("through_zero", 1)):
         argv = ["solve", "--precision", "0.01", "--magnitude", "19", "--ramp", str(n), "--ramp-saturation", "charge"]
         code, out, _ = _cli_json(capsys, *argv, "--single-resultant", single, "--json")
@@ -558,7 +563,7 @@ def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
         assert payload["saturation_magnitude"] == pytest.approx(frame - 2.5 * math.log10(n / needed), abs=1e-9)
         assert payload["conditions"]["ramp"]["saturation"] == "charge"
         assert payload["conditions"]["ramp"]["single_resultant"] == single
-        body = {"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": n}
+        body = {"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": n, "scene": "paper"}
         request = SolveRequest.from_json({**body, "ramp_saturation": "charge", "ramp_single_resultant": single})
         assert solver.answer(request).saturation_magnitude == payload["saturation_magnitude"]
     # Neither given: romancal's rules (ramps.build's defaults).

@@ -1,6 +1,7 @@
 """nlpsf.relation: the quadratic's monotonicity limit from the star's peak charge, and the
 precision an effect's slope change asks for, from T = |c| p beta0."""
 
+import functools
 import math
 
 import pytest
@@ -9,6 +10,9 @@ from nlpsf import relation, solver, tables
 from nlpsf.checks import InputError
 
 from .. import shipped
+
+# The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
+paper_solve = functools.partial(solver.solve, preset="paper")
 
 TABLES = tables.load_tables()
 
@@ -45,11 +49,11 @@ def test_the_nl_invalid_magnitude_scales_as_beta0_and_the_exposure_do():
 def test_the_solver_refuses_the_quadratic_where_the_limit_says():
     m = relation.nl_invalid_magnitude("H158", 18, 5e-6)
     with pytest.raises(InputError) as error:
-        solver.solve("H158", beta0=5e-6, precision=0.01, magnitude=round(m - 0.02, 6))
+        paper_solve("H158", beta0=5e-6, precision=0.01, magnitude=round(m - 0.02, 6))
     assert error.value.argument == "magnitude" and "not monotonic" in error.value.reason
     # Just fainter the star is still past the tables' bright end (1.5 mag past saturation), but for that reason.
     with pytest.raises(InputError) as error:
-        solver.solve("H158", beta0=5e-6, precision=0.01, magnitude=round(m + 0.02, 6))
+        paper_solve("H158", beta0=5e-6, precision=0.01, magnitude=round(m + 0.02, 6))
     assert "not monotonic" not in error.value.reason and "brighter than the tables reach" in error.value.reason
 
 

@@ -34,9 +34,9 @@ def test_the_budget_sets_the_tolerance_the_shear_relation_gives():
 
 
 def test_the_plan_says_what_is_read_and_what_is_simulated():
-    table = solver.plan(SolveRequest("H158", magnitude=18.3, tolerance=1e-4))
+    table = solver.plan(SolveRequest("H158", magnitude=18.3, tolerance=1e-4, scene="paper"))
     assert table.fidelity == "table" and table.reads == "tables" and table.scene is None and not table.notes
-    other_rule = solver.plan(SolveRequest("H158", magnitude=18.3, tolerance=1e-4, pupil_scale="header"))
+    other_rule = solver.plan(SolveRequest("H158", magnitude=18.3, tolerance=1e-4, pupil_scale="header", scene="paper"))
     assert other_rule.fidelity == "linear" and [n.code for n in other_rule.notes] == ["pupil_scale_simulated"]
 
 
@@ -45,7 +45,7 @@ def test_the_uncertainty_rule_counts_the_larger_optical_part_once():
     assert parts.total == pytest.approx(13.0)  # hypot(3, 4, 0, max(1, 12))
     assert parts.model == pytest.approx(12.0)
     assert Uncertainty.none().total is None and Uncertainty.none().model is None
-    s = solver.solve("H158", magnitude=18.3, tolerance=1e-4)
+    s = solver.solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper")
     p = s.parts
     expected = math.hypot(p.statistical, p.fidelity, p.effects, max(p.optical_model, p.pupil_scale))
     assert s.uncertainty == pytest.approx(expected, rel=1e-15)
@@ -53,18 +53,18 @@ def test_the_uncertainty_rule_counts_the_larger_optical_part_once():
 
 def test_accuracy_with_a_shear_budget_solves_for_the_magnitude():
     # Was refused: the first, table-level pass got both the budget's tolerance and the budget.
-    budget = solver.solve("H158", precision=0.01, shear_m=2e-3, size_ratio=1.5, accuracy=0.05)
-    direct = solver.solve("H158", precision=0.01, tolerance=2e-3 * 1.5**2 / 2, accuracy=0.05)
+    budget = solver.solve("H158", precision=0.01, shear_m=2e-3, size_ratio=1.5, accuracy=0.05, scene="paper")
+    direct = solver.solve("H158", precision=0.01, tolerance=2e-3 * 1.5**2 / 2, accuracy=0.05, scene="paper")
     assert budget.magnitude == pytest.approx(direct.magnitude, abs=1e-9)
 
 
 def test_a_json_body_builds_the_same_request_as_the_python_call():
     from nlpsf import ramps
 
-    body = {"band": "J129", "precision": 0.01, "tolerance": 1e-4, "ma_table": "romanisim-110"}
+    body = {"band": "J129", "precision": 0.01, "tolerance": 1e-4, "ma_table": "romanisim-110", "scene": "paper"}
     ramp, exptime = ramps.build(ma_table="romanisim-110")
     by_json = solver.answer(SolveRequest.from_json(body))
-    by_call = solver.solve("J129", precision=0.01, tolerance=1e-4, ramp=ramp, exptime=exptime)
+    by_call = solver.solve("J129", precision=0.01, tolerance=1e-4, ramp=ramp, exptime=exptime, scene="paper")
     assert by_json.magnitude == by_call.magnitude and by_json.exptime == exptime
     # The MA table's exposure is its last read unless the body gives one.
     assert SolveRequest.from_json({**body, "exptime": 300.0}).exptime == 300.0

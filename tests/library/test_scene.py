@@ -311,7 +311,7 @@ def test_bad_scene_files_and_options_are_refused_by_name(tmp_path):
 
 
 def test_roman_preset_round_trips_through_json(tmp_path):
-    roman_scene = scenes.preset("roman")
+    roman_scene = scenes.preset("galsim-roman")
     assert roman_scene.jitter_arcsec == 0.014 and roman_scene.charge_diffusion_px == 0.1 and roman_scene.sed == "flat"
     assert np.isclose(np.sum(roman_scene.ipc), 1.0)
     path = tmp_path / "mine.json"
@@ -319,7 +319,7 @@ def test_roman_preset_round_trips_through_json(tmp_path):
     assert scenes.load(str(path)) == roman_scene
     sed_file = tmp_path / "sed.txt"
     sed_file.write_text("\n".join(f"{w} {w**-2}" for w in range(300, 2700, 10)))
-    custom = scenes.from_options("roman", sed=str(sed_file), position="100,200", nl_coefficients="1e-13")
+    custom = scenes.from_options("galsim-roman", sed=str(sed_file), position="100,200", nl_coefficients="1e-13")
     scenes.save(custom, path)
     assert scenes.load(str(path)) == custom
     assert json.loads(path.read_text())["sed"] == "file:sed.txt"
@@ -341,9 +341,9 @@ def test_scaling_rule_holds_for_linear_effects_and_breaks_for_flux_dependent_one
 
 
 def test_conditions_name_the_scene():
-    config = SimulationConfig(realizations=4, scene=scenes.preset("roman"))
+    config = SimulationConfig(realizations=4, scene=scenes.preset("galsim-roman"))
     conditions = config.conditions()
-    assert conditions["scene"]["effects_on"]["ipc"] and conditions["scene"]["name"] == "roman"
+    assert conditions["scene"]["effects_on"]["ipc"] and conditions["scene"]["name"] == "galsim-roman"
     assert "+scene" in conditions["fidelity"] and conditions["wavelengths_used"] > 1
     json.dumps(conditions)
     assert SimulationConfig().conditions()["scene"]["effects_on"] == dict.fromkeys(scenes.EFFECTS, False)
@@ -361,7 +361,7 @@ def test_n_wavelengths_in_the_conditions_is_what_the_optics_evaluate(monkeypatch
 
     monkeypatch.setattr(optics, "_intensity_coefficients", counting)
     for scene, n_wavelengths in (
-        (scenes.preset("roman"), 1),
+        (scenes.preset("galsim-roman"), 1),
         (scenes.SceneModel(sed="blackbody:5270"), 1),
         (scenes.SceneModel(), 3),
     ):

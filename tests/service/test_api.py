@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from nlpsf import cli, defaults, experiment, ramps, roman, solver, tables
+from nlpsf import cli, defaults, experiment, ramps, roman, roman_default, solver, tables
 from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 
@@ -42,7 +42,7 @@ def test_meta_lists_what_the_library_offers(client):
     assert list(meta["throughputs"]) == list(roman.THROUGHPUTS) and meta["default_throughput"] == "roman-2024"
     assert meta["tables"]["fingerprint"] == tables.load_tables().meta["fingerprint"]
     assert meta["defaults"]["solve"]["beta0"] == 5e-7
-    assert meta["defaults"]["solve"]["exptime"] == defaults.EXPTIME_S
+    assert meta["defaults"]["solve"]["exptime"] == roman_default.exptime_s()  # the Roman default's (paper: 168.1 s)
     assert meta["limits"]["max_realizations"] == 500
     assert meta["limits"]["max_queue"] == 8
 
@@ -56,16 +56,52 @@ def cli_solve_json(capsys, arguments: list[str]) -> dict:
     ("body", "arguments"),
     [
         (
-            {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4},
-            ["--band", "H158", "--magnitude", "18.3", "--tolerance", "1e-4"],
+            {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"},
+            ["--band", "H158", "--magnitude", "18.3", "--tolerance", "1e-4", "--scene", "paper"],
         ),
         (
-            {"band": "J129", "sca": 3, "metric": "e2", "mode": "scatter", "precision": 0.05, "magnitude": 20.0},
-            ["--band", "J129", "--sca", "3", "--metric", "e2", "--mode", "scatter", "--precision", "0.05", "--magnitude", "20"],
+            {"band": "J129", "sca": 3, "metric": "e2", "mode": "scatter", "precision": 0.05, "magnitude": 20.0, "scene": "paper"},
+            [
+                "--band",
+                "J129",
+                "--sca",
+                "3",
+                "--metric",
+                "e2",
+                "--mode",
+                "scatter",
+                "--precision",
+                "0.05",
+                "--magnitude",
+                "20",
+                "--scene",
+                "paper",
+            ],
         ),
         (
-            {"band": "Y106", "metric": "size", "precision": 0.01, "tolerance": 1e-4, "beta0": 1e-6, "exptime": 300.0},
-            ["--band", "Y106", "--precision", "0.01", "--tolerance", "1e-4", "--beta0", "1e-6", "--exptime", "300"],
+            {
+                "band": "Y106",
+                "metric": "size",
+                "precision": 0.01,
+                "tolerance": 1e-4,
+                "beta0": 1e-6,
+                "exptime": 300.0,
+                "scene": "paper",
+            },
+            [
+                "--band",
+                "Y106",
+                "--precision",
+                "0.01",
+                "--tolerance",
+                "1e-4",
+                "--beta0",
+                "1e-6",
+                "--exptime",
+                "300",
+                "--scene",
+                "paper",
+            ],
         ),
     ],
 )
@@ -84,21 +120,17 @@ def test_solve_returns_what_the_cli_prints(client, capsys, body, arguments):
 @pytest.mark.parametrize("mode", solver.MODES)
 def test_solve_each_unknown_round_trips(client, metric, mode):
     """Solve for each member from the other two; feeding the answer back returns the third member."""
-    given = {"band": "H158", "metric": metric, "mode": mode}
+    given = {"band": "H158", "metric": metric, "mode": mode, "scene": "paper"}
     start = client.post("/api/v1/solve", json={**given, "magnitude": 20.0, "precision": 0.02})
     assert start.status_code == 200, start.text
     first = start.json()
     assert first["solved_for"] == "tolerance"
     assert all(first[k] is not None for k in ("precision", "tolerance", "magnitude", "slope", "saturation_magnitude"))
     assert first["conditions"]["band"] == "H158" and first["fidelity"] == "table"
-    back = client.post(
-        "/api/v1/solve", json={"band": "H158", "metric": metric, "mode": mode, "magnitude": 20.0, "tolerance": first["tolerance"]}
-    ).json()
+    back = client.post("/api/v1/solve", json={**given, "magnitude": 20.0, "tolerance": first["tolerance"]}).json()
     assert back["solved_for"] == "precision"
     assert back["precision"] == pytest.approx(0.02, rel=1e-9)
-    magnitude = client.post(
-        "/api/v1/solve", json={"band": "H158", "metric": metric, "mode": mode, "precision": 0.02, "tolerance": first["tolerance"]}
-    ).json()
+    magnitude = client.post("/api/v1/solve", json={**given, "precision": 0.02, "tolerance": first["tolerance"]}).json()
     assert magnitude["solved_for"] == "magnitude"
     assert isinstance(magnitude["flags"], list)
     if magnitude["magnitude"] is not None and not magnitude["flags"]:
@@ -281,7 +313,7 @@ def test_small_simulation_answered_synchronously_matches_the_library(client):
 
 
 def test_solve_takes_a_throughput_and_names_it(client):
-    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"}
     default = client.post("/api/v1/solve", json=body).json()
     galsim = client.post("/api/v1/solve", json={**body, "throughput": "galsim-2021"}).json()
     assert default["conditions"]["throughput"] == "roman-2024" and galsim["conditions"]["throughput"] == "galsim-2021"
@@ -405,7 +437,7 @@ def test_responses_never_contain_non_finite_numbers(client):
 
     for metric in ("e1", "e2"):
         for magnitude in (16.0, 22.0, 27.5):
-            body = {"band": "W146", "metric": metric, "magnitude": magnitude, "tolerance": 1e-3}
+            body = {"band": "W146", "metric": metric, "magnitude": magnitude, "tolerance": 1e-3, "scene": "paper"}
             response = client.post("/api/v1/solve", json=body)
             assert response.status_code in (200, 422)
             json.loads(response.text, parse_constant=refuse)
@@ -430,9 +462,10 @@ def test_a_uniform_ols_ramp_solve_job_is_the_final_frame_at_beta_eff(client):
     # Independent of the ramp code path: an N-read OLS ramp's magnitude equals the final frame's at
     # beta_eff = (1 + 1/N) beta0 with the same precision (see tests/library/test_ramps.py).
     n = 8
-    ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n})
+    ramp = _run_solve_job(client, {"band": "H158", "precision": 0.01, "tolerance": 1e-4, "ramp": n, "scene": "paper"})
     frame = client.post(
-        "/api/v1/solve", json={"band": "H158", "precision": 0.01, "tolerance": 1e-4, "beta0": defaults.BETA0 * (1 + 1 / n)}
+        "/api/v1/solve",
+        json={"band": "H158", "precision": 0.01, "tolerance": 1e-4, "beta0": defaults.BETA0 * (1 + 1 / n)} | {"scene": "paper"},
     ).json()
     assert ramp["conditions"]["ramp"]["ma_table"] == f"uniform-{n}"
     assert ramp["magnitude"] == pytest.approx(frame["magnitude"], abs=1e-5)
@@ -442,9 +475,11 @@ def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
     from nlpsf import ramps
 
     table = {"resultants": [[1], [2, 3], [4, 5, 6]], "frame_time_s": 3.04}
-    answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table})
+    answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "scene": "paper"})
     assert answer["exptime"] == pytest.approx(ramps.MATable.from_dict(table).duration_s)
-    longer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "exptime": 30.0})
+    longer = _run_solve_job(
+        client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "exptime": 30.0, "scene": "paper"}
+    )
     assert longer["exptime"] == 30.0
 
 
@@ -453,7 +488,7 @@ def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
     # The service holds no rule of its own: it refuses exactly what the library's request refuses.
     from nlpsf.request import SolveRequest
 
-    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": scene}
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": {**scene, "preset": "paper"}}
     try:
         SolveRequest.from_json(body)
         library = None
@@ -502,7 +537,7 @@ def test_meta_serves_the_flag_catalogue_and_the_scene_effect_registry(client):
 
 def test_an_answers_flags_come_with_their_codes(client):
     # A star brighter than its saturation magnitude is flagged saturated, whatever the words say.
-    body = {"band": "H158", "precision": 0.5, "magnitude": 17.0}
+    body = {"band": "H158", "precision": 0.5, "magnitude": 17.0, "scene": "paper"}
     answer = client.post("/api/v1/solve", json=body).json()
     assert answer["saturation_magnitude"] > 17.0
     assert len(answer["flag_codes"]) == len(answer["flags"]) and "star_saturated" in answer["flag_codes"]
@@ -554,7 +589,7 @@ def test_a_scene_beyond_first_order_is_refused_by_the_library_and_the_service(cl
     assert refused.value.argument == field
     for path, body in (
         ("/api/v1/simulations", {"band": "H158", "scene": scene, "realizations": 2}),
-        ("/api/v1/solve", {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": scene}),
+        ("/api/v1/solve", {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": {**scene, "preset": "paper"}}),
     ):
         answer = client.post(path, json=body)
         assert answer.status_code == 422 and answer.json()["field"] == field, answer.text
@@ -609,12 +644,13 @@ def test_every_service_setting_is_in_the_api_docs_configuration_list():
 
 
 def test_web_request_takes_the_new_fields_and_refuses_a_file(client):
-    body = {"band": "H158", "magnitude": 19.0, "shear_m": 1e-3, "size_ratio": [[1.2, 1.0], [2.0, 1.0]]}
+    body = {"band": "H158", "magnitude": 19.0, "shear_m": 1e-3, "size_ratio": [[1.2, 1.0], [2.0, 1.0]], "scene": "paper"}
     answer = client.post("/api/v1/solve", json=body)
     assert answer.status_code == 200, answer.text
     assert answer.json()["shear"]["m"] == 1e-3
     scatter = client.post(
-        "/api/v1/solve", json={"band": "H158", "mode": "scatter", "magnitude": 19.0, "tolerance": 1e-4, "stars": 4}
+        "/api/v1/solve",
+        json={"band": "H158", "mode": "scatter", "magnitude": 19.0, "tolerance": 1e-4, "stars": 4, "scene": "paper"},
     )
     assert scatter.status_code == 200 and scatter.json()["stars"] == 4
     refused = client.post("/api/v1/solve", json={**body, "size_ratio": "@/etc/passwd"})
@@ -628,13 +664,16 @@ def test_service_takes_a_ramp_in_solve_and_simulations(make_client):
         meta = client.get("/api/v1/meta").json()
         assert {t["name"] for t in meta["ma_tables"]} == set(ramps.shipped_table_names())
         assert meta["ramp_fits"] == list(ramps.RAMP_FITS)
-        answer = client.post("/api/v1/solve", json={"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": 8})
+        body = {"band": "H158", "precision": 0.01, "magnitude": 19.0, "ramp": 8, "scene": "paper"}
+        answer = client.post("/api/v1/solve", json=body)
         assert answer.status_code == 200
         assert (
             answer.json()["slope"]
-            == solver.solve("H158", precision=0.01, magnitude=19.0, ramp=ramps.Ramp.uniform(8, defaults.EXPTIME_S)).slope
+            == solver.solve(
+                "H158", precision=0.01, magnitude=19.0, ramp=ramps.Ramp.uniform(8, defaults.EXPTIME_S), scene="paper"
+            ).slope
         )
-        question = {"band": "H158", "precision": 0.01, "magnitude": 19.0}
+        question = {"band": "H158", "precision": 0.01, "magnitude": 19.0, "scene": "paper"}
         bad = client.post("/api/v1/solve", json={**question, "ma_table": {"resultants": [[1], []]}})
         assert bad.status_code == 422 and bad.json()["field"].startswith("ma_table")
         files = client.post("/api/v1/solve", json={**question, "ma_table": "/etc/x.json"})

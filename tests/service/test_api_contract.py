@@ -156,7 +156,7 @@ def test_tables_as_ecsv_carry_units(client):
 
 
 def test_batch_answers_each_request_on_its_own(client):
-    good = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
+    good = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"}
     batch = [good, {"band": "H158", "magnitude": "x", "tolerance": 1e-4}, {**good, "beta0": -1.0}, {**good, "metric": "e1"}]
     response = client.post("/api/v1/solve/batch", json={"requests": batch})
     assert response.status_code == 200
@@ -172,7 +172,7 @@ def test_batch_answers_each_request_on_its_own(client):
 
 def test_curves_carry_the_fidelity_part_the_calculator_quotes(client):
     # The page's hover and bands show both parts: they must be the solver's own.
-    solution = solver.solve("H158", magnitude=18.3, precision=1.0)
+    solution = solver.solve("H158", magnitude=18.3, precision=1.0, scene="paper")  # the curves are the tables'
     fidelity = solution.uncertainty_fidelity / solution.tolerance
     statistical = solution.uncertainty_statistical / solution.tolerance
     beta = client.get("/api/v1/curves/beta", params={"band": "H158", "magnitude": 18.3}).json()
@@ -183,7 +183,7 @@ def test_curves_carry_the_fidelity_part_the_calculator_quotes(client):
 
 
 def test_band_names_are_case_insensitive_but_listed_as_an_enum(client):
-    lower = client.post("/api/v1/solve", json={"band": "h158", "magnitude": 18.3, "tolerance": 1e-4})
-    upper = client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4})
+    lower = client.post("/api/v1/solve", json={"band": "h158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"})
+    upper = client.post("/api/v1/solve", json={"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"})
     assert lower.status_code == 200 and lower.json()["precision"] == upper.json()["precision"]
     assert client.get("/api/v1/curves/beta", params={"band": "j129"}).json()["band"] == "J129"

@@ -237,13 +237,12 @@ def test_a_simulating_solve_is_a_job_not_work_in_the_http_worker(make_client):
 
 def test_a_solve_with_an_accuracy_is_a_job_even_when_the_tables_meet_it(make_client):
     # The accuracy's effects are measured by simulation (nlpsf.impact), never inside the HTTP worker.
-    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5}
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5, "scene": "paper"}
     with make_client(solve_wait_s=0.0) as client:
         queued = client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
         result = finished_job(client, queued.json()["id"]).json()["result"]
-        # Without a scene, accuracy is held to the Roman default (nlpsf.accuracy): simulated, not read.
-        assert result["fidelity"] == "linear" and result["model"]["accuracy"] == 0.5
+        assert result["fidelity"] == "table" and result["model"]["accuracy"] == 0.5
 
 
 def test_a_request_over_the_memory_budget_is_refused_naming_it(make_client):

@@ -44,17 +44,17 @@ def test_requirement_curves_scale_with_the_tolerance_and_stop_at_saturation(clie
 def test_limits_bracket_what_the_solver_answers(client):
     limits = client.get("/api/v1/page/limits", params={"band": "J129", "sca": 3}).json()
     brightest = limits["brightest_answered_magnitude"]
-    solver.solve("J129", sca=3, tolerance=1e-4, magnitude=brightest + 0.01)
+    solver.solve("J129", sca=3, tolerance=1e-4, magnitude=brightest + 0.01, scene="paper")
     with pytest.raises(InputError):
-        solver.solve("J129", sca=3, tolerance=1e-4, magnitude=brightest - 0.01)
+        solver.solve("J129", sca=3, tolerance=1e-4, magnitude=brightest - 0.01, scene="paper")
     assert limits["nonmonotonic_magnitude"] < limits["saturation_magnitude"]
 
 
 def test_batch_csv_reads_percents_and_reports_each_row(client):
-    text = "band,precision,magnitude\nH158,1%,19\nH158,0.01,19\nH158,abc,19\n"
+    text = "band,precision,magnitude,scene\nH158,1%,19,paper\nH158,0.01,19,paper\nH158,abc,19,paper\n"
     answer = client.post("/api/v1/page/batch", content=text, headers={"Content-Type": "text/csv"}).json()
     assert [r["ok"] for r in answer["results"]] == [True, True, False]
-    expected = solver.solve("H158", precision=0.01, magnitude=19).tolerance
+    expected = solver.solve("H158", precision=0.01, magnitude=19, scene="paper").tolerance
     assert answer["results"][0]["solution"]["tolerance"] == pytest.approx(expected, rel=1e-12)
     assert answer["results"][1]["solution"]["tolerance"] == pytest.approx(expected, rel=1e-12)
     assert answer["results"][2]["error"]["field"] == "precision"

@@ -41,7 +41,7 @@ REFUSED_AT_ENTRY = [
     ("/api/v1/simulations", {"realizations": 2, "stamp": 32, "scene": {"bfe": 1e-4}}, "scene.bfe"),
     ("/api/v1/simulations", {"realizations": 2, "stamp": 32, "weight_cut_rho2": 1e308}, "weight_cut_rho2"),
     ("/api/v1/solve", {**SOLVE, "scene": {"nl_coefficients": [1, 2]}}, "scene.nl_coefficients"),
-    ("/api/v1/solve", {**SOLVE, "scene": {"bfe": 1e-4}}, "scene.bfe"),
+    ("/api/v1/solve", {**SOLVE, "scene": {"bfe": 1e-4, "preset": "paper"}}, "scene.bfe"),  # the default: a ramp refuses BFE
     ("/api/v1/solve", {**SOLVE, "ma_table": "x" * 300}, "ma_table"),
     ("/api/v1/impact", {"beta0": 5e-324, "realizations": 5}, "beta0"),
 ]

@@ -11,10 +11,10 @@ from ..servers import finished_job
 
 
 def test_api_simulation_with_scene_matches_the_library(client):
-    body = {"magnitudes": [19.0], "betas": [5e-7], "realizations": 4, "scene": {"preset": "roman", "position": [300, 400]}}
+    body = {"magnitudes": [19.0], "betas": [5e-7], "realizations": 4, "scene": {"preset": "galsim-roman", "position": [300, 400]}}
     job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
     assert job["status"] == "done", job
-    model = scenes.from_request({"preset": "roman", "position": [300, 400]})
+    model = scenes.from_request({"preset": "galsim-roman", "position": [300, 400]})
     want = experiment.simulate(experiment.SimulationConfig(realizations=4, scene=model), [19.0], [5e-7])[0]
     assert job["result"]["results"][0]["dR_over_R"]["mean"] == pytest.approx(want.dR_over_R.mean, rel=1e-12)
 
@@ -80,28 +80,33 @@ def test_api_impact_is_a_job_not_work_in_the_http_worker(make_client):
 
 
 def test_api_solve_over_field_and_with_scene(client):
-    body = {"band": "J129", "sca": 3, "magnitude": 19.0, "tolerance": 1e-4, "over_field": "sca"}
+    body = {"band": "J129", "sca": 3, "magnitude": 19.0, "tolerance": 1e-4, "over_field": "sca", "scene": "paper"}
     response = client.post("/api/v1/solve", json=body)
     assert response.status_code == 200, response.text
     assert len(response.json()["conditions"]["over_field"]) == 5
     # From the shipped field-point tables, answered at once (not a job): the library's answer.
     assert response.json()["conditions"]["fidelity"] == "table"
-    assert response.json()["precision"] == solver.solve_over_field("J129", [3], magnitude=19.0, tolerance=1e-4).precision
+    assert (
+        response.json()["precision"]
+        == solver.solve_over_field("J129", [3], magnitude=19.0, tolerance=1e-4, scene="paper").precision
+    )
     focal_plane = client.post("/api/v1/solve", json={**body, "over_field": "focal_plane"})
     assert focal_plane.status_code == 200 and len(focal_plane.json()["conditions"]["over_field"]) == 90
-    with_scene = client.post("/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014}}).json()
+    with_scene = client.post(
+        "/api/v1/solve", json={**body, "over_field": None, "scene": {"jitter": 0.014, "preset": "paper"}}
+    ).json()
     assert with_scene["fidelity"] == "linear" and with_scene["conditions"]["scene"]["jitter_arcsec"] == 0.014
     assert client.post("/api/v1/solve", json={**body, "over_field": "everywhere"}).status_code == 422
 
 
 @pytest.mark.slow
 def test_api_solve_with_another_pupil_scale_is_a_job_and_a_batch_refuses_it(make_client):
-    body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "pupil_scale": "official"}
+    body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "pupil_scale": "official", "scene": "paper"}
     with make_client(solve_wait_s=0.0) as test_client:
         queued = test_client.post("/api/v1/solve", json=body)
         assert queued.status_code == 202, queued.text
         result = finished_job(test_client, queued.json()["id"]).json()["result"]
-        direct = solver.solve("H158", magnitude=20.0, precision=0.01, pupil_scale="official")
+        direct = solver.solve("H158", magnitude=20.0, precision=0.01, pupil_scale="official", scene="paper")
         assert result["conditions"]["pupil_scale"] == "official" and result["tolerance"] == pytest.approx(direct.tolerance)
         # The tables' own rule stays an instant table answer.
         plain = test_client.post("/api/v1/solve", json={**body, "pupil_scale": "galsim"})
