@@ -9,7 +9,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .. import moments, optics, render
+from .. import moments, optics, ramps, render
 from .. import scene as scenes
 from ..threads import single_blas
 from .config import Progress, SimulationConfig
@@ -31,6 +31,11 @@ class Scene:
     @property
     def charge(self) -> np.ndarray:
         return self.stamps if self.unit_charge is None else self.unit_charge
+
+    @cached_property
+    def coupled_powers(self) -> ramps.CoupledPowers:
+        """IPC of the unit charge stamps' powers, shared by every flux of an up-the-ramp scene with IPC after the NL."""
+        return ramps.CoupledPowers(self.charge, self.config.scene.ipc, self.config.oversampling)
 
     @cached_property
     def core_margin(self) -> int:
