@@ -393,12 +393,24 @@ def interpolation_error_estimate(flux: np.ndarray, slope: np.ndarray) -> np.ndar
     return out
 
 
-def merge_field_grid(paths: Iterable[Path], destination: Path | str) -> Path:
+def merge_field_grid(
+    paths: Iterable[Path], destination: Path | str, provenance: dict | None = None, complete_only: bool = False
+) -> Path:
     """Pack the node tables of a ``build_tables(grid=n)`` run into one field-grid file
-    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads)."""
+    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads).
+
+    ``complete_only``: leave out every (band, SCA) whose n x n nodes are not all there (a build still
+    running or stopped), instead of refusing; ``provenance`` goes into the file's metadata."""
     tables = [Table.read(p, format="ascii.ecsv") for p in sorted(paths)]
     if not tables:
         raise InputError("tables", "nothing to merge")
     if any("grid_node" not in t.meta for t in tables):
         raise InputError("tables", "only field-grid node tables (built with grid=n) go into a field-grid file")
-    return fieldgrid.write_grid(tables, destination)
+    if complete_only:
+        groups: dict[tuple[str, int], list] = {}
+        for t in tables:
+            groups.setdefault((t.meta["band"], int(t.meta["sca"])), []).append(t)
+        tables = [t for group in groups.values() if len(group) == int(group[0].meta["grid_node"][0]) ** 2 for t in group]
+        if not tables:
+            raise InputError("tables", "no (band, SCA) has all its grid nodes yet")
+    return fieldgrid.write_grid(tables, destination, provenance=provenance)
