@@ -243,7 +243,12 @@ def compute_table(
             "peak_fraction": float(scene.star_peak_fraction),
             "settings": asdict(settings),
             "fingerprint": settings.fingerprint(),
-            "method": "linear response at beta0, mean over centroid realizations",
+            "method": (
+                "linear response at beta0, mean over centroid realizations"
+                if settings.linearise_at == "beta0"
+                else f"linear response at the {settings.linearise_at} state ({experiment.CORRECTED_RESIDUAL:g} beta0; "
+                "a ramp's saturation flags at the raw beta0), mean over centroid realizations"
+            ),
             "data_version": roman.DATA_VERSION,
             "code_version": __version__,
             "elapsed_s": time.perf_counter() - start,
