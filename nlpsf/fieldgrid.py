@@ -130,10 +130,13 @@ def shipped_grid() -> FieldGrid | None:
     return FieldGrid.load(path) if path.is_file() else None
 
 
-def write_grid(tables: list, destination: Path | str, dtype=np.float32, provenance: dict | None = None) -> Path:
+def write_grid(
+    tables: list, destination: Path | str, dtype=np.float32, provenance: dict | None = None, per_table: dict | None = None
+) -> Path:
     """Pack per-node tables (``tablebuild.compute_table`` with a ``grid_node``) into one ``.npz``.
 
-    ``provenance``: how the file was made (code commit, date, CPU time, ...), kept in its metadata.
+    ``provenance``: how the file was made (code commit, date, CPU time, ...), kept in its metadata;
+    ``per_table``: more metadata per (band, SCA) key (``tablebuild.merge_field_grid``: the ramp's shift).
 
     Per (band, SCA): ``{key}/positions`` (n, n, 2), ``{key}/magnitude`` and ``{key}/flux`` (n, n, M)
     in float64 (M the longest node grid, NaN-padded; magnitudes are labels, flux the spline's
@@ -183,6 +186,7 @@ def write_grid(tables: list, destination: Path | str, dtype=np.float32, provenan
             "saturation_magnitude": [[None] * n for _ in range(n)],
             "cpu_s": [[None] * n for _ in range(n)],
         }
+        meta["tables"][key].update((per_table or {}).get(key, {}))
         for t in group:
             _, i, j = t.meta["grid_node"]
             meta["tables"][key]["saturation_magnitude"][j][i] = float(t.meta["saturation_magnitude"])
@@ -201,7 +205,8 @@ class FieldGrid:
 
     The public questions a caller asks (the solver's): :meth:`covers` / :meth:`coverage` (which (band,
     SCA) it holds), :meth:`magnitude_range` (where every node has a value), :meth:`saturation_magnitude`
-    (the ramp's limit at a position), :meth:`slope` (value and standard error of a metric and mode at a
+    (the ramp's limit at a position), :meth:`final_frame_saturation_magnitude` (fainter than which no
+    resultant saturates), :meth:`slope` (value and standard error of a metric and mode at a
     position and magnitude) and :meth:`conditions` (the scene, exposure and beta0 the slopes are for:
     the grid answers at those only; the paper tables' beta-flux scaling does not hold for a scene with
     a background and a ramp's saturation, so no other exposure or beta0 is read from it)."""
@@ -265,6 +270,17 @@ class FieldGrid:
     def saturation_magnitude(self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange") -> float:
         """The saturation magnitude at ``position`` (pixels), interpolated across the nodes."""
         return float(interpolate(self.saturation_magnitudes(band, sca), position, scheme))
+
+    def final_frame_saturation_magnitude(
+        self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange"
+    ) -> float | None:
+        """Fainter than this no pixel loses a resultant: the brightest pixel's charge reaches the full
+        well only at the exposure's end (the saturation magnitude plus the ramp's shift,
+        ``Ramp.saturation_shift_mag``). Between :meth:`saturation_magnitude` and this, resultants
+        saturate and the field interpolation is rougher (docs/field.md). None: not recorded."""
+        _, entry = self._entry(band, sca)
+        shift = entry.get("ramp_shift_mag")
+        return None if shift is None else self.saturation_magnitude(band, sca, position, scheme) + float(shift)
 
     def _spline(self, key: str, column: str, j: int, i: int):
         """(flux range, cubic spline of column / flux in flux) of one node, as ``nlpsf.tables`` reads a table."""

@@ -418,4 +418,19 @@ def merge_field_grid(
         tables = [t for group in groups.values() if len(group) == int(group[0].meta["grid_node"][0]) ** 2 for t in group]
         if not tables:
             raise InputError("tables", "no (band, SCA) has all its grid nodes yet")
-    return fieldgrid.write_grid(tables, destination, provenance=provenance)
+    return fieldgrid.write_grid(tables, destination, provenance=provenance, per_table=_ramp_shifts(tables))
+
+
+def _ramp_shifts(tables: list) -> dict[str, dict]:
+    """Per (band, SCA) of a ramp scene: how much brighter the ramp's saturation limit is than the
+    final frame's (``Ramp.saturation_shift_mag``, exact for its rules, at the tables' beta0 and background)."""
+    out: dict[str, dict] = {}
+    for t in tables:
+        key = f"{t.meta['band']}_{int(t.meta['sca']):02d}"
+        if key in out or t.meta["settings"].get("scene", "paper") != "roman":
+            continue
+        settings = TableSettings(**t.meta["settings"])
+        config = settings.config(t.meta["band"], int(t.meta["sca"]))
+        shift = config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
+        out[key] = {"ramp_shift_mag": float(shift)}
+    return out
