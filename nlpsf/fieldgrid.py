@@ -113,6 +113,12 @@ def _slope_columns() -> list[str]:
     return [f"{mode}_{metric}{suffix}" for metric in COLUMN_METRICS for mode in MODES for suffix in ("", "_err", "_interp")]
 
 
+#: Field-interpolation error of a 3 x 3 biquadratic grid, as a fraction of the median |slope| over the
+#: SCA's nodes (at that magnitude): the worst measured against fresh simulations where no resultant
+#: saturates, rounded up (scripts/shipped_grid_error.py, 16 random positions over the 8 bands: size
+#: 5.1e-4, e1 2.5e-2, e2 6.0e-3; docs/field.md). FieldGrid.slope adds it to the stated error.
+FIELD_INTERPOLATION: dict[str, float] = {"size": 1e-3, "e1": 3e-2, "e2": 1e-2}
+
 #: The shipped field grid of the Roman default (``nlpsf tables build --scene roman --grid 3``, merged).
 SHIPPED_NAME = "roman_field_grid.npz"
 
@@ -347,8 +353,8 @@ class FieldGrid:
         The error combines, as ``nlpsf.tables`` does, each node's standard error over the centroid
         draws with its magnitude-interpolation estimate (in quadrature), carried across the field as
         sum |w_k| err_k (the nodes share their centroid draws, so their errors are correlated; the sum
-        bounds the error for any correlation). The field interpolation's own error is not in it: it is
-        measured (docs/field.md) and stated there."""
+        bounds the error for any correlation), and the field interpolation's measured error,
+        :data:`FIELD_INTERPOLATION` x the median |slope| of the nodes, in quadrature."""
         if metric == "e":
             s1, e1 = self.slope(band, sca, position, "e1", mode, magnitude, scheme)
             s2, e2 = self.slope(band, sca, position, "e2", mode, magnitude, scheme)
@@ -369,4 +375,5 @@ class FieldGrid:
         errors = np.hypot(statistical, self.node_values(band, sca, f"{column}_interp", magnitude))
         value = np.tensordot(w, values, axes=([0, 1], [0, 1]))
         error = np.tensordot(np.abs(w), errors, axes=([0, 1], [0, 1]))
-        return value, error
+        field_term = FIELD_INTERPOLATION[metric] * np.median(np.abs(values), axis=(0, 1))
+        return value, np.hypot(error, field_term)
