@@ -62,6 +62,12 @@ BENCHMARKS = (
         r"\bx ?\d",
     ),
     Benchmark(
+        "field_tables",
+        "One Roman-default field-grid table against the paper's table",
+        ("benchmarks/bench_field_tables.py",),
+        r"the paper's",
+    ),
+    Benchmark(
         "job_memory",
         "Peak memory of a simulation job per stamp pixel",
         ("benchmarks/bench_job_memory.py",),

@@ -22,7 +22,8 @@ magnitude grid and its slope columns in float32, and the metadata as JSON.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -104,15 +105,44 @@ def interpolate(values: np.ndarray, position: tuple[float, float], scheme: str =
 # --- the runtime file ------------------------------------------------------------------------
 
 
-#: Columns a field-grid file keeps per node (the slope columns of ``nlpsf.tables``; their errors).
+#: Columns a field-grid file keeps per node (the slope columns of ``nlpsf.tables``, their standard
+#: errors and their magnitude-interpolation error estimates).
 def _slope_columns() -> list[str]:
     from .tables import COLUMN_METRICS, MODES
 
-    return [f"{mode}_{metric}{suffix}" for metric in COLUMN_METRICS for mode in MODES for suffix in ("", "_err")]
+    return [f"{mode}_{metric}{suffix}" for metric in COLUMN_METRICS for mode in MODES for suffix in ("", "_err", "_interp")]
 
 
-def write_grid(tables: list, destination: Path | str, dtype=np.float32) -> Path:
+#: Field-interpolation error of a 3 x 3 biquadratic grid, as a fraction of the median |slope| over the
+#: SCA's nodes (at that magnitude): the worst measured against fresh simulations where no resultant
+#: saturates, rounded up (scripts/shipped_grid_error.py, 16 random positions over the 8 bands: size
+#: 5.1e-4, e1 2.5e-2, e2 6.0e-3; docs/field.md). FieldGrid.slope adds it to the stated error.
+FIELD_INTERPOLATION: dict[str, float] = {"size": 1e-3, "e1": 3e-2, "e2": 1e-2}
+
+#: The shipped field grid of the Roman default (``nlpsf tables build --scene roman --grid 3``, merged).
+SHIPPED_NAME = "roman_field_grid.npz"
+
+
+def shipped_grid_path() -> Path:
+    from importlib import resources
+
+    return Path(str(resources.files("nlpsf") / "data" / "tables" / SHIPPED_NAME))
+
+
+@cache
+def shipped_grid() -> FieldGrid | None:
+    """The shipped Roman-default field grid, read once per process; None when the file is absent."""
+    path = shipped_grid_path()
+    return FieldGrid.load(path) if path.is_file() else None
+
+
+def write_grid(
+    tables: list, destination: Path | str, dtype=np.float32, provenance: dict | None = None, per_table: dict | None = None
+) -> Path:
     """Pack per-node tables (``tablebuild.compute_table`` with a ``grid_node``) into one ``.npz``.
+
+    ``provenance``: how the file was made (code commit, date, CPU time, ...), kept in its metadata;
+    ``per_table``: more metadata per (band, SCA) key (``tablebuild.merge_field_grid``: the ramp's shift).
 
     Per (band, SCA): ``{key}/positions`` (n, n, 2), ``{key}/magnitude`` and ``{key}/flux`` (n, n, M)
     in float64 (M the longest node grid, NaN-padded; magnitudes are labels, flux the spline's
@@ -124,6 +154,8 @@ def write_grid(tables: list, destination: Path | str, dtype=np.float32) -> Path:
         groups.setdefault((t.meta["band"], int(t.meta["sca"])), []).append(t)
     arrays: dict[str, np.ndarray] = {}
     meta: dict = {"format": FORMAT, "columns": columns, "tables": {}, "value_dtype": np.dtype(dtype).name}
+    meta["provenance"] = dict(provenance or {})
+    meta["provenance"]["cpu_s"] = float(sum(float(t.meta.get("cpu_s", 0.0)) for t in tables))
     for (band, sca), group in sorted(groups.items()):
         n = int(group[0].meta["grid_node"][0])
         if len(group) != n * n:
@@ -145,17 +177,26 @@ def write_grid(tables: list, destination: Path | str, dtype=np.float32) -> Path:
         arrays[f"{key}/magnitude"] = magnitude
         arrays[f"{key}/flux"] = flux
         arrays[f"{key}/values"] = values.astype(dtype)
+        fingerprints = {t.meta["fingerprint"] for t in group}
+        if len(fingerprints) != 1:
+            raise InputError("tables", f"{band} SCA {sca}: node tables made with different settings {sorted(fingerprints)}")
         meta["tables"][key] = {
             "band": band,
             "sca": sca,
             "grid": n,
             "settings": group[0].meta["settings"],
             "fingerprint": group[0].meta["fingerprint"],
+            "exptime_s": float(group[0].meta["exptime_s"]),
+            "scene": group[0].meta.get("scene"),
+            "code_version": group[0].meta.get("code_version"),
             "saturation_magnitude": [[None] * n for _ in range(n)],
+            "cpu_s": [[None] * n for _ in range(n)],
         }
+        meta["tables"][key].update((per_table or {}).get(key, {}))
         for t in group:
             _, i, j = t.meta["grid_node"]
             meta["tables"][key]["saturation_magnitude"][j][i] = float(t.meta["saturation_magnitude"])
+            meta["tables"][key]["cpu_s"][j][i] = float(t.meta.get("cpu_s", float("nan")))
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)
     arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
@@ -166,10 +207,19 @@ def write_grid(tables: list, destination: Path | str, dtype=np.float32) -> Path:
 
 @dataclass(frozen=True, eq=False)
 class FieldGrid:
-    """One field-grid file, read: slopes at any position and magnitude of its (band, SCA)s."""
+    """One field-grid file, read: slopes at any position and magnitude of its (band, SCA)s.
+
+    The public questions a caller asks (the solver's): :meth:`covers` / :meth:`coverage` (which (band,
+    SCA) it holds), :meth:`magnitude_range` (where every node has a value), :meth:`saturation_magnitude`
+    (the ramp's limit at a position), :meth:`final_frame_saturation_magnitude` (fainter than which no
+    resultant saturates), :meth:`slope` (value and standard error of a metric and mode at a
+    position and magnitude) and :meth:`conditions` (the scene, exposure and beta0 the slopes are for:
+    the grid answers at those only; the paper tables' beta-flux scaling does not hold for a scene with
+    a background and a ramp's saturation, so no other exposure or beta0 is read from it)."""
 
     meta: dict
     arrays: dict
+    _splines: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def load(cls, path: Path | str) -> FieldGrid:
@@ -183,32 +233,98 @@ class FieldGrid:
     def keys(self) -> list[str]:
         return sorted(self.meta["tables"])
 
-    def node_values(self, band: str, sca: int, column: str, magnitude: float) -> np.ndarray:
-        """(n, n) slopes of ``column`` at ``magnitude`` at every node: a cubic spline of slope / flux
-        in flux along each node's magnitude grid, as ``nlpsf.tables`` reads a table."""
-        from scipy.interpolate import CubicSpline
+    @staticmethod
+    def key(band: str, sca: int) -> str:
+        return f"{roman.check_band(band)}_{int(roman.check_sca(sca)):02d}"
 
-        key = f"{band}_{int(sca):02d}"
+    def covers(self, band: str, sca: int) -> bool:
+        """Whether this file holds the grid of (band, SCA)."""
+        return self.key(band, sca) in self.meta["tables"]
+
+    def coverage(self) -> list[tuple[str, int]]:
+        """Every (band, SCA) held, in band order."""
+        from . import defaults
+
+        pairs = [(t["band"], int(t["sca"])) for t in self.meta["tables"].values()]
+        return sorted(pairs, key=lambda p: (defaults.BANDS.index(p[0]), p[1]))
+
+    def _entry(self, band: str, sca: int) -> tuple[str, dict]:
+        key = self.key(band, sca)
         if key not in self.meta["tables"]:
             raise InputError("band", f"no field grid for {band} SCA {sca} in this file")
-        index = self.meta["columns"].index(column)
+        return key, self.meta["tables"][key]
+
+    def conditions(self, band: str, sca: int) -> dict:
+        """What the slopes of (band, SCA) are for: settings (beta0, full well, centroids, state ...),
+        exposure, scene, grid size, and the file's provenance."""
+        _, entry = self._entry(band, sca)
+        keep = ("band", "sca", "grid", "settings", "exptime_s", "scene", "code_version", "fingerprint")
+        return {k: entry.get(k) for k in keep} | {"provenance": self.meta.get("provenance", {})}
+
+    def magnitude_range(self, band: str, sca: int) -> tuple[float, float]:
+        """(brightest, faintest) magnitude at which every node of (band, SCA) has a value [AB]."""
+        key, _ = self._entry(band, sca)
+        mags = self.arrays[f"{key}/magnitude"]
+        return float(np.nanmax(np.nanmin(mags, axis=-1))), float(np.nanmin(np.nanmax(mags, axis=-1)))
+
+    def saturation_magnitudes(self, band: str, sca: int) -> np.ndarray:
+        """(n, n) [j (y), i (x)]: each node's saturation magnitude, the brightest star whose brightest
+        pixel keeps the resultants a slope needs (the ramp's limit; the grid starts 1.5 mag brighter)."""
+        _, entry = self._entry(band, sca)
+        return np.array(entry["saturation_magnitude"], dtype=np.float64)
+
+    def saturation_magnitude(self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange") -> float:
+        """The saturation magnitude at ``position`` (pixels), interpolated across the nodes."""
+        return float(interpolate(self.saturation_magnitudes(band, sca), position, scheme))
+
+    def final_frame_saturation_magnitude(
+        self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange"
+    ) -> float | None:
+        """Fainter than this no pixel loses a resultant: the brightest pixel's charge reaches the full
+        well only at the exposure's end (the saturation magnitude plus the ramp's shift,
+        ``Ramp.saturation_shift_mag``). Between :meth:`saturation_magnitude` and this, resultants
+        saturate and the field interpolation is rougher (docs/field.md). None: not recorded."""
+        _, entry = self._entry(band, sca)
+        shift = entry.get("ramp_shift_mag")
+        return None if shift is None else self.saturation_magnitude(band, sca, position, scheme) + float(shift)
+
+    def _spline(self, key: str, column: str, j: int, i: int):
+        """(flux range, cubic spline of column / flux in flux) of one node, as ``nlpsf.tables`` reads a table."""
+        from scipy.interpolate import CubicSpline
+
+        cached = self._splines.get((key, column, j, i))
+        if cached is None:
+            index = self.meta["columns"].index(column)
+            flux = self.arrays[f"{key}/flux"][j, i]
+            values = self.arrays[f"{key}/values"][j, i, :, index].astype(np.float64)
+            ok = np.isfinite(flux) & np.isfinite(values)
+            f, q = flux[ok], values[ok] / flux[ok]
+            order = np.argsort(f)
+            cached = self._splines[(key, column, j, i)] = (f[order][0], f[order][-1], CubicSpline(f[order], q[order]))
+        return cached
+
+    def node_values(self, band: str, sca: int, column: str, magnitude) -> np.ndarray:
+        """(n, n, ...) values of ``column`` at ``magnitude`` (a number or an array) at every node: a
+        cubic spline of column / flux in flux along each node's magnitude grid, as ``nlpsf.tables``
+        reads a table; NaN outside a node's grid (no extrapolation across the field)."""
+        key, _ = self._entry(band, sca)
+        if column not in self.meta["columns"]:
+            raise InputError("column", f"no column {column!r} in this field grid")
+        m = np.asarray(magnitude, dtype=np.float64)
         flux = self.arrays[f"{key}/flux"]
         mags = self.arrays[f"{key}/magnitude"]
-        values = self.arrays[f"{key}/values"][..., index].astype(np.float64)
         n = flux.shape[0]
-        out = np.full((n, n), np.nan)
+        out = np.full((n, n, *m.shape), np.nan)
         for j in range(n):
             for i in range(n):
-                ok = np.isfinite(flux[j, i]) & np.isfinite(values[j, i])
-                f, q, m = flux[j, i][ok], values[j, i][ok] / flux[j, i][ok], mags[j, i][ok]
-                order = np.argsort(f)
-                target = f[order][0] * 10 ** (-0.4 * (magnitude - m[order][0]))
-                if not (f[order][0] <= target <= f[order][-1]):
-                    continue  # outside this node's grid: no extrapolation across the field
-                out[j, i] = CubicSpline(f[order], q[order])(target) * target
+                low, high, spline = self._spline(key, column, j, i)
+                first = int(np.nanargmax(flux[j, i]))
+                target = flux[j, i, first] * 10 ** (-0.4 * (m - mags[j, i, first]))
+                inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
+                out[j, i] = np.where(inside, spline(np.clip(target, low, high)) * target, np.nan)
         return out
 
-    def slope(
+    def column_value(
         self,
         band: str,
         sca: int,
@@ -217,5 +333,47 @@ class FieldGrid:
         column: str = "bias_size",
         scheme: str = "lagrange",
     ) -> float:
-        """The slope at ``position`` (pixels) and ``magnitude``, interpolated across the field."""
+        """One column at ``position`` (pixels) and ``magnitude``, interpolated across the field."""
         return float(interpolate(self.node_values(band, sca, column, magnitude), position, scheme))
+
+    def slope(
+        self,
+        band: str,
+        sca: int,
+        position: tuple[float, float],
+        metric: str,
+        mode: str,
+        magnitude,
+        scheme: str = "lagrange",
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(slope, standard error) of ``metric`` ("size", "e1", "e2" or "e", the modulus) and ``mode``
+        ("bias": d metric / d beta, "scatter": sigma metric / sigma beta) at ``position`` (pixels) and
+        ``magnitude`` (a number or an array; NaN outside :meth:`magnitude_range`), per unit beta.
+
+        The error combines, as ``nlpsf.tables`` does, each node's standard error over the centroid
+        draws with its magnitude-interpolation estimate (in quadrature), carried across the field as
+        sum |w_k| err_k (the nodes share their centroid draws, so their errors are correlated; the sum
+        bounds the error for any correlation), and the field interpolation's measured error,
+        :data:`FIELD_INTERPOLATION` x the median |slope| of the nodes, in quadrature."""
+        if metric == "e":
+            s1, e1 = self.slope(band, sca, position, "e1", mode, magnitude, scheme)
+            s2, e2 = self.slope(band, sca, position, "e2", mode, magnitude, scheme)
+            value = np.hypot(s1, s2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                error = np.where(value > 0, np.hypot(s1 * e1, s2 * e2) / value, np.hypot(e1, e2))
+            return value, error
+        from .tables import COLUMN_METRICS, MODES
+
+        if metric not in COLUMN_METRICS:
+            raise InputError("metric", f"must be one of {', '.join([*COLUMN_METRICS, 'e'])}, got {metric!r}")
+        if mode not in MODES:
+            raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
+        column = f"{mode}_{metric}"
+        w = weights(self._entry(band, sca)[1]["grid"], position, scheme)
+        values = self.node_values(band, sca, column, magnitude)
+        statistical = self.node_values(band, sca, f"{column}_err", magnitude)
+        errors = np.hypot(statistical, self.node_values(band, sca, f"{column}_interp", magnitude))
+        value = np.tensordot(w, values, axes=([0, 1], [0, 1]))
+        error = np.tensordot(np.abs(w), errors, axes=([0, 1], [0, 1]))
+        field_term = FIELD_INTERPOLATION[metric] * np.median(np.abs(values), axis=(0, 1))
+        return value, np.hypot(error, field_term)

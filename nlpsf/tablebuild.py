@@ -243,7 +243,12 @@ def compute_table(
             "peak_fraction": float(scene.star_peak_fraction),
             "settings": asdict(settings),
             "fingerprint": settings.fingerprint(),
-            "method": "linear response at beta0, mean over centroid realizations",
+            "method": (
+                "linear response at beta0, mean over centroid realizations"
+                if settings.linearise_at == "beta0"
+                else f"linear response at the {settings.linearise_at} state ({experiment.CORRECTED_RESIDUAL:g} beta0; "
+                "a ramp's saturation flags at the raw beta0), mean over centroid realizations"
+            ),
             "data_version": roman.DATA_VERSION,
             "code_version": __version__,
             "elapsed_s": time.perf_counter() - start,
@@ -393,12 +398,39 @@ def interpolation_error_estimate(flux: np.ndarray, slope: np.ndarray) -> np.ndar
     return out
 
 
-def merge_field_grid(paths: Iterable[Path], destination: Path | str) -> Path:
+def merge_field_grid(
+    paths: Iterable[Path], destination: Path | str, provenance: dict | None = None, complete_only: bool = False
+) -> Path:
     """Pack the node tables of a ``build_tables(grid=n)`` run into one field-grid file
-    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads)."""
+    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads).
+
+    ``complete_only``: leave out every (band, SCA) whose n x n nodes are not all there (a build still
+    running or stopped), instead of refusing; ``provenance`` goes into the file's metadata."""
     tables = [Table.read(p, format="ascii.ecsv") for p in sorted(paths)]
     if not tables:
         raise InputError("tables", "nothing to merge")
     if any("grid_node" not in t.meta for t in tables):
         raise InputError("tables", "only field-grid node tables (built with grid=n) go into a field-grid file")
-    return fieldgrid.write_grid(tables, destination)
+    if complete_only:
+        groups: dict[tuple[str, int], list] = {}
+        for t in tables:
+            groups.setdefault((t.meta["band"], int(t.meta["sca"])), []).append(t)
+        tables = [t for group in groups.values() if len(group) == int(group[0].meta["grid_node"][0]) ** 2 for t in group]
+        if not tables:
+            raise InputError("tables", "no (band, SCA) has all its grid nodes yet")
+    return fieldgrid.write_grid(tables, destination, provenance=provenance, per_table=_ramp_shifts(tables))
+
+
+def _ramp_shifts(tables: list) -> dict[str, dict]:
+    """Per (band, SCA) of a ramp scene: how much brighter the ramp's saturation limit is than the
+    final frame's (``Ramp.saturation_shift_mag``, exact for its rules, at the tables' beta0 and background)."""
+    out: dict[str, dict] = {}
+    for t in tables:
+        key = f"{t.meta['band']}_{int(t.meta['sca']):02d}"
+        if key in out or t.meta["settings"].get("scene", "paper") != "roman":
+            continue
+        settings = TableSettings(**t.meta["settings"])
+        config = settings.config(t.meta["band"], int(t.meta["sca"]))
+        shift = config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
+        out[key] = {"ramp_shift_mag": float(shift)}
+    return out

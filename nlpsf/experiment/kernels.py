@@ -67,11 +67,15 @@ def nl_images(
     if effect is not None and effect.scene_ramp is not None:
         # Up the ramp in a scene: each order's NL term times the measuring pixel's factor (ramps.scene_factors).
         sr = effect.scene_ramp
+        if sr.margin and sr.margin != margin:
+            sr = sr.whole()  # computed on the moments' core; this call needs more of the stamps
         if count is not None and sr.charge.shape[0] > count:
-            sr = ramps.SceneRamp(sr.factors[:, :count], sr.usable[:count], sr.charge[:count], sr.orders)
+            sr = sr.head(count)
         perturbation, derivative = ramps.scene_perturbation(
             sr, beta, model.nl_coefficients, model.ipc, model.ipc_order, config.oversampling
         )
+        if sr.margin:  # already the core
+            return stamps[core], reference, perturbation / charge_scale, derivative / charge_scale
         return stamps[core], reference, perturbation[core] / charge_scale, derivative[core] / charge_scale
     shift, perturbation, derivative = scenes.detector_chain(scene.charge[pick], charge_scale, beta, model, config.oversampling)
     if shift is not None:

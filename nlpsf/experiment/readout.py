@@ -69,6 +69,22 @@ def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, sta
     weighted = scene.weighted_region[pick]
     charge = charge_scale * scene.charge[pick] + model.background_e
     orders = tuple(range(2, 3 + len(model.nl_coefficients)))
+    if model.ipc is not None and model.ipc_order == "after":
+        # Every coupled image from the scene's coupled unit powers (ramps.CoupledPowers), none per flux;
+        # the factors of all realizations only on the moments' core (every pixel of the one a scatter uses).
+        sr, usable = ramps.scene_factors_coupled(
+            scene.coupled_powers,
+            charge_scale,
+            model.background_e,
+            config.ramp,
+            config.exptime_s,
+            config.full_well_e,
+            state,
+            orders,
+            pick,
+            margin=scene.core_margin if index is None else 0,
+        )
+        return _ramp_summary(scene, charge, sr.factors[0], usable, weighted, sr)
     sr = ramps.scene_factors(
         charge, config.ramp, config.exptime_s, config.full_well_e, state, orders, model.ipc, model.ipc_order, config.oversampling
     )

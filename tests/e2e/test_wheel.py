@@ -37,6 +37,7 @@ def test_wheel_holds_the_web_package_and_the_page_and_no_top_level_app(wheel):
     assert "nlpsf/data/tables/slopes.npz" in names and "nlpsf/py.typed" in names
     # Without them --over-field would quietly simulate instead of reading tables.
     assert {"nlpsf/data/tables/field_slopes.ecsv.gz", "nlpsf/data/tables/field_slopes.npz"} <= set(names)
+    assert "nlpsf/data/tables/roman_field_grid.npz" in names  # the Roman default, read at any position
     assert "nlpsf/data/ma_tables/romanisim-109.json" in names
     # --pupil-scale official reads these at run time.
     assert {f"nlpsf/data/rti_pupil_masks/pupilmask_obsc_{m}_mask.ecsv" for m in ("skinny", "F184")} <= set(names)

@@ -78,7 +78,7 @@ def test_the_packed_file_at_a_node_equals_the_node_table(built, tmp_path):
                 # float32 storage: 6e-8 relative; the spline through the nodes returns the node itself.
                 assert nodes[j, i] == pytest.approx(exact, rel=3e-7)
                 for scheme in fieldgrid.SCHEMES:
-                    at = grid.slope("H158", 18, tuple(table.meta["position"]), magnitude, column, scheme)
+                    at = grid.column_value("H158", 18, tuple(table.meta["position"]), magnitude, column, scheme)
                     assert at == pytest.approx(exact, rel=3e-7)
 
 
