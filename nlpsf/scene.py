@@ -31,14 +31,11 @@ only). The effects, in the order a photon meets them (DESIGN.md, "The scene mode
     sky plus dark charge per native pixel over the exposure, added before the NL and subtracted
     afterwards as the linear model would (S(Q + B) - B).
 
-Native-pixel kernels on the oversampled grid. A fine pixel (i, j) of the stamp holds the effective
-PSF (optics convolved with the native pixel's top hat) sampled at its centre x_ij; that value is
-exactly the charge a native pixel centred at x_ij would collect. The native pixel's neighbour to
-the right is centred at x_ij + p, and x_ij + p is the centre of fine pixel (i, j + N) because fine
-pixels are p / N apart. So the oversampled stamp is the interleave of N^2 native-pixel images
-(one per sub-pixel phase), and a kernel that couples native pixels -- IPC, brighter-fatter --
-acts on each interleaved image separately, i.e. on the fine grid its taps are N fine pixels apart.
-``tests/library/test_scene.py`` checks this against GalSim's ``applyIPC`` on the de-interleaved images.
+The kernels that act on the stamps (blurs, IPC, brighter-fatter, the detector chain) are in
+``nlpsf.scene_kernels``, re-exported here. Why the rest is one module of ~700 lines: the registry,
+the description, its validation and its readers from user input (CLI strings, API objects, JSON
+files) are the one owner of the scene's fields; each field's rule sits beside the field, so adding an
+effect is one registry entry and the checks it needs, in one place.
 
 Rescaling rules. The tables' exposure and beta0 rescaling rests on the metrics depending on beta
 and flux only through beta Q. Position, SED, jitter, diffusion and IPC (either order) are linear in
@@ -63,6 +60,15 @@ import numpy as np
 
 from . import roman
 from .checks import InputError, check_integer, check_number
+from .scene_kernels import (  # noqa: F401  (re-exported: the scene's public kernels)
+    apply_ipc,
+    apply_ipc_adjoint,
+    blur,
+    brighter_fatter,
+    charge_before_nl,
+    detector_chain,
+    gaussian_transfer,
+)
 
 #: GalSim 2.8.5 ``galsim/roman/__init__.py`` ``ipc_kernel`` before its normalisation (rows are y,
 #: columns x, as a GalSim Image's array); :data:`ROMAN_IPC_KERNEL` divides it by its sum as GalSim does.
@@ -434,84 +440,6 @@ def choose_wavelengths(band: str, spectrum, accuracy: float, sca: int = 18, sour
     return 64, binning_error(band, spectrum, 64, sca, source)
 
 
-# --- Gaussian blurs ---------------------------------------------------------------------------
-
-
-def gaussian_transfer(frequencies: np.ndarray, sigma_arcsec: float) -> np.ndarray:
-    """Fourier transform of a unit-flux circular Gaussian of rms ``sigma`` per axis, on (f_y, f_x)."""
-    f2 = frequencies[:, None] ** 2 + frequencies[None, :] ** 2
-    return np.exp(-2.0 * math.pi**2 * sigma_arcsec**2 * f2)
-
-
-def blur(psf, sigma_arcsec: float):
-    """The effective PSF convolved with a Gaussian of rms ``sigma_arcsec`` (jitter, diffusion)."""
-    from .optics import EffectivePSF
-
-    if sigma_arcsec == 0:
-        return psf
-    coefficients = psf.coefficients * gaussian_transfer(psf.frequencies, sigma_arcsec)
-    coefficients.setflags(write=False)
-    return EffectivePSF(psf.optics, psf.field_arcsec, psf.frequencies, coefficients, psf.wavelengths_nm, psf.weights)
-
-
-# --- native-pixel kernels on the oversampled grid -----------------------------------------------
-
-
-def _shifted(images: np.ndarray, oversampling: int) -> dict[tuple[int, int], np.ndarray]:
-    """Views of ``images`` shifted by (dy, dx) native pixels = (dy N, dx N) fine pixels, edges
-    continued with the nearest value (so a uniform field stays uniform)."""
-    n = oversampling
-    pad = [(0, 0)] * (images.ndim - 2) + [(n, n), (n, n)]
-    padded = np.pad(images, pad, mode="edge")
-    ny, nx = images.shape[-2:]
-    return {
-        (dy, dx): padded[..., n + dy * n : n + dy * n + ny, n + dx * n : n + dx * n + nx]
-        for dy in (-1, 0, 1)
-        for dx in (-1, 0, 1)
-    }
-
-
-def apply_ipc(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
-    """IPC on (stacks of) oversampled images: out = sum K[1+dy, 1+dx] in[y + dy N, x + dx N].
-
-    This is GalSim's ``Image.applyIPC`` convention (kernel element (1+dy, 1+dx) weights the pixel
-    at offset (dy, dx)), with taps N fine pixels apart (module docstring).
-    """
-    k = np.asarray(kernel, dtype=np.float64)
-    shifted = _shifted(np.asarray(images, dtype=np.float64), oversampling)
-    out = np.zeros(np.shape(images))
-    for (dy, dx), view in shifted.items():
-        out += k[1 + dy, 1 + dx] * view
-    return out
-
-
-def apply_ipc_adjoint(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
-    """The transpose of :func:`apply_ipc` (needed to move a pixel gradient back through IPC)."""
-    flipped = np.asarray(kernel, dtype=np.float64)[::-1, ::-1]
-    return apply_ipc(images, flipped, oversampling)
-
-
-def brighter_fatter(charge: np.ndarray, coefficient: float, oversampling: int) -> np.ndarray:
-    """Charge moved by the brighter-fatter effect (the change, not the image), nearest neighbours.
-
-    The form of Antilogus et al. (2014, JINST 9, C03048, eq. 2-4) keeping only the nearest-neighbour
-    boundary shifts: the boundary between pixel p and its neighbour X moves towards p by
-    a (Q_p - Q_X) pixel widths (collected charge repels incoming charge), and the charge that crosses
-    it is that shift times the mean charge density at the boundary, (Q_p + Q_X) / 2, halved again
-    because the charge builds up linearly over the exposure:
-
-        dQ_p = (a / 4) sum_X (Q_X^2 - Q_p^2),
-
-    the discrete form of Coulton et al. (2018, AJ 155, 258) (1/2) div(Q grad(K * Q)) with a
-    delta-function kernel. It conserves charge and broadens peaks for a > 0. ``coefficient`` a is in
-    1/e- (the user's; there is no default). Neighbours are native pixels, N fine pixels apart.
-    """
-    q2 = np.asarray(charge, dtype=np.float64) ** 2
-    shifted = _shifted(q2, oversampling)
-    neighbours = shifted[(-1, 0)] + shifted[(1, 0)] + shifted[(0, -1)] + shifted[(0, 1)]
-    return 0.25 * coefficient * (neighbours - 4.0 * q2)
-
-
 # --- presets and JSON -------------------------------------------------------------------------
 
 
@@ -695,55 +623,6 @@ def from_options(
     if not changes:
         return scene
     return replace(scene, name=None, **changes)
-
-
-# --- the detector chain ----------------------------------------------------------------------
-
-
-def detector_chain(
-    psi: np.ndarray, charge_scale: float, beta, model: SceneModel, oversampling: int
-) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-    """The detector effects on unit-flux stamps ``psi`` (effective PSF samples, before IPC).
-
-    With s = ``charge_scale`` (flux N^2) and B the background, the charge is Q = s psi + B, moved by
-    brighter-fatter, coupled by IPC before or after the NL S(Q) = Q - b2 Q^2 - b3 Q^3 ..., and the
-    background is subtracted as the linear model would. Returns, per unit flux (divided by s):
-
-    - ``shift``: the NL-free image minus the stored linear stamp IPC(psi) (brighter-fatter's own
-      change of the image, which the metrics' reference includes), or None;
-    - ``perturbation``: the image with the NL minus the NL-free one;
-    - ``derivative``: d perturbation / d b2 for a uniform b2.
-
-    Every difference is computed term by term (never as a difference of images), so faint stars
-    and tiny coefficients keep full relative precision.
-    """
-    kernel = model.ipc
-    charge = charge_scale * psi + model.background_e
-    shift = None
-    if model.bfe_coefficient != 0:
-        moved = brighter_fatter(charge, model.bfe_coefficient, oversampling)
-        charge = charge + moved
-        shift = (apply_ipc(moved, kernel, oversampling) if kernel is not None else moved) / charge_scale
-    if kernel is not None and model.ipc_order == "before":
-        charge = apply_ipc(charge, kernel, oversampling)
-    from .detector import polynomial_perturbation
-
-    perturbation = polynomial_perturbation(charge, beta, model.nl_coefficients)
-    derivative = -(charge * charge)
-    if kernel is not None and model.ipc_order == "after":
-        perturbation = apply_ipc(perturbation, kernel, oversampling)
-        derivative = apply_ipc(derivative, kernel, oversampling)
-    return shift, perturbation / charge_scale, derivative / charge_scale
-
-
-def charge_before_nl(psi: np.ndarray, charge_scale: float, model: SceneModel, oversampling: int) -> np.ndarray:
-    """The charge the NL acts on (for validity checks and per-pixel gradients)."""
-    charge = charge_scale * psi + model.background_e
-    if model.bfe_coefficient != 0:
-        charge = charge + brighter_fatter(charge, model.bfe_coefficient, oversampling)
-    if model.ipc is not None and model.ipc_order == "before":
-        charge = apply_ipc(charge, model.ipc, oversampling)
-    return charge
 
 
 def check_first_order(scene: SceneModel, full_well: float) -> None:
