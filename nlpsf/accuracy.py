@@ -75,7 +75,8 @@ class FullScene:
 
 
 def full_scene(request, table) -> FullScene:
-    """The full scene of ``request``: its own scene when it gives one, else the Roman default at
+    """The full scene of ``request``: its own scene when it gives one (the paper's for the "paper"
+    preset, which the request holds as no scene), else the Roman default at
     the SCA centre (``roman_default.scene``) with the background over the request's exposure. The
     readout, pupil rule and linearisation state are the request's (those the solver simulates with)."""
     from . import backgrounds, roman_default
@@ -88,6 +89,9 @@ def full_scene(request, table) -> FullScene:
         # it is the Roman default, whose own fidelity measurement applies, at any position.
         own = default and roman_default.is_default_scene(request.scene, request.scene.background_e)
         scene, source = request.scene, "roman default" if own else "request"
+    elif getattr(request, "preset", None) not in (None, roman_default.NAME):
+        # A preset's scene the request normalises away (``SolveRequest``: "paper" is the plain path).
+        scene, source = roman_default.preset_base(request.preset), "request"
     else:
         background = backgrounds.background_electrons(roman_default.BACKGROUND, request.band, request.sca, request.exptime)
         scene, source = roman_default.scene(None, background), "roman default"
