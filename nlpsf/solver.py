@@ -184,7 +184,8 @@ class SolvePlan:
 
 def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> SolvePlan:
     """Choose the fidelity, the scene to simulate and the tables to read for ``request``."""
-    chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode)
+    default = _measured_default(request)
+    chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode, default)
     model_info, simulated_scene = None, None
     scene = request.scene
     if request.accuracy is not None:
@@ -227,13 +228,22 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
-        model_info = model_part.shipped_model(request.band, request.sca, request.metric, request.mode, simulated_scene, chosen)
+        model_info = model_part.shipped_model(
+            request.band, request.sca, request.metric, request.mode, simulated_scene, chosen,
+            default=default, pupil_scale=request.pupil_scale or table_rule,
+        )  # fmt: skip
     breaking = simulated_scene.breaks_beta_q_scaling() if simulated_scene is not None else None
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
     realizations = selection.realizations if request.accuracy is not None else None
     return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations=realizations, grid=grid)
+
+
+def _measured_default(request: SolveRequest) -> str:
+    """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
+    for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
+    return model_part.ROMAN_DEFAULT if request.preset == roman_default.NAME else "paper"
 
 
 @dataclass(frozen=True)
@@ -291,7 +301,9 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     limits = _limits(request, the_plan, slopes)
     level = the_plan.model.get("level")  # an accuracy answer's level error, for the scene it simulates
     systematic, systematic_note = (
-        (level["error"], None) if level else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode)
+        (level["error"], None)
+        if level
+        else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))
     )
     if systematic_note:
         flags.append(systematic_note)
@@ -370,7 +382,7 @@ def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dic
         parts = Uncertainty(
             statistical=(slope_err / abs(slope)) / abs(log_derivative),
             fidelity=None if systematic is None else systematic / abs(log_derivative),
-            optical_model=model_part.optical_model_relative(slopes, m_nl) / abs(log_derivative),
+            optical_model=model_part.optical_model_relative(slopes, m_nl, model_info=model_info) / abs(log_derivative),
             effects=effects,
             pupil_scale=pupil,
         )
@@ -397,8 +409,9 @@ def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: 
         flags += _magnitude_flags(slopes, magnitude, region, limits.saturation, beta0)
     averaging = 1.0 / math.sqrt(request.stars)
     c, c_err = abs(slope) * averaging, slope_err * averaging
-    optical = model_part.optical_model_relative(slopes, magnitude) if region >= 0 else None
     model_info = model_part.model_at(model_info, slopes, magnitude) if region >= 0 else None
+    # After model_at: the Roman default's parts hold the optical model's vintage, not counted twice.
+    optical = model_part.optical_model_relative(slopes, magnitude, model_info=model_info) if region >= 0 else None
     effects, pupil = (None, None) if model_info is None else (model_info[k] for k in model_part.MODEL_PARTS)
     if request.solved_for == "tolerance":
         tolerance = c * precision * beta0
