@@ -61,7 +61,7 @@ class FullScene:
     """The scene an ``accuracy`` answer is held to, with the simulation conditions it runs under."""
 
     scene: scenes.SceneModel
-    #: "roman default" (no scene in the request), or "request".
+    #: "roman default" (the request's scene is the Roman default's, at any position), or "request".
     source: str
     ramp: object | None
     exptime: float
@@ -75,15 +75,23 @@ class FullScene:
 
 
 def full_scene(request, table) -> FullScene:
-    """The full scene of ``request``: its own scene when it gives one, else the Roman default at
+    """The full scene of ``request``: its own scene when it gives one (the paper's for the "paper"
+    preset, which the request holds as no scene), else the Roman default at
     the SCA centre (``roman_default.scene``) with the background over the request's exposure. The
     readout, pupil rule and linearisation state are the request's (those the solver simulates with)."""
     from . import backgrounds, roman_default
 
     linearise_at = getattr(request, "linearise_at", None) or "beta0"
     pupil = request.pupil_scale or str(table.settings["pupil_scale"])
+    default = getattr(request, "preset", None) == roman_default.NAME
     if request.scene is not None:
-        scene, source = request.scene, "request"
+        # A request filled with the Roman default (``roman_default.fill``) holds the default's scene:
+        # it is the Roman default, whose own fidelity measurement applies, at any position.
+        own = default and roman_default.is_default_scene(request.scene, request.scene.background_e)
+        scene, source = request.scene, "roman default" if own else "request"
+    elif getattr(request, "preset", None) not in (None, roman_default.NAME):
+        # A preset's scene the request normalises away (``SolveRequest``: "paper" is the plain path).
+        scene, source = roman_default.preset_base(request.preset), "request"
     else:
         background = backgrounds.background_electrons(roman_default.BACKGROUND, request.band, request.sca, request.exptime)
         scene, source = roman_default.scene(None, background), "roman default"

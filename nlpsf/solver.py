@@ -56,7 +56,7 @@ import math
 import time
 from dataclasses import dataclass, replace
 
-from . import __version__, defaults, model_part, ramps, roman_default, shear, tables
+from . import answer_conditions, defaults, model_part, ramps, roman_default, shear, tables
 from . import fidelity as levels
 from .checks import (
     InputError,
@@ -184,7 +184,8 @@ class SolvePlan:
 
 def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> SolvePlan:
     """Choose the fidelity, the scene to simulate and the tables to read for ``request``."""
-    chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode)
+    default = _measured_default(request)
+    chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode, default)
     model_info, simulated_scene = None, None
     scene = request.scene
     if request.accuracy is not None:
@@ -227,13 +228,22 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         chosen = "linear"
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
-        model_info = model_part.shipped_model(request.band, request.sca, request.metric, request.mode, simulated_scene, chosen)
+        model_info = model_part.shipped_model(
+            request.band, request.sca, request.metric, request.mode, simulated_scene, chosen,
+            default=default, pupil_scale=request.pupil_scale or table_rule,
+        )  # fmt: skip
     breaking = simulated_scene.breaks_beta_q_scaling() if simulated_scene is not None else None
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
     realizations = selection.realizations if request.accuracy is not None else None
     return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations=realizations, grid=grid)
+
+
+def _measured_default(request: SolveRequest) -> str:
+    """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
+    for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
+    return model_part.ROMAN_DEFAULT if request.preset == roman_default.NAME else "paper"
 
 
 @dataclass(frozen=True)
@@ -291,7 +301,9 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     limits = _limits(request, the_plan, slopes)
     level = the_plan.model.get("level")  # an accuracy answer's level error, for the scene it simulates
     systematic, systematic_note = (
-        (level["error"], None) if level else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode)
+        (level["error"], None)
+        if level
+        else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))
     )
     if systematic_note:
         flags.append(systematic_note)
@@ -302,7 +314,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
     if slopes.grid_misses:
         flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
-    conditions = _conditions(request, the_plan, slopes)
+    conditions = answer_conditions.conditions(request, the_plan, slopes)
     shear_answer = None
     if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
         statistical = result.parts.statistical if request.solved_for == "tolerance" else None
@@ -311,7 +323,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
             flags.append(make(FlagCode.SHEAR_CROSS_TERM))
     if slopes.pupil_scale is not None and the_plan.fidelity != "table":
         conditions["pupil_scale"] = slopes.pupil_scale
-    _simulation_conditions(conditions, the_plan, slopes)
+    answer_conditions.add_simulation_conditions(conditions, the_plan, slopes)
     return Solution(
         band=request.band,
         sca=request.sca,
@@ -370,7 +382,7 @@ def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dic
         parts = Uncertainty(
             statistical=(slope_err / abs(slope)) / abs(log_derivative),
             fidelity=None if systematic is None else systematic / abs(log_derivative),
-            optical_model=model_part.optical_model_relative(slopes, m_nl) / abs(log_derivative),
+            optical_model=model_part.optical_model_relative(slopes, m_nl, model_info=model_info) / abs(log_derivative),
             effects=effects,
             pupil_scale=pupil,
         )
@@ -397,8 +409,9 @@ def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: 
         flags += _magnitude_flags(slopes, magnitude, region, limits.saturation, beta0)
     averaging = 1.0 / math.sqrt(request.stars)
     c, c_err = abs(slope) * averaging, slope_err * averaging
-    optical = model_part.optical_model_relative(slopes, magnitude) if region >= 0 else None
     model_info = model_part.model_at(model_info, slopes, magnitude) if region >= 0 else None
+    # After model_at: the Roman default's parts hold the optical model's vintage, not counted twice.
+    optical = model_part.optical_model_relative(slopes, magnitude, model_info=model_info) if region >= 0 else None
     effects, pupil = (None, None) if model_info is None else (model_info[k] for k in model_part.MODEL_PARTS)
     if request.solved_for == "tolerance":
         tolerance = c * precision * beta0
@@ -421,65 +434,6 @@ def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: 
     return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info)
 
 
-def _conditions(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> dict:
-    conditions = tables.conditions(slopes.table, request.exptime, request.beta0, request.full_well)
-    relation = "T = |c(m)| * precision * beta0" + (" / sqrt(stars)" if request.mode == "scatter" else "")
-    applies_to = _applies_to(request.mode, request.stars)
-    conditions.update(
-        fidelity=the_plan.fidelity, code_version=__version__, relation=relation, stars=request.stars, applies_to=applies_to
-    )
-    # Which scene the answer is for, and the detector state its slope is taken at.
-    conditions["scene_name"] = request.preset
-    conditions["linearise_at"] = request.linearise_at
-    if request.preset == roman_default.NAME:
-        conditions["roman_default"] = roman_default.conditions()
-        own = roman_default.fill(roman_default.NAME, request.band, request.sca, request.exptime, None, None, None)
-        conditions["roman_default_changed"] = not roman_default.is_default_scene(request.scene, own.background_e) or (
-            request.ramp != own.ramp
-        )
-    if the_plan.grid is not None:
-        conditions["slopes_from"] = f"the Roman default's field grid ({roman_default.GRID_FILE})"
-    ramp = request.ramp
-    if ramp is None:
-        conditions["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
-    else:
-        conditions["saturation_rule"] = (
-            "ramp: the brightest pixel saturates in the resultant a slope needs (the first, or the second where one "
-            "resultant gives no slope; later saturated resultants are dropped): " + ramp.saturation_rule()
-        )
-        conditions["ramp"] = ramp.conditions(request.exptime)
-        # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
-        conditions["ramp_table_exact_from_magnitude"] = slopes.exact_from() if slopes.ramp_factor is not None else None
-        conditions["ramp_slopes_from"] = _ramp_basis(slopes)
-    return conditions
-
-
-def _simulation_conditions(conditions: dict, the_plan: SolvePlan, slopes: _Slopes) -> None:
-    if the_plan.fidelity != "table":
-        conditions["realizations"] = slopes.realizations
-        # What the optics evaluated (a scene's SED integrates the band even at linear fidelity).
-        simulated = slopes.prepared  # the prepared simulation, None where none ran
-        conditions["n_wavelengths"] = (
-            int(simulated.psf.wavelengths_nm.size)
-            if simulated is not None
-            else levels.simulation_settings(the_plan.fidelity).n_wavelengths
-        )
-    if the_plan.scene is not None:
-        conditions["scene"] = the_plan.scene.to_dict()
-        conditions["scene_description"] = the_plan.scene.describe()
-
-
-def _applies_to(mode: str, stars: int) -> str:
-    if mode == "bias":
-        return "every star alike: a bias in the mean beta is common to all stars, averaging does not reduce it"
-    if stars == 1:
-        return "one star: the scatter of a single star's metric over per-pixel beta maps"
-    return (
-        f"a PSF model averaging {stars} stars or dithers on independent pixels (scatter / sqrt({stars})), "
-        "each as bright as the answer's magnitude"
-    )
-
-
 def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncertainty: float | None) -> dict:
     """The shear budget given, or the bias the tolerance implies for galaxies of this size ratio."""
     if budget is not None:
@@ -493,28 +447,6 @@ def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncert
 
 
 _fidelity_error = fidelity_error  # the old private name (app/api.py calls it)
-
-
-def _ramp_basis(slopes: _Slopes) -> str:
-    parts = []
-    if "grid" in slopes.ramp_bases:
-        parts.append("the Roman default's field grid (its ramp simulated at every node)")
-    if "table" in slopes.ramp_bases:
-        parts.append(
-            f"tables at beta_eff = {slopes.ramp_factor:.6g} beta0 "
-            "(exact: quadratic NL, OLS fit, every pixel keeps every resultant)"
-        )
-    if "simulation" in slopes.ramp_bases:
-        level = "linear-response" if slopes.fidelity in ("table", "linear") else slopes.fidelity.replace("_", " ")
-        why = (
-            "the optimally weighted fit has no exact table mapping"
-            if slopes.ramp.fit == "optimal"
-            else f"brighter than m={slopes.exact_from():.2f} pixels drop saturated resultants"
-            if slopes.fidelity == "table"
-            else ("the scene has no table" if slopes.scene_model is not None else f"fidelity {slopes.fidelity} asked for")
-        )
-        parts.append(f"fresh {level} simulations of the ramp ({why}; {slopes.realizations} realizations)")
-    return "; ".join(parts) or "none needed"
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, **request) -> Solution:

@@ -97,8 +97,11 @@ def test_nothing_is_left_out_where_the_full_scene_is_affordable():
     selection = accuracy.select(request, 19.0)
     assert selection.fidelity == "linear" and selection.model["left_out_impact"] == 0.0
     assert selection.model["probe"] is None  # no impact measured: simulating everything is cheapest
-    assert replace(selection.scene, n_wavelengths=None) == replace(request.scene, n_wavelengths=None)
-    assert selection.scene.n_wavelengths >= accuracy.BAND_INTEGRATED_WAVELENGTHS
+    # The request's scene is the Roman default's: its own fidelity measurement is read, of the levels
+    # as the default runs them, so the scene is simulated as it is (no forced band integration).
+    assert selection.model["full_scene"]["source"] == "roman default"
+    assert FlagCode.FIDELITY_FROM_PAPER not in codes(selection.notes)
+    assert selection.scene == request.scene
 
 
 def test_without_a_scene_the_full_scene_is_the_roman_default():
@@ -110,16 +113,21 @@ def test_without_a_scene_the_full_scene_is_the_roman_default():
     assert selection.model["full_scene"]["source"] == "roman default"
     expected = roman_default.scene(None, readout.background_e)
     assert replace(selection.scene, n_wavelengths=None) == expected
-    assert {"position", "pupil_scale"} <= {p["name"] for p in selection.model["left_out"]}  # named, not measured
+    # The SCA centre stands for the position: named, not measured. The default's pupil rule is the
+    # official clear area, so no pupil-scale part is named (only another rule would be).
+    assert selection.model["full_scene"]["pupil_scale"] == "official"
+    assert {p["name"] for p in selection.model["left_out"]} == {"position"}
 
 
 def _full_scene_reference(request, realizations=30, seed=4242):
     """An independent, fresh full-scene simulation at the most exact level: Monte Carlo on the PSF
-    integrated over 16 wavelengths, other centroids than the solver's."""
+    integrated over 16 wavelengths, other centroids than the solver's, with the request's pupil rule
+    (the Roman default's: official)."""
     table = tables.load_tables().get(request.band, request.sca)
+    pupil = request.pupil_scale or str(table.settings["pupil_scale"])
     config = experiment.SimulationConfig.from_table(
         table.settings, band=request.band, sca=request.sca, exptime_s=request.exptime, throughput=table.throughput,
-        method="monte_carlo", n_wavelengths=16, realizations=realizations, seed=seed,
+        method="monte_carlo", n_wavelengths=16, realizations=realizations, seed=seed, pupil_scale=pupil,
         scene=replace(request.scene, n_wavelengths=16), ramp=request.ramp, full_well_e=request.full_well,
     )  # fmt: skip
     state = getattr(request, "linearise_at", None) or "beta0"  # the state the solver linearises at

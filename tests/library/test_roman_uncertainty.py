@@ -165,3 +165,28 @@ def test_the_shipped_roman_fidelity_covers_every_band_and_level():
                 assert set(levels) == set(fidelity.LEVELS), (band, mode, metric)
                 assert all(math.isfinite(v) and v >= 0 for v in levels.values())
     assert "Roman default" in data["reference"]
+
+
+def test_a_roman_default_answer_quotes_its_parts_and_counts_the_optics_once():
+    from nlpsf import solver
+
+    answer = solver.solve(
+        "H158", precision=0.01, magnitude=18.5, scene=replace(roman_default.base_scene(), position=(1000.0, 3000.0))
+    )
+    assert answer.model["combine"] == "roman"
+    names = [p["name"] for p in answer.model["left_out"]]
+    assert names == [part.name for part in ru.PARTS]
+    assert not any("vs header" in p["why"] for p in answer.model["left_out"])
+    # The optics' vintage is one of the parts: the old official-PSF figure is not added again.
+    assert answer.uncertainty_optical_model == 0.0
+    # By hand: the choices in quadrature, then the left-out effects' moduli added (ru.COMBINATION).
+    impacts = {p["name"]: abs(p["impact"]) for p in answer.model["left_out"]}
+    choices = [v for name, v in impacts.items() if ru.KINDS[name] == "choice"]
+    added = [v for name, v in impacts.items() if ru.KINDS[name] == "left_out"]
+    relative = math.sqrt(sum(v * v for v in choices)) + sum(added)
+    assert answer.uncertainty_model == pytest.approx(relative * answer.tolerance, rel=1e-9)
+    expected = math.hypot(answer.uncertainty_statistical, answer.uncertainty_fidelity, answer.uncertainty_model)
+    assert answer.uncertainty == pytest.approx(expected, rel=1e-9)
+    # The paper's scene keeps its own model part and the official-PSF figure.
+    paper = solver.solve("H158", precision=0.01, magnitude=18.5, scene="paper")
+    assert paper.model["combine"] == "sum" and paper.uncertainty_optical_model > 0
