@@ -1292,6 +1292,8 @@ function sceneName(s) {
   const c = s.conditions || {};
   const named = c.scene_description || (typeof c.scene === "string" ? c.scene : c.scene && c.scene.description);
   if (!named || /^paper scene/.test(named)) return PAPER_SCENE;
+  // The library names the default's scene "roman: position …, SED …": the page says it in words.
+  if (/^roman:\s*/.test(named)) return `the Roman default scene (${named.replace(/^roman:\s*/, "")})`;
   return named;
 }
 
@@ -1372,8 +1374,11 @@ async function failAnswer(error, shortReason = null, body = null) {
   document.getElementById("req-readout").textContent = "";
 }
 
-// The brightest magnitude the calculator answers for at these conditions, from the server.
+// The brightest magnitude the calculator answers for at these conditions (the paper's scene), from the server.
 async function tooBright(body, original) {
+  // /page/limits bisects the paper's tables: its number holds for the paper's scene only, so another
+  // scene's refusal keeps the server's own words.
+  if (body.scene !== "paper") return [plainWords(original), null];
   try {
     const limits = await api(`/page/limits?${query({ band: body.band, sca: body.sca, metric: body.metric, mode: body.mode,
       exptime: body.exptime, beta0: body.beta0, full_well: body.full_well })}`);
