@@ -1847,7 +1847,8 @@ async function measureImpact(event) {
     metric: s.metric.value,
     mode: s.mode.value,
     beta0: numberOrText(s.beta0.value),
-    exptime: numberOrText(s.exptime.value),
+    // Empty: the impact report's own exposure (the paper's final frame, as its scene's base).
+    ...(s.exptime.value.trim() ? { exptime: numberOrText(s.exptime.value) } : {}),
     magnitude: (state.lastSolution && state.lastSolution.magnitude) ?? numberOrText(s.magnitude.value) ?? 18.3,
     realizations: 30,
   };
