@@ -1015,7 +1015,7 @@ async function copyLink() {
 
 function fillReadout(group) {
   const select = document.getElementById(`${group}-readout`);
-  const options = [["final", "the scene's (Roman default: HLWAS table; paper: final frame)"], ["uniform", "uniform ramp, N reads"],
+  const options = [["final", "the scene's (Roman: HLWAS; paper: final frame)"], ["uniform", "uniform ramp, N reads"],
     ...(state.meta.ma_tables || []).map((t) => [`table:${t.name}`,
       `MA table ${t.name} (${t.resultants} resultants, ${fmt(t.last_read_s)} s)`])];
   select.innerHTML = options.map(([v, l]) => `<option value="${escapeHtml(v)}">${escapeHtml(l)}</option>`).join("");
@@ -1043,7 +1043,7 @@ function readoutChanged(group, setExposure = true) {
 function exposurePlaceholder() {
   const scene = document.getElementById("solve-scene").value || "roman";
   const exposures = (state.meta && state.meta.defaults.scene_exptime) || {};
-  const name = scene === "paper" ? "the paper's" : "the Roman default's";
+  const name = scene === "paper" ? "paper" : "Roman default";
   const input = document.getElementById("solve-exptime");
   input.placeholder = exposures[scene] !== undefined ? `${fmt(exposures[scene], 6)} (${name})` : "the scene's";
 }
