@@ -294,7 +294,8 @@ def test_impact_in_requirement_terms(page, server):
 def test_batch_csv_upload(page, server, tmp_path):
     reset(page, server)
     upload = tmp_path / "requests.csv"
-    upload.write_text("band,precision,tolerance,magnitude\nH158,,1e-4,18.3\nJ129,1%,,19\nH158,,1e-4,5\n")
+    # A batch answers from the tables, which hold the paper's scene: the rows name it.
+    upload.write_text("band,scene,precision,tolerance,magnitude\nH158,paper,,1e-4,18.3\nJ129,paper,1%,,19\nH158,paper,,1e-4,5\n")
     with page.expect_response(lambda r: "/api/v1/page/batch" in r.url):
         page.set_input_files("#batch-file", str(upload))
     page.wait_for_selector("#batch-result:not([hidden])")
@@ -304,8 +305,11 @@ def test_batch_csv_upload(page, server, tmp_path):
     name, text = download(page, "#batch-csv")
     assert name == "nlpsf-batch-answers.csv"
     rows = list(csv.DictReader(line for line in io.StringIO(text) if not line.startswith("#")))
-    assert float(rows[0]["precision"]) == pytest.approx(solver.solve("H158", tolerance=1e-4, magnitude=18.3).precision, rel=1e-9)
-    assert float(rows[1]["tolerance"]) == pytest.approx(solver.solve("J129", precision=0.01, magnitude=19).tolerance, rel=1e-9)
+    paper = {"preset": "paper"}
+    precision = solver.solve("H158", tolerance=1e-4, magnitude=18.3, **paper).precision
+    tolerance = solver.solve("J129", precision=0.01, magnitude=19, **paper).tolerance
+    assert float(rows[0]["precision"]) == pytest.approx(precision, rel=1e-9)
+    assert float(rows[1]["tolerance"]) == pytest.approx(tolerance, rel=1e-9)
     assert rows[2]["ok"] == "False" and "too bright" in rows[2]["error"]
 
 
