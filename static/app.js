@@ -1201,9 +1201,13 @@ async function solve(event) {
   // Until the new answer comes, the old one is greyed: it answers another question.
   resultBox.classList.add("stale");
   resultBox.setAttribute("aria-busy", "true");
+  // A Roman default answer can be a job that takes seconds: an answer to an older question that
+  // arrives after a newer one was asked is dropped, never shown over it.
+  const asked = (state.solveSeq = (state.solveSeq || 0) + 1);
   try {
     const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true,
       onJob: () => { button.textContent = "Simulating…"; } });
+    if (asked !== state.solveSeq) return;
     state.lastRequest = body;
     showAnswer(s);
     stateToUrl();
@@ -1211,9 +1215,11 @@ async function solve(event) {
     // The slopes' legend reads at the answer's magnitude: redraw only when that moved.
     if (state.slopesAt !== s.magnitude) drawSlopes().catch(() => {});
   } catch (error) {
+    if (asked !== state.solveSeq) return;
     if (error.unreachable) connection.lost("solve", () => solve(null));
     await failAnswer(error, null, body);
   } finally {
+    if (asked !== state.solveSeq) return;
     button.disabled = false;
     button.textContent = "Solve";
   }
