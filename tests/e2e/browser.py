@@ -50,6 +50,8 @@ def solve_for(page, unknown: str, given: dict[str, str]) -> str:
     page.check(f"#solve-for-{unknown}")
     for name, value in given.items():
         page.fill(f"#solve-{name}", value)
+    # A solve still in flight (a default answer can be a job) finishes first: its answer is not this one.
+    page.wait_for_function("() => !document.getElementById('solve-button').disabled", timeout=240_000)
     page.evaluate("() => { state.lastSolution = undefined; }")
     with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
         page.click("#solve-button")
