@@ -8,7 +8,7 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from nlpsf import __version__, defaults, detector, fidelity, flags, roman, solver, tables
+from nlpsf import __version__, defaults, detector, fidelity, flags, roman, roman_default, solver, tables
 from nlpsf import scene as scenes
 from nlpsf.serialise import json_safe
 
@@ -106,6 +106,8 @@ def meta(settings: SettingsDep) -> SafeJSONResponse:
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
                 "simulation": models.SimulationRequest().model_dump(),
+                # What a solve leaves unset is filled per scene (nlpsf.roman_default.fill): its exposure.
+                "scene_exptime": {"roman": roman_default.exptime_s(), "paper": defaults.EXPTIME_S},
             },
             "limits": {
                 **settings.limits.to_dict(),

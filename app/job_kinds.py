@@ -376,10 +376,50 @@ def _result_row(result) -> dict[str, Any]:
     return row
 
 
+def simulation_scene_defaults(payload: dict[str, Any], given: set[str]) -> dict[str, Any]:
+    """What a simulation leaves unset, filled as the CLI's ``simulate`` fills it (one owner:
+    ``nlpsf.roman_default``): without a scene (or with preset "roman") the Roman default -- its
+    scene at the request's position (the SCA centre otherwise), the HLWAS readout with the
+    likelihood fit and its exposure unless a ramp, MA table or exptime is given, the official pupil
+    scale, and its sky over that exposure unless ``scene.background`` is given. ``scene`` "paper"
+    (or "galsim-roman"): the paper's final frame of 168.1 s and the tables' pupil scale, as before.
+    The normalised request names every value, so its hash says which scene was simulated."""
+    from nlpsf import backgrounds, defaults, ramps, roman_default
+
+    from .models import build_ramp
+
+    payload = dict(payload)
+    scene = payload.get("scene")
+    scene = {"preset": scene} if isinstance(scene, str) else dict(scene or {})
+    preset = scene.get("preset") or roman_default.NAME
+    if preset != roman_default.NAME:
+        # The paper's scene named alone is the request without a scene: the same hash as before.
+        alone = all(v is None for k, v in scene.items() if k not in ("preset", "sed_units"))
+        payload["scene"] = None if preset == "paper" and alone else scene
+        payload["pupil_scale"] = payload.get("pupil_scale") or defaults.PUPIL_SCALE
+        if "exptime" not in given:
+            payload["exptime"] = None  # an MA table's last read, else the paper's 168.1 s (ramps.build)
+        return payload
+    if payload.get("ramp") is None and payload.get("ma_table") is None:
+        payload["ma_table"] = ramps.load_ma_table(roman_default.MA_TABLE).name
+    if "ramp_fit" not in given:
+        payload["ramp_fit"] = roman_default.RAMP_FIT
+    if "exptime" not in given:
+        payload["exptime"] = None  # the readout's last read (139.149 s for the HLWAS table)
+    payload["pupil_scale"] = payload.get("pupil_scale") or roman_default.PUPIL_SCALE
+    if scene.get("background") is None:
+        _, exptime = build_ramp(
+            payload.get("ramp"), payload.get("ma_table"), payload["ramp_fit"], payload.get("read_noise"),
+            payload["exptime"], payload["sca"],
+        )  # fmt: skip
+        band = str(payload["band"]).upper()
+        scene["background"] = backgrounds.background_electrons(roman_default.BACKGROUND, band, payload["sca"], exptime)
+    payload["scene"] = {**scene, "preset": roman_default.NAME}
+    return payload
+
+
 def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
-    payload = capped_defaults(fields, given, settings.limits)
-    if payload.get("ma_table") is not None and "exptime" not in given:
-        payload["exptime"] = None  # an MA table's exposure is its last read
+    payload = simulation_scene_defaults(capped_defaults(fields, given, settings.limits), given)
     return validate(payload, settings.limits, settings.job_memory_mb)
 
 

@@ -103,6 +103,11 @@ RampFit = Literal[defaults.RAMP_FITS]  # type: ignore[valid-type]
 ScenePreset = Literal["roman", "paper", "galsim-roman"]
 
 
+def _preset_object(value: Any) -> Any:
+    """A scene given as a preset's name ("paper") is that preset's scene object."""
+    return {"preset": value} if isinstance(value, str) else value
+
+
 class SceneRequest(BaseModel):
     """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
 
@@ -596,7 +601,12 @@ class SimulationRequest(RampFields):
     beta_convention: BetaConvention = Field(
         "paper", description="sign convention (no unit); paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2"
     )
-    exptime: float = _within(defaults.EXPTIME_RANGE_S, "exposure time in s", defaults.EXPTIME_S)
+    exptime: float = _within(
+        defaults.EXPTIME_RANGE_S,
+        "exposure time in s; not given: the scene's readout's (the Roman default's HLWAS table's last read, "
+        "139.149 s; the paper's 168.1 s final frame; an MA table's last read)",
+        roman_default.exptime_s(),
+    )
     full_well: float = _within(defaults.FULL_WELL_RANGE_E, "full-well depth in e-", defaults.FULL_WELL_E)
     fidelity: SimulationFidelity = Field(
         "monte_carlo", description="(no unit) linear response, Monte Carlo, or Monte Carlo polychromatic"
@@ -622,9 +632,16 @@ class SimulationRequest(RampFields):
         "adaptive-moment weight cut rho^2, dimensionless (paper 25, GalSim 32.24)",
         defaults.PAPER_WEIGHT_CUT_RHO2,
     )
-    pupil_scale: PupilScale = Field("galsim", description="pupil mask scale rule (no unit)")
-    scene: SceneRequest | None = Field(
-        None, description="scene effects (position, SED, jitter, IPC, ...; units per field); default the paper's"
+    pupil_scale: PupilScale | None = Field(
+        None, description="pupil mask scale rule (no unit); null: the scene's (roman: official; paper: galsim)"
+    )
+    # A preset's name is its fields' shorthand: {"preset": name}, so errors keep naming scene.FIELD.
+    scene: Annotated[SceneRequest | None, BeforeValidator(_preset_object)] = Field(
+        None,
+        description="what the star goes through: a preset's name or its fields (units per field); default the Roman "
+        "default, as the CLI's simulate (nlpsf.roman_default: its scene at the position, its sky, the HLWAS readout "
+        "with the likelihood fit and its exposure unless a ramp, MA table or exptime is given, official pupil scale); "
+        "'paper': the paper's idealised scene on its 168.1 s final frame",
     )
     throughput: Throughput = Field(
         defaults.THROUGHPUT,

@@ -316,7 +316,9 @@ def presets() -> SafeJSONResponse:
 # ---- batch over CSV ---------------------------------------------------------------------------------
 
 _INTEGER_COLUMNS = {"sca", "stars", "ramp"}
-_TEXT_COLUMNS = {"band", "metric", "mode", "fidelity", "ma_table", "ramp_fit", "throughput", "over_field"}
+# "scene": a preset's name per row; the batch answers from the tables, so only "paper" is answered
+# there (the Roman default's rows are refused with where to send them, by POST /api/v1/solve/batch's rule).
+_TEXT_COLUMNS = {"band", "metric", "mode", "fidelity", "ma_table", "ramp_fit", "throughput", "over_field", "scene"}
 _ANSWER_COLUMNS = [
     "band",
     "sca",

@@ -932,7 +932,7 @@ function query(params) {
 // ---- state in the URL -------------------------------------------------------------------------
 
 const URL_FIELDS = {
-  "solve-form": ["band", "sca", "metric", "mode", "beta0", "exptime", "full_well", "fidelity", "ma_table", "ramp", "ramp_fit",
+  "solve-form": ["band", "sca", "metric", "mode", "scene", "beta0", "exptime", "full_well", "fidelity", "ma_table", "ramp", "ramp_fit",
     "stars", "shear_m", "shear_c", "size_ratio", "precision", "tolerance", "magnitude"],
   "scene-form": ["preset", "position", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background"],
 };
@@ -992,6 +992,7 @@ function stateFromUrl() {
     if (el && q.has(id)) el.value = q.get(id);
   }
   for (const id of ["beta-log", "sigma-log", "paper-overlay", "scene-use"]) document.getElementById(id).checked = q.get(id) === "1";
+  exposurePlaceholder();
   showPresetSource();
   return true;
 }
@@ -1014,7 +1015,7 @@ async function copyLink() {
 
 function fillReadout(group) {
   const select = document.getElementById(`${group}-readout`);
-  const options = [["final", "final frame (the paper)"], ["uniform", "uniform ramp, N reads"],
+  const options = [["final", "the scene's (Roman: HLWAS; paper: final frame)"], ["uniform", "uniform ramp, N reads"],
     ...(state.meta.ma_tables || []).map((t) => [`table:${t.name}`,
       `MA table ${t.name} (${t.resultants} resultants, ${fmt(t.last_read_s)} s)`])];
   select.innerHTML = options.map(([v, l]) => `<option value="${escapeHtml(v)}">${escapeHtml(l)}</option>`).join("");
@@ -1028,12 +1029,23 @@ function readoutChanged(group, setExposure = true) {
   document.getElementById(`${group}-ramp`).disabled = choice !== "uniform";
   document.getElementById(`${group}-ramp_fit`).disabled = choice === "final";
   if (!setExposure) return;
-  // An MA table's exposure is its last read; leaving a table restores the paper's exposure.
+  // An MA table's exposure is its last read; leaving a table restores the exposure the API fills in.
   const exposure = document.getElementById(`${group}-exptime`);
   const durations = (state.meta.ma_tables || []).map((t) => String(t.last_read_s));
   const table = (state.meta.ma_tables || []).find((t) => `table:${t.name}` === choice);
   if (table) exposure.value = String(table.last_read_s);
-  else if (durations.includes(exposure.value.trim())) exposure.value = String(state.meta.defaults.solve.exptime);
+  else if (durations.includes(exposure.value.trim())) exposure.value = "";
+}
+
+// The exposure box left empty sends no exptime: the API fills the scene's (GET /meta's
+// defaults.scene_exptime: the Roman default's HLWAS table, the paper's final frame); the
+// placeholder says which.
+function exposurePlaceholder() {
+  const scene = document.getElementById("solve-scene").value || "roman";
+  const exposures = (state.meta && state.meta.defaults.scene_exptime) || {};
+  const name = scene === "paper" ? "paper" : "Roman default";
+  const input = document.getElementById("solve-exptime");
+  input.placeholder = exposures[scene] !== undefined ? `${fmt(exposures[scene], 6)} (${name})` : "the scene's";
 }
 
 function readoutFields(group) {
@@ -1161,7 +1173,7 @@ async function solve(event) {
   const budget = shearGiven();
   const givens = ["precision", "tolerance", "magnitude"].filter((n) => n !== unknown && !(n === "tolerance" && budget));
   const [numbers, errors] = readNumbers(form, ["beta0", "exptime", "full_well", "stars", ...givens, "shear_m", "shear_c", "size_ratio"],
-    ["shear_m", "shear_c", "size_ratio"]);
+    ["exptime", "shear_m", "shear_c", "size_ratio"]);
   if (budget && form.elements.size_ratio.value.trim() === "") {
     errors.push({ field: "size_ratio", msg: "a shear budget needs the galaxy-to-PSF size ratio" });
   }
@@ -1181,15 +1193,21 @@ async function solve(event) {
     ...numbers,
     ...readoutFields("solve"),
   };
+  // No scene: the Roman default (the API's); "paper": the paper's idealised scene and tables.
+  if (form.elements.scene.value) body.scene = form.elements.scene.value;
   const button = document.getElementById("solve-button");
   button.disabled = true;
   button.textContent = "Solving…";
   // Until the new answer comes, the old one is greyed: it answers another question.
   resultBox.classList.add("stale");
   resultBox.setAttribute("aria-busy", "true");
+  // A Roman default answer can be a job that takes seconds: an answer to an older question that
+  // arrives after a newer one was asked is dropped, never shown over it.
+  const asked = (state.solveSeq = (state.solveSeq || 0) + 1);
   try {
     const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true,
       onJob: () => { button.textContent = "Simulating…"; } });
+    if (asked !== state.solveSeq) return;
     state.lastRequest = body;
     showAnswer(s);
     stateToUrl();
@@ -1197,9 +1215,11 @@ async function solve(event) {
     // The slopes' legend reads at the answer's magnitude: redraw only when that moved.
     if (state.slopesAt !== s.magnitude) drawSlopes().catch(() => {});
   } catch (error) {
+    if (asked !== state.solveSeq) return;
     if (error.unreachable) connection.lost("solve", () => solve(null));
     await failAnswer(error, null, body);
   } finally {
+    if (asked !== state.solveSeq) return;
     button.disabled = false;
     button.textContent = "Solve";
   }
@@ -1278,6 +1298,8 @@ function sceneName(s) {
   const c = s.conditions || {};
   const named = c.scene_description || (typeof c.scene === "string" ? c.scene : c.scene && c.scene.description);
   if (!named || /^paper scene/.test(named)) return PAPER_SCENE;
+  // The library names the default's scene "roman: position …, SED …": the page says it in words.
+  if (/^roman:\s*/.test(named)) return `the Roman default scene (${named.replace(/^roman:\s*/, "")})`;
   return named;
 }
 
@@ -1358,8 +1380,11 @@ async function failAnswer(error, shortReason = null, body = null) {
   document.getElementById("req-readout").textContent = "";
 }
 
-// The brightest magnitude the calculator answers for at these conditions, from the server.
+// The brightest magnitude the calculator answers for at these conditions (the paper's scene), from the server.
 async function tooBright(body, original) {
+  // /page/limits bisects the paper's tables: its number holds for the paper's scene only, so another
+  // scene's refusal keeps the server's own words.
+  if (body.scene !== "paper") return [plainWords(original), null];
   try {
     const limits = await api(`/page/limits?${query({ band: body.band, sca: body.sca, metric: body.metric, mode: body.mode,
       exptime: body.exptime, beta0: body.beta0, full_well: body.full_well })}`);
@@ -1375,6 +1400,8 @@ async function tooBright(body, original) {
 }
 
 function usePaperScene() {
+  document.getElementById("solve-scene").value = "paper";
+  exposurePlaceholder();
   const scene = document.getElementById("scene-form");
   scene.elements.preset.value = "";
   sceneFill("paper");
@@ -1661,7 +1688,7 @@ async function runSimulation(event) {
     magnitudes: listOf(form.elements.magnitudes.value),
     betas: listOf(form.elements.betas.value),
     sigma_betas: listOf(form.elements.sigma_betas.value),
-    exptime: numberOrText(form.elements.exptime.value),
+    ...(form.elements.exptime.value.trim() ? { exptime: numberOrText(form.elements.exptime.value) } : {}),
     fidelity: form.elements.fidelity.value,
     realizations: numberOrText(form.elements.realizations.value),
     seed: numberOrText(form.elements.seed.value),
@@ -1787,7 +1814,8 @@ function sceneBody() {
   const scene = {};
   const text = (name) => f[name].value.trim();
   const given = (name) => text(name) !== "" && text(name).toLowerCase() !== "none" && text(name).toLowerCase() !== "off";
-  if (f.preset.value) scene.preset = f.preset.value;
+  // The base is always named: a scene without one is the Roman default's to the API.
+  scene.preset = f.preset.value || "paper";
   if (given("position")) scene.position = listOf(text("position"));
   if (given("sed")) scene.sed = text("sed");
   for (const name of ["jitter", "charge_diffusion", "bfe", "background"]) {
@@ -1825,7 +1853,8 @@ async function measureImpact(event) {
     metric: s.metric.value,
     mode: s.mode.value,
     beta0: numberOrText(s.beta0.value),
-    exptime: numberOrText(s.exptime.value),
+    // Empty: the impact report's own exposure (the paper's final frame, as its scene's base).
+    ...(s.exptime.value.trim() ? { exptime: numberOrText(s.exptime.value) } : {}),
     magnitude: (state.lastSolution && state.lastSolution.magnitude) ?? numberOrText(s.magnitude.value) ?? 18.3,
     realizations: 30,
   };
@@ -2099,6 +2128,8 @@ async function init() {
   fillSelect(document.getElementById("sim-fidelity"), meta.simulation_fidelities, "monte_carlo", fidelityName);
   fillReadout("solve");
   fillReadout("sim");
+  exposurePlaceholder();
+  document.getElementById("solve-scene").addEventListener("change", exposurePlaceholder);
   fillPresets();
   fillExplanations();
 

@@ -50,9 +50,15 @@ def solve_for(page, unknown: str, given: dict[str, str]) -> str:
     page.check(f"#solve-for-{unknown}")
     for name, value in given.items():
         page.fill(f"#solve-{name}", value)
+    # A solve still in flight (a default answer can be a job) finishes first: its answer is not this one.
+    page.wait_for_function("() => !document.getElementById('solve-button').disabled", timeout=240_000)
+    page.evaluate("() => { state.lastSolution = undefined; }")
     with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
         page.click("#solve-button")
-    assert response.value.status == 200, response.value.text()
+    # 200: answered at once; 202: simulated as a job (the Roman default's answers off the tables),
+    # which the page follows to its answer.
+    assert response.value.status in (200, 202), response.value.text()
+    page.wait_for_function("() => state.lastSolution !== undefined", timeout=240_000)
     page.wait_for_function("() => document.getElementById('plot-calc').dataset.point !== undefined")
     page.wait_for_selector("[data-testid=solve-answer]")
-    return response.value.json()
+    return response.value.json() if response.value.status == 200 else page.evaluate("() => state.lastSolution")

@@ -84,19 +84,24 @@ def test_percent_in_and_out_and_no_constraint(page, server):
     headline = page.inner_text("[data-testid=solve-answer]")
     assert "%" in headline and "±" in headline
     truth = solver.solve("H158", tolerance=1e-4, magnitude=18.3)
-    # Digits set by the uncertainty: two significant digits of the ± (0.12 %), so 0.89 %.
+    # Digits set by the uncertainty: two significant digits of the ±.
     assert percent_value(headline) == pytest.approx(truth.precision, abs=0.0001)
     assert percent_value(page.input_value("#solve-precision")) == pytest.approx(truth.precision, abs=0.0001)
     sentence = page.inner_text("[data-testid=answer-sentence]")
-    assert sentence.startswith("β must be known to 0.") and "ΔR/R ≤ 1e-4" in sentence and "H158 stars of m = 18.3" in sentence
+    assert sentence.startswith("β must be known to ") and "ΔR/R ≤ 1e-4" in sentence
+    assert percent_value(sentence.split("known to ")[1].split(" (")[0]) == pytest.approx(truth.precision, abs=0.0001)
+    assert "H158 stars of m = 18.3" in sentence
     assert "SCA 18" in sentence and "scene" in sentence
     assert solution["solved_for"] == "precision"
-    # A faint star: the solver's p is above 1, which is no requirement at all.
-    faint = solver.solve("H158", tolerance=1e-4, magnitude=27.5)
+    # A faint star in the paper's scene: the solver's p is above 1, which is no requirement at all
+    # (the Roman default's sky keeps p below 1 there: 0.12 at m = 27.5).
+    page.select_option("#solve-scene", "paper")
+    faint = solver.solve("H158", tolerance=1e-4, magnitude=27.5, preset="paper")
     assert faint.precision >= 1
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "27.5"})
     assert "no constraint" in page.inner_text("[data-testid=solve-answer]")
     assert page.input_value("#solve-precision") == "no constraint"
+    page.select_option("#solve-scene", "")
     magnitude = solve_for(page, "magnitude", {"precision": "1%", "tolerance": "1e-4"})
     assert "± 0 " not in page.inner_text("[data-testid=solve-answer]") + " "
     assert magnitude["magnitude"] == pytest.approx(solver.solve("H158", precision=0.01, tolerance=1e-4).magnitude, rel=1e-9)
@@ -104,6 +109,7 @@ def test_percent_in_and_out_and_no_constraint(page, server):
 
 def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, server):
     reset(page, server)
+    page.select_option("#solve-scene", "paper")  # the brightest answered is the paper's tables' (page/limits)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     page.fill("#solve-magnitude", "5")
     with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
@@ -113,9 +119,9 @@ def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, se
     message = page.inner_text("#msg-magnitude")
     brightest = float(message.split("answered at these conditions is m = ")[1].split(" ")[0])
     # The library answers just fainter than the quoted magnitude and refuses just brighter.
-    solver.solve("H158", tolerance=1e-4, magnitude=brightest + 0.02)
+    solver.solve("H158", tolerance=1e-4, magnitude=brightest + 0.02, preset="paper")
     with pytest.raises(InputError):
-        solver.solve("H158", tolerance=1e-4, magnitude=brightest - 0.02)
+        solver.solve("H158", tolerance=1e-4, magnitude=brightest - 0.02, preset="paper")
     assert "Q_peak" not in page.inner_text("#solve-error") and "beta0" not in page.inner_text("#solve-error")
     assert page.input_value("#solve-precision") == "" and page.get_attribute("#solve-precision", "placeholder") == "no answer"
     assert page.get_attribute("#solve-magnitude", "aria-invalid") == "true"
@@ -185,7 +191,10 @@ def test_comparison_table_and_every_download(page, server, tmp_path):
     names["json"] = name
     saved = json.loads(text)
     assert saved["answer"]["precision"] == pytest.approx(second["precision"]) and saved["answer"]["band"] == "J129"
-    assert saved["request"]["tolerance"] == 1e-4 and saved["answer"]["conditions"]["exptime_s"] == 168.1
+    # No exposure set: the library's default fills its own (the Roman default's HLWAS exposure).
+    library_exptime = solver.solve("J129", tolerance=1e-4, magnitude=18.3).to_dict()["conditions"]["exptime_s"]
+    assert saved["request"]["tolerance"] == 1e-4 and "exptime" not in saved["request"]
+    assert saved["answer"]["conditions"]["exptime_s"] == pytest.approx(library_exptime, rel=1e-12)
     name, text = download(page, "#download-ecsv")
     names["ecsv"] = name
     path = tmp_path / name
@@ -196,7 +205,8 @@ def test_comparison_table_and_every_download(page, server, tmp_path):
     assert values["precision"] == pytest.approx(truth.precision, rel=1e-12)
     for part in ("uncertainty", "uncertainty_statistical", "uncertainty_fidelity", "uncertainty_model"):
         assert values[part] == pytest.approx(getattr(truth, part), rel=1e-12)
-    assert table.meta["conditions"]["band"] == "J129" and table.meta["conditions"]["exptime_s"] == 168.1
+    assert table.meta["conditions"]["band"] == "J129"
+    assert table.meta["conditions"]["exptime_s"] == pytest.approx(library_exptime, rel=1e-12)
     assert table.meta["solved_for"] == "precision"
     names["tables"], text = download(page, "#tables-csv")
     assert text.startswith("band,")
@@ -260,8 +270,14 @@ def test_plots_are_readable(page, server):
 def test_impact_in_requirement_terms(page, server):
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "19"})
-    page.select_option("#scene-preset", "roman")
-    assert page.input_value("#scene-jitter") == "0.014" and page.input_value("#scene-ipc") == "roman"
+    from nlpsf import roman_default
+    from nlpsf import scene as scenes
+
+    page.select_option("#scene-preset", "roman")  # the Roman default's values, as the library holds them
+    assert float(page.input_value("#scene-jitter")) == roman_default.JITTER_ARCSEC
+    assert page.input_value("#scene-ipc") == "roman"
+    page.select_option("#scene-preset", "galsim-roman")
+    assert float(page.input_value("#scene-jitter")) == scenes.preset("galsim-roman").jitter_arcsec
     page.select_option("#scene-preset", "")
     with page.expect_response(lambda r: r.url.endswith("/api/v1/impact"), timeout=180_000):
         page.click("#impact-button")
@@ -278,7 +294,8 @@ def test_impact_in_requirement_terms(page, server):
 def test_batch_csv_upload(page, server, tmp_path):
     reset(page, server)
     upload = tmp_path / "requests.csv"
-    upload.write_text("band,precision,tolerance,magnitude\nH158,,1e-4,18.3\nJ129,1%,,19\nH158,,1e-4,5\n")
+    # A batch answers from the tables, which hold the paper's scene: the rows name it.
+    upload.write_text("band,scene,precision,tolerance,magnitude\nH158,paper,,1e-4,18.3\nJ129,paper,1%,,19\nH158,paper,,1e-4,5\n")
     with page.expect_response(lambda r: "/api/v1/page/batch" in r.url):
         page.set_input_files("#batch-file", str(upload))
     page.wait_for_selector("#batch-result:not([hidden])")
@@ -288,8 +305,11 @@ def test_batch_csv_upload(page, server, tmp_path):
     name, text = download(page, "#batch-csv")
     assert name == "nlpsf-batch-answers.csv"
     rows = list(csv.DictReader(line for line in io.StringIO(text) if not line.startswith("#")))
-    assert float(rows[0]["precision"]) == pytest.approx(solver.solve("H158", tolerance=1e-4, magnitude=18.3).precision, rel=1e-9)
-    assert float(rows[1]["tolerance"]) == pytest.approx(solver.solve("J129", precision=0.01, magnitude=19).tolerance, rel=1e-9)
+    paper = {"preset": "paper"}
+    precision = solver.solve("H158", tolerance=1e-4, magnitude=18.3, **paper).precision
+    tolerance = solver.solve("J129", precision=0.01, magnitude=19, **paper).tolerance
+    assert float(rows[0]["precision"]) == pytest.approx(precision, rel=1e-9)
+    assert float(rows[1]["tolerance"]) == pytest.approx(tolerance, rel=1e-9)
     assert rows[2]["ok"] == "False" and "too bright" in rows[2]["error"]
 
 
@@ -313,7 +333,8 @@ def test_default_view_names_its_scene(page, server):
     if named is None or named.startswith("paper scene"):
         assert "the paper's scene" in line
     else:
-        assert named in line and page.locator("#use-paper-scene").count() == 1
+        # The library's description, after its preset's name (the page names the Roman default in words).
+        assert named.split(": ", 1)[-1] in line and page.locator("#use-paper-scene").count() == 1
 
 
 def test_the_page_on_a_phone(page, server):

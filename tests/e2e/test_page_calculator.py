@@ -45,7 +45,11 @@ def test_solve_each_unknown_and_see_the_point(page, unknown, given):
     assert shown.endswith(" %") == (unknown == "precision")
     assert abs(value - expected[unknown]) <= max(expected["uncertainty"] or 0, 0.005 if unknown == "magnitude" else 0) / 2
     conditions = page.inner_text("#solve-result .conditions")
-    assert "H158" in conditions and "detector 18" in conditions and "168.1 s" in conditions and "method: tables" in conditions
+    # The exposure box is left empty: the page sends none, and the answer is the library's default's
+    # (the Roman default's HLWAS exposure), which the conditions quote.
+    assert page.input_value("#solve-exptime") == ""
+    assert f"{expected['exptime']:.4g} s" in conditions and "H158" in conditions and "detector 18" in conditions
+    assert solution["fidelity"] == expected["fidelity"] and "method: " in conditions
     assert answer_point_is_drawn(page)
     page.locator("#calculator").screenshot(path=str(ARTIFACTS / f"e2e-solve-{unknown}.png"))
 
@@ -147,11 +151,14 @@ def canvas_colour_at(page, plot: str, x_value: float, y_fraction: float) -> list
 
 
 def test_ramp_choice_in_the_calculator_draws_both_saturation_limits(page):
+    # The paper's ramp physics: the paper's scene over its 168.1 s final frame.
+    page.select_option("#solve-scene", "paper")
+    page.fill("#solve-exptime", "168.1")
     page.select_option("#solve-readout", "uniform")
     page.fill("#solve-ramp", "8")
     solution = solve_for(page, "magnitude", {"precision": "0.01", "tolerance": "1e-4"})
     assert solution["conditions"]["ramp"]["ma_table"] == "uniform-8"
-    expected = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=solver.ramps.Ramp.uniform(8, 168.1))
+    expected = solver.solve("H158", precision=0.01, tolerance=1e-4, ramp=solver.ramps.Ramp.uniform(8, 168.1), preset="paper")
     assert solution["magnitude"] == pytest.approx(expected.magnitude, rel=1e-9)
     # The ramp's limit is the resultant a slope needs: the second of 8 uniform reads, at 2 T / 8.
     text = page.inner_text("#solve-result")
@@ -168,12 +175,16 @@ def test_ramp_choice_in_the_calculator_draws_both_saturation_limits(page):
     assert any(r > 150 and g < 80 and b < 80 for r, g, b in ramp)
     assert "β_eff" in page.inner_text("#plot-calc")  # the ramp's own curve, from the tables at beta_eff
     page.locator("#calculator").screenshot(path=str(ARTIFACTS / "e2e-solve-ramp.png"))
-    # An MA table takes its own exposure; going back to the final frame restores the paper's.
+    # An MA table takes its own exposure; going back to the final frame empties the box (the API
+    # fills the scene's exposure, which the placeholder names: the paper's 168.1 s here).
     page.select_option("#solve-readout", "table:romanisim-109")
     assert float(page.input_value("#solve-exptime")) == pytest.approx(133.76)
     page.select_option("#solve-readout", "final")
-    assert float(page.input_value("#solve-exptime")) == pytest.approx(168.1)
+    assert page.input_value("#solve-exptime") == ""
+    assert "168.1" in page.get_attribute("#solve-exptime", "placeholder")
     assert page.is_disabled("#solve-ramp") and page.is_disabled("#solve-ramp_fit")
+    page.select_option("#solve-scene", "")  # back to the Roman default for the module's later tests
+    assert "139.1" in page.get_attribute("#solve-exptime", "placeholder")
 
 
 def test_ramp_choice_in_a_fresh_simulation(page):

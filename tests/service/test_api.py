@@ -296,6 +296,7 @@ def test_fits_endpoint(client):
 
 def test_small_simulation_answered_synchronously_matches_the_library(client):
     body = {"band": "J129", "sca": 7, "magnitudes": [19.0, 21.0], "betas": [5e-7, 1e-6], "realizations": 12, "seed": 4}
+    body["scene"] = "paper"  # the library's SimulationConfig defaults are the paper's scene
     response = client.post("/api/v1/simulations", params={"wait": 120}, json=body)
     assert response.status_code == 200, response.text
     job = response.json()
@@ -342,6 +343,7 @@ def test_simulation_pupil_scale_official_is_a_request_field(client):
     from nlpsf import experiment
 
     body = {"band": "F184", "sca": 9, "magnitudes": [20.0], "realizations": 2, "fidelity": "linear", "pupil_scale": "official"}
+    body["scene"] = "paper"  # compared with the library's paper-scene config below
     job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
     assert job["status"] == "done", job
     assert job["result"]["conditions"]["pupil_scale"] == "official"
@@ -679,6 +681,7 @@ def test_service_takes_a_ramp_in_solve_and_simulations(make_client):
         files = client.post("/api/v1/solve", json={**question, "ma_table": "/etc/x.json"})
         assert files.status_code == 422 and files.json()["field"] == "ma_table"  # the service reads no files
         body = {"band": "H158", "magnitudes": [19.0], "realizations": 4, "fidelity": "linear", "ma_table": "romanisim-110"}
+        body["scene"] = "paper"  # the paper's scene on this table, as the library's config below
         job = client.post("/api/v1/simulations", params={"wait": 120}, json=body).json()
         assert job["status"] == "done", job
         table = ramps.load_ma_table("romanisim-110")

@@ -122,7 +122,10 @@ def test_repeated_request_is_answered_from_stored_results(make_client):
         assert repeat["id"] != first.json()["id"]
         assert repeat["result"] == first.json()["result"]
         # Spelling a default out, or the band in lower case, is the same request.
-        same = client.post("/api/v1/simulations", json={**SMALL, "band": "y106", "stamp": 96, "exptime": 168.1}).json()
+        from nlpsf import roman_default  # the default scene's exposure (its HLWAS table's last read)
+
+        spelled = {"band": "y106", "stamp": 96, "exptime": roman_default.exptime_s()}
+        same = client.post("/api/v1/simulations", json={**SMALL, **spelled}).json()
         assert same["cached"] is True
         other = client.post("/api/v1/simulations", json={**SMALL, "seed": 4}).json()
         assert other["cached"] is False

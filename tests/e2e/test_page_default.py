@@ -1,0 +1,75 @@
+"""The page after the default switch (issue 17): the calculator answers the Roman default unless the
+paper's scene is chosen, sends the exposure only when one is typed (the API fills the scene's), carries
+the scene in the shareable URL, and says the curves are the paper's tables. Expected answers are the
+library's for the same request, never the page's own."""
+
+from __future__ import annotations
+
+import pytest
+
+from nlpsf import roman_default, solver
+
+from .browser import ARTIFACTS
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+QUESTION = {"tolerance": "1e-4", "magnitude": "18.3"}
+
+
+def solve_sent(page) -> tuple[dict, dict]:
+    """(the body the page sent, the answer it showed) for one click of Solve."""
+    page.evaluate("() => { state.lastSolution = undefined; }")
+    page.check("#solve-for-precision")
+    for name, value in QUESTION.items():
+        page.fill(f"#solve-{name}", value)
+    with page.expect_request(lambda r: r.url.endswith("/api/v1/solve")) as request:
+        page.click("#solve-button")
+    page.wait_for_function("() => state.lastSolution !== undefined", timeout=240_000)
+    return request.value.post_data_json, page.evaluate("() => state.lastSolution")
+
+
+def test_the_scene_choice_is_sent_shown_and_shared(page, server):
+    # The first view: the Roman default, its exposure named from the API, the box left empty.
+    assert page.input_value("#solve-scene") == "" and page.input_value("#solve-exptime") == ""
+    assert f"{roman_default.exptime_s():.6g}" in page.get_attribute("#solve-exptime", "placeholder")
+    assert "paper's idealised scene" in page.inner_text("[data-testid=curves-scene-note]")
+    sent, answer = solve_sent(page)
+    assert "scene" not in sent and "exptime" not in sent
+    truth = solver.solve("H158", tolerance=1e-4, magnitude=18.3)
+    assert answer["precision"] == pytest.approx(truth.precision, rel=1e-9)
+    assert answer["exptime"] == pytest.approx(roman_default.exptime_s(), rel=1e-12)
+    line = page.inner_text("[data-testid=scene-line]")
+    assert "Roman default" in line and truth.to_dict()["conditions"]["scene_description"].split(": ", 1)[1] in line
+    page.screenshot(path=str(ARTIFACTS / "e2e-default-answer.png"), full_page=False)
+    # "Use the paper's scene" chooses it and answers again: the paper's numbers over its 168.1 s.
+    page.evaluate("() => { state.lastSolution = undefined; }")
+    page.click("#use-paper-scene")
+    page.wait_for_function("() => state.lastSolution !== undefined", timeout=240_000)
+    assert page.input_value("#solve-scene") == "paper"
+    paper = solver.solve("H158", tolerance=1e-4, magnitude=18.3, preset="paper")
+    assert page.evaluate("() => state.lastSolution.precision") == pytest.approx(paper.precision, rel=1e-9)
+    assert "168.1 s" in page.inner_text("#solve-result .conditions")
+    assert "the paper's scene" in page.inner_text("[data-testid=scene-line]")
+    # The link carries the scene; opening it restores the choice and the paper's answer.
+    url = page.url
+    assert "scene=paper" in url
+    page.goto(server)
+    page.wait_for_selector("body[data-ready='true']")
+    assert page.input_value("#solve-scene") == ""
+    page.goto(url)
+    page.wait_for_selector("body[data-ready='true']")
+    page.wait_for_selector("[data-testid=solve-answer]")
+    assert page.input_value("#solve-scene") == "paper"
+    assert "168.1" in page.get_attribute("#solve-exptime", "placeholder")
+    sent, answer = solve_sent(page)
+    assert sent["scene"] == "paper" and "exptime" not in sent
+    assert answer["precision"] == pytest.approx(paper.precision, rel=1e-9)
+    # A typed exposure is sent as typed.
+    page.fill("#solve-exptime", "150")
+    sent, answer = solve_sent(page)
+    assert sent["exptime"] == 150
+    assert answer["precision"] == pytest.approx(
+        solver.solve("H158", tolerance=1e-4, magnitude=18.3, preset="paper", exptime=150).precision, rel=1e-9
+    )
+    page.fill("#solve-exptime", "")
+    page.select_option("#solve-scene", "")
