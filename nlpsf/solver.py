@@ -260,6 +260,14 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         raise InputError(
             "background", f"a background of {background:g} e- fills the full well ({request.full_well:g} e-) by itself"
         )
+    grid, position = the_plan.grid, None if the_plan.scene is None else the_plan.scene.position
+    if grid is not None and position is not None:
+        # The Roman default's own star (its peak through the default's optics and detector, with its
+        # sky), recorded at every node by the grid's build: not the paper table's sharper star.
+        saturation = grid.saturation_magnitude(request.band, request.sca, position)
+        final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
+        if final is not None:
+            return _Limits(saturation, final)
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
     # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
