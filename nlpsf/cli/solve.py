@@ -218,7 +218,7 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     )
     if solution.conditions.get("scene_name") == "roman":
         changed = " (changed by the options given)" if solution.conditions.get("roman_default_changed") else ""
-        scene = solution.conditions.get("scene_description", "")
+        scene = solution.conditions.get("scene_description", "").removeprefix("roman: ")  # its name is said already
         print(f"  scene      the Roman default{changed}: {scene}; linearised at {solution.conditions['linearise_at']}")
     units = {"precision": "(fraction of beta0)", "tolerance": _tolerance_unit(solution.metric), "magnitude": "AB"}
     for name in ("precision", "tolerance", "magnitude"):
@@ -250,9 +250,12 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     if solution.binding_limit:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     if solution.model:
-        included = ", ".join(f"{e['name']} {_percent(e['impact'])}" for e in solution.model["included"]) or "none"
+        # An impact is measured only where the accuracy search ran (else the whole scene is simulated).
+        included = ", ".join(
+            e["name"] if e["impact"] is None else f"{e['name']} {_percent(e['impact'])}" for e in solution.model["included"]
+        )
         if "accuracy" in solution.model:
-            print(f"  effects modelled (impact above {solution.model['accuracy']:g}): {included}")
+            print(f"  effects simulated (accuracy {solution.model['accuracy']:g}, the full scene's): {included or 'none'}")
         elif solution.model["included"]:
             how = "held by the tables" if solution.conditions.get("fidelity") == "table" else "simulated by the scene"
             print(f"  effects {how}: {', '.join(e['name'] for e in solution.model['included'])}")
