@@ -460,8 +460,11 @@ def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> 
             "max_wavelengths",
             f"the scene's SED needs {wavelengths} wavelengths; the limit max_wavelengths is {limits.max_wavelengths}",
         )
+    rule = arguments.pop("pupil_scale", None)
     checked = impact_module.check_request(**arguments)
-    return impact_job({**checked, "scene": scene_request, "max_wavelengths": limits.max_wavelengths})
+    # The rule enters the job only when given, so a request without one keeps its stored hash.
+    extra = {} if rule is None else {"pupil_scale": rule}
+    return impact_job({**checked, "scene": scene_request, "max_wavelengths": limits.max_wavelengths, **extra})
 
 
 #: Every kind of job. A new kind is one entry here and the endpoint that submits it.

@@ -555,6 +555,9 @@ class ImpactRequest(BaseModel):
     )
     seed: _Int(JSON_SEEDS) = _within(JSON_SEEDS, "random seed (integer, no unit)", 1, in_type=True)
     scene: SceneRequest | None = Field(None, description="the scene; effects it leaves off are measured at nominal values")
+    pupil_scale: PupilScale | None = Field(
+        None, description="pupil mask scale rule of every run (no unit): null for the simulation's default (galsim)"
+    )
 
 
 class ImpactEffect(BaseModel):

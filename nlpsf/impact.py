@@ -30,7 +30,7 @@ from dataclasses import replace
 
 from . import defaults, experiment, roman
 from . import scene as scenes
-from .checks import InputError, check_beta0, check_exptime, check_integer
+from .checks import InputError, check_beta0, check_choice, check_exptime, check_integer
 
 #: Impact metrics: the contract's names, and the simulation metrics each combines.
 IMPACT_METRICS: dict[str, tuple[str, ...]] = defaults.METRIC_COLUMNS
@@ -103,8 +103,12 @@ def impact(
     seed: int = defaults.SEED,
     max_wavelengths: int = 64,
     progress=None,
+    pupil_scale: str | None = None,
 ) -> dict:
     """Every effect's relative change of the slope at this point; see the module docstring.
+
+    ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``): the pupil-mask scale rule of every run (None: the
+    simulation's default, the paper tables' rule).
 
     Returns ``{"effects": [{"name", "on", "impact": {"size", "e1", "e2", "e"}, "uncertainty": {...},
     "cost_s", "value", "note"}, ...], "conditions": {...}}``.
@@ -114,7 +118,8 @@ def impact(
         raise InputError("scene", "must be a scene description")
     checked = check_request(band, sca, magnitude, metric, mode, beta0, exptime, realizations, seed)
     magnitude, beta0 = checked["magnitude"], checked["beta0"]
-    base = point_config(checked["band"], sca, exptime, realizations, seed, scene=scene)
+    rule = {} if pupil_scale is None else {"pupil_scale": check_choice(pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)}
+    base = point_config(checked["band"], sca, exptime, realizations, seed, scene=scene, **rule)
     cache: dict[scenes.SceneModel, tuple[dict, float, list[str]]] = {}
 
     def run(model: scenes.SceneModel):
@@ -151,6 +156,7 @@ def impact(
             "exptime_s": exptime,
             "realizations": realizations,
             "seed": seed,
+            "pupil_scale": base.pupil_scale,
             "method": "linear response at beta0 (exact derivatives), with and without each effect on the same centroids",
             "scene": scene.to_dict(),
             "scene_description": scene.describe(),

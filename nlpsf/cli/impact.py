@@ -19,6 +19,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realizations", type=int, default=defaults.REALIZATIONS, help="centroid realizations per run")
     parser.add_argument("--seed", type=int, default=defaults.SEED, help="random seed (both runs of an effect share it)")
     add_scene_options(parser)
+    parser.add_argument(
+        "--pupil-scale",
+        choices=defaults.PUPIL_SCALE_RULES,
+        default=None,
+        help=f"pupil mask scale rule of every run (see nlpsf/data/SOURCES.md; default {defaults.PUPIL_SCALE})",
+    )
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -38,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
         exptime=args.exptime,
         realizations=args.realizations,
         seed=args.seed,
+        pupil_scale=args.pupil_scale,
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:
