@@ -61,8 +61,9 @@ ShippedMATable = Annotated[
     Literal[SHIPPED_MA_TABLES],  # type: ignore[valid-type]
     BeforeValidator(lambda value: value.strip().lower() if isinstance(value, str) and len(value) <= 64 else value),
 ]
-#: ``blackbody:TEFF`` with TEFF in the library's range (1000 K to 1e6 K), or ``flat``.
-SED_PATTERN = r"^(flat|blackbody:([1-9][0-9]{3,5}(\.[0-9]{0,6})?|1000000(\.0{0,6})?))$"
+#: ``blackbody:TEFF`` with TEFF in the library's range (1000 K to 1e6 K), ``flat``, or a vendored
+#: spectrum by name (``nlpsf.seds.NAMED``: ``k0v``).
+SED_PATTERN = r"^(flat|k0v|blackbody:([1-9][0-9]{3,5}(\.[0-9]{0,6})?|1000000(\.0{0,6})?))$"
 
 _SOLVE_DEFAULTS = {
     name: parameter.default
@@ -123,7 +124,10 @@ class SceneRequest(BaseModel):
         None, min_length=2, max_length=2, description=f"X, Y on the SCA in pixels (1-{roman.SCA_PIXELS})"
     )
     sed: str | None = Field(
-        None, max_length=32, pattern=SED_PATTERN, description="(no unit) flat (f_nu) or blackbody:TEFF (TEFF in K, 1000-1e6)"
+        None,
+        max_length=32,
+        pattern=SED_PATTERN,
+        description="(no unit) flat (f_nu), k0v (the Pickles 1998 K0V spectrum) or blackbody:TEFF (TEFF in K, 1000-1e6)",
     )
     sed_table: list[Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=2, max_length=2)]] | None = Field(
         None, min_length=2, max_length=20_000, description="the SED as rows [wavelength in nm, flux in sed_units]"

@@ -165,7 +165,12 @@ def component_scale(slopes, magnitude: float | None) -> float:
 
 #: Scene fields a request may set that decide a Roman-default part: when the request's value differs
 #: from the default's, the star is the user's and that spread is not the default's uncertainty.
-_CHOSEN_BY_REQUEST = {"sed": "sed", "jitter": "jitter_arcsec", "charge_diffusion": "charge_diffusion_px"}
+_CHOSEN_BY_REQUEST = {
+    "sed": "sed",
+    "sed_standin": "sed",  # a request with its own SED (k0v included) is not answered for the stand-in
+    "jitter": "jitter_arcsec",
+    "charge_diffusion": "charge_diffusion_px",
+}
 
 
 def roman_default_model(band: str, sca: int, metric: str, mode: str, scene) -> dict:

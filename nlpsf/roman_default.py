@@ -25,7 +25,9 @@ JITTER_ARCSEC = 0.006
 #: arXiv:2110.08155; C11 = 0.1066, C22 = 0.1136 px^2), measured on Roman detectors.
 CHARGE_DIFFUSION_PX = 0.332
 #: The star: a K0V spectral type (the official PSF products'); a 5270 K blackbody stands in for the
-#: spectrum (Pecaut & Mamajek's K0V temperature), as ``psfstats`` does. Selectable per request.
+#: spectrum (Pecaut & Mamajek's K0V temperature), as ``psfstats`` does, because the shipped field
+#: grid is built with it. The real K0V spectrum is vendored (``--sed k0v``, Pickles 1998); the
+#: stand-in's error against it is the ``sed_standin`` part of ``roman_uncertainty``. Selectable.
 SED = "blackbody:5270"
 #: Background preset (``backgrounds.PRESETS``): twice the minimum zodiacal light, thermal and dark.
 BACKGROUND = backgrounds.DEFAULT_PRESET
@@ -57,7 +59,13 @@ VALUES: tuple[DefaultValue, ...] = (
         "optics", "Zernikes at the star's position", "", "GalSim 2.8.5 Roman Cycle-9 aberrations, bilinear across the SCA"
     ),
     DefaultValue("pupil_scale", PUPIL_SCALE, "", "roman-technical-information PupilMasks clear areas (CC0)"),
-    DefaultValue("sed", SED, "K", "K0V (the official PSF products' star), a 5270 K blackbody stand-in (Pecaut & Mamajek)"),
+    DefaultValue(
+        "sed",
+        SED,
+        "K",
+        "K0V (the official PSF products' star), a 5270 K blackbody stand-in (Pecaut & Mamajek); the Pickles 1998 "
+        "K0V spectrum is --sed k0v, and the stand-in's error against it is the model part sed_standin",
+    ),
     DefaultValue("jitter", JITTER_ARCSEC, "arcsec rms per axis", "STPSF's Roman jitter"),
     DefaultValue("charge_diffusion", CHARGE_DIFFUSION_PX, "native px rms", "Givans et al. 2022, PASP, arXiv:2110.08155"),
     DefaultValue("ipc", "galsim.roman.ipc_kernel, after the NL", "", "GalSim 2.8.5 roman.ipc_kernel"),

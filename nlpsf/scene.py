@@ -9,8 +9,9 @@ only). The effects, in the order a photon meets them (DESIGN.md, "The scene mode
     bilinearly between the SCA's corner field points exactly as ``galsim.roman.getPSF(SCA_pos=)``
     does (``nlpsf.roman.aberrations``).
 ``sed``
-    the star's spectrum: ``flat`` (flat f_nu), ``blackbody:TEFF`` (kelvin) or a two-column table
-    (wavelength nm, f_lambda or f_nu as ``sed_units`` says). The PSF is the photon-weighted mean
+    the star's spectrum: ``flat`` (flat f_nu), ``blackbody:TEFF`` (kelvin), a vendored spectrum by
+    name (``k0v``: ``nlpsf.seds``) or a two-column table (wavelength nm, f_lambda or f_nu as
+    ``sed_units`` says). The PSF is the photon-weighted mean
     over the band: counts per unit wavelength proportional to A_eff(lambda) f_lambda lambda. The
     flux in electrons stays the one the AB magnitude in the band gives (a band AB magnitude is a
     photon count relative to a flat-f_nu source's, whatever the SED).
@@ -58,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import roman
+from . import roman, seds
 from .checks import InputError, check_integer, check_number
 from .scene_kernels import (  # noqa: F401  (re-exported: the scene's public kernels)
     apply_ipc,
@@ -240,7 +241,7 @@ class SceneModel:
             raise InputError("sed_units", f"must be one of {', '.join(SED_UNITS)}, got {self.sed_units!r}")
         if self.sed is not None and not self.sed.startswith("file"):
             # The units of a named SED are its definition's, not a file column's: a flat star is
-            # flat in f_nu, a blackbody is tabulated as f_lambda (``spectrum``).
+            # flat in f_nu, a blackbody and the vendored spectra are tabulated as f_lambda.
             object.__setattr__(self, "sed_units", "fnu" if self.sed == "flat" else "flambda")
         if self.sed_table is not None:
             if self.sed is None or not self.sed.startswith("file"):
@@ -306,6 +307,9 @@ class SceneModel:
             temperature = float(self.sed.split(":", 1)[1])
             wave = np.linspace(300.0, 2600.0, 2301)
             return tuple(wave), tuple(planck_flambda(wave, temperature))
+        if seds.is_named(self.sed):
+            wave, flux = (np.asarray(v) for v in seds.table(self.sed))
+            return tuple(wave), tuple(flux / flux.max())
         wave, flux = (np.asarray(v) for v in self.sed_table)
         if self.sed_units == "fnu":
             flux = flux / wave**2  # f_lambda = f_nu c / lambda^2
@@ -356,8 +360,10 @@ class SceneModel:
 
 def _check_sed(sed: str, table) -> str:
     if not isinstance(sed, str):
-        raise InputError("sed", f"must be flat, blackbody:TEFF or file:NAME, got {sed!r}")
+        raise InputError("sed", f"must be flat, blackbody:TEFF, {_NAMES} or file:NAME, got {sed!r}")
     text = sed.strip()
+    if seds.is_named(text):
+        return text.lower()
     if text == "flat" or text.startswith("file"):
         if text.startswith("file") and table is None:
             raise InputError("sed", "a file SED needs its table (load it with scene.read_sed)")
@@ -369,7 +375,11 @@ def _check_sed(sed: str, table) -> str:
             raise InputError("sed", f"blackbody needs a temperature in K, got {sed!r}") from None
         check_number(temperature, "sed", 1000.0, 1e6)
         return f"blackbody:{temperature:g}"
-    raise InputError("sed", f"unknown SED {sed!r}: use flat, blackbody:TEFF or a two-column file (nm, flux)")
+    raise InputError("sed", f"unknown SED {sed!r}: use flat, blackbody:TEFF, {_NAMES} or a two-column file (nm, flux)")
+
+
+#: The vendored spectra's names, for messages.
+_NAMES = " | ".join(seds.NAMED)
 
 
 def _check_table(table) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -540,16 +550,16 @@ def parse_ipc(text) -> tuple[tuple[tuple[float, ...], ...] | None, str | None]:
 
 
 def parse_sed(text: str | None, units: str = "flambda") -> dict:
-    """``flat`` | ``blackbody:TEFF`` | a two-column file -> SceneModel fields."""
+    """``flat`` | ``blackbody:TEFF`` | a vendored name (``k0v``) | a two-column file -> SceneModel fields."""
     if text is None:
         return {}
     if not isinstance(text, str):
-        raise InputError("sed", f"must be flat, blackbody:TEFF or a file, got {text!r}")
+        raise InputError("sed", f"must be flat, blackbody:TEFF, {_NAMES} or a file, got {text!r}")
     stripped = text.strip()
-    if stripped == "flat" or stripped.startswith("blackbody:"):
+    if stripped == "flat" or stripped.startswith("blackbody:") or seds.is_named(stripped):
         return {"sed": stripped}
     if not Path(stripped).is_file():
-        raise InputError("sed", f"unknown SED {text!r}: use flat, blackbody:TEFF or a two-column file (nm, flux)")
+        raise InputError("sed", f"unknown SED {text!r}: use flat, blackbody:TEFF, {_NAMES} or a two-column file (nm, flux)")
     array = read_table(stripped, "sed", 2)
     return {"sed": f"file:{Path(stripped).name}", "sed_table": (tuple(array[:, 0]), tuple(array[:, 1])), "sed_units": units}
 
@@ -648,7 +658,7 @@ def check_first_order(scene: SceneModel, full_well: float) -> None:
 def from_request(fields_: dict | None, base: SceneModel | None = None) -> SceneModel:
     """A scene from the REST API's ``scene`` object (no files on a server: tables and kernels inline).
 
-    Keys: ``preset`` (paper | roman), ``position`` [x, y], ``sed`` (flat | blackbody:TEFF),
+    Keys: ``preset`` (paper | roman), ``position`` [x, y], ``sed`` (flat | blackbody:TEFF | k0v),
     ``sed_table`` [[nm, flux], ...] with ``sed_units``, ``jitter``, ``charge_diffusion``, ``ipc``
     (roman | alpha | 3x3 rows), ``ipc_order``, ``nl_coefficients`` (b3, b4, ...), ``bfe``,
     ``background``, ``n_wavelengths``. Unset keys keep the preset's value. ``base``: the scene the
@@ -683,8 +693,8 @@ def from_request(fields_: dict | None, base: SceneModel | None = None) -> SceneM
             changes["ipc"], changes["ipc_label"] = parse_ipc(value)
     if "sed" in data:
         sed = data.pop("sed")
-        if isinstance(sed, str) and sed.strip() != "flat" and not sed.strip().startswith("blackbody:"):
-            raise InputError("sed", f"unknown SED {sed!r}: use flat, blackbody:TEFF or sed_table")
+        if isinstance(sed, str) and sed.strip() != "flat" and not sed.strip().startswith("blackbody:") and not seds.is_named(sed):
+            raise InputError("sed", f"unknown SED {sed!r}: use flat, blackbody:TEFF, {_NAMES} or sed_table")
         changes.update(sed=sed, sed_table=None)
     renames = {
         "jitter": "jitter_arcsec",

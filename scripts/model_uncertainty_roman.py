@@ -7,7 +7,8 @@
 
 For every band at SCA 1, 9 and 18 (the SCA centre), m = 18.5, 20 and 22, both modes, the parts of
 ``nlpsf.roman_uncertainty`` (optical-model vintage, SED spread, jitter, charge diffusion,
-pupil-scale rule, brighter-fatter, NL beyond the quadratic) are measured inside the full default
+pupil-scale rule, brighter-fatter, NL beyond the quadratic, the K0V spectrum against the default's
+blackbody stand-in) are measured inside the full default
 scene (``tablebuild.TableSettings.roman``, HLWAS optimal ramp, slopes at the "corrected" state)
 with the linear response and the same 50 centroid draws for every variant. The optical model's
 vintage first needs the width gap of nlpsf's PSF to the official statistics (``psfstats.width_gap``,
@@ -232,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
                 "scas": scas,
                 "magnitudes": list(MAGNITUDES),
                 "sed_range_k": list(ru.SED_RANGE_K),
+                "sed_standin_real": ru.SED_STANDIN_REAL,
                 "jitter_range_arcsec": list(ru.JITTER_RANGE_ARCSEC),
                 "diffusion_alternative_px": ru.DIFFUSION_ALTERNATIVE_PX,
                 "pupil_alternative": ru.PUPIL_ALTERNATIVE,

@@ -182,7 +182,9 @@ def add_scene_options(parser: argparse.ArgumentParser) -> None:
         "galsim-roman: GalSim's Roman jitter 0.014\", diffusion 0.1 px, IPC, flat f_nu) or a JSON file",
     )
     group.add_argument("--position", help="X,Y on the SCA [pixels, 1-4088] (default the centre)")
-    group.add_argument("--sed", help="star SED: flat (f_nu), blackbody:TEFF, or a two-column file (nm, flux)")
+    group.add_argument(
+        "--sed", help="star SED: flat (f_nu), blackbody:TEFF, k0v (Pickles 1998 K0V spectrum), or a two-column file (nm, flux)"
+    )
     group.add_argument("--sed-units", choices=("flambda", "fnu"), default="flambda", help="what a SED file's flux column is")
     group.add_argument("--jitter", type=float, help="pointing jitter [arcsec rms per axis] (Roman: 0.014)")
     group.add_argument("--charge-diffusion", type=float, help="charge diffusion [native pixels rms] (GalSim's Roman: 0.1)")
