@@ -384,6 +384,11 @@ class Problem(BaseModel):
     field: str | None = Field(None, description="the request field at fault (no unit)")
     limit: str | None = Field(None, description="the name of the service limit the request hit (no unit)")
     errors: list[FieldError] = Field(default_factory=list, description="one entry per bad field found")
+    send_to: str | None = Field(
+        None,
+        description="where the request is answered instead (a path of this API), for a batch entry refused because it "
+        "needs a simulation (type /problems/needs-simulation)",
+    )
 
 
 class BatchSolveRequest(BaseModel):
@@ -394,7 +399,9 @@ class BatchSolveRequest(BaseModel):
     requests: list[dict[str, Any]] = Field(
         min_length=1,
         max_length=1000,
-        description="solve requests, each a SolveRequest object (table fidelity; simulating levels go to POST /solve)",
+        description="solve requests, each a SolveRequest object, answered where the shipped tables or the Roman default's "
+        "field grid hold it (the same answer as POST /solve); one that needs a simulation is refused in its own entry "
+        "(type /problems/needs-simulation, send_to POST /solve)",
     )
 
 
