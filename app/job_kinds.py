@@ -311,7 +311,8 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
         rest = request_arguments(request)
         band, sca = rest.pop("band"), rest.pop("sca")
         scas = "all" if over_field == "focal_plane" else [sca]
-        solution = solver.solve_over_field(band, scas, progress=_steps(progress), **rest).to_dict()
+        # The request was filled for its own SCA (the default's sky, read noise): the others get theirs.
+        solution = solver.solve_over_field(band, scas, progress=_steps(progress), filled_for=sca, **rest).to_dict()
     else:
         solution = solver.answer(request).to_dict()
     if progress:

@@ -45,7 +45,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
         rest = job_kinds.request_arguments(request)
         band, sca = rest.pop("band"), rest.pop("sca")
         scas = "all" if body.over_field == "focal_plane" else [sca]
-        answer = await run_in_threadpool(solver.solve_over_field, band, scas, **rest)
+        answer = await run_in_threadpool(solver.solve_over_field, band, scas, filled_for=sca, **rest)
         return SafeJSONResponse(answer.to_dict())
     # What remains -- a simulating level, an accuracy (its effects are measured by simulation even
     # when the table level meets it), a ramp, a scene, or an over-field answer the field-point tables
