@@ -107,3 +107,16 @@ def test_a_position_row_of_the_page_csv_is_the_api_row(client):
     assert first["tolerance"] == second["tolerance"] == api["tolerance"]
     assert first["conditions"] == api["conditions"] and paper["conditions"]["scene_name"] == "paper"
     assert first["tolerance"] != paper["tolerance"]
+
+
+def test_the_pages_example_batch_is_answered_in_full(client):
+    import html
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[2] / "static" / "index.html").read_text(encoding="utf-8")
+    example = html.unescape(re.search(r'<textarea id="batch-text"[^>]*>(.*?)</textarea>', page, re.S).group(1))
+    answer = client.post("/api/v1/page/batch", content=example, headers={"Content-Type": "text/csv"}).json()
+    assert answer["failed"] == 0 and answer["answered"] == len(example.strip().splitlines()) - 1, answer["results"]
+    scenes = [r["solution"]["conditions"]["scene_name"] for r in answer["results"]]
+    assert "roman" in scenes and "paper" in scenes
