@@ -199,7 +199,12 @@ class RampFields(BaseModel):
         description=f"MultiAccum table (no unit): a shipped name ({', '.join(SHIPPED_MA_TABLES)}) or the table itself "
         "(never a file on the server); without an exptime the exposure is the table's last read",
     )
-    ramp_fit: RampFit = Field("ols", description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting)")
+    ramp_fit: RampFit = Field(
+        "ols",
+        description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting); not given: the scene's (the "
+        "Roman default: optimal, romancal's likelihood fit, on its HLWAS table unless a ramp or MA table is given; the "
+        "paper's: ols)",
+    )
     read_noise: float | None = _within(
         defaults.READ_NOISE_RANGE_E,
         "read noise per read in e- (optimal fit: > 0); default: the SCA's official value (CDS noise / sqrt 2)",
