@@ -124,13 +124,7 @@ def worst_over_field(
     if progress:
         progress(len(points), len(points), "done")
     solved = answers[0][2].solved_for
-
-    def demand(solution: Solution) -> float:
-        value = getattr(solution, solved)
-        if value is None or not math.isfinite(value):
-            return -math.inf
-        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
-
+    demand = _demand(solved)  # the most demanding answer, as the SCA range ranks its nodes
     sca, position, worst = max(answers, key=lambda item: demand(item[2]))
     values = [getattr(a[2], solved) for a in answers]
     finite = [v for v in values if v is not None and math.isfinite(v)]
