@@ -43,6 +43,9 @@ class SafeJSONResponse(JSONResponse):
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 
+#: Where a request that needs a simulation is answered (as a job), when a batch refuses it.
+SOLVE_ENDPOINT = "/api/v1/solve"
+
 #: The ``type`` of each kind of problem: a relative URI naming it (RFC 9457 section 3.1.1); the page
 #: /docs lists the statuses. "about:blank" where the HTTP status says all there is.
 PROBLEM_TYPES = {
@@ -56,6 +59,8 @@ PROBLEM_TYPES = {
     # conflict (give exactly two of three), a value valid only with others (a star too bright for
     # beta0), a table's shape (increasing wavelengths).
     "combination": "/problems/invalid-combination",
+    # Valid, but its answer needs a fresh simulation, which a batch does not run: POST /solve does (a job).
+    "needs_simulation": "/problems/needs-simulation",
     429: "/problems/queue-full",
     500: "/problems/internal-error",
     503: "/problems/unavailable",
@@ -104,6 +109,14 @@ def input_error_body(error: InputError, field: str | None = None, location: str 
     detail = [{"loc": [location, short(field)], "field": field, "msg": error.reason, "type": "limit" if limit else "value_error"}]
     kind = "/problems/limit-exceeded" if limit else PROBLEM_TYPES["combination"]
     return problem_body(422, message, field, limit, detail, kind)
+
+
+def needs_simulation_body(error: InputError) -> dict:
+    """A batch entry that needs a simulation (``nlpsf.batch.NeedsSimulation``): a 422 of its own
+    type, naming the field that takes it off the tables and where it is answered (``send_to``)."""
+    body = input_error_body(error)
+    message = short(f"{body['detail']}; send it to POST {SOLVE_ENDPOINT} (a job)", 5 * ECHO_CHARS)
+    return {**body, "type": PROBLEM_TYPES["needs_simulation"], "detail": message, "message": message, "send_to": SOLVE_ENDPOINT}
 
 
 def input_error_response(error: InputError, field: str | None = None, location: str = "body") -> JSONResponse:

@@ -75,10 +75,13 @@ SOLVE_SERVICE_FIELDS = ("over_field",)
 
 def solve_body(fields: dict[str, Any], given: set[str]) -> dict[str, Any]:
     """A solve's JSON fields as the library's request reads them: the service's own fields left
-    out, and ``exptime`` only when the client gave it (an MA table's exposure is otherwise its last read)."""
+    out, ``exptime`` only when the client gave it (an MA table's exposure is otherwise its last read)
+    and ``ramp_fit`` likewise (not given: the scene's fit -- the Roman default's likelihood fit, the
+    paper's OLS -- as the CLI and a simulation take it; the schema's "ols" is the paper's)."""
     body = {k: v for k, v in fields.items() if k not in SOLVE_SERVICE_FIELDS}
-    if "exptime" not in given:
-        body.pop("exptime", None)
+    for name in ("exptime", "ramp_fit"):
+        if name not in given:
+            body.pop(name, None)
     return body
 
 
@@ -311,7 +314,8 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
         rest = request_arguments(request)
         band, sca = rest.pop("band"), rest.pop("sca")
         scas = "all" if over_field == "focal_plane" else [sca]
-        solution = solver.solve_over_field(band, scas, progress=_steps(progress), **rest).to_dict()
+        # The request was filled for its own SCA (the default's sky, read noise): the others get theirs.
+        solution = solver.solve_over_field(band, scas, progress=_steps(progress), filled_for=sca, **rest).to_dict()
     else:
         solution = solver.answer(request).to_dict()
     if progress:

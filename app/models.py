@@ -203,7 +203,12 @@ class RampFields(BaseModel):
         description=f"MultiAccum table (no unit): a shipped name ({', '.join(SHIPPED_MA_TABLES)}) or the table itself "
         "(never a file on the server); without an exptime the exposure is the table's last read",
     )
-    ramp_fit: RampFit = Field("ols", description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting)")
+    ramp_fit: RampFit = Field(
+        "ols",
+        description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting); not given: the scene's (the "
+        "Roman default: optimal, romancal's likelihood fit, on its HLWAS table unless a ramp or MA table is given; the "
+        "paper's: ols)",
+    )
     read_noise: float | None = _within(
         defaults.READ_NOISE_RANGE_E,
         "read noise per read in e- (optimal fit: > 0); default: the SCA's official value (CDS noise / sqrt 2)",
@@ -388,6 +393,11 @@ class Problem(BaseModel):
     field: str | None = Field(None, description="the request field at fault (no unit)")
     limit: str | None = Field(None, description="the name of the service limit the request hit (no unit)")
     errors: list[FieldError] = Field(default_factory=list, description="one entry per bad field found")
+    send_to: str | None = Field(
+        None,
+        description="where the request is answered instead (a path of this API), for a batch entry refused because it "
+        "needs a simulation (type /problems/needs-simulation)",
+    )
 
 
 class BatchSolveRequest(BaseModel):
@@ -398,7 +408,9 @@ class BatchSolveRequest(BaseModel):
     requests: list[dict[str, Any]] = Field(
         min_length=1,
         max_length=1000,
-        description="solve requests, each a SolveRequest object (table fidelity; simulating levels go to POST /solve)",
+        description="solve requests, each a SolveRequest object, answered where the shipped tables or the Roman default's "
+        "field grid hold it (the same answer as POST /solve); one that needs a simulation is refused in its own entry "
+        "(type /problems/needs-simulation, send_to POST /solve)",
     )
 
 

@@ -316,9 +316,10 @@ def presets() -> SafeJSONResponse:
 # ---- batch over CSV ---------------------------------------------------------------------------------
 
 _INTEGER_COLUMNS = {"sca", "stars", "ramp"}
-# "scene": a preset's name per row; the batch answers from the tables, so only "paper" is answered
-# there (the Roman default's rows are refused with where to send them, by POST /api/v1/solve/batch's rule).
-_TEXT_COLUMNS = {"band", "metric", "mode", "fidelity", "ma_table", "ramp_fit", "throughput", "over_field", "scene"}
+# "scene": a preset's name per row (empty: the Roman default); "position": "X Y" in pixels on the SCA
+# (or "X;Y"). The batch answers at table cost, by POST /api/v1/solve/batch's rule: the paper's tables
+# and the Roman default's field grid; a row that needs a simulation is refused with where to send it.
+_TEXT_COLUMNS = {"band", "metric", "mode", "fidelity", "ma_table", "ramp_fit", "throughput", "over_field", "scene", "position"}
 _ANSWER_COLUMNS = [
     "band",
     "sca",
@@ -359,6 +360,22 @@ def _cell(name: str, text: str) -> Any:
         return text  # the solve request names the field it cannot read
 
 
+def _with_position(row: dict[str, Any]) -> dict[str, Any]:
+    """A row's "position" cell ("X Y" or "X;Y") as its scene's position, on the row's preset."""
+    if "position" not in row:
+        return row
+    row = dict(row)
+    text = str(row.pop("position"))
+    parts = text.replace(";", " ").split()
+    try:
+        position: Any = [float(p) for p in parts]
+    except ValueError:
+        position = text  # the solve request names scene.position and what it expects
+    scene = row.get("scene")
+    row["scene"] = {"position": position, **({"preset": scene} if isinstance(scene, str) and scene else {})}
+    return row
+
+
 def parse_batch_csv(text: str) -> list[dict[str, Any]]:
     lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
@@ -368,7 +385,8 @@ def parse_batch_csv(text: str) -> list[dict[str, Any]]:
         raise InputError("csv", "the header row has an empty column name")
     rows = []
     for row in reader:
-        rows.append({k.strip(): _cell(k.strip(), v or "") for k, v in row.items() if k is not None and (v or "").strip() != ""})
+        cells = {k.strip(): _cell(k.strip(), v or "") for k, v in row.items() if k is not None and (v or "").strip() != ""}
+        rows.append(_with_position(cells))
     if not rows:
         raise InputError("csv", "the CSV has a header but no requests")
     return rows

@@ -1,5 +1,5 @@
 """The calculator: POST /solve (two of precision, tolerance, magnitude -> the third) and
-POST /solve/batch (many table solves)."""
+POST /solve/batch (many solves at table cost: the tables and the Roman default's field grid)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from fastapi import APIRouter
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
-from nlpsf import defaults, roman_default, solver
+from nlpsf import batch, defaults, solver
 from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
 
@@ -45,7 +45,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
         rest = job_kinds.request_arguments(request)
         band, sca = rest.pop("band"), rest.pop("sca")
         scas = "all" if body.over_field == "focal_plane" else [sca]
-        answer = await run_in_threadpool(solver.solve_over_field, band, scas, **rest)
+        answer = await run_in_threadpool(solver.solve_over_field, band, scas, filled_for=sca, **rest)
         return SafeJSONResponse(answer.to_dict())
     # What remains -- a simulating level, an accuracy (its effects are measured by simulation even
     # when the table level meets it), a ramp, a scene, or an over-field answer the field-point tables
@@ -59,7 +59,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
     "/solve/batch",
     response_model=models.BatchSolveResponse,
     responses={**ERRORS, 413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"}},
-    summary="Many table solves in one call; each request is answered or refused on its own",
+    summary="Many solves at table cost (the tables, the Roman default's field grid); each answered or refused on its own",
 )
 def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
     results = [_solve_one(index, item) for index, item in enumerate(body.requests)]
@@ -68,36 +68,31 @@ def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
 
 
 def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
+    """One batch entry: the same typed request as POST /solve, answered by the library where the
+    tables or the Roman default's field grid hold it (``nlpsf.batch.answer_from_tables``: the very
+    ``solver.answer`` a single solve runs), refused on its own otherwise."""
     from pydantic import ValidationError
 
     from nlpsf.checks import SimulationError
 
-    from .errors import input_error_body, problem_body, validation_problem_body
+    from .errors import input_error_body, needs_simulation_body, problem_body, validation_problem_body
 
     try:
         request = models.SolveRequest.model_validate(item)
     except ValidationError as invalid:
         return {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}
     try:
-        if request.over_field is not None or not (request.scene is None or isinstance(request.scene, str)):
-            name = "over_field" if request.over_field is not None else "scene"
-            raise InputError(name, "a batch solves from the tables only: send scenes and over-field solves to POST /solve")
+        if request.over_field is not None:
+            raise InputError("over_field", "a batch solves one position at a time: send over-field solves to POST /solve")
         solve = job_kinds.solve_request(job_kinds.solve_body(request.model_dump(), request.model_fields_set))
-        if solve.preset == roman_default.NAME and roman_default.field_grid() is None:
-            raise InputError(
-                "scene",
-                "the Roman default's field grid is not installed, so it is simulated: a batch solves from the tables "
-                "only; give scene 'paper' for the paper's tables or send it to POST /solve",
-            )
-        if solve.preset == roman_default.NAME:
-            return {"index": index, "ok": True, "solution": json_safe(solver.answer(solve).to_dict())}
-        simulating = solve.fidelity not in (None, "table") or solve.pupil_scale not in (None, defaults.PUPIL_SCALE)
-        if solve.ramp is not None or simulating or solve.accuracy is not None:
-            # A batch answers at table cost; a simulating solve is a job (POST /solve), one at a time.
-            raise InputError("fidelity", "a batch solves from the tables only: send ramps and simulating levels to POST /solve")
-        return {"index": index, "ok": True, "solution": json_safe(solver.answer(solve).to_dict())}
+        return {"index": index, "ok": True, "solution": json_safe(batch.answer_from_tables(solve).to_dict())}
+    except batch.NeedsSimulation as error:
+        return {"index": index, "ok": False, "error": needs_simulation_body(error)}
     except InputError as error:
         return {"index": index, "ok": False, "error": input_error_body(error)}
     except SimulationError as error:
         # Not the request's fault (e.g. missing shipped data): a server error for this item.
         return {"index": index, "ok": False, "error": problem_body(500, str(error))}
+    except Exception as error:  # a fault in one entry must not fail the others
+        message = f"internal error ({type(error).__name__}); please report it with the request that caused it"
+        return {"index": index, "ok": False, "error": problem_body(500, message)}

@@ -62,7 +62,9 @@ def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: fl
     return plain and fidelity in (None, "table") and field_tables() is not None
 
 
-def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **request) -> Solution:
+def worst_over_field(
+    solve, band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request
+) -> Solution:
     """The answer for the worst position over the field: the centre and four corners of the given
     SCAs (``"all"``: the 18 of the focal plane), each with its own aberrations.
 
@@ -73,6 +75,11 @@ def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **
     largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that
     point's, with every point's value in ``conditions["over_field"]`` and where the worst lies in a
     flag. ``solve`` is ``nlpsf.solver.solve`` (passed in: this module sits below the solver).
+
+    ``filled_for``: the SCA whose Roman-default conditions the ``scene`` and ``ramp`` given were
+    filled with (the request's own SCA; ``SolveRequest`` fills them): its sky over the exposure
+    and its official read noise. Every other SCA gets its own instead (:func:`own_conditions`);
+    what the caller set (a background, a read noise) stays. None: nothing was filled.
     """
 
     from . import roman_default
@@ -110,17 +117,14 @@ def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
         # The default's own scene at bg 0 is filled by the request with that SCA's sky.
         point_scene = roman_default.scene(position, 0.0) if default and scene is None else replace(base, position=position)
-        answers.append((sca, position, solve(band, sca, scene=point_scene, **request)))
+        point_request = request
+        if default and filled_for is not None and sca != filled_for:
+            point_scene, point_request = own_conditions(point_scene, request, band, filled_for, sca)
+        answers.append((sca, position, solve(band, sca, scene=point_scene, **point_request)))
     if progress:
         progress(len(points), len(points), "done")
     solved = answers[0][2].solved_for
-
-    def demand(solution: Solution) -> float:
-        value = getattr(solution, solved)
-        if value is None or not math.isfinite(value):
-            return -math.inf
-        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
-
+    demand = _demand(solved)  # the most demanding answer, as the SCA range ranks its nodes
     sca, position, worst = max(answers, key=lambda item: demand(item[2]))
     values = [getattr(a[2], solved) for a in answers]
     finite = [v for v in values if v is not None and math.isfinite(v)]
@@ -142,6 +146,32 @@ def worst_over_field(solve, band: str, scas="all", scene=None, progress=None, **
         high=max(finite),
     )
     return replace(worst, flags=[flag, *worst.flags], conditions=conditions)
+
+
+def own_conditions(scene, request: dict, band: str, filled_for: int, sca: int) -> tuple[object, dict]:
+    """(scene, request) for ``sca`` where they hold what the Roman default filled in for the SCA
+    ``filled_for``: its sky over the exposure (``roman_default.fill``, the owner of the default's
+    values, with ``backgrounds``) becomes ``sca``'s, and a ramp with that SCA's official read noise
+    (``ramps.build``) gets ``sca``'s. A background or read noise the caller gave is kept: it is
+    recognised as filled only when it is exactly what the same functions fill for ``filled_for``."""
+    from . import ramps, roman_default
+
+    exptime, ramp = request.get("exptime"), request.get("ramp")
+    there = roman_default.fill(roman_default.NAME, band, filled_for, exptime, ramp, None, None)
+    here = roman_default.fill(roman_default.NAME, band, sca, exptime, ramp, None, None)
+    if scene is not None and math.isclose(scene.background_e, there.background_e, rel_tol=1e-12, abs_tol=0.0):
+        scene = replace(scene, background_e=here.background_e)
+    if ramp is not None:
+        rules = {"saturation": ramp.saturation, "single_resultant": ramp.single_resultant}
+
+        def official(at: int):
+            built, _ = ramps.build(ma_table=ramp.table, fit=ramp.fit, exptime_s=there.exptime, sca=at, **rules)
+            return replace(built, saturation_beta=ramp.saturation_beta)
+
+        filled = official(filled_for)
+        if filled == ramp and filled.read_noise_source == ramp.read_noise_source:
+            request = {**request, "ramp": official(sca)}
+    return scene, request
 
 
 # --- the Roman default over an SCA -----------------------------------------------------------

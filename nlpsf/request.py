@@ -240,6 +240,10 @@ class SolveRequest:
         ramp_fields = {k: data.pop(k, None) for k in RAMP_REQUEST_FIELDS}
         given_exptime = data.get("exptime")
         sca = data.get("sca", defaults.SCA)
+        changes_readout = any(ramp_fields[k] is not None for k in ("ramp_fit", "read_noise", *RAMP_RULE_FIELDS))
+        if preset == roman_default.NAME and ramp_fields["ramp"] is None and ramp_fields["ma_table"] is None and changes_readout:
+            # A fit, read noise or rule alone changes the default's own readout (its MA table), as a simulation's does.
+            ramp_fields["ma_table"] = roman_default.MA_TABLE
         if ramp_fields["ramp"] is not None or ramp_fields["ma_table"] is not None or preset != roman_default.NAME:
             # A ramp given replaces the preset's readout; the Roman default's fit is romancal's likelihood fit.
             default_fit = roman_default.RAMP_FIT if preset == roman_default.NAME else "ols"

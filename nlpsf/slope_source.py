@@ -141,6 +141,9 @@ class Slopes:
         return self._cache[key]
 
     def _simulate(self, magnitude: float) -> tuple[float, float]:
+        from .simulation_guard import check_simulation_allowed
+
+        check_simulation_allowed(magnitude)  # a batch answers at table cost: refused there, before any work
         from . import experiment  # the simulator: only fresh-simulation levels need it
 
         # A ramp that the tables do not map exactly is simulated with the linear response.

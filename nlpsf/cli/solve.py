@@ -169,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
             args.band,
             "all" if args.sca == "all" else [args.sca],
             scene=scene,
+            filled_for=_FILLED_FOR if args.sca == "all" else args.sca,  # the SCA _default_with_changes filled
             preset=preset,
             linearise_at=args.linearise_at,
             progress=progress_printer(not args.json),
@@ -295,10 +296,15 @@ def _scene(args: argparse.Namespace):
     return _scene_of_options(args), preset
 
 
+#: The SCA whose sky a changed Roman default is filled with under ``--sca all`` (each SCA of an
+#: over-field answer then gets its own: ``over_field.own_conditions``).
+_FILLED_FOR = 18
+
+
 def _default_with_changes(args: argparse.Namespace):
     from .. import roman_default
 
-    sca = args.sca if isinstance(args.sca, int) else 18
+    sca = args.sca if isinstance(args.sca, int) else _FILLED_FOR
     ramp, exptime = _readout(args, roman_default.NAME)
     filled = roman_default.fill(roman_default.NAME, args.band, sca, exptime, ramp, None, None)
     base = roman_default.scene(None, filled.background_e)
