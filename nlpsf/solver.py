@@ -47,7 +47,10 @@ the answer's point (``nlpsf.impact``) and added in quadrature; otherwise they co
 measurement (``nlpsf/data/scene_model_uncertainty.json``: each effect's worst impact on SCA 1, 9
 and 18 at two magnitudes) and are added up, since a Roman star has them all at once with signs often
 alike. The pupil-scale rule and ``uncertainty_optical_model`` (the official-PSF comparison) both
-measure the optical model's error, so the total counts the larger of the two, not both.
+measure the optical model's error, so the total counts the larger of the two, not both. The Roman
+default's answers (its preset, with or without ``accuracy``) carry its own parts instead
+(``model_part.roman_default_model``: the optics' vintage among them, so the official-PSF figure is
+not added), an ``accuracy`` answer's left-out set beside them as a part of its own.
 """
 
 from __future__ import annotations
@@ -230,7 +233,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
         model_info = model_part.shipped_model(
             request.band, request.sca, request.metric, request.mode, simulated_scene, chosen,
-            default=default, pupil_scale=request.pupil_scale or table_rule,
+            default=default, pupil_scale=request.pupil_scale or table_rule, request=request,
         )  # fmt: skip
     breaking = simulated_scene.breaks_beta_q_scaling() if simulated_scene is not None else None
     if breaking:
