@@ -251,10 +251,26 @@ def _measured_default(request: SolveRequest) -> str:
 
 @dataclass(frozen=True)
 class _Limits:
-    """Saturation magnitudes: the rule in use and the single final frame's."""
+    """Saturation magnitudes: the rule in use and the single final frame's, and where they come from."""
 
     saturation: float
     final_frame: float
+    #: Whose star the limits are of (``conditions["saturation_from"]``; None: the tables', unsaid).
+    source: str | None = None
+
+
+def _own_star(request: SolveRequest, the_plan: SolvePlan) -> bool:
+    """Whether the answer's limits are the simulated scene's own star: a scene other than the
+    paper's that is simulated (not held by tables or the grid). ``--scene paper`` keeps the tables'
+    limits whatever it simulates (its answers stay bit for bit)."""
+    scene = the_plan.scene
+    return (
+        request.preset != "paper"
+        and scene is not None
+        and not scene.is_paper
+        and the_plan.grid is None
+        and the_plan.fidelity != "table"
+    )
 
 
 def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Limits:
@@ -264,20 +280,31 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
             "background", f"a background of {background:g} e- fills the full well ({request.full_well:g} e-) by itself"
         )
     grid, position = the_plan.grid, None if the_plan.scene is None else the_plan.scene.position
+    ramp = request.ramp
+    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
+    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
+    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
     if grid is not None and position is not None:
         # The Roman default's own star (its peak through the default's optics and detector, with its
         # sky), recorded at every node by the grid's build: not the paper table's sharper star.
         saturation = grid.saturation_magnitude(request.band, request.sca, position)
         final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
         if final is not None:
-            return _Limits(saturation, final)
+            source = f"the Roman default's own star: its field grid's nodes ({roman_default.GRID_FILE}), interpolated"
+            return _Limits(saturation, final, source)
+    if _own_star(request, the_plan):
+        # The star that is simulated (its optics, SED, blurs and sky), from its own prepared peak.
+        final_frame, peak = slopes.own_final_frame_saturation()
+        source = (
+            f"the simulated scene's own star: its prepared peak ({peak:.6g} of the flux in the brightest fine pixel, "
+            f"over every sub-pixel centroid) on top of {background:g} e- of background against the full well "
+            f"{request.full_well:g} e-" + ("" if ramp is None else f"; the ramp's limit {shift:.4g} mag brighter")
+        )
+        return _Limits(final_frame - shift, final_frame, source)
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
-    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
-    ramp = request.ramp
-    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
-    return _Limits(final_frame - shift, final_frame)
+    source = None if request.preset == "paper" else "the tables' star (the paper's scene at the tables' position)"
+    return _Limits(final_frame - shift, final_frame, source)
 
 
 @dataclass
@@ -335,6 +362,8 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     if slopes.pupil_scale is not None and the_plan.fidelity != "table":
         conditions["pupil_scale"] = slopes.pupil_scale
     answer_conditions.add_simulation_conditions(conditions, the_plan, slopes)
+    if limits.source is not None:
+        conditions["saturation_from"] = limits.source
     return Solution(
         band=request.band,
         sca=request.sca,
