@@ -117,3 +117,15 @@ def test_a_default_at_another_exposure_reads_the_parts_at_equal_charge():
     assert bfe["impact"] == pytest.approx(_at(parts["brighter_fatter"]["by_magnitude"], shifted), rel=1e-12)
     assert bfe["impact"] > _at(parts["brighter_fatter"]["by_magnitude"], 20.5)  # brighter-fatter grows with charge
     assert answer.uncertainty_model == pytest.approx(_by_hand(parts, shifted) * answer.precision, rel=1e-9)
+
+
+def test_a_change_to_the_default_scene_is_kept_when_the_request_fills_its_sky():
+    # A caller's change to the default's scene (no sky given) is the star asked about: the request
+    # adds the default's sky over the exposure and keeps the change (it once became the default's).
+    scene = replace(roman_default.base_scene(), position=POSITION, jitter_arcsec=0.014)
+    request = SolveRequest("H158", 18, magnitude=19.0, precision=0.01, scene=scene)
+    assert request.scene.jitter_arcsec == 0.014
+    assert request.scene.background_e == roman_default.readout("H158", 18).background_e
+    plain = replace(roman_default.base_scene(), position=POSITION)
+    unchanged = SolveRequest("H158", 18, magnitude=19.0, precision=0.01, scene=plain)
+    assert unchanged.scene == _default_scene("H158", 18)
