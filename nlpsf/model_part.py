@@ -226,9 +226,10 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
     if differences:
         basis += (
             f". Measured at the default's readout, exposure, beta0, full well and state; this request differs in "
-            f"{'; '.join(differences)}: the parts are the default's, not measured again, read at the magnitude whose "
-            f"charge in the measured exposure is this star's (m {offset:+.3f})"
+            f"{'; '.join(differences)}: the parts are the default's, not measured again"
         )
+        if offset:
+            basis += f", read at the magnitude whose charge in the measured exposure is this star's (m {offset:+.3f})"
     out = {
         "included": included,
         "left_out": parts,
