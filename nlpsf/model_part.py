@@ -119,9 +119,18 @@ def model_at(info: dict, slopes, magnitude: float) -> dict:
     vintage and the pupil rule are among them, so ``effects_relative`` holds the whole model part,
     ``pupil_scale_relative`` is 0 and ``optical_model_included`` tells the caller not to add
     ``optical_model_relative`` again."""
-    scale = component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
     if info["combine"] == "roman":
-        return _roman_model_at(info, magnitude, scale)
+        # The default's e1 / e2 parts are restated with the answer's own slopes (the grid's or the
+        # simulation's), not the paper tables': their ratio |c_e| / |c_ei| differs by up to x3.5.
+        own = None
+        if info["stated_against"] == "modulus" and hasattr(slopes, "modulus_over_component"):
+            own = slopes.modulus_over_component(magnitude)
+        scale = own if own is not None else component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
+        out = _roman_model_at(info, magnitude, scale)
+        if info["stated_against"] == "modulus":
+            out["component_scale_from"] = "the answer's own slopes" if own is not None else "the tables"
+        return out
+    scale = component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
     left = [{**p, "impact": None if p["impact"] is None else p["impact"] * scale} for p in info["left_out"]]
     effects = COMBINE[info["combine"]]([abs(p["impact"]) for p in left if p["impact"] is not None and p["name"] != "pupil_scale"])
     pupil = next((abs(p["impact"]) for p in left if p["name"] == "pupil_scale" and p["impact"] is not None), 0.0)

@@ -55,6 +55,7 @@ class Slopes:
         self._scene = None  # experiment.Scene of the fresh simulations, prepared once per request
         #: The simulated star's peak fraction where the answer's limits are its own (else the tables').
         self.own_peak_fraction: float | None = None
+        self._results: dict[float, object] = {}  # experiment.SlopeResult of each simulated magnitude
         #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
         self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
         #: How the ramp's slopes were obtained in this request ("table", "simulation").
@@ -199,10 +200,32 @@ class Slopes:
         scene = self.prepare()
         config = scene.config
         result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=scene, linearise_at=self.linearise_at)[0]
+        self._results[round(magnitude, 9)] = result
         value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
+
+    def modulus_over_component(self, magnitude: float) -> float | None:
+        """|c_e| / |c_ei| = hypot(c_e1, c_e2) / |c_ei| of this answer's own slopes at ``magnitude``
+        (an e1 / e2 answer; 1 otherwise): from the field grid at the position, or from the simulation
+        that gave the slope there. None where the answer's slope there came from the tables (the
+        caller then reads the tables' ratio)."""
+        if self.metric not in ("e1", "e2"):
+            return 1.0
+        pair = None
+        if self.grid is not None:
+            position = self.scene_model.position
+            pair = [grid_slope(self.grid, self.band, self.sca, position, m, self.mode, magnitude)[0] for m in ("e1", "e2")]
+            pair = pair if all(math.isfinite(v) for v in pair) else None
+        result = self._results.get(round(magnitude, 9))
+        if pair is None and result is not None:
+            pair = [result.slope(self.mode, defaults.METRIC_COLUMNS[m])[0] for m in ("e1", "e2")]
+            pair = pair if all(v is not None and math.isfinite(v) for v in pair) else None
+        if pair is None:
+            return None
+        component = abs(pair[0] if self.metric == "e1" else pair[1])
+        return math.hypot(*pair) / component if component > 0 else None
 
 
 def grid_slope(grid, band: str, sca: int, position, metric: str, mode: str, magnitude: float) -> tuple[float, float]:

@@ -429,8 +429,8 @@ def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dic
     else:
         # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
         parts = Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0)
+        slope, slope_err, _ = slopes.at(limits.saturation)  # first: the model part reads the slopes there
         model_info = model_part.model_at(model_info, slopes, limits.saturation)
-        slope, slope_err, _ = slopes.at(limits.saturation)
         error = abs(slope) * precision * beta0 * averaging
         flags.append(
             make(FlagCode.ERROR_AT_SATURATION, metric=request.metric, mode=request.mode, error=error, tolerance=tolerance)

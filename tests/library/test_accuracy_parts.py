@@ -129,3 +129,20 @@ def test_a_change_to_the_default_scene_is_kept_when_the_request_fills_its_sky():
     plain = replace(roman_default.base_scene(), position=POSITION)
     unchanged = SolveRequest("H158", 18, magnitude=19.0, precision=0.01, scene=plain)
     assert unchanged.scene == _default_scene("H158", 18)
+
+
+@pytest.mark.parametrize("accuracy_", [None, 0.01])
+def test_e_component_parts_are_restated_with_the_answers_own_slopes(accuracy_):
+    # The e1 parts are stated against |c_e| (the file's convention) and restated against c_e1 with
+    # the answer's own slopes (the grid's, or the accuracy answer's simulation): at W146 SCA 6
+    # (3000, 1200), m = 20.5, the default's |c_e| / |c_e1| is ~10.6, the paper table's ~3.0.
+    readout = roman_default.readout("W146", 6)
+    scene = roman_default.scene((3000.0, 1200.0), readout.background_e)
+    given = {"magnitude": 20.5, "tolerance": 1e-4, "accuracy": accuracy_, "scene": scene}
+    e1 = solver.solve("W146", 6, metric="e1", **given)
+    e2 = solver.solve("W146", 6, metric="e2", **given)
+    scale = math.hypot(e1.slope, e2.slope) / abs(e1.slope)
+    assert scale > 5.0
+    assert e1.model["component_scale"] == pytest.approx(scale, rel=1e-6)
+    relative = _by_hand(_file_parts("W146", 6, "bias", "e1"), 20.5) * scale
+    assert e1.uncertainty_model == pytest.approx(relative * e1.precision, rel=1e-6)
