@@ -5,9 +5,10 @@ magnitude, half of them solving for the tolerance at a given magnitude, half for
 each solved in a fresh state of the PSF cache's neighbours (a different band, SCA and position
 every time), with the Roman default's readout (HLWAS ramp, optimal fit) and background. Quoted per
 request: wall and CPU seconds of the accuracy solve, and its CPU ratio to two solves of the same
-request measured in the same run: ``plain`` (no accuracy, no scene: the paper scene with the same
-ramp, which an optimal fit simulates at the tables' 100 centroids) and ``table`` (no ramp either:
-a table look-up); then the median and the distribution. Wall exceeds CPU where the machine is shared.
+request measured in the same run: ``plain`` (no accuracy, no scene, the same ramp: the Roman
+default without a position, read from its field grid's nodes over the SCA) and ``table`` (no ramp
+either: the default's HLWAS readout, the grid's nodes again); then the median and the distribution.
+Wall exceeds CPU where the machine is shared.
 
 Usage: python benchmarks/accuracy_solve.py [--requests 10] [--seed 17] [--search auto|always]
 """

@@ -26,9 +26,14 @@ asked (``search="always"``).
 
 Impacts are measured with the linear response at one magnitude (the answer's, found by a
 table-level first pass when the magnitude is solved for) on :data:`PROBE_REALIZATIONS` centroids,
-the same draws for every variant, so the realization noise cancels in the ratios; each impact
-carries the standard error of the ratio (both slopes' errors combined as if independent, an upper
-bound), and a set is left out only while ``|impact| + error`` stays within the budget.
+the same draws for every variant; each impact carries its standard error over centroid samples
+(:func:`impact_uncertainty`: the two slopes' errors over the centroids added linearly, a bound
+whatever their correlation), and a set is left out only while ``|impact| + error`` (plus the
+level's error) stays within the budget. The probe integrates the SED over the wavelengths the
+answer will simulate: an impact is that of the scene as simulated (the same set measured with the
+SED over 8 wavelengths instead of the default's 2 moves by 2.7e-4 for K213 size, a difference of the
+levels, not of the centroids, which the identity ``slope_L(reduced) / slope_exact(full) =
+(1 + impact_L) (slope_L(full) / slope_exact(full))`` leaves to the level's measured error).
 """
 
 from __future__ import annotations
@@ -52,6 +57,8 @@ ANSWER_REALIZATIONS = 25
 ROMAN_ENTRY = ("roman",)
 #: Wavelengths from which a band-integrated simulation is the measured ``polychromatic`` level.
 BAND_INTEGRATED_WAVELENGTHS = levels.POLYCHROMATIC_WAVELENGTHS
+#: The model part's name for the set an answer leaves out, beside the Roman default's parts.
+LEFT_OUT_PART = "accuracy_left_out"
 #: ``search`` choices of :func:`select`.
 SEARCHES = ("auto", "always", "never")
 
@@ -166,7 +173,7 @@ class Probe:
     """Linear-response slopes of variants of the full scene at one magnitude, on the same centroids.
 
     ``impact(names)`` is ``slope(full without names) / slope(full) - 1`` on the request's metric and
-    mode, with its standard error (an upper bound: the errors combined as if independent)."""
+    mode, with its standard error over centroid samples (:func:`impact_uncertainty`, a bound)."""
 
     def __init__(self, request, full: FullScene, table, magnitude: float, realizations: int = PROBE_REALIZATIONS):
         from . import experiment
@@ -209,7 +216,20 @@ class Probe:
         if a is None or b is None or b == 0 or a == 0:
             return None, None
         ratio = a / b
-        return ratio - 1.0, abs(ratio) * math.hypot(da / a, db / b)
+        return ratio - 1.0, impact_uncertainty(ratio, a, da, b, db)
+
+
+def impact_uncertainty(ratio: float, a: float, da: float, b: float, db: float) -> float:
+    """The standard error of an impact ``ratio - 1`` (``ratio = a / b``) over centroid samples.
+
+    Both slopes are means over the same centroids; their standard errors (``da``, ``db``) are the
+    spread over those centroids / sqrt(n). The ratio's error over another sample of centroids is
+    ``sqrt(Var(a_i - ratio b_i) / n) / |b|``, which needs the two slopes' covariance over the
+    centroids; measured, their correlation runs from -0.5 (K213 size, a set with IPC) to +0.95
+    (H158 size, the SED), so neither the quadrature sum (independent: too small where they
+    anti-correlate) nor zero (fully paired) is safe. The errors added linearly,
+    ``|ratio| (da/|a| + db/|b|)``, bound it whatever the correlation (Cauchy-Schwarz)."""
+    return abs(ratio) * (abs(da / a) + abs(db / b))
 
 
 # --- the selection ------------------------------------------------------------------------------
@@ -307,17 +327,23 @@ def _search(probe: Probe, full: FullScene, band, metric, mode, accuracy: float, 
 
 def _model_info(request, full: FullScene, magnitude, left, combined, level: Level, effects, probe, accuracy) -> dict:
     """The answer's model part (``model_part.model_at`` reads it): the left-out set as one entry,
-    its measured combined impact, and what was measured on the way."""
+    its measured combined impact, and what was measured on the way. For the Roman default (its
+    scene, or one the request modified: preset "roman") the default's own parts are added, as its
+    table and grid answers carry them (:func:`_roman_parts`)."""
+    from . import roman_default
+
     alone = {e["name"]: e["impact_alone"] for e in effects}
+    roman = request.preset == roman_default.NAME
     parts = []
     if left:
         parts.append(
             {
-                "name": " + ".join(left),
+                "name": LEFT_OUT_PART if roman else " + ".join(left),
                 "members": list(left),
                 "impact": combined[0],
                 "uncertainty": combined[1],
                 "why": "left out: its impact measured as a set (all removed together) inside the full scene",
+                **({"kind": "left_out", "measured_here": True} if roman else {}),
             }
         )
     if full.is_roman_default and full.scene.position is None:
@@ -328,7 +354,7 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
                 "why": "no position given: the answer is for the SCA centre (the range over the SCA is not an accuracy part)",
             }
         )
-    if full.pupil_scale != "official":
+    if full.pupil_scale != "official" and not roman:
         parts.append(
             {
                 "name": "pupil_scale",
@@ -336,6 +362,19 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
                 "why": f"pupil-mask scale rule {full.pupil_scale!r}, not the official clear area: not measured here",
             }
         )
+    included = [{"name": n, "impact": alone.get(n)} for n in _removable(full.scene) if n not in left]
+    combine, stated_against, model_basis, extra = "sum", "slope", None, {}
+    if roman:
+        own = _roman_parts(request, full)
+        parts = own["left_out"] + parts
+        included += own["included"]
+        combine, stated_against, model_basis = "roman", own["stated_against"], own["basis"]
+        extra = {k: own[k] for k in ("magnitude_offset",) if k in own}
+        extra["accuracy_parts"] = {
+            "level": "the fidelity level's measured error, in uncertainty_fidelity (as a table answer's level error is)",
+            LEFT_OUT_PART: "the left-out set's measured impact, a shift with a fixed sign: added linearly to the "
+            "default's parts in uncertainty_model (the rule's left-out effects)",
+        }
     return {
         "accuracy": accuracy,
         "magnitude_measured_at": float(magnitude),
@@ -349,7 +388,7 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
         },
         "level": {"name": level.name, "error": level.error, "basis": level.basis},
         # Simulated effects, with the impact of removing each alone where the search measured it.
-        "included": [{"name": n, "impact": alone.get(n)} for n in _removable(full.scene) if n not in left],
+        "included": included,
         "left_out": parts,
         "left_out_impact": combined[0] or 0.0,
         "left_out_impact_uncertainty": combined[1] or 0.0,
@@ -357,12 +396,24 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
         "probe": None
         if probe is None
         else {"realizations": probe.base.realizations, "method": "linear response, same centroids", "runs": probe.runs},
-        "stated_against": "slope",
-        "combine": "sum",
+        "stated_against": stated_against,
+        "combine": combine,
         "basis": (
             "impacts measured inside the full scene (each effect removed from it, and the left-out set removed "
             "together); the left-out set's impact is that of the set, not a sum"
             if probe is not None
             else "the full scene is simulated at a level whose measured error meets the accuracy: nothing left out"
-        ),
+        )
+        + ("" if model_basis is None else f". The Roman default's own parts: {model_basis}"),
+        **extra,
     }
+
+
+def _roman_parts(request, full: FullScene) -> dict:
+    """The Roman default's parts for this answer (``model_part.roman_default_model``, the one reader
+    of ``nlpsf/data/roman_model_uncertainty.json``): what the full scene itself does not know."""
+    from . import model_part
+
+    return model_part.roman_default_model(
+        request.band, request.sca, request.metric, request.mode, full.scene, pupil_scale=full.pupil_scale, request=request
+    )

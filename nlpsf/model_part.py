@@ -46,6 +46,7 @@ def shipped_model(
     *,
     default: str = "paper",
     pupil_scale: str | None = None,
+    request=None,
 ) -> dict:
     """The model part of an answer without ``accuracy``, from a shipped measurement.
 
@@ -56,9 +57,10 @@ def shipped_model(
     band integration) simulates are not left out; the position's spread over the SCA is left out
     unless a position is given. An SCA the measurement covers reads its own values, any other the
     worst over those it covers. ``pupil_scale``: the rule the answer uses (None: the library's
-    default), which the pupil part's label names."""
+    default), which the pupil part's label names. ``request`` (the Roman default's only): where it
+    differs from the conditions its parts were measured at (:func:`roman_default_model`)."""
     if default == ROMAN_DEFAULT:
-        return roman_default_model(band, sca, metric, mode, scene)
+        return roman_default_model(band, sca, metric, mode, scene, pupil_scale=pupil_scale, request=request)
     if default != "paper":
         raise ValueError(f"default must be 'paper' or {ROMAN_DEFAULT!r}, got {default!r}")
     from . import defaults
@@ -117,9 +119,18 @@ def model_at(info: dict, slopes, magnitude: float) -> dict:
     vintage and the pupil rule are among them, so ``effects_relative`` holds the whole model part,
     ``pupil_scale_relative`` is 0 and ``optical_model_included`` tells the caller not to add
     ``optical_model_relative`` again."""
-    scale = component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
     if info["combine"] == "roman":
-        return _roman_model_at(info, magnitude, scale)
+        # The default's e1 / e2 parts are restated with the answer's own slopes (the grid's or the
+        # simulation's), not the paper tables': their ratio |c_e| / |c_ei| differs by up to x3.5.
+        own = None
+        if info["stated_against"] == "modulus" and hasattr(slopes, "modulus_over_component"):
+            own = slopes.modulus_over_component(magnitude)
+        scale = own if own is not None else component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
+        out = _roman_model_at(info, magnitude, scale)
+        if info["stated_against"] == "modulus":
+            out["component_scale_from"] = "the answer's own slopes" if own is not None else "the tables"
+        return out
+    scale = component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
     left = [{**p, "impact": None if p["impact"] is None else p["impact"] * scale} for p in info["left_out"]]
     effects = COMBINE[info["combine"]]([abs(p["impact"]) for p in left if p["impact"] is not None and p["name"] != "pupil_scale"])
     pupil = next((abs(p["impact"]) for p in left if p["name"] == "pupil_scale" and p["impact"] is not None), 0.0)
@@ -171,13 +182,28 @@ _CHOSEN_BY_REQUEST = {
     "jitter": "jitter_arcsec",
     "charge_diffusion": "charge_diffusion_px",
 }
+#: What a part the request sets no longer means (it is dropped, with this reason).
+_SET_BY_REQUEST_WHY = {
+    "sed": "the default's SED spread (3500-10000 K against 5270 K) is not the uncertainty of the SED the request gives",
+    "jitter": "the default's jitter spread (3.4-14 mas against 6 mas) is not the uncertainty of the jitter the request gives",
+    "charge_diffusion": (
+        "the default's diffusion spread (0.30 against 0.332 px) is not the uncertainty of the diffusion the request gives"
+    ),
+    "sed_standin": "the 5270 K blackbody stand-in's error against the real K0V is not the error of the SED the request gives",
+}
 
 
-def roman_default_model(band: str, sca: int, metric: str, mode: str, scene) -> dict:
+def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupil_scale: str | None = None, request=None) -> dict:
     """The Roman default's model part: its parts (``nlpsf.roman_uncertainty``) for this band, SCA,
-    mode and metric, each by name with its value over the measured magnitudes. A part the request
-    fixes (its own SED, jitter or diffusion; brighter-fatter or an NL polynomial simulated) is not
-    counted, and says so."""
+    mode and metric, each by name with its value over the measured magnitudes.
+
+    A part the request fixes (its own SED, jitter or diffusion) or simulates (brighter-fatter, an NL
+    polynomial) is dropped, with the reason in ``included``. ``pupil_scale``: the rule the answer
+    uses; the part measured is header against official, so with ``header`` it is this answer's
+    distance from the official clear area, and with any other rule it is not measured (impact None,
+    said). ``request`` (a ``SolveRequest``): where its readout, exposure, beta0, full well or state
+    differ from those the parts were measured at (:func:`roman_measurement_differences`), the
+    basis says so and the parts are read at the magnitude of equal charge in the measured exposure."""
     from . import roman_default
 
     defaults_scene = roman_default.base_scene()
@@ -193,41 +219,104 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene) -> d
             or (part.name == "nl_shape" and any(c != 0 for c in scene.nl_coefficients))
         )
         if chosen or simulated:
-            included.append({"name": part.name, "impact": None, "why": "set by the request" if chosen else "simulated"})
+            why = f"set by the request: {_SET_BY_REQUEST_WHY[part.name]}" if chosen else "simulated"
+            included.append({"name": part.name, "impact": None, "why": why})
             continue
-        parts.append(
-            {
-                "name": part.name,
-                "kind": part.kind,
-                "impact": shipped["value"],
-                "by_magnitude": [[row[0], row[1]] for row in shipped["by_magnitude"]],
-                "why": shipped.get("why", part.measured_as),
-            }
+        row = {
+            "name": part.name,
+            "kind": part.kind,
+            "impact": shipped["value"],
+            "by_magnitude": [[r[0], r[1]] for r in shipped["by_magnitude"]],
+            "why": shipped.get("why", part.measured_as),
+        }
+        if part.name == "pupil_scale" and pupil_scale not in (None, roman_default.PUPIL_SCALE):
+            row.update(_pupil_part(pupil_scale, row))
+        parts.append(row)
+    differences, offset = ([], 0.0) if request is None else roman_measurement_differences(request)
+    basis = (
+        f"shipped measurement of the Roman default's parts ({conditions['script']}, {conditions['measured_utc']}, "
+        f"code {conditions['code_version']}) on {where}, SCA centre, m = {conditions['magnitudes']}, "
+        f"{conditions['method']}; combined: {roman_parts.COMBINATION}"
+    )
+    if differences:
+        basis += (
+            f". Measured at the default's readout, exposure, beta0, full well and state; this request differs in "
+            f"{'; '.join(differences)}: the parts are the default's, not measured again"
         )
-    return {
+        if offset:
+            basis += f", read at the magnitude whose charge in the measured exposure is this star's (m {offset:+.3f})"
+    out = {
         "included": included,
         "left_out": parts,
         "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
         "combine": "roman",
-        "basis": (
-            f"shipped measurement of the Roman default's parts ({conditions['script']}, {conditions['measured_utc']}, "
-            f"code {conditions['code_version']}) on {where}, SCA centre, m = {conditions['magnitudes']}, "
-            f"{conditions['method']}; combined: {roman_parts.COMBINATION}"
-        ),
+        "basis": basis,
     }
+    if offset:
+        out["magnitude_offset"] = offset
+    return out
+
+
+def _pupil_part(rule: str, row: dict) -> dict:
+    """The pupil-scale part for an answer that uses another rule than the official one."""
+    if rule == roman_parts.PUPIL_ALTERNATIVE:
+        return {"why": f"this answer uses the {rule} rule; the part is {rule} against official (the rule that "
+                       "reproduces the official clear areas): this answer's distance from the official clear area"}  # fmt: skip
+    return {
+        "impact": None,
+        "by_magnitude": [[m, None] for m, _ in row["by_magnitude"]],
+        "why": f"not measured: this answer uses the {rule} rule; the part shipped is {roman_parts.PUPIL_ALTERNATIVE} "
+        "against official, which is not this rule's distance from the official clear area",
+    }
+
+
+def roman_measurement_differences(request) -> tuple[list[str], float]:
+    """(how ``request`` differs from the conditions the Roman default's parts were measured at, the
+    magnitude offset to the star of equal charge in the measured exposure): the default's readout
+    and exposure at the request's band and SCA, ``defaults.BETA0``, ``defaults.FULL_WELL_E``, the
+    corrected state (``scripts/model_uncertainty_roman.py``)."""
+    import math
+
+    from . import defaults, roman_default
+
+    measured = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
+    out = []
+    if not math.isclose(request.exptime, measured.exptime, rel_tol=1e-9):
+        out.append(f"exposure {request.exptime:g} s (measured at {measured.exptime:g} s)")
+    if request.ramp != measured.ramp:
+        out.append("readout (measured with the default's HLWAS ramp)")
+    if not math.isclose(request.beta0, defaults.BETA0, rel_tol=1e-9):
+        out.append(f"beta0 {request.beta0:g} (measured at {defaults.BETA0:g})")
+    if not math.isclose(request.full_well, defaults.FULL_WELL_E, rel_tol=1e-9):
+        out.append(f"full well {request.full_well:g} e- (measured at {defaults.FULL_WELL_E:g})")
+    if request.linearise_at != measured.linearise_at:
+        out.append(f"state {request.linearise_at} (measured at {measured.linearise_at})")
+    offset = -2.5 * math.log10(request.exptime / measured.exptime)
+    return out, (0.0 if abs(offset) < 1e-12 else offset)
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
     """:func:`model_at` for the Roman default's parts: each read at ``magnitude`` (the larger of the
-    measured magnitudes around it), restated against this metric's slope, combined by the rule."""
+    measured magnitudes around it; shifted by ``magnitude_offset`` to the star of equal charge where
+    the request's exposure is not the measured one), restated against this metric's slope, combined
+    by the rule. A part measured at the answer's own point (``measured_here``: an ``accuracy``
+    answer's left-out set) is already relative to this metric's slope and is read as measured."""
     left = []
     values: dict[str, float | None] = {}
+    kinds: dict[str, str] = {}
+    shifted = None if magnitude is None else magnitude + info.get("magnitude_offset", 0.0)
     for part in info["left_out"]:
-        value = roman_parts.at_magnitude(part["by_magnitude"], magnitude)
-        value = None if value is None else value * scale
+        if part.get("measured_here"):
+            value = None if part["impact"] is None else abs(part["impact"])
+        elif "by_magnitude" in part:
+            value = roman_parts.at_magnitude(part["by_magnitude"], shifted)
+            value = None if value is None else value * scale
+        else:
+            value = None  # named, not measured (e.g. the position an accuracy answer stands in for)
         values[part["name"]] = value
-        left.append({**part, "impact": value})
-    relative = roman_parts.combine(values)
+        kinds[part["name"]] = part.get("kind", roman_parts.KINDS.get(part["name"], "choice"))
+        left.append({**part, "impact": value if not part.get("measured_here") else part["impact"]})
+    relative = roman_parts.combine(values, kinds)
     out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": relative, "pupil_scale_relative": 0.0}
     out.update(relative_uncertainty=relative, combination=roman_parts.COMBINATION, optical_model_included=True)
     if scale != 1.0:

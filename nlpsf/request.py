@@ -144,8 +144,13 @@ class SolveRequest:
             self._set("exptime", check_exptime(self.exptime))
         filled = roman_default.fill(preset, self.band, self.sca, self.exptime, self.ramp, self.pupil_scale, self.linearise_at)
         if preset == roman_default.NAME and (scene is None or (scene.name == roman_default.NAME and not scene.background_e)):
-            # The default's scene (or its preset unmodified, at a position) with the sky over this exposure.
-            scene = roman_default.scene(None if scene is None else scene.position, filled.background_e)
+            # The default's scene (or its preset, at a position, with what the caller changed) with the sky
+            # over this exposure: a change the caller made to the default's scene is kept, as the CLI keeps it.
+            scene = (
+                roman_default.scene(None, filled.background_e)
+                if scene is None
+                else replace(scene, background_e=filled.background_e)
+            )
         elif scene is None and preset == "galsim-roman":
             scene = roman_default.preset_scene(preset)
         elif preset == "paper" and scene is not None and scene.is_paper:

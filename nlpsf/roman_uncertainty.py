@@ -130,11 +130,14 @@ COMBINATION = (
 )
 
 
-def combine(values: dict[str, float | None]) -> float:
+def combine(values: dict[str, float | None], kinds: dict[str, str] | None = None) -> float:
     """The rule (:data:`COMBINATION`): quadrature over the choices, then the left-out effects'
-    moduli added. Parts that are None (not measured) or absent count zero; the caller names them."""
-    choices = [abs(v) for name, v in values.items() if v is not None and KINDS.get(name, "choice") == "choice"]
-    left_out = [abs(v) for name, v in values.items() if v is not None and KINDS.get(name) == "left_out"]
+    moduli added. Parts that are None (not measured) or absent count zero; the caller names them.
+    ``kinds`` names the kind ("choice" or "left_out") of parts that are not among :data:`PARTS`
+    (an ``accuracy`` answer's left-out set, a measured shift with a fixed sign: "left_out")."""
+    kind = {**KINDS, **(kinds or {})}
+    choices = [abs(v) for name, v in values.items() if v is not None and kind.get(name, "choice") == "choice"]
+    left_out = [abs(v) for name, v in values.items() if v is not None and kind.get(name) == "left_out"]
     return math.sqrt(math.fsum(v * v for v in choices)) + math.fsum(left_out)
 
 

@@ -53,6 +53,9 @@ class Slopes:
             self.table, self.relabel_shift = tables.with_throughput(self.table, throughput)
         self._cache: dict[float, tuple[float, float]] = {}
         self._scene = None  # experiment.Scene of the fresh simulations, prepared once per request
+        #: The simulated star's peak fraction where the answer's limits are its own (else the tables').
+        self.own_peak_fraction: float | None = None
+        self._results: dict[float, object] = {}  # experiment.SlopeResult of each simulated magnitude
         #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
         self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
         #: How the ramp's slopes were obtained in this request ("table", "simulation").
@@ -140,15 +143,13 @@ class Slopes:
             self._cache[key] = self._simulate(magnitude)
         return self._cache[key]
 
-    def _simulate(self, magnitude: float) -> tuple[float, float]:
-        from .simulation_guard import check_simulation_allowed
-
-        check_simulation_allowed(magnitude)  # a batch answers at table cost: refused there, before any work
+    def _config(self):
+        """The fresh simulations' configuration (magnitude-independent)."""
         from . import experiment  # the simulator: only fresh-simulation levels need it
 
         # A ramp that the tables do not map exactly is simulated with the linear response.
         level = levels.simulation_settings("linear" if self.fidelity == "table" else self.fidelity)
-        config = experiment.SimulationConfig.from_table(
+        return experiment.SimulationConfig.from_table(
             self.table.settings,
             band=self.band,
             sca=self.sca,
@@ -161,13 +162,72 @@ class Slopes:
             **({} if self.ramp is None else {"ramp": self.ramp, "full_well_e": self.full_well}),
             **({} if self.scene_model is None else {"scene": self.scene_model}),
         )
+
+    def prepare(self):
+        """The prepared simulation (``experiment.Scene``) of this request, made once (magnitude-independent)."""
+        from . import experiment
+
+        config = self._config()
         if self._scene is None or self._scene.config != config:
-            self._scene = experiment.prepare(config)  # magnitude-independent: once per request
-        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=self._scene, linearise_at=self.linearise_at)[0]
+            self._scene = experiment.prepare(config)
+        return self._scene
+
+    def own_final_frame_saturation(self) -> tuple[float, float]:
+        """(magnitude, peak fraction): the star of the simulated scene whose brightest pixel, on top
+        of the scene's background, reaches the request's full well at the end of the exposure --
+        the prepared scene's own peak (``Scene.star_peak_fraction``, over every sub-pixel centroid),
+        by the rule the tables and the field grid are built with (``tablebuild.saturation_magnitude``)."""
+        from dataclasses import replace
+
+        from . import tablebuild
+
+        scene = self.prepare()
+        peak = float(scene.star_peak_fraction)
+        self.own_peak_fraction = peak
+        return tablebuild.saturation_magnitude(peak, replace(scene.config, full_well_e=self.full_well)), peak
+
+    def own_peak_electrons(self, magnitude: float) -> float | None:
+        """The simulated star's brightest pixel before the NL [e-] at ``magnitude`` (no background),
+        where the answer's limits are its own (:meth:`own_final_frame_saturation`), else None."""
+        if self.own_peak_fraction is None:
+            return None
+        config = self._scene.config
+        return float(config.electrons(magnitude)) * self.own_peak_fraction * config.oversampling**2
+
+    def _simulate(self, magnitude: float) -> tuple[float, float]:
+        from . import experiment
+        from .simulation_guard import check_simulation_allowed
+
+        check_simulation_allowed(magnitude)  # a batch answers at table cost: refused there, before any work
+        scene = self.prepare()
+        config = scene.config
+        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=scene, linearise_at=self.linearise_at)[0]
+        self._results[round(magnitude, 9)] = result
         value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
+
+    def modulus_over_component(self, magnitude: float) -> float | None:
+        """|c_e| / |c_ei| = hypot(c_e1, c_e2) / |c_ei| of this answer's own slopes at ``magnitude``
+        (an e1 / e2 answer; 1 otherwise): from the field grid at the position, or from the simulation
+        that gave the slope there. None where the answer's slope there came from the tables (the
+        caller then reads the tables' ratio)."""
+        if self.metric not in ("e1", "e2"):
+            return 1.0
+        pair = None
+        if self.grid is not None:
+            position = self.scene_model.position
+            pair = [grid_slope(self.grid, self.band, self.sca, position, m, self.mode, magnitude)[0] for m in ("e1", "e2")]
+            pair = pair if all(math.isfinite(v) for v in pair) else None
+        result = self._results.get(round(magnitude, 9))
+        if pair is None and result is not None:
+            pair = [result.slope(self.mode, defaults.METRIC_COLUMNS[m])[0] for m in ("e1", "e2")]
+            pair = pair if all(v is not None and math.isfinite(v) for v in pair) else None
+        if pair is None:
+            return None
+        component = abs(pair[0] if self.metric == "e1" else pair[1])
+        return math.hypot(*pair) / component if component > 0 else None
 
 
 def grid_slope(grid, band: str, sca: int, position, metric: str, mode: str, magnitude: float) -> tuple[float, float]:

@@ -17,6 +17,9 @@ LINEAR_REGIME_LIMIT = 0.05
 
 
 def _peak_electrons(slopes, magnitude: float) -> float:
+    own = slopes.own_peak_electrons(magnitude) if hasattr(slopes, "own_peak_electrons") else None
+    if own is not None:
+        return own  # the simulated star's own peak, as its saturation limits are
     table = slopes.table
     flux = float(table.flux_at(magnitude - 2.5 * math.log10(slopes.exptime / table.exptime_s)))
     return flux * table.peak_fraction * int(table.settings["oversampling"]) ** 2

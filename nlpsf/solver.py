@@ -47,7 +47,10 @@ the answer's point (``nlpsf.impact``) and added in quadrature; otherwise they co
 measurement (``nlpsf/data/scene_model_uncertainty.json``: each effect's worst impact on SCA 1, 9
 and 18 at two magnitudes) and are added up, since a Roman star has them all at once with signs often
 alike. The pupil-scale rule and ``uncertainty_optical_model`` (the official-PSF comparison) both
-measure the optical model's error, so the total counts the larger of the two, not both.
+measure the optical model's error, so the total counts the larger of the two, not both. The Roman
+default's answers (its preset, with or without ``accuracy``) carry its own parts instead
+(``model_part.roman_default_model``: the optics' vintage among them, so the official-PSF figure is
+not added), an ``accuracy`` answer's left-out set beside them as a part of its own.
 """
 
 from __future__ import annotations
@@ -230,7 +233,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
         model_info = model_part.shipped_model(
             request.band, request.sca, request.metric, request.mode, simulated_scene, chosen,
-            default=default, pupil_scale=request.pupil_scale or table_rule,
+            default=default, pupil_scale=request.pupil_scale or table_rule, request=request,
         )  # fmt: skip
     breaking = simulated_scene.breaks_beta_q_scaling() if simulated_scene is not None else None
     if breaking:
@@ -248,10 +251,26 @@ def _measured_default(request: SolveRequest) -> str:
 
 @dataclass(frozen=True)
 class _Limits:
-    """Saturation magnitudes: the rule in use and the single final frame's."""
+    """Saturation magnitudes: the rule in use and the single final frame's, and where they come from."""
 
     saturation: float
     final_frame: float
+    #: Whose star the limits are of (``conditions["saturation_from"]``; None: the tables', unsaid).
+    source: str | None = None
+
+
+def _own_star(request: SolveRequest, the_plan: SolvePlan) -> bool:
+    """Whether the answer's limits are the simulated scene's own star: a scene other than the
+    paper's that is simulated (not held by tables or the grid). ``--scene paper`` keeps the tables'
+    limits whatever it simulates (its answers stay bit for bit)."""
+    scene = the_plan.scene
+    return (
+        request.preset != "paper"
+        and scene is not None
+        and not scene.is_paper
+        and the_plan.grid is None
+        and the_plan.fidelity != "table"
+    )
 
 
 def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Limits:
@@ -261,20 +280,31 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
             "background", f"a background of {background:g} e- fills the full well ({request.full_well:g} e-) by itself"
         )
     grid, position = the_plan.grid, None if the_plan.scene is None else the_plan.scene.position
+    ramp = request.ramp
+    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
+    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
+    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
     if grid is not None and position is not None:
         # The Roman default's own star (its peak through the default's optics and detector, with its
         # sky), recorded at every node by the grid's build: not the paper table's sharper star.
         saturation = grid.saturation_magnitude(request.band, request.sca, position)
         final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
         if final is not None:
-            return _Limits(saturation, final)
+            source = f"the Roman default's own star: its field grid's nodes ({roman_default.GRID_FILE}), interpolated"
+            return _Limits(saturation, final, source)
+    if _own_star(request, the_plan):
+        # The star that is simulated (its optics, SED, blurs and sky), from its own prepared peak.
+        final_frame, peak = slopes.own_final_frame_saturation()
+        source = (
+            f"the simulated scene's own star: its prepared peak ({peak:.6g} of the flux in the brightest fine pixel, "
+            f"over every sub-pixel centroid) on top of {background:g} e- of background against the full well "
+            f"{request.full_well:g} e-" + ("" if ramp is None else f"; the ramp's limit {shift:.4g} mag brighter")
+        )
+        return _Limits(final_frame - shift, final_frame, source)
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
-    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
-    ramp = request.ramp
-    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
-    return _Limits(final_frame - shift, final_frame)
+    source = None if request.preset == "paper" else "the tables' star (the paper's scene at the tables' position)"
+    return _Limits(final_frame - shift, final_frame, source)
 
 
 @dataclass
@@ -332,6 +362,8 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     if slopes.pupil_scale is not None and the_plan.fidelity != "table":
         conditions["pupil_scale"] = slopes.pupil_scale
     answer_conditions.add_simulation_conditions(conditions, the_plan, slopes)
+    if limits.source is not None:
+        conditions["saturation_from"] = limits.source
     return Solution(
         band=request.band,
         sca=request.sca,
@@ -397,8 +429,8 @@ def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dic
     else:
         # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
         parts = Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0)
+        slope, slope_err, _ = slopes.at(limits.saturation)  # first: the model part reads the slopes there
         model_info = model_part.model_at(model_info, slopes, limits.saturation)
-        slope, slope_err, _ = slopes.at(limits.saturation)
         error = abs(slope) * precision * beta0 * averaging
         flags.append(
             make(FlagCode.ERROR_AT_SATURATION, metric=request.metric, mode=request.mode, error=error, tolerance=tolerance)

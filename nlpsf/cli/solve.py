@@ -252,17 +252,22 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
         print(f"  brightest usable star m={solution.brightest_usable_magnitude:.2f} AB ({solution.binding_limit} binds)")
     if solution.model:
         # An impact is measured only where the accuracy search ran (else the whole scene is simulated).
-        included = ", ".join(
-            e["name"] if e["impact"] is None else f"{e['name']} {_percent(e['impact'])}" for e in solution.model["included"]
-        )
+        # Entries with a reason are the Roman default's parts the request set or simulates (not counted).
+        simulated = [e for e in solution.model["included"] if "why" not in e]
+        dropped = [e for e in solution.model["included"] if "why" in e]
+        included = ", ".join(e["name"] if e["impact"] is None else f"{e['name']} {_percent(e['impact'])}" for e in simulated)
         if "accuracy" in solution.model:
             print(f"  effects simulated (accuracy {solution.model['accuracy']:g}, the full scene's): {included or 'none'}")
-        elif solution.model["included"]:
+        elif simulated:
             how = "held by the tables" if solution.conditions.get("fidelity") == "table" else "simulated by the scene"
-            print(f"  effects {how}: {', '.join(e['name'] for e in solution.model['included'])}")
+            print(f"  effects {how}: {', '.join(e['name'] for e in simulated)}")
+        if dropped:
+            print(f"  parts not counted (the request sets or simulates them): {', '.join(e['name'] for e in dropped)}")
         # Measured at the point (accuracy): signed; from the shipped worst cases: a magnitude only.
-        signed = "accuracy" in solution.model
-        left = ", ".join(f"{e['name']} {_percent(e['impact'], signed)}" for e in solution.model["left_out"])
+        measured = "accuracy" in solution.model and solution.model["combine"] != "roman"
+        left = ", ".join(
+            f"{e['name']} {_percent(e['impact'], measured or bool(e.get('measured_here')))}" for e in solution.model["left_out"]
+        )
         print(f"  left out (in the model uncertainty): {left}")
     for flag in solution.flags:
         print(f"  ! {flag}")
