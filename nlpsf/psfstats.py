@@ -12,9 +12,12 @@ K0V star sampled over the band and 8 mas FWHM Gaussian pointing jitter:
 
 :func:`psf_statistics` computes the same four numbers from nlpsf's optics (GalSim's Cycle-9
 Zernikes and pupil masks) under the same conditions, so the two optical models can be compared.
-The K0V spectrum is a 5270 K blackbody (Pecaut & Mamajek's K0V effective temperature): over one
-band the photon weights of a K dwarf and of its blackbody differ by a few percent, a small
-effect next to that of the SED's slope (compare ``sed="flat"``).
+The K0V star is the vendored Pickles (1998) K0V spectrum (``nlpsf.seds``, ``--sed k0v``), the
+star the official statistics state. ``sed="blackbody:5270"`` is the 5270 K blackbody stand-in
+(Pecaut & Mamajek's K0V effective temperature) used before the spectrum was vendored and still the
+Roman default's star (``roman_default``); it keeps ``nlpsf/data/optical_model_uncertainty.json``
+(the paper scene's optical-model part) reproducible. Against the spectrum it moves N_eff by up to
+2.3 % (W146: the blackbody lacks the K dwarf's H- bump near 1.6 um), ``flat`` is flat f_nu.
 """
 
 from __future__ import annotations
@@ -26,12 +29,14 @@ from functools import cache, partial
 import numpy as np
 from scipy.optimize import curve_fit
 
-from . import optics, render, roman
+from . import optics, render, roman, seds
 from . import scene as scenes
 from .checks import InputError
 
 #: K0V effective temperature [K] (Pecaut & Mamajek 2013) for the blackbody stand-in SED.
 K0V_TEMPERATURE_K = 5270.0
+#: The blackbody stand-in for the K0V star, by its scene name (the Roman default's star).
+K0V_STANDIN = f"blackbody:{K0V_TEMPERATURE_K:g}"
 #: The official PSFs' pointing jitter: Gaussian of 8 mas FWHM.
 OFFICIAL_JITTER_FWHM_ARCSEC = 0.008
 #: The official images: ~7 arcsec square; 64 native pixels is 7.04".
@@ -39,7 +44,9 @@ OFFICIAL_IMAGE_PIXELS = 64
 #: STPSF's measure_fwhm: pixels above this fraction of the peak enter the Gaussian fit.
 FWHM_FIT_THRESHOLD = 0.1
 CENTRINGS = ("center", "corner")
-SEDS = ("K0V", "flat")
+#: The SEDs the official-condition PSF takes: "K0V" (the official statistics' star, the vendored
+#: Pickles K0V), the 5270 K blackbody stand-in, flat f_nu.
+SEDS = ("K0V", K0V_STANDIN, "flat")
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,17 @@ def blackbody_flambda(temperature_k: float):
     """f_lambda of a blackbody (arbitrary normalisation) as a function of wavelength in nm
     (``scene.planck_flambda`` at this temperature)."""
     return partial(scenes.planck_flambda, temperature_k=temperature_k)
+
+
+def sed_flambda(sed: str, curve: roman.Throughput):
+    """f_lambda of one of :data:`SEDS` as a function of wavelength [nm] (None: flat f_nu)."""
+    if sed == "K0V":
+        return optics.tabulated_sed(curve, seds.table("k0v"))
+    if sed == K0V_STANDIN:
+        return blackbody_flambda(K0V_TEMPERATURE_K)
+    if sed == "flat":
+        return None
+    raise InputError("sed", f"must be one of {', '.join(SEDS)}, got {sed!r}")
 
 
 @cache
@@ -129,11 +147,8 @@ def official_condition_psf(
 ) -> optics.EffectivePSF:
     """nlpsf's optical PSF (no pixel) under the official conditions, on the official image field."""
     band, sca = roman.check_band(band), roman.check_sca(sca)
-    if sed not in SEDS:
-        raise InputError("sed", f"must be one of {', '.join(SEDS)}, got {sed!r}")
     curve = roman.throughput(band, sca=sca, source=throughput)
-    flambda = blackbody_flambda(K0V_TEMPERATURE_K) if sed == "K0V" else None
-    wavelengths, weights = optics.band_wavelengths_and_weights(curve, n_wavelengths, flambda)
+    wavelengths, weights = optics.band_wavelengths_and_weights(curve, n_wavelengths, sed_flambda(sed, curve))
     pupil = roman.pupil(sca, band, 4, pupil_scale)
     aberrations = roman.aberrations(sca)
     field = OFFICIAL_IMAGE_PIXELS * roman.PIXEL_SCALE_ARCSEC
@@ -174,7 +189,7 @@ def statistics_of(optical: optics.EffectivePSF, band: str, sca: int) -> dict[str
 WIDTH_PROBE_SIGMA_ARCSEC = 0.015
 
 
-def width_gap(band: str, sca: int, pupil_scale: str = "official") -> dict:
+def width_gap(band: str, sca: int, pupil_scale: str = "official", sed: str = "K0V") -> dict:
     """How far nlpsf's PSF width is from the official statistics, as a Gaussian variance.
 
     ``n_eff_variance_arcsec2``: the variance of a Gaussian that, convolved with nlpsf's PSF (negative:
@@ -182,11 +197,12 @@ def width_gap(band: str, sca: int, pupil_scale: str = "official") -> dict:
     linear in the variance from one probing blur (:data:`WIDTH_PROBE_SIGMA_ARCSEC`);
     ``fwhm_variance_arcsec2``: the same for the FWHM, (FWHM_off^2 - FWHM^2) / (8 ln 2) as for a
     Gaussian; ``variance_arcsec2``: the larger in modulus (the size residual the model must be
-    perturbed by). Only SCAs with official statistics (1 and 18)."""
+    perturbed by). ``sed``: the star (default the official statistics' K0V; :data:`SEDS`). Only SCAs
+    with official statistics (1 and 18)."""
     official = official_statistics()
     if (sca, band, "center") not in official:
         raise InputError("sca", f"the official statistics cover SCA {sorted({k[0] for k in official})}, got {sca}")
-    optical = official_condition_psf(band, sca, pupil_scale=pupil_scale)
+    optical = official_condition_psf(band, sca, sed, pupil_scale=pupil_scale)
     ours = statistics_of(optical, band, sca)
     probe = statistics_of(scenes.blur(optical, WIDTH_PROBE_SIGMA_ARCSEC), band, sca)
 
@@ -202,6 +218,7 @@ def width_gap(band: str, sca: int, pupil_scale: str = "official") -> dict:
         "band": band,
         "sca": sca,
         "pupil_scale": pupil_scale,
+        "sed": sed,
         "n_eff_ratio": n0 / theirs_n,
         "fwhm_ratio": f0 / f_off,
         "n_eff_variance_arcsec2": n_variance,

@@ -25,9 +25,10 @@ JITTER_ARCSEC = 0.006
 #: arXiv:2110.08155; C11 = 0.1066, C22 = 0.1136 px^2), measured on Roman detectors.
 CHARGE_DIFFUSION_PX = 0.332
 #: The star: a K0V spectral type (the official PSF products'); a 5270 K blackbody stands in for the
-#: spectrum (Pecaut & Mamajek's K0V temperature), as ``psfstats`` does, because the shipped field
-#: grid is built with it. The real K0V spectrum is vendored (``--sed k0v``, Pickles 1998); the
-#: stand-in's error against it is the ``sed_standin`` part of ``roman_uncertainty``. Selectable.
+#: spectrum (Pecaut & Mamajek's K0V temperature) because the shipped field grid is built with it
+#: (``psfstats`` compares with the official statistics under their own star, the real K0V). The
+#: real K0V spectrum is vendored (``--sed k0v``, Pickles 1998); the stand-in's error against it is
+#: the ``sed_standin`` part of ``roman_uncertainty``. Selectable.
 SED = "blackbody:5270"
 #: Background preset (``backgrounds.PRESETS``): twice the minimum zodiacal light, thermal and dark.
 BACKGROUND = backgrounds.DEFAULT_PRESET

@@ -7,7 +7,8 @@ without, so the differences are systematic, not noise):
 
 choices and vintage (the default's value is a best estimate; the truth lies in a range)
     - ``optical_model``: the optical model's vintage. nlpsf's PSF under the official conditions
-      against the official post-CDR statistics (``psfstats``): the Gaussian variance that closes the
+      (their K0V star as the vendored Pickles K0V, not the default's blackbody stand-in, whose error
+      is ``sed_standin``) against the official post-CDR statistics (``psfstats``): the Gaussian variance that closes the
       N_eff gap or the FWHM gap, whichever is larger, added to the default's jitter; the slope change
       it causes (a gap that asks for a sharper PSF is measured as the same variance added and the
       sign turned, linear in the variance). SCAs without official statistics take the larger gap
@@ -100,8 +101,8 @@ PARTS: tuple[Part, ...] = (
     Part(
         "optical_model",
         "choice",
-        "Gaussian variance closing nlpsf's N_eff or FWHM gap to the official SummaryPSFstats (the larger), added to "
-        "the jitter; sign turned where the official PSF is sharper",
+        "Gaussian variance closing nlpsf's N_eff or FWHM gap to the official SummaryPSFstats (the larger; official "
+        "conditions, their K0V star as the Pickles K0V), added to the jitter; sign turned where the official PSF is sharper",
     ),
     Part("sed", "choice", "blackbody 3500 K and 10000 K against the default's 5270 K blackbody; the larger"),
     Part("jitter", "choice", "3.4 mas and 14 mas rms against the default's 6 mas; the larger"),

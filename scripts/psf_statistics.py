@@ -2,9 +2,14 @@
 
     python scripts/psf_statistics.py            # print the README table
     python scripts/psf_statistics.py --write    # also write nlpsf/data/optical_model_uncertainty.json
+    python scripts/psf_statistics.py --sed blackbody:5270   # the 5270 K stand-in for the K0V
+
+The shipped optical_model_uncertainty.json (the paper scene's optical-model part) was written with
+``--sed blackbody:5270`` (its ``conditions.sed`` says so); the default is the official statistics'
+own star, the vendored Pickles K0V.
 
 1. For SCA 1 and 18 in every band, nlpsf's FWHM, N_eff and peak fraction under the official
-   conditions (``nlpsf.psfstats``: K0V-like SED over the band, 8 mas FWHM jitter, pixel-corner and
+   conditions (``nlpsf.psfstats``: the K0V star over the band (``--sed``), 8 mas FWHM jitter, pixel-corner and
    pixel-centre centring, 64-pixel = 7.04" image) beside the official summary table.
 2. The slopes' sensitivity to the PSF's width, measured: the linear-response bias slopes at m = 20
    (table settings: achromatic, 100 realizations) for nlpsf's PSF and for it blurred by a Gaussian
@@ -35,6 +40,11 @@ from nlpsf import __version__, experiment, moments, optics, psfstats, render, ro
 
 OUTPUT = Path(__file__).resolve().parent.parent / "nlpsf" / "data" / "optical_model_uncertainty.json"
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
+SED_TEXT = {
+    "K0V": "K0V: Pickles 1998 (nlpsf.seds k0v)",
+    psfstats.K0V_STANDIN: f"blackbody {psfstats.K0V_TEMPERATURE_K:g} K (K0V)",  # the shipped file's wording
+    "flat": "flat f_nu",
+}
 
 
 def native_n_eff(psf: optics.EffectivePSF) -> float:
@@ -63,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
         "--blur", type=float, default=0.3, help="FWHM of the probing Gaussian blur, in units of the official FWHM (default 0.3)"
     )
     parser.add_argument("--realizations", type=int, default=100)
+    parser.add_argument(
+        "--sed", default="K0V", choices=psfstats.SEDS, help="the star of the official conditions (default K0V: Pickles 1998)"
+    )
     args = parser.parse_args(argv)
     start = time.perf_counter()
     official = psfstats.official_statistics()
@@ -75,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     for band in roman.BANDS:
         entry = per_band.setdefault(band, {"size": 0.0, "e": 0.0, "scas": {}})
         for sca in (1, 18):
-            ours = psfstats.psf_statistics(band, sca)
+            ours = psfstats.psf_statistics(band, sca, sed=args.sed)
             theirs = {c: official[(sca, band, c)] for c in psfstats.CENTRINGS}
             log_width_gap = 0.5 * sum(math.log(theirs[c].n_eff_pixels / ours[c].n_eff_pixels) for c in psfstats.CENTRINGS)
             base, n0 = slopes_and_width(band, sca, 0.0, args.realizations)
@@ -119,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             ),
             "source": "roman-technical-information 1.5.0 SummaryPSFstats_{center,corner}.ecsv (2024-06-03)",
             "conditions": {
-                "sed": f"blackbody {psfstats.K0V_TEMPERATURE_K:g} K (K0V)",
+                "sed": SED_TEXT[args.sed],
                 "jitter_fwhm_arcsec": psfstats.OFFICIAL_JITTER_FWHM_ARCSEC,
                 "image_pixels": psfstats.OFFICIAL_IMAGE_PIXELS,
                 "probe_blur_fwhm_over_official_fwhm": args.blur,
