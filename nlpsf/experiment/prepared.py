@@ -71,6 +71,28 @@ class Scene:
         return _weighted_region(self.stamps.shape[-1], self.reference.parameters(), self.config.weight_cut_rho2)
 
     @cached_property
+    def weighted_pixels(self) -> tuple[np.ndarray, ...]:
+        """``np.nonzero(weighted_region)``: the pixels that carry weight, as an index."""
+        return np.nonzero(self.weighted_region)
+
+    @cached_property
+    def charge_peak_fraction(self) -> np.ndarray:
+        """Largest value of each unit-flux charge stamp (before IPC), per realization."""
+        return self.charge.max(axis=(1, 2))
+
+    @cached_property
+    def star_peak_stamp(self) -> np.ndarray:
+        """One unit-flux stamp with a fine-pixel centre on the PSF's peak (``star_peak_electrons``)."""
+        grid = self.config.grid
+        centres = grid.pixel_centres_arcsec()
+        x, y = self.star_peak[1]
+        # A fine-pixel centre c sees the PSF at c - offset: put the nearest centre on the peak.
+        offset = np.array([[(centres[np.argmin(np.abs(centres - v))] - v) / grid.scale_arcsec for v in (x, y)]])
+        stamp = render.draw(self.psf, grid, offset)
+        stamp.setflags(write=False)
+        return stamp
+
+    @cached_property
     def weighted_peak_fraction(self) -> np.ndarray:
         """Largest unit-flux value among the pixels that carry weight, per realization."""
         return np.where(self.weighted_region, self.stamps, 0.0).max(axis=(1, 2))
@@ -130,13 +152,7 @@ def star_peak_electrons(scene: Scene, charge_scale: float) -> float:
     model = scene.config.scene
     if model.plain_detector:
         return charge_scale * scene.star_peak_fraction
-    grid = scene.config.grid
-    centres = grid.pixel_centres_arcsec()
-    x, y = scene.star_peak[1]
-    # A fine-pixel centre c sees the PSF at c - offset: put the nearest centre on the peak.
-    offset = np.array([[(centres[np.argmin(np.abs(centres - v))] - v) / grid.scale_arcsec for v in (x, y)]])
-    stamp = render.draw(scene.psf, grid, offset)
-    return float(scenes.charge_before_nl(stamp, charge_scale, model, scene.config.oversampling).max())
+    return float(scenes.charge_before_nl(scene.star_peak_stamp, charge_scale, model, scene.config.oversampling).max())
 
 
 def _peak_electrons(scene: Scene, charge_scale: float, count: int | None = None) -> np.ndarray:
@@ -146,5 +162,8 @@ def _peak_electrons(scene: Scene, charge_scale: float, count: int | None = None)
         peak = charge_scale * scene.peak_fraction
         return peak if count is None else peak[:count]
     pick = slice(None) if count is None else slice(0, count)
+    if model.bfe_coefficient == 0 and (model.ipc is None or model.ipc_order != "before"):
+        # The charge is s psi + B: its maximum is s max(psi) + B exactly (rounding is monotonic).
+        return charge_scale * scene.charge_peak_fraction[pick] + model.background_e
     charge = scenes.charge_before_nl(scene.charge[pick], charge_scale, model, scene.config.oversampling)
     return charge.max(axis=(1, 2))

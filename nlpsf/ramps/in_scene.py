@@ -108,6 +108,52 @@ class CoupledPowers:
             out = out + math.comb(n, m) * scale**m * background ** (n - m) * term
         return np.broadcast_to(out, self.unit[pick].shape) if np.ndim(out) == 0 else out
 
+    def at_pixels(self, scale: float, background: float, n: int, pick, flat: np.ndarray) -> np.ndarray:
+        """:meth:`at` at the pixels ``flat`` (indices into the flattened stamps ``pick``): the same
+        arithmetic per pixel, so the same numbers as ``at(...).ravel()[flat]``."""
+        out = 0.0
+        for m in range(n, -1, -1):
+            term = self.unit_power(m)[pick].reshape(-1)[flat] if m else self.unit_power(m)
+            out = out + math.comb(n, m) * scale**m * background ** (n - m) * term
+        return np.broadcast_to(out, flat.shape) if np.ndim(out) == 0 else out
+
+    def brightest_first(self, pick) -> tuple[np.ndarray, np.ndarray] | None:
+        """(flat pixel indices of the stamps ``pick`` ordered by IPC(psi) from the largest, minus
+        those values: ascending), cached per slice; None when ``pick`` is no slice. A pixel's measured charge
+        IPC(s psi + B) rises with IPC(psi), so the pixels that can reach a threshold are a prefix."""
+        if not isinstance(pick, slice):
+            return None
+        key = ("order", pick.start, pick.stop, pick.step)
+        if key not in self._cache:
+            values = np.asarray(self.unit_power(1)[pick]).reshape(-1)
+            order = np.argsort(values)[::-1]
+            self._cache[key] = (order, -values[order])
+        return self._cache[key]
+
+    def may_reach(self, scale: float, background: float, threshold: float, pick, state) -> np.ndarray | None:
+        """Flat indices (into the stamps ``pick``) of every pixel whose coupled signal can reach
+        ``threshold`` in some resultant, and a few more; None when that cannot be bounded this way.
+
+        With NL coefficients >= 0, a kernel >= 0, psi >= 0 and B >= 0 every coupled power IPC(Q^n) is
+        a sum of non-negative terms, so each read's signal is at most the measured charge IPC(Q); that
+        is s IPC(psi) + B sum K, rising with IPC(psi), and the pixels where it can reach the threshold
+        are those with IPC(psi) >= (threshold - B sum K) / s, taken here with a 1e-9 relative margin
+        (rounding moves it by ~1e-16) and tested exactly by the caller."""
+        if any(b < 0 for b in state) or np.any(np.asarray(self.kernel) < 0) or background < 0 or scale <= 0:
+            return None
+        if "unit_min" not in self._cache:
+            self._cache["unit_min"] = float(np.min(self.unit))
+        if self._cache["unit_min"] < 0:
+            return None
+        ordered = self.brightest_first(pick)
+        if ordered is None:
+            return None
+        order, negated = ordered
+        cut = (threshold - background * self.unit_power(0)) / scale
+        cut = cut - 1e-9 * abs(cut)
+        count = int(np.searchsorted(negated, -cut, side="right"))  # IPC(psi) >= cut
+        return order[:count]
+
 
 def _ipc(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
     from ..scene import apply_ipc  # scene effects have one owner
@@ -178,25 +224,27 @@ def scene_factors_coupled(
     Under the "signal" rule each read's coupled signal is D(tau) = tau IPC(Q) - sum_n b_n tau^n IPC(Q^n)
     (IPC is linear and the NL a polynomial), so resultant j is IPC(Q) <tau>_j - sum_n b_n IPC(Q^n) <tau^n>_j:
     the same resultants as coupling every read (:func:`_usable_after_ipc`), from one coupled image per order."""
-    total = scale * powers.unit[pick] + background
     orders = tuple(orders)
-    n = total.shape[-1]
+    shape = powers.unit[pick].shape
+    n = shape[-1]
     core = (Ellipsis, slice(margin, n - margin), slice(margin, n - margin))
     rows = pick if margin == 0 else (pick, slice(margin, n - margin), slice(margin, n - margin))
+    # The charge on the core only (elementwise, so the same numbers as the whole stamps' core).
+    charge = scale * powers.unit[rows] + background
     if ramp.saturation == "charge":
-        usable = usable_resultants(total, ramp, exptime_s, full_well_e, state)
+        usable = usable_resultants(scale * powers.unit[pick] + background, ramp, exptime_s, full_well_e, state)
     elif powers.below(scale, background, full_well_e, state, pick, ramp.saturation_beta):
-        usable = np.full(total.shape, _all_kept(ramp), dtype=np.int32)
+        # No resultant saturates anywhere: one value for every pixel (read-only, no per-pixel work).
+        usable = np.broadcast_to(np.int32(_all_kept(ramp)), shape)
     else:
-        measured = powers.at(scale, background, 1, pick)
-        usable = _usable_coupled(powers, scale, background, measured, ramp, exptime_s, full_well_e, state, pick)
+        usable = _usable_coupled(powers, scale, background, ramp, exptime_s, full_well_e, state, pick)
     factors = _factors_for(powers.at(scale, background, 1, rows), usable[core], ramp, exptime_s, orders)
     coupled = {n: powers.at(scale, background, n, rows) for n in orders}
     whole = None
     if margin:
         args = (powers, scale, background, ramp, exptime_s, full_well_e, state, orders, pick)
         whole = lambda: scene_factors_coupled(*args)[0]  # noqa: E731
-    return SceneRamp(factors, usable[core], total[core], orders, coupled, margin, whole), usable
+    return SceneRamp(factors, usable[core], charge, orders, coupled, margin, whole), usable
 
 
 def _all_kept(ramp: Ramp) -> int:
@@ -205,27 +253,46 @@ def _all_kept(ramp: Ramp) -> int:
     return 0 if K == 1 and ramp.single_resultant == "unusable" else K
 
 
-def _usable_coupled(powers: CoupledPowers, scale, background, measured, ramp: Ramp, exptime_s, threshold, state, pick):
-    """The "signal" rule on coupled reads, each resultant from the coupled powers (see above)."""
+def _usable_coupled(powers: CoupledPowers, scale, background, ramp: Ramp, exptime_s, threshold, state, pick):
+    """The "signal" rule on coupled reads, each resultant from the coupled powers (see above).
+
+    Only pixels whose measured signal can reach the threshold need their resultants; where
+    :meth:`CoupledPowers.may_reach` bounds them, only those pixels are computed at all."""
     state = tuple(state)
     if ramp.saturation_beta is not None:
         state = (ramp.saturation_beta, *state[1:])
     state_orders = range(2, 2 + len(state))
-    terms = [(b, n, powers.at(scale, background, n, pick)) for b, n in zip(state, state_orders, strict=True) if b != 0]
+    K = ramp.table.n_resultants
+    usable = np.full(powers.unit[pick].shape, K, dtype=np.int32)
+    pixels = powers.may_reach(scale, background, threshold, pick, state)
+    if pixels is None:  # every pixel, as coupled images
+        measured = powers.at(scale, background, 1, pick)
+        terms = [(b, n, powers.at(scale, background, n, pick)) for b, n in zip(state, state_orders, strict=True) if b != 0]
+        target = usable
+    else:
+        measured = powers.at_pixels(scale, background, 1, pick, pixels)
+        terms = [
+            (b, n, powers.at_pixels(scale, background, n, pick, pixels))
+            for b, n in zip(state, state_orders, strict=True)
+            if b != 0
+        ]
+        target = np.full(pixels.shape, K, dtype=np.int32)
     final = measured
     for b, _, coupled in terms:
         final = final - b * coupled
-    usable = np.full(measured.shape, ramp.table.n_resultants, dtype=np.int32)
-    # As in usable_resultants: only pixels whose measured signal can reach the threshold need their resultants.
     candidates = (measured >= threshold) | (final >= threshold)
     if np.any(candidates):
         mean_tau = ramp.table.mean_powers(exptime_s, (1, *(n for _, n, _ in terms)))
         resultants = measured[candidates][:, None] * mean_tau[0]
         for row, (b, _, coupled) in enumerate(terms, start=1):
             resultants = resultants - b * coupled[candidates][:, None] * mean_tau[row]
-        usable[candidates] = signal_usable(resultants, ramp.table, threshold)
+        target[candidates] = signal_usable(resultants, ramp.table, threshold)
     if ramp.single_resultant == "unusable":
-        usable = np.where(usable == 1, 0, usable).astype(np.int32)
+        target[target == 1] = 0
+    if pixels is not None:
+        usable.reshape(-1)[pixels] = target
+        if K == 1 and ramp.single_resultant == "unusable":
+            usable[...] = np.where(usable == 1, 0, usable)
     return usable
 
 
