@@ -35,7 +35,11 @@ class Scene:
     @cached_property
     def coupled_powers(self) -> ramps.CoupledPowers:
         """IPC of the unit charge stamps' powers, shared by every flux of an up-the-ramp scene with IPC after the NL."""
-        return ramps.CoupledPowers(self.charge, self.config.scene.ipc, self.config.oversampling)
+        powers = ramps.CoupledPowers(self.charge, self.config.scene.ipc, self.config.oversampling)
+        if self.unit_charge is not None:
+            # The linear stamps are IPC(psi) already (``prepare``, the same call): not coupled twice.
+            powers.seed(1, self.stamps)
+        return powers
 
     @cached_property
     def core_margin(self) -> int:

@@ -80,6 +80,10 @@ class CoupledPowers:
             self._cache[m] = _ipc(self.unit**m, self.kernel, self.oversampling)
         return self._cache[m]
 
+    def seed(self, m: int, coupled: np.ndarray) -> None:
+        """Give IPC(psi^m) already computed (by ``_ipc`` on the same stamps and kernel)."""
+        self._cache[m] = coupled
+
     def below(self, scale: float, background: float, threshold: float, state, pick, saturation_beta=None) -> bool:
         """Whether no pixel's coupled signal can reach ``threshold`` (no resultant saturates): the
         largest measured charge IPC(Q) stays below it and the NL (coefficients >= 0, a kernel >= 0)
@@ -117,18 +121,21 @@ class CoupledPowers:
             out = out + math.comb(n, m) * scale**m * background ** (n - m) * term
         return np.broadcast_to(out, flat.shape) if np.ndim(out) == 0 else out
 
-    def brightest_first(self, pick) -> tuple[np.ndarray, np.ndarray] | None:
-        """(flat pixel indices of the stamps ``pick`` ordered by IPC(psi) from the largest, minus
-        those values: ascending), cached per slice; None when ``pick`` is no slice. A pixel's measured charge
-        IPC(s psi + B) rises with IPC(psi), so the pixels that can reach a threshold are a prefix."""
+    def _reaching(self, pick, cut: float) -> np.ndarray | None:
+        """Flat indices (ascending) of the pixels of the stamps ``pick`` with IPC(psi) >= ``cut``; None
+        when ``pick`` is no slice. A pool of the pixels above the lowest cut asked so far is kept
+        per slice (a table asks from its brightest magnitude, the lowest cut, down), so a cut costs
+        a pass over the pool, not over the stamps."""
         if not isinstance(pick, slice):
             return None
-        key = ("order", pick.start, pick.stop, pick.step)
-        if key not in self._cache:
+        key = ("pool", pick.start, pick.stop, pick.step)
+        pool = self._cache.get(key)
+        if pool is None or cut < pool[0]:
             values = np.asarray(self.unit_power(1)[pick]).reshape(-1)
-            order = np.argsort(values)[::-1]
-            self._cache[key] = (order, -values[order])
-        return self._cache[key]
+            where = np.flatnonzero(values >= cut)
+            pool = self._cache[key] = (cut, where, values[where])
+        _, where, values = pool
+        return where[values >= cut]
 
     def may_reach(self, scale: float, background: float, threshold: float, pick, state) -> np.ndarray | None:
         """Flat indices (into the stamps ``pick``) of every pixel whose coupled signal can reach
@@ -145,14 +152,8 @@ class CoupledPowers:
             self._cache["unit_min"] = float(np.min(self.unit))
         if self._cache["unit_min"] < 0:
             return None
-        ordered = self.brightest_first(pick)
-        if ordered is None:
-            return None
-        order, negated = ordered
         cut = (threshold - background * self.unit_power(0)) / scale
-        cut = cut - 1e-9 * abs(cut)
-        count = int(np.searchsorted(negated, -cut, side="right"))  # IPC(psi) >= cut
-        return order[:count]
+        return self._reaching(pick, cut - 1e-9 * abs(cut))
 
 
 def _ipc(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
