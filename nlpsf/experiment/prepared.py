@@ -14,6 +14,10 @@ from .. import scene as scenes
 from ..threads import single_blas
 from .config import Progress, SimulationConfig
 
+#: Growth in size of the reference fits' weight windows within which the ramp factors are computed
+#: (``Scene.factor_region``); the core itself allows the same growth.
+FACTOR_REGION_GROWTH = 1.25
+
 
 @dataclass(frozen=True, eq=False)
 class Scene:
@@ -53,6 +57,21 @@ class Scene:
         return moments.core_margin(self.stamps.shape[-1], self.reference, self.config.weight_cut_rho2, growth)
 
     @cached_property
+    def factor_region(self) -> np.ndarray | None:
+        """Where on the core (``core_margin``) an up-the-ramp scene's per-pixel factors are computed:
+        inside each reference fit's weight window grown by ``FACTOR_REGION_GROWTH`` in size. A
+        perturbed fit moves its window by ~1e-4 of its size at the corrected state (3e-4 at most
+        over an H158 table) and ~1 % at the raw beta0; a fit whose window leaves the region is redone
+        on the whole stamps (``kernels._perturbed_fit``). None: no core, or no finite cut."""
+        margin, cut = self.core_margin, float(self.config.weight_cut_rho2)
+        if not margin or not math.isfinite(cut):
+            return None
+        core = self.stamps.shape[-1] - 2 * margin
+        region = _weighted_region(core, self.reference.parameters(), cut * FACTOR_REGION_GROWTH**2)
+        region.setflags(write=False)
+        return region
+
+    @cached_property
     def peak_fraction(self) -> np.ndarray:
         """Largest fine-pixel value of each unit-flux stamp (of the centroids drawn)."""
         return self.stamps.max(axis=(1, 2))
@@ -75,9 +94,9 @@ class Scene:
         return _weighted_region(self.stamps.shape[-1], self.reference.parameters(), self.config.weight_cut_rho2)
 
     @cached_property
-    def weighted_pixels(self) -> tuple[np.ndarray, ...]:
-        """``np.nonzero(weighted_region)``: the pixels that carry weight, as an index."""
-        return np.nonzero(self.weighted_region)
+    def weighted_pixels(self) -> np.ndarray:
+        """``np.flatnonzero(weighted_region)``: the pixels that carry weight, as flat indices."""
+        return np.flatnonzero(self.weighted_region)
 
     @cached_property
     def charge_peak_fraction(self) -> np.ndarray:

@@ -82,6 +82,7 @@ def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, sta
             orders,
             pick,
             margin=scene.core_margin if index is None else 0,
+            region=scene.factor_region if index is None else None,
         )
         return _coupled_summary(scene, charge_scale, pick, sr.factors[0], usable, sr)
     charge = charge_scale * scene.charge[pick] + model.background_e
@@ -111,12 +112,13 @@ def _coupled_summary(scene: Scene, charge_scale: float, pick: slice, factor, usa
     K = config.ramp.table.n_resultants
     last = config.ramp.table.last_read_fractions(config.exptime_s)
     weighted = scene.weighted_region[pick]
-    where = scene.weighted_pixels if pick == slice(None) else np.nonzero(weighted)
-    used_charge = (charge_scale * scene.charge[pick][where] + background) * last[np.maximum(usable[where], 1) - 1]
+    where = scene.weighted_pixels if pick == slice(None) else np.flatnonzero(weighted)
+    one = _one_value(usable)
+    kept = np.full(where.size, one, dtype=usable.dtype) if one is not None else usable.reshape(-1)[where]
+    used_charge = (charge_scale * scene.charge[pick].reshape(-1)[where] + background) * last[np.maximum(kept, 1) - 1]
     # As np.where(weighted, used, 0).max(): the pixels outside the weight count as 0.
     used_peak = float(used_charge.max(initial=0.0) if used_charge.size < weighted.size else used_charge.max())
-    summary = ramps.usage_summary(usable[where], K)
-    one = _one_value(usable)
+    summary = ramps.usage_summary(kept, K)
     summary["stamp_unusable"] = (usable.size if one == 0 else 0) if one is not None else int(np.count_nonzero(usable == 0))
     peak = scene.charge_peak_fraction[pick]
     return _ramp_flags(

@@ -48,13 +48,18 @@ class SceneRamp:
     margin: int = 0
     #: For a trimmed one: computes the whole-stamp SceneRamp (when a fit leaves the core).
     whole: Callable[[], SceneRamp] | None = field(default=None, compare=False, repr=False)
+    #: Where the factors were computed, (R, core, core), None: everywhere. Elsewhere they are 0: a
+    #: moments fit whose weight window (rho^2 <= cut) stays inside never reads them (beyond the cut
+    #: the weight is exactly zero); one that leaves it must use ``whole()``.
+    region: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def head(self, count: int) -> SceneRamp:
         """The first ``count`` realizations."""
         coupled = None if self.coupled is None else {n: v[:count] for n, v in self.coupled.items()}
         whole = None if self.whole is None else (lambda: self.whole().head(count))
+        region = None if self.region is None else self.region[:count]
         return SceneRamp(
-            self.factors[:, :count], self.usable[:count], self.charge[:count], self.orders, coupled, self.margin, whole
+            self.factors[:, :count], self.usable[:count], self.charge[:count], self.orders, coupled, self.margin, whole, region
         )
 
 
@@ -213,6 +218,7 @@ def scene_factors_coupled(
     orders: Sequence[int],
     pick=slice(None),
     margin: int = 0,
+    region: np.ndarray | None = None,
 ) -> tuple[SceneRamp, np.ndarray]:
     """:func:`scene_factors` for IPC after the NL, on Q = ``scale`` psi + ``background`` (psi the unit
     stamps of ``powers``, realizations ``pick``), with every coupled image from ``powers``; and the
@@ -221,6 +227,7 @@ def scene_factors_coupled(
     ``margin`` > 0: the factors (the per-pixel optimal weights, most of the cost), the charge and its
     coupled powers only on the stamps' central core, ``margin`` pixels in from every side (outside the
     moments' weight window they multiply nothing); the SceneRamp's ``whole`` computes the rest.
+    ``region`` (boolean, the core's shape): the factors only there, 0 elsewhere (``SceneRamp.region``).
 
     Under the "signal" rule each read's coupled signal is D(tau) = tau IPC(Q) - sum_n b_n tau^n IPC(Q^n)
     (IPC is linear and the NL a polynomial), so resultant j is IPC(Q) <tau>_j - sum_n b_n IPC(Q^n) <tau^n>_j:
@@ -239,13 +246,26 @@ def scene_factors_coupled(
         usable = np.broadcast_to(np.int32(_all_kept(ramp)), shape)
     else:
         usable = _usable_coupled(powers, scale, background, ramp, exptime_s, full_well_e, state, pick)
-    factors = _factors_for(powers.at(scale, background, 1, rows), usable[core], ramp, exptime_s, orders)
+    rate = powers.at(scale, background, 1, rows)
+    if region is None:
+        factors = _factors_for(rate, usable[core], ramp, exptime_s, orders)
+    else:
+        # Per pixel the factors are the pixel's own (its rate and usable resultants), so computing
+        # fewer pixels gives the same numbers on those.
+        inside = np.flatnonzero(region)
+        one = usable[(0,) * usable.ndim] if usable.size and not any(usable.strides) else None
+        if one is not None:
+            kept = np.full(inside.size, one, dtype=np.int32)
+        else:
+            kept = np.ascontiguousarray(usable[core]).reshape(-1)[inside]
+        factors = np.zeros((len(orders), *rate.shape))
+        factors.reshape(len(orders), -1)[:, inside] = _factors_for(rate.reshape(-1)[inside], kept, ramp, exptime_s, orders)
     coupled = {n: powers.at(scale, background, n, rows) for n in orders}
     whole = None
     if margin:
         args = (powers, scale, background, ramp, exptime_s, full_well_e, state, orders, pick)
         whole = lambda: scene_factors_coupled(*args)[0]  # noqa: E731
-    return SceneRamp(factors, usable[core], charge, orders, coupled, margin, whole), usable
+    return SceneRamp(factors, usable[core], charge, orders, coupled, margin, whole, region), usable
 
 
 def _all_kept(ramp: Ramp) -> int:
