@@ -297,9 +297,9 @@ def psf_intensity(
     # The wavefront only matters where light passes: evaluating the Zernikes on the open pixels
     # alone gives the same pupil function at about half the cost.
     open_pixels, zernikes = _open_pupil_zernikes(pupil, t, u, v)
-    phase = np.zeros_like(t)
-    phase[open_pixels] = _wavefront(zernikes, coefficients_waves)
-    pupil_function = t * np.exp(2j * np.pi * phase)
+    # t exp(2 pi i phase) on the open pixels only (a closed one is exactly 0 either way).
+    pupil_function = np.zeros(t.shape, dtype=np.complex128)
+    pupil_function[open_pixels] = t[open_pixels] * np.exp(2j * np.pi * _wavefront(zernikes, coefficients_waves))
     wavelength_m = wavelength_nm * 1e-9
     theta_rad = np.asarray(theta_arcsec, dtype=np.float64) / ARCSEC_PER_RADIAN
     # GalSim's sign convention (an inverse FFT of the pupil); it only turns the PSF by 180
