@@ -105,29 +105,41 @@ def zernike(j: int, rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def wavefront_waves(coefficients: np.ndarray, u_m: np.ndarray, v_m: np.ndarray, radius_m: float) -> np.ndarray:
     """Wavefront (in waves) of Noll ``coefficients`` (index 0 unused) at pupil points (u, v)."""
-    return _wavefront(_ZernikeCache(_PolarBasis(np.hypot(u_m, v_m) / radius_m, np.arctan2(v_m, u_m))), coefficients)
+    return _wavefront(_ZernikeCache(np.hypot(u_m, v_m) / radius_m, np.arctan2(v_m, u_m)), coefficients)
 
 
 class _ZernikeCache:
-    """The Zernikes of one set of pupil points, each evaluated once (``_PolarBasis.zernike``)."""
+    """The Zernikes at one set of pupil points, each evaluated once (``_PolarBasis.zernike``).
 
-    def __init__(self, basis: _PolarBasis) -> None:
-        self.basis = basis
+    The basis (powers of rho, cos/sin of m theta: about twice the Zernikes' memory) is built when a
+    Zernike not yet held is asked for and dropped after each wavefront (``release``); rebuilt, it
+    gives the same numbers."""
+
+    def __init__(self, rho: np.ndarray, theta: np.ndarray) -> None:
+        self.rho, self.theta = rho, theta
+        self._basis: _PolarBasis | None = None
         self._values: dict[int, np.ndarray] = {}
         self._lock = threading.Lock()  # the basis grows its powers in place: one thread at a time
 
     def zernike(self, j: int) -> np.ndarray:
         with self._lock:
             if j not in self._values:
-                self._values[j] = self.basis.zernike(j)
+                if self._basis is None:
+                    self._basis = _PolarBasis(self.rho, self.theta)
+                self._values[j] = self._basis.zernike(j)
             return self._values[j]
+
+    def release(self) -> None:
+        with self._lock:
+            self._basis = None
 
 
 def _wavefront(zernikes: _ZernikeCache, coefficients: np.ndarray) -> np.ndarray:
-    total = np.zeros_like(zernikes.basis.rho)
+    total = np.zeros_like(zernikes.rho)
     for j in range(1, len(coefficients)):
         if coefficients[j] != 0.0:
             total += coefficients[j] * zernikes.zernike(j)
+    zernikes.release()
     return total
 
 
@@ -147,10 +159,10 @@ def _open_pupil_zernikes(pupil: roman.Pupil, t: np.ndarray, u: np.ndarray, v: np
             uu, vv = np.meshgrid(u, v)
             open_pixels = t > 0
             u_m, v_m = uu[open_pixels], vv[open_pixels]
-            basis = _PolarBasis(np.hypot(u_m, v_m) / (roman.DIAMETER_M / 2), np.arctan2(v_m, u_m))
+            zernikes = _ZernikeCache(np.hypot(u_m, v_m) / (roman.DIAMETER_M / 2), np.arctan2(v_m, u_m))
             while len(_PUPIL_ZERNIKES) >= _PUPIL_ZERNIKES_KEPT:
                 _PUPIL_ZERNIKES.pop(next(iter(_PUPIL_ZERNIKES)))
-            _PUPIL_ZERNIKES[key] = (open_pixels, _ZernikeCache(basis))
+            _PUPIL_ZERNIKES[key] = (open_pixels, zernikes)
         return _PUPIL_ZERNIKES[key]
 
 
