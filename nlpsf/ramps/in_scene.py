@@ -350,9 +350,14 @@ def scene_perturbation(
     q = sr.charge
     coefficients = (beta, *higher)
     perturbation = np.zeros(np.shape(q))
-    power = q * q
+    orders = range(2, 2 + len(coefficients))
+    all_coupled = (
+        after and sr.coupled is not None and all(np.ndim(b) == 0 for b in coefficients) and all(n in sr.coupled for n in orders)
+    )
+    # Q^n only where some term needs it (every order coupled already with a uniform beta: none).
+    power = None if all_coupled else q * q
     derivative = None
-    for n, b in zip(range(2, 2 + len(coefficients)), coefficients, strict=True):
+    for n, b in zip(orders, coefficients, strict=True):
         c = sr.factors[sr.orders.index(n)]
         coupled = sr.coupled.get(n) if after and sr.coupled is not None else None
         uncoupled = coupled is None
@@ -365,5 +370,6 @@ def scene_perturbation(
                 perturbation = perturbation - c * (b * coupled)
             else:
                 perturbation = perturbation - c * (_ipc(b * power, ipc, oversampling) if after else b * power)
-        power = power * q
+        if power is not None:
+            power = power * q
     return perturbation, derivative
