@@ -151,6 +151,13 @@ _PUPIL_ZERNIKES_KEPT = 2
 _PUPIL_ZERNIKES_LOCK = threading.Lock()
 
 
+def clear_caches() -> None:
+    """Forget every computed PSF and pupil's Zernikes (what a request in a fresh process pays again)."""
+    effective_psf.cache_clear()
+    with _PUPIL_ZERNIKES_LOCK:
+        _PUPIL_ZERNIKES.clear()
+
+
 def _open_pupil_zernikes(pupil: roman.Pupil, t: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, _ZernikeCache]:
     """(open pixels of the cropped pupil ``t``, their Zernikes), cached per pupil."""
     key = (pupil.sca, pupil.mask_kind, pupil.scale_m, t.shape, hash(t.tobytes()), hash(u.tobytes()), hash(v.tobytes()))
