@@ -666,4 +666,5 @@ def response_to(
     settings = settings or MomentSettings()
     core, (r0, r1, c0, c1) = _core_response(np.asarray(images, dtype=np.float64), moments, settings)
     d = np.asarray(directions, dtype=np.float64)[:, None, r0:r1, c0:c1]
-    return np.sum(core * d, axis=(2, 3)), np.sqrt(np.sum((core * d) ** 2, axis=(2, 3)))
+    along = core * d  # once for both sums
+    return np.sum(along, axis=(2, 3)), np.sqrt(np.sum(along**2, axis=(2, 3)))

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -104,12 +105,72 @@ def zernike(j: int, rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def wavefront_waves(coefficients: np.ndarray, u_m: np.ndarray, v_m: np.ndarray, radius_m: float) -> np.ndarray:
     """Wavefront (in waves) of Noll ``coefficients`` (index 0 unused) at pupil points (u, v)."""
-    basis = _PolarBasis(np.hypot(u_m, v_m) / radius_m, np.arctan2(v_m, u_m))
-    total = np.zeros_like(basis.rho)
+    return _wavefront(_ZernikeCache(np.hypot(u_m, v_m) / radius_m, np.arctan2(v_m, u_m)), coefficients)
+
+
+class _ZernikeCache:
+    """The Zernikes at one set of pupil points, each evaluated once (``_PolarBasis.zernike``).
+
+    The basis (powers of rho, cos/sin of m theta: about twice the Zernikes' memory) is built when a
+    Zernike not yet held is asked for and dropped after each wavefront (``release``); rebuilt, it
+    gives the same numbers."""
+
+    def __init__(self, rho: np.ndarray, theta: np.ndarray) -> None:
+        self.rho, self.theta = rho, theta
+        self._basis: _PolarBasis | None = None
+        self._values: dict[int, np.ndarray] = {}
+        self._lock = threading.Lock()  # the basis grows its powers in place: one thread at a time
+
+    def zernike(self, j: int) -> np.ndarray:
+        with self._lock:
+            if j not in self._values:
+                if self._basis is None:
+                    self._basis = _PolarBasis(self.rho, self.theta)
+                self._values[j] = self._basis.zernike(j)
+            return self._values[j]
+
+    def release(self) -> None:
+        with self._lock:
+            self._basis = None
+
+
+def _wavefront(zernikes: _ZernikeCache, coefficients: np.ndarray) -> np.ndarray:
+    total = np.zeros_like(zernikes.rho)
     for j in range(1, len(coefficients)):
         if coefficients[j] != 0.0:
-            total += coefficients[j] * basis.zernike(j)
+            total += coefficients[j] * zernikes.zernike(j)
+    zernikes.release()
     return total
+
+
+#: The open pupil points' Zernikes of the last few pupils: every wavelength of a PSF and every field
+#: position of an SCA evaluate the same polynomials on the same points, and only the coefficients
+#: change (the same numbers as evaluating them afresh; ~30 MB a pupil at the default binning).
+_PUPIL_ZERNIKES: dict[tuple, tuple[np.ndarray, _ZernikeCache]] = {}
+_PUPIL_ZERNIKES_KEPT = 2
+_PUPIL_ZERNIKES_LOCK = threading.Lock()
+
+
+def clear_caches() -> None:
+    """Forget every computed PSF and pupil's Zernikes (what a request in a fresh process pays again)."""
+    effective_psf.cache_clear()
+    with _PUPIL_ZERNIKES_LOCK:
+        _PUPIL_ZERNIKES.clear()
+
+
+def _open_pupil_zernikes(pupil: roman.Pupil, t: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, _ZernikeCache]:
+    """(open pixels of the cropped pupil ``t``, their Zernikes), cached per pupil."""
+    key = (pupil.sca, pupil.mask_kind, pupil.scale_m, t.shape, hash(t.tobytes()), hash(u.tobytes()), hash(v.tobytes()))
+    with _PUPIL_ZERNIKES_LOCK:
+        if key not in _PUPIL_ZERNIKES:
+            uu, vv = np.meshgrid(u, v)
+            open_pixels = t > 0
+            u_m, v_m = uu[open_pixels], vv[open_pixels]
+            zernikes = _ZernikeCache(np.hypot(u_m, v_m) / (roman.DIAMETER_M / 2), np.arctan2(v_m, u_m))
+            while len(_PUPIL_ZERNIKES) >= _PUPIL_ZERNIKES_KEPT:
+                _PUPIL_ZERNIKES.pop(next(iter(_PUPIL_ZERNIKES)))
+            _PUPIL_ZERNIKES[key] = (open_pixels, zernikes)
+        return _PUPIL_ZERNIKES[key]
 
 
 @dataclass(frozen=True)
@@ -252,13 +313,12 @@ def psf_intensity(
     i.e. to unit total flux. Rows are theta_y, columns theta_x.
     """
     t, u, v = _clear_aperture(pupil)
-    uu, vv = np.meshgrid(u, v)
     # The wavefront only matters where light passes: evaluating the Zernikes on the open pixels
     # alone gives the same pupil function at about half the cost.
-    open_pixels = t > 0
-    phase = np.zeros_like(t)
-    phase[open_pixels] = wavefront_waves(coefficients_waves, uu[open_pixels], vv[open_pixels], roman.DIAMETER_M / 2)
-    pupil_function = t * np.exp(2j * np.pi * phase)
+    open_pixels, zernikes = _open_pupil_zernikes(pupil, t, u, v)
+    # t exp(2 pi i phase) on the open pixels only (a closed one is exactly 0 either way).
+    pupil_function = np.zeros(t.shape, dtype=np.complex128)
+    pupil_function[open_pixels] = t[open_pixels] * np.exp(2j * np.pi * _wavefront(zernikes, coefficients_waves))
     wavelength_m = wavelength_nm * 1e-9
     theta_rad = np.asarray(theta_arcsec, dtype=np.float64) / ARCSEC_PER_RADIAN
     # GalSim's sign convention (an inverse FFT of the pupil); it only turns the PSF by 180

@@ -60,7 +60,7 @@ class Grid:
         return (np.arange(self.stamp) - (self.stamp - 1) / 2) * self.scale_arcsec
 
 
-def draw(psf: EffectivePSF, grid: Grid, offsets_fine_pixels: np.ndarray, chunk: int = 256) -> np.ndarray:
+def draw(psf: EffectivePSF, grid: Grid, offsets_fine_pixels: np.ndarray, chunk: int = 8) -> np.ndarray:
     """Stamps of the effective PSF, shape (R, stamp, stamp), for offsets of shape (R, 2) = (dx, dy).
 
     Offsets are in fine pixels from the stamp's true centre; row index is y, column index is x.
@@ -78,6 +78,8 @@ def draw(psf: EffectivePSF, grid: Grid, offsets_fine_pixels: np.ndarray, chunk: 
     # so a stamp is E (C . u v^T) E^T -- one table of complex exponentials instead of one per
     # realization (4x faster; equal to the direct sum to 1e-15 of the peak).
     pixel_phase = np.exp(2j * np.pi * np.outer(centres, frequencies))
+    # A few realizations at a time: their phase-shifted coefficients (chunk x F^2 complex, F up to
+    # ~240 for R062) then stay small; each stamp's products are its own, so any chunk gives the same.
     out = np.empty((offsets.shape[0], grid.stamp, grid.stamp))
     for start in range(0, offsets.shape[0], chunk):
         block = offsets[start : start + chunk] * grid.scale_arcsec

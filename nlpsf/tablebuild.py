@@ -221,10 +221,10 @@ def compute_table(
             columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
             columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
     flux = np.asarray(columns["flux_electrons"])
-    for metric in COLUMN_METRICS:
-        for mode in MODES:
-            name = f"{mode}_{metric}"
-            columns[f"{name}_interp"] = list(interpolation_error_estimate(flux, np.asarray(columns[name])))
+    names = [f"{mode}_{metric}" for metric in COLUMN_METRICS for mode in MODES]
+    estimates = interpolation_error_estimate(flux, np.stack([np.asarray(columns[name]) for name in names], axis=-1))
+    for k, name in enumerate(names):
+        columns[f"{name}_interp"] = list(estimates[:, k])
     table = Table(columns)
     table.add_column(band, name="band", index=0)
     table.add_column(np.int16(sca), name="sca", index=1)
@@ -383,18 +383,20 @@ def interpolation_error_estimate(flux: np.ndarray, slope: np.ndarray) -> np.ndar
     Leave each interior point out, interpolate it back from the others (which doubles the local
     spacing) and divide by 2^4, the factor by which a cubic spline's error grows when the spacing
     doubles. End points take their neighbour's estimate. The tests check the estimate against
-    fresh simulations between grid points.
+    fresh simulations between grid points. ``slope`` may hold several columns (points, columns):
+    one spline per left-out point fits them all.
     """
     order = np.argsort(flux)
-    x, q = flux[order], slope[order] / flux[order]
+    x = flux[order]
+    q = slope[order] / (x if slope.ndim == 1 else x[:, None])
     estimate = np.zeros_like(q)
-    for k in range(1, q.size - 1):
-        keep = np.ones(q.size, dtype=bool)
+    for k in range(1, len(q) - 1):
+        keep = np.ones(len(q), dtype=bool)
         keep[k] = False
         estimate[k] = abs(CubicSpline(x[keep], q[keep])(x[k]) - q[k]) / 16.0
     estimate[0], estimate[-1] = estimate[1], estimate[-2]
     out = np.empty_like(estimate)
-    out[order] = estimate * x  # back to slope units
+    out[order] = estimate * (x if slope.ndim == 1 else x[:, None])  # back to slope units
     return out
 
 

@@ -95,7 +95,7 @@ def level_slopes(level: str, band: str, sca: int, magnitude: float, default: str
     if default == "roman":
         # The table level is the linear level on a grid (see the module docstring).
         config = _roman_config(band, sca, level="linear" if level == "table" else level)
-        optics.effective_psf.cache_clear()
+        optics.clear_caches()
         result = experiment.slopes(config, [magnitude], linearise_at=_roman_state())[0]
         return _slope_values(result), time.perf_counter() - start
     if level == "table":
@@ -108,7 +108,7 @@ def level_slopes(level: str, band: str, sca: int, magnitude: float, default: str
         return out, elapsed
     settings = simulation_settings(level)
     config = experiment.SimulationConfig.from_settings(settings, band=band, sca=sca)  # its method and wavelengths
-    optics.effective_psf.cache_clear()  # a fresh request pays for its optics
+    optics.clear_caches()  # a fresh request pays for its optics
     result = experiment.slopes(config, [magnitude])[0]
     return _slope_values(result), time.perf_counter() - start
 

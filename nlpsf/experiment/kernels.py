@@ -9,7 +9,7 @@ import numpy as np
 from .. import detector, moments, ramps
 from .. import scene as scenes
 from .config import METRICS, PAPER_BETA_STEP
-from .prepared import Scene, _peak_electrons, star_peak_electrons
+from .prepared import Scene, _peak_electrons, _weighted_region, star_peak_electrons
 from .readout import RampEffect, _nl_shape, ramp_effect
 from .results import Statistic, _metrics, _reference_summary
 from .validity import _noise_floor_flag, _validity_flags
@@ -98,10 +98,22 @@ def _perturbed_fit(
     margin = scene.core_margin
     stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect, margin=margin)
     fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
-    if margin and not np.all(moments.within(fit, stamps.shape[-1], float(settings.weight_cut_rho2))):
+    cut = float(settings.weight_cut_rho2)
+    if margin and not (np.all(moments.within(fit, stamps.shape[-1], cut)) and _inside_factor_region(effect, fit, margin, cut)):
         stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect)
         fit = moments.fit_perturbed(stamps, perturbation, reference, settings)
     return fit, reference, stamps, perturbation, derivative
+
+
+def _inside_factor_region(effect: RampEffect | None, fit: moments.Moments, margin: int, cut: float) -> bool:
+    """Whether every fit's weight window lies where the ramp factors were computed (``SceneRamp.region``)."""
+    sr = None if effect is None else effect.scene_ramp
+    if sr is None or sr.region is None or sr.margin != margin:
+        return True
+    if not np.all(fit.ok):
+        return False  # a failed fit: judged on the whole stamps' factors, as without a region
+    window = _weighted_region(sr.region.shape[-1], fit.parameters(), cut)
+    return bool(np.all(sr.region[: len(window)] | ~window))
 
 
 def _simulate_bias(

@@ -14,6 +14,10 @@ from .. import scene as scenes
 from ..threads import single_blas
 from .config import Progress, SimulationConfig
 
+#: Growth in size of the reference fits' weight windows within which the ramp factors are computed
+#: (``Scene.factor_region``); the core itself allows the same growth.
+FACTOR_REGION_GROWTH = 1.25
+
 
 @dataclass(frozen=True, eq=False)
 class Scene:
@@ -35,7 +39,11 @@ class Scene:
     @cached_property
     def coupled_powers(self) -> ramps.CoupledPowers:
         """IPC of the unit charge stamps' powers, shared by every flux of an up-the-ramp scene with IPC after the NL."""
-        return ramps.CoupledPowers(self.charge, self.config.scene.ipc, self.config.oversampling)
+        powers = ramps.CoupledPowers(self.charge, self.config.scene.ipc, self.config.oversampling)
+        if self.unit_charge is not None:
+            # The linear stamps are IPC(psi) already (``prepare``, the same call): not coupled twice.
+            powers.seed(1, self.stamps)
+        return powers
 
     @cached_property
     def core_margin(self) -> int:
@@ -47,6 +55,21 @@ class Scene:
         whose window leaves the core is redone on the whole stamps, so the answer does not depend on it."""
         growth = 2.0 if self.config.scene.plain_detector else 1.25
         return moments.core_margin(self.stamps.shape[-1], self.reference, self.config.weight_cut_rho2, growth)
+
+    @cached_property
+    def factor_region(self) -> np.ndarray | None:
+        """Where on the core (``core_margin``) an up-the-ramp scene's per-pixel factors are computed:
+        inside each reference fit's weight window grown by ``FACTOR_REGION_GROWTH`` in size. A
+        perturbed fit moves its window by ~1e-4 of its size at the corrected state (3e-4 at most
+        over an H158 table) and ~1 % at the raw beta0; a fit whose window leaves the region is redone
+        on the whole stamps (``kernels._perturbed_fit``). None: no core, or no finite cut."""
+        margin, cut = self.core_margin, float(self.config.weight_cut_rho2)
+        if not margin or not math.isfinite(cut):
+            return None
+        core = self.stamps.shape[-1] - 2 * margin
+        region = _weighted_region(core, self.reference.parameters(), cut * FACTOR_REGION_GROWTH**2)
+        region.setflags(write=False)
+        return region
 
     @cached_property
     def peak_fraction(self) -> np.ndarray:
@@ -69,6 +92,28 @@ class Scene:
     def weighted_region(self) -> np.ndarray:
         """Pixels inside each reference fit's weight cut (where the moments look), (R, n, n)."""
         return _weighted_region(self.stamps.shape[-1], self.reference.parameters(), self.config.weight_cut_rho2)
+
+    @cached_property
+    def weighted_pixels(self) -> np.ndarray:
+        """``np.flatnonzero(weighted_region)``: the pixels that carry weight, as flat indices."""
+        return np.flatnonzero(self.weighted_region)
+
+    @cached_property
+    def charge_peak_fraction(self) -> np.ndarray:
+        """Largest value of each unit-flux charge stamp (before IPC), per realization."""
+        return self.charge.max(axis=(1, 2))
+
+    @cached_property
+    def star_peak_stamp(self) -> np.ndarray:
+        """One unit-flux stamp with a fine-pixel centre on the PSF's peak (``star_peak_electrons``)."""
+        grid = self.config.grid
+        centres = grid.pixel_centres_arcsec()
+        x, y = self.star_peak[1]
+        # A fine-pixel centre c sees the PSF at c - offset: put the nearest centre on the peak.
+        offset = np.array([[(centres[np.argmin(np.abs(centres - v))] - v) / grid.scale_arcsec for v in (x, y)]])
+        stamp = render.draw(self.psf, grid, offset)
+        stamp.setflags(write=False)
+        return stamp
 
     @cached_property
     def weighted_peak_fraction(self) -> np.ndarray:
@@ -130,13 +175,7 @@ def star_peak_electrons(scene: Scene, charge_scale: float) -> float:
     model = scene.config.scene
     if model.plain_detector:
         return charge_scale * scene.star_peak_fraction
-    grid = scene.config.grid
-    centres = grid.pixel_centres_arcsec()
-    x, y = scene.star_peak[1]
-    # A fine-pixel centre c sees the PSF at c - offset: put the nearest centre on the peak.
-    offset = np.array([[(centres[np.argmin(np.abs(centres - v))] - v) / grid.scale_arcsec for v in (x, y)]])
-    stamp = render.draw(scene.psf, grid, offset)
-    return float(scenes.charge_before_nl(stamp, charge_scale, model, scene.config.oversampling).max())
+    return float(scenes.charge_before_nl(scene.star_peak_stamp, charge_scale, model, scene.config.oversampling).max())
 
 
 def _peak_electrons(scene: Scene, charge_scale: float, count: int | None = None) -> np.ndarray:
@@ -146,5 +185,8 @@ def _peak_electrons(scene: Scene, charge_scale: float, count: int | None = None)
         peak = charge_scale * scene.peak_fraction
         return peak if count is None else peak[:count]
     pick = slice(None) if count is None else slice(0, count)
+    if model.bfe_coefficient == 0 and (model.ipc is None or model.ipc_order != "before"):
+        # The charge is s psi + B: its maximum is s max(psi) + B exactly (rounding is monotonic).
+        return charge_scale * scene.charge_peak_fraction[pick] + model.background_e
     charge = scenes.charge_before_nl(scene.charge[pick], charge_scale, model, scene.config.oversampling)
     return charge.max(axis=(1, 2))

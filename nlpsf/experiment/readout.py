@@ -67,7 +67,6 @@ def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, sta
     model = config.scene
     pick = slice(None) if index is None else slice(index, index + 1)
     weighted = scene.weighted_region[pick]
-    charge = charge_scale * scene.charge[pick] + model.background_e
     orders = tuple(range(2, 3 + len(model.nl_coefficients)))
     if model.ipc is not None and model.ipc_order == "after":
         # Every coupled image from the scene's coupled unit powers (ramps.CoupledPowers), none per flux;
@@ -83,8 +82,10 @@ def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, sta
             orders,
             pick,
             margin=scene.core_margin if index is None else 0,
+            region=scene.factor_region if index is None else None,
         )
-        return _ramp_summary(scene, charge, sr.factors[0], usable, weighted, sr)
+        return _coupled_summary(scene, charge_scale, pick, sr.factors[0], usable, sr)
+    charge = charge_scale * scene.charge[pick] + model.background_e
     sr = ramps.scene_factors(
         charge, config.ramp, config.exptime_s, config.full_well_e, state, orders, model.ipc, model.ipc_order, config.oversampling
     )
@@ -93,14 +94,48 @@ def _scene_ramp_effect(scene: Scene, charge_scale: float, index: int | None, sta
 
 def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) -> RampEffect:
     config = scene.config
-    ramp = config.ramp
-    K = ramp.table.n_resultants
-    last = ramp.table.last_read_fractions(config.exptime_s)
-    stamps = charge
+    K = config.ramp.table.n_resultants
+    last = config.ramp.table.last_read_fractions(config.exptime_s)
     used_charge = charge * last[np.maximum(usable, 1) - 1]
     used_peak = float(np.where(weighted, used_charge, 0.0).max())
     summary = ramps.usage_summary(usable, K, weighted)
     summary["stamp_unusable"] = int(np.sum(usable == 0))
+    return _ramp_flags(scene, factor, usable, weighted, scene_ramp, used_peak, summary, lambda: float(charge.max()))
+
+
+def _coupled_summary(scene: Scene, charge_scale: float, pick: slice, factor, usable, scene_ramp) -> RampEffect:
+    """:func:`_ramp_summary` for IPC after the NL, from the weighted pixels alone: the whole stamps'
+    charge is never formed (each number is the same elementwise arithmetic on fewer pixels, and a
+    maximum of s psi + B is s max(psi) + B exactly, rounding being monotonic)."""
+    config = scene.config
+    background = config.scene.background_e
+    K = config.ramp.table.n_resultants
+    last = config.ramp.table.last_read_fractions(config.exptime_s)
+    weighted = scene.weighted_region[pick]
+    where = scene.weighted_pixels if pick == slice(None) else np.flatnonzero(weighted)
+    one = _one_value(usable)
+    kept = np.full(where.size, one, dtype=usable.dtype) if one is not None else usable.reshape(-1)[where]
+    used_charge = (charge_scale * scene.charge[pick].reshape(-1)[where] + background) * last[np.maximum(kept, 1) - 1]
+    # As np.where(weighted, used, 0).max(): the pixels outside the weight count as 0.
+    used_peak = float(used_charge.max(initial=0.0) if used_charge.size < weighted.size else used_charge.max())
+    summary = ramps.usage_summary(kept, K)
+    summary["stamp_unusable"] = (usable.size if one == 0 else 0) if one is not None else int(np.count_nonzero(usable == 0))
+    peak = scene.charge_peak_fraction[pick]
+    return _ramp_flags(
+        scene, factor, usable, weighted, scene_ramp, used_peak, summary, lambda: float((charge_scale * peak + background).max())
+    )
+
+
+def _one_value(array: np.ndarray):
+    """The value of an array that is one value broadcast (every stride zero), else None."""
+    return array[(0,) * array.ndim] if array.size and not any(array.strides) else None
+
+
+def _ramp_flags(scene: Scene, factor, usable, weighted, scene_ramp, used_peak: float, summary: dict, final_peak) -> RampEffect:
+    """The ramp's flags from its usage summary; ``final_peak()``: the stamps' largest final charge."""
+    config = scene.config
+    ramp = config.ramp
+    K = ramp.table.n_resultants
     summary["description"] = ramp.describe()
     flags = []
     needed = min(ramp.min_usable, K)
@@ -114,13 +149,12 @@ def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) ->
                 where=where,
                 unusable=summary["unusable"],
                 hit=hit,
-                realizations=len(stamps),
+                realizations=len(usable),
                 full_well_e=config.full_well_e,
                 time_s=first_end,
             )
         )
     if summary["fitted_on_fewer"]:
-        final_peak = float(charge.max())
         flags.append(
             make(
                 FlagCode.RAMP_FEWER_RESULTANTS,
@@ -128,7 +162,7 @@ def _ramp_summary(scene: Scene, charge, factor, usable, weighted, scene_ramp) ->
                 pixels=summary["pixels"],
                 resultants=K,
                 fewest=summary["fewest_resultants"],
-                peak_e=final_peak,
+                peak_e=final_peak(),
                 full_well_e=config.full_well_e,
             )
         )

@@ -14,6 +14,10 @@ from .tables import MATable, _ols_factors, _resultant_fractions
 
 #: Pixels per block in the per-pixel weight computation (bounds memory for long tables).
 _BLOCK = 1 << 16
+#: Pixels per block of the optimal factors: a block's (pixels x resultants) weights stay in cache
+#: between the passes over them, which halves their cost against 1 << 16 (the same numbers: every
+#: pixel's sums are its own row of one matrix product).
+_FACTOR_BLOCK = 1 << 12
 
 
 def _ols_row(tau: np.ndarray, k: int) -> np.ndarray:
@@ -103,8 +107,8 @@ def _optimal_factors(out: np.ndarray, flat_total: np.ndarray, flat_k: np.ndarray
         # Every pixel on the same k (no resultant saturated anywhere): contiguous blocks, no gather.
         size = flat_k.size if counts[k] == flat_k.size else int(counts[k])
         where = None if counts[k] == flat_k.size else np.flatnonzero(flat_k == k)
-        for s in range(0, size, _BLOCK):
-            pick = slice(s, s + _BLOCK) if where is None else where[s : s + _BLOCK]
+        for s in range(0, size, _FACTOR_BLOCK):
+            pick = slice(s, s + _FACTOR_BLOCK) if where is None else where[s : s + _FACTOR_BLOCK]
             g = np.multiply.outer(flat_total[pick], lam)
             g += variance
             np.reciprocal(g, out=g)

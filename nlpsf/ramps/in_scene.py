@@ -48,13 +48,18 @@ class SceneRamp:
     margin: int = 0
     #: For a trimmed one: computes the whole-stamp SceneRamp (when a fit leaves the core).
     whole: Callable[[], SceneRamp] | None = field(default=None, compare=False, repr=False)
+    #: Where the factors were computed, (R, core, core), None: everywhere. Elsewhere they are 0: a
+    #: moments fit whose weight window (rho^2 <= cut) stays inside never reads them (beyond the cut
+    #: the weight is exactly zero); one that leaves it must use ``whole()``.
+    region: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def head(self, count: int) -> SceneRamp:
         """The first ``count`` realizations."""
         coupled = None if self.coupled is None else {n: v[:count] for n, v in self.coupled.items()}
         whole = None if self.whole is None else (lambda: self.whole().head(count))
+        region = None if self.region is None else self.region[:count]
         return SceneRamp(
-            self.factors[:, :count], self.usable[:count], self.charge[:count], self.orders, coupled, self.margin, whole
+            self.factors[:, :count], self.usable[:count], self.charge[:count], self.orders, coupled, self.margin, whole, region
         )
 
 
@@ -79,6 +84,10 @@ class CoupledPowers:
         if m not in self._cache:
             self._cache[m] = _ipc(self.unit**m, self.kernel, self.oversampling)
         return self._cache[m]
+
+    def seed(self, m: int, coupled: np.ndarray) -> None:
+        """Give IPC(psi^m) already computed (by ``_ipc`` on the same stamps and kernel)."""
+        self._cache[m] = coupled
 
     def below(self, scale: float, background: float, threshold: float, state, pick, saturation_beta=None) -> bool:
         """Whether no pixel's coupled signal can reach ``threshold`` (no resultant saturates): the
@@ -107,6 +116,49 @@ class CoupledPowers:
             term = term[pick] if m else term
             out = out + math.comb(n, m) * scale**m * background ** (n - m) * term
         return np.broadcast_to(out, self.unit[pick].shape) if np.ndim(out) == 0 else out
+
+    def at_pixels(self, scale: float, background: float, n: int, pick, flat: np.ndarray) -> np.ndarray:
+        """:meth:`at` at the pixels ``flat`` (indices into the flattened stamps ``pick``): the same
+        arithmetic per pixel, so the same numbers as ``at(...).ravel()[flat]``."""
+        out = 0.0
+        for m in range(n, -1, -1):
+            term = self.unit_power(m)[pick].reshape(-1)[flat] if m else self.unit_power(m)
+            out = out + math.comb(n, m) * scale**m * background ** (n - m) * term
+        return np.broadcast_to(out, flat.shape) if np.ndim(out) == 0 else out
+
+    def _reaching(self, pick, cut: float) -> np.ndarray | None:
+        """Flat indices (ascending) of the pixels of the stamps ``pick`` with IPC(psi) >= ``cut``; None
+        when ``pick`` is no slice. A pool of the pixels above the lowest cut asked so far is kept
+        per slice (a table asks from its brightest magnitude, the lowest cut, down), so a cut costs
+        a pass over the pool, not over the stamps."""
+        if not isinstance(pick, slice):
+            return None
+        key = ("pool", pick.start, pick.stop, pick.step)
+        pool = self._cache.get(key)
+        if pool is None or cut < pool[0]:
+            values = np.asarray(self.unit_power(1)[pick]).reshape(-1)
+            where = np.flatnonzero(values >= cut)
+            pool = self._cache[key] = (cut, where, values[where])
+        _, where, values = pool
+        return where[values >= cut]
+
+    def may_reach(self, scale: float, background: float, threshold: float, pick, state) -> np.ndarray | None:
+        """Flat indices (into the stamps ``pick``) of every pixel whose coupled signal can reach
+        ``threshold`` in some resultant, and a few more; None when that cannot be bounded this way.
+
+        With NL coefficients >= 0, a kernel >= 0, psi >= 0 and B >= 0 every coupled power IPC(Q^n) is
+        a sum of non-negative terms, so each read's signal is at most the measured charge IPC(Q); that
+        is s IPC(psi) + B sum K, rising with IPC(psi), and the pixels where it can reach the threshold
+        are those with IPC(psi) >= (threshold - B sum K) / s, taken here with a 1e-9 relative margin
+        (rounding moves it by ~1e-16) and tested exactly by the caller."""
+        if any(b < 0 for b in state) or np.any(np.asarray(self.kernel) < 0) or background < 0 or scale <= 0:
+            return None
+        if "unit_min" not in self._cache:
+            self._cache["unit_min"] = float(np.min(self.unit))
+        if self._cache["unit_min"] < 0:
+            return None
+        cut = (threshold - background * self.unit_power(0)) / scale
+        return self._reaching(pick, cut - 1e-9 * abs(cut))
 
 
 def _ipc(images: np.ndarray, kernel, oversampling: int) -> np.ndarray:
@@ -166,6 +218,7 @@ def scene_factors_coupled(
     orders: Sequence[int],
     pick=slice(None),
     margin: int = 0,
+    region: np.ndarray | None = None,
 ) -> tuple[SceneRamp, np.ndarray]:
     """:func:`scene_factors` for IPC after the NL, on Q = ``scale`` psi + ``background`` (psi the unit
     stamps of ``powers``, realizations ``pick``), with every coupled image from ``powers``; and the
@@ -174,29 +227,45 @@ def scene_factors_coupled(
     ``margin`` > 0: the factors (the per-pixel optimal weights, most of the cost), the charge and its
     coupled powers only on the stamps' central core, ``margin`` pixels in from every side (outside the
     moments' weight window they multiply nothing); the SceneRamp's ``whole`` computes the rest.
+    ``region`` (boolean, the core's shape): the factors only there, 0 elsewhere (``SceneRamp.region``).
 
     Under the "signal" rule each read's coupled signal is D(tau) = tau IPC(Q) - sum_n b_n tau^n IPC(Q^n)
     (IPC is linear and the NL a polynomial), so resultant j is IPC(Q) <tau>_j - sum_n b_n IPC(Q^n) <tau^n>_j:
     the same resultants as coupling every read (:func:`_usable_after_ipc`), from one coupled image per order."""
-    total = scale * powers.unit[pick] + background
     orders = tuple(orders)
-    n = total.shape[-1]
+    shape = powers.unit[pick].shape
+    n = shape[-1]
     core = (Ellipsis, slice(margin, n - margin), slice(margin, n - margin))
     rows = pick if margin == 0 else (pick, slice(margin, n - margin), slice(margin, n - margin))
+    # The charge on the core only (elementwise, so the same numbers as the whole stamps' core).
+    charge = scale * powers.unit[rows] + background
     if ramp.saturation == "charge":
-        usable = usable_resultants(total, ramp, exptime_s, full_well_e, state)
+        usable = usable_resultants(scale * powers.unit[pick] + background, ramp, exptime_s, full_well_e, state)
     elif powers.below(scale, background, full_well_e, state, pick, ramp.saturation_beta):
-        usable = np.full(total.shape, _all_kept(ramp), dtype=np.int32)
+        # No resultant saturates anywhere: one value for every pixel (read-only, no per-pixel work).
+        usable = np.broadcast_to(np.int32(_all_kept(ramp)), shape)
     else:
-        measured = powers.at(scale, background, 1, pick)
-        usable = _usable_coupled(powers, scale, background, measured, ramp, exptime_s, full_well_e, state, pick)
-    factors = _factors_for(powers.at(scale, background, 1, rows), usable[core], ramp, exptime_s, orders)
+        usable = _usable_coupled(powers, scale, background, ramp, exptime_s, full_well_e, state, pick)
+    rate = powers.at(scale, background, 1, rows)
+    if region is None:
+        factors = _factors_for(rate, usable[core], ramp, exptime_s, orders)
+    else:
+        # Per pixel the factors are the pixel's own (its rate and usable resultants), so computing
+        # fewer pixels gives the same numbers on those.
+        inside = np.flatnonzero(region)
+        one = usable[(0,) * usable.ndim] if usable.size and not any(usable.strides) else None
+        if one is not None:
+            kept = np.full(inside.size, one, dtype=np.int32)
+        else:
+            kept = np.ascontiguousarray(usable[core]).reshape(-1)[inside]
+        factors = np.zeros((len(orders), *rate.shape))
+        factors.reshape(len(orders), -1)[:, inside] = _factors_for(rate.reshape(-1)[inside], kept, ramp, exptime_s, orders)
     coupled = {n: powers.at(scale, background, n, rows) for n in orders}
     whole = None
     if margin:
         args = (powers, scale, background, ramp, exptime_s, full_well_e, state, orders, pick)
         whole = lambda: scene_factors_coupled(*args)[0]  # noqa: E731
-    return SceneRamp(factors, usable[core], total[core], orders, coupled, margin, whole), usable
+    return SceneRamp(factors, usable[core], charge, orders, coupled, margin, whole, region), usable
 
 
 def _all_kept(ramp: Ramp) -> int:
@@ -205,27 +274,46 @@ def _all_kept(ramp: Ramp) -> int:
     return 0 if K == 1 and ramp.single_resultant == "unusable" else K
 
 
-def _usable_coupled(powers: CoupledPowers, scale, background, measured, ramp: Ramp, exptime_s, threshold, state, pick):
-    """The "signal" rule on coupled reads, each resultant from the coupled powers (see above)."""
+def _usable_coupled(powers: CoupledPowers, scale, background, ramp: Ramp, exptime_s, threshold, state, pick):
+    """The "signal" rule on coupled reads, each resultant from the coupled powers (see above).
+
+    Only pixels whose measured signal can reach the threshold need their resultants; where
+    :meth:`CoupledPowers.may_reach` bounds them, only those pixels are computed at all."""
     state = tuple(state)
     if ramp.saturation_beta is not None:
         state = (ramp.saturation_beta, *state[1:])
     state_orders = range(2, 2 + len(state))
-    terms = [(b, n, powers.at(scale, background, n, pick)) for b, n in zip(state, state_orders, strict=True) if b != 0]
+    K = ramp.table.n_resultants
+    usable = np.full(powers.unit[pick].shape, K, dtype=np.int32)
+    pixels = powers.may_reach(scale, background, threshold, pick, state)
+    if pixels is None:  # every pixel, as coupled images
+        measured = powers.at(scale, background, 1, pick)
+        terms = [(b, n, powers.at(scale, background, n, pick)) for b, n in zip(state, state_orders, strict=True) if b != 0]
+        target = usable
+    else:
+        measured = powers.at_pixels(scale, background, 1, pick, pixels)
+        terms = [
+            (b, n, powers.at_pixels(scale, background, n, pick, pixels))
+            for b, n in zip(state, state_orders, strict=True)
+            if b != 0
+        ]
+        target = np.full(pixels.shape, K, dtype=np.int32)
     final = measured
     for b, _, coupled in terms:
         final = final - b * coupled
-    usable = np.full(measured.shape, ramp.table.n_resultants, dtype=np.int32)
-    # As in usable_resultants: only pixels whose measured signal can reach the threshold need their resultants.
     candidates = (measured >= threshold) | (final >= threshold)
     if np.any(candidates):
         mean_tau = ramp.table.mean_powers(exptime_s, (1, *(n for _, n, _ in terms)))
         resultants = measured[candidates][:, None] * mean_tau[0]
         for row, (b, _, coupled) in enumerate(terms, start=1):
             resultants = resultants - b * coupled[candidates][:, None] * mean_tau[row]
-        usable[candidates] = signal_usable(resultants, ramp.table, threshold)
+        target[candidates] = signal_usable(resultants, ramp.table, threshold)
     if ramp.single_resultant == "unusable":
-        usable = np.where(usable == 1, 0, usable).astype(np.int32)
+        target[target == 1] = 0
+    if pixels is not None:
+        usable.reshape(-1)[pixels] = target
+        if K == 1 and ramp.single_resultant == "unusable":
+            usable[...] = np.where(usable == 1, 0, usable)
     return usable
 
 
@@ -262,9 +350,14 @@ def scene_perturbation(
     q = sr.charge
     coefficients = (beta, *higher)
     perturbation = np.zeros(np.shape(q))
-    power = q * q
+    orders = range(2, 2 + len(coefficients))
+    all_coupled = (
+        after and sr.coupled is not None and all(np.ndim(b) == 0 for b in coefficients) and all(n in sr.coupled for n in orders)
+    )
+    # Q^n only where some term needs it (every order coupled already with a uniform beta: none).
+    power = None if all_coupled else q * q
     derivative = None
-    for n, b in zip(range(2, 2 + len(coefficients)), coefficients, strict=True):
+    for n, b in zip(orders, coefficients, strict=True):
         c = sr.factors[sr.orders.index(n)]
         coupled = sr.coupled.get(n) if after and sr.coupled is not None else None
         uncoupled = coupled is None
@@ -277,5 +370,6 @@ def scene_perturbation(
                 perturbation = perturbation - c * (b * coupled)
             else:
                 perturbation = perturbation - c * (_ipc(b * power, ipc, oversampling) if after else b * power)
-        power = power * q
+        if power is not None:
+            power = power * q
     return perturbation, derivative

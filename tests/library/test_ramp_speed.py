@@ -124,7 +124,7 @@ def test_coupled_scene_factors_equal_coupling_every_read(saturation, coefficient
         assert np.allclose(whole, reference, rtol=1e-11, atol=1e-13 * np.abs(reference).max())
 
 
-def _old_path(powers, scale, background, ramp, exptime_s, full_well_e, state, orders, pick=slice(None), margin=0):
+def _old_path(powers, scale, background, ramp, exptime_s, full_well_e, state, orders, pick=slice(None), margin=0, region=None):
     """What the Roman scene did before: every read of every pixel coupled, the whole stamps."""
     charge = scale * powers.unit[pick] + background
     sr = ramps.scene_factors(charge, ramp, exptime_s, full_well_e, state, orders, powers.kernel, "after", powers.oversampling)
