@@ -85,3 +85,19 @@ def test_the_paper_scene_answers_extreme_tolerances(client):
         assert answer["binding_limit"] == "nonlinearity"
         if code:
             assert code in answer["flag_codes"]
+
+
+def test_the_position_describes_the_default_alike_in_solve_batch_and_page_csv(client):
+    from nlpsf import roman_default
+
+    row = {"band": "H158", "magnitude": 19.0, "precision": 0.01, "scene": {"position": [1000, 3000]}}
+    single = client.post("/api/v1/solve", json=row).json()
+    batch = client.post("/api/v1/solve/batch", json={"requests": [row]}).json()["results"][0]["solution"]
+    text = "band,position,precision,magnitude\nH158,1000 3000,0.01,19\n"
+    page = client.post("/api/v1/page/batch", content=text, headers={"Content-Type": "text/csv"}).json()
+    page_row = page["results"][0]["solution"]
+    sky = roman_default.fill(roman_default.NAME, "H158", 18, None, None, None, None).background_e
+    own = roman_default.scene((1000.0, 3000.0), sky)  # the library's own default scene at the position
+    for answer in (single, batch, page_row):
+        assert answer["conditions"]["scene_description"] == own.describe()
+        assert answer["conditions"]["scene"]["name"] == roman_default.NAME
