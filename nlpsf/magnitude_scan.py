@@ -31,6 +31,8 @@ from .flags import Flag, FlagCode, make
 _H = 0.01
 #: How far brighter than the scan's faint end its trend is read (:func:`_falls_fainter`) [mag].
 _TREND_MAG = 0.5
+#: Step of a simulated scene's own scan fainter than resultants saturate, where it has a sky [mag].
+_SKY_STEP = 0.5
 
 
 class ToleranceUnreachable(InputError):
@@ -167,15 +169,26 @@ def _final_frame_grid(slopes) -> _Grid:
 def _ramp_grid(slopes, required: float, m_sat: float) -> _Grid:
     """Fainter than where the brightest pixel starts dropping resultants, |c(m)| at once from the
     tables at the OLS beta_eff on a 0.05 mag grid (exact for an OLS fit, a bracket for the optimal
-    one); brighter, down to the ramp's saturation magnitude, from the slopes themselves on a 0.25 mag
-    grid (fresh simulations), only when the crossing is not already in the table part."""
+    one; a simulated scene with a sky: its own slopes on a 0.5 mag grid); brighter, down to the
+    ramp's saturation magnitude, from the slopes themselves on a 0.25 mag grid (fresh simulations),
+    only when the crossing is not already in the table part."""
     hi = slopes.range()[1]
     exact = min(slopes.exact_from(), hi)
     c_ols = slopes.ramp.ols_quadratic_factor(slopes.exptime)
     table = slopes.table
-    faint_grid = np.arange(hi, exact - 1e-9, -0.05)
-    shift = table.magnitude_shift(slopes.exptime, c_ols * slopes.beta0)
-    faint_values = table.values(slopes.metric, slopes.mode, faint_grid - shift) * (table.beta0 / slopes.beta0)
+    scene = slopes.scene_model
+    if scene is not None and scene.background_e > 0 and not (slopes.fidelity == "table" and slopes.ramp_factor is not None):
+        # A sky's own NL (a pedestal, docs/ramps.md) gives the scene's c(m) another shape than the
+        # paper tables' -- a sign change and growth toward faint stars -- so they bracket nothing:
+        # the scene's own slopes on a :data:`_SKY_STEP` grid (about 20 fresh magnitudes, ~0.5 CPU-s once
+        # prepared). Away from saturation c(m) is a star term and a sky term, each a power of the flux, so
+        # |c| is largest at a step's ends and the grid's nodes hold the promise between them.
+        faint_grid = np.arange(hi, exact - 1e-9, -_SKY_STEP)
+        faint_values = np.array([slopes.at(float(m))[0] for m in faint_grid])
+    else:
+        faint_grid = np.arange(hi, exact - 1e-9, -0.05)
+        shift = table.magnitude_shift(slopes.exptime, c_ols * slopes.beta0)
+        faint_values = table.values(slopes.metric, slopes.mode, faint_grid - shift) * (table.beta0 / slopes.beta0)
     bright_grid = np.arange(exact - 0.25, m_sat - 1e-9, -0.25)
     if bright_grid.size == 0 or bright_grid[-1] > m_sat + 1e-9:
         bright_grid = np.append(bright_grid, m_sat)

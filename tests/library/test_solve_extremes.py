@@ -122,3 +122,15 @@ def test_the_cli_names_the_option(capsys):
     assert cli.main([*argv, "--position", "1000,3000"]) == 2
     assert "--tolerance" in capsys.readouterr().err
     assert cli.main([*argv, "--scene", "paper"]) == 0
+
+
+def test_a_simulated_default_refuses_alike_and_its_bound_is_its_own_slope_there():
+    # Another beta0 than the grid's: the default is simulated, and its scan reads its own slopes
+    # (the paper tables' c(m) has neither its sign change nor its growth toward faint stars).
+    body = {"band": "H158", "precision": PRECISION, "beta0": 1e-6, "scene": {"position": list(POSITION)}}
+    with pytest.raises(InputError) as raised:
+        answer(SolveRequest.from_json({**body, "tolerance": 1e-7}))
+    assert raised.value.argument == "tolerance"
+    # The bound is the NL error of a star at that faintest magnitude, solved for directly.
+    there = answer(SolveRequest.from_json({**body, "magnitude": raised.value.faintest}))
+    assert math.isclose(raised.value.smallest, there.tolerance, rel_tol=1e-9)
