@@ -38,6 +38,17 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
     plain = request.ramp is None and request.scene is None and body.over_field is None and tables_pupil
     if plain and request.fidelity in (None, "table") and request.accuracy is None:
         return SafeJSONResponse(solver.answer(request).to_dict())
+    if body.over_field is None:
+        # Whatever the tables or the Roman default's field grid answer is answered here, whatever the
+        # scene: the cost of the answer decides, not its name. The batch's own check and answer
+        # (``batch.answer_from_tables``: the plan read first, a simulation refused before it starts),
+        # off the event loop (a range over the SCA reads nine nodes: tens of milliseconds), not a job.
+        try:
+            answer = await run_in_threadpool(batch.answer_from_tables, request)
+        except batch.NeedsSimulation:
+            pass  # it needs a fresh simulation: a job, below
+        else:
+            return SafeJSONResponse(answer.to_dict())
     over_field_tables = solver.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
     if tables_pupil and body.over_field is not None and over_field_tables:
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
@@ -48,9 +59,10 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
         answer = await run_in_threadpool(solver.solve_over_field, band, scas, filled_for=sca, **rest)
         return SafeJSONResponse(answer.to_dict())
     # What remains -- a simulating level, an accuracy (its effects are measured by simulation even
-    # when the table level meets it), a ramp, a scene, or an over-field answer the field-point tables
-    # do not hold -- is a job like any other simulation (queue, limits, idle priority), validated
-    # completely at table cost first, never work inside this HTTP worker.
+    # when the table level meets it), a ramp, scene, exposure or rule neither the tables nor the
+    # field grid hold, or an over-field answer the field-point tables do not hold -- is a job like
+    # any other simulation (queue, limits, idle priority), validated completely at table cost first,
+    # never work inside this HTTP worker.
     job = job_kinds.KINDS[job_kinds.SOLVE_KIND].validate(raw, body.model_fields_set, services.settings)
     return await job_answer(services, caller, job)
 

@@ -630,9 +630,7 @@ def from_options(
         changes["background_e"] = background
     if n_wavelengths is not None:
         changes["n_wavelengths"] = n_wavelengths
-    if not changes:
-        return scene
-    return replace(scene, name=None, **changes)
+    return moved_or_changed(scene, changes)
 
 
 def check_first_order(scene: SceneModel, full_well: float) -> None:
@@ -713,4 +711,16 @@ def from_request(fields_: dict | None, base: SceneModel | None = None) -> SceneM
             changes[renames[key]] = value
         else:
             raise InputError("scene", f"unknown scene field {key!r}")
-    return replace(base, name=None, **changes) if changes else base
+    return moved_or_changed(base, changes)
+
+
+def moved_or_changed(base: SceneModel, changes: dict) -> SceneModel:
+    """``base`` with ``changes``, as every builder of a scene applies them: another scene, unnamed,
+    when an effect changes; the same named scene when only its position moves (a preset at a point
+    of the field is still that preset, as ``replace(scene, position=...)`` keeps it for the SCA range
+    and the over-field answers), so that it describes itself alike however the position was given.
+    A field given at the value it already has (an API body's ``sed_units`` default) changes nothing."""
+    if not changes:
+        return base
+    same = all(getattr(base, key) == value for key, value in changes.items() if key != "position")
+    return replace(base, name=base.name if same else None, **changes)

@@ -410,7 +410,8 @@ def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dic
     """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation."""
     averaging = 1.0 / math.sqrt(request.stars)  # scatter: the PSF model averages `stars` independent draws
     precision, tolerance, beta0 = request.precision, request.target_tolerance, request.beta0
-    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation)
+    field = "tolerance" if request.budget is None else f"shear_{request.budget.kind}"
+    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation, field)
     flags += scan.flags
     m_nl, slope, slope_err, log_derivative = scan.magnitude, scan.slope, scan.slope_error, scan.log_derivative
     magnitude, binding = _binding(m_nl, limits.saturation, flags)
