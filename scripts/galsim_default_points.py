@@ -172,6 +172,38 @@ def run_point(index, point, args) -> dict:
     return row
 
 
+def _pct(value) -> str:
+    return "—" if value is None or not math.isfinite(value) else f"{100 * value:+.2f} %"
+
+
+def table(rows: list[dict]) -> str:
+    """The markdown table docs/validation.md carries: one line per point, every check's number."""
+    lines = [
+        "| # | band | SCA | position | m | metric | peer slope (centroid s.e.) | (a) polychromatic | (b) accuracy 0.01 "
+        "(allowed) | (c) default (quoted) | nlpsf linear vs default |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        if "checks" not in row:
+            lines.append(f"| {row.get('index', '?')} | failed: {str(row.get('error'))[:80]} |")
+            continue
+        p, c, peer = row["point"], row["checks"], row["peer"]
+
+        def mark(check):
+            return "" if check.get("met", True) else " **miss**"
+
+        a, b = c.get("a_polychromatic", {}), c.get("b_accuracy", {})
+        q, close = c.get("c_default_quoted", {}), c.get("c_default_close", {})
+        lines.append(
+            f"| {row['index']} | {p['band']} | {p['sca']} | ({p['position'][0]:.0f}, {p['position'][1]:.0f}) | "
+            f"{p['magnitude']:.2f} | {p['metric']} | {peer['slope']:.5g} ({peer['centroid_stderr']:.2g}) | "
+            f"{_pct(a.get('relative'))}{mark(a)} | {_pct(b.get('relative'))} ({_pct(b.get('target'))}){mark(b)} | "
+            f"{_pct(q.get('relative'))} ({_pct(q.get('quoted_relative'))}){mark(q)}{mark(close)} | "
+            f"{_pct(c.get('c_default_vs_nlpsf_linear', {}).get('relative'))} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=4)
@@ -181,7 +213,11 @@ def main(argv=None) -> int:
     parser.add_argument("--pupil-oversampling", type=float, default=2.0)
     parser.add_argument("--realizations", type=int, default=None, help="peer centroids (default: the answer's)")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--table", action="store_true", help="print the markdown table of --out and stop")
     args = parser.parse_args(argv)
+    if args.table:
+        print(table(json.loads(args.out.read_text())["rows"]))
+        return 0
     rng = np.random.default_rng(args.seed)
     points = [draw_point(rng) for _ in range(args.points)]
     rows = json.loads(args.out.read_text())["rows"] if args.first and args.out.exists() else []
