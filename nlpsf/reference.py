@@ -19,6 +19,7 @@ returns sigma and e1, e2 rounded to float32.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass
@@ -231,3 +232,340 @@ def galsim_electrons(band: str, magnitude: float, exptime_s: float) -> tuple[flo
     bandpass = galsim.roman.getBandpasses(AB_zeropoint=True)[band]
     theirs = 10 ** (-0.4 * (magnitude - bandpass.zeropoint)) * galsim.roman.collecting_area * exptime_s
     return theirs, float(photometry.magnitude_to_electrons(magnitude, band, exptime_s, sca=18, throughput="galsim-2021"))
+
+
+# --- the Roman default's scene, by GalSim's route -------------------------------------------------
+#
+# The peer of ``nlpsf solve`` with the Roman default (nlpsf/roman_default.py): optics at the position
+# with the official pupil scale, a blackbody star through the SCA's official bandpass, jitter and
+# charge diffusion as Gaussians, IPC after the NL, a background, an MA table read up the ramp with
+# romancal's saturation flags and an OLS or optimal (likelihood) fit, and the slope taken at the
+# corrected state. Nothing below imports nlpsf's physics: GalSim draws and measures, the ramp is read
+# read by read here (written from the physics as tests/library/test_ramps_readout.py's brute force
+# is, vectorised over pixels), and the data files (pupil clear areas, effective areas) are read
+# directly. The numbers a request fixes (MA table, read noise, background, beta0) are arguments.
+
+#: Roman's collecting-area reference for the official bandpass: throughput = A_eff / 1 m^2.
+_AREA_REFERENCE_M2 = 1.0
+
+
+def official_bandpass(band: str, sca: int):
+    """The SCA's official effective-area curve (roman-technical-information v8) as a GalSim Bandpass
+    with throughput A_eff / 1 m^2 and the AB zeropoint, read from the vendored file."""
+    import gzip
+
+    import galsim
+
+    from .roman import OFFICIAL_FILTER_NAMES, official_data_dir
+
+    path = official_data_dir() / f"Roman_effarea_v8_SCA{sca:02d}_20240301.ecsv.gz"
+    with gzip.open(path, "rt") as handle:
+        lines = [line for line in handle if line.strip() and not line.startswith("#")]
+    names = [name.strip() for name in lines[0].split(",")]
+    data = np.loadtxt(lines[1:], delimiter=",")
+    wave_nm = 1000.0 * data[:, names.index("Wave")]
+    area = data[:, names.index(OFFICIAL_FILTER_NAMES[band])]
+    keep = np.flatnonzero(area > 0)
+    lo, hi = max(keep[0] - 1, 0), min(keep[-1] + 1, area.size - 1)
+    table = galsim.LookupTable(wave_nm[lo : hi + 1], area[lo : hi + 1] / _AREA_REFERENCE_M2, interpolant="linear")
+    return galsim.Bandpass(table, wave_type="nm").withZeropoint("AB")
+
+
+def official_clear_area_m2(band: str, sca: int) -> float:
+    """The official clear area of the pupil mask ``band`` uses on ``sca`` (``exit_pupil_clear``, m^2),
+    read with astropy's ECSV reader from the vendored roman-technical-information file."""
+    import galsim.roman
+    from astropy.table import Table
+
+    from .roman import OFFICIAL_PUPIL_FILES, official_pupil_dir
+
+    kind = "long" if band in galsim.roman.longwave_bands else "short"
+    table = Table.read(official_pupil_dir() / OFFICIAL_PUPIL_FILES[kind], format="ascii.ecsv")
+    row = [r for r in table if str(r["sca"]).strip() == str(sca)]
+    return float(row[0]["exit_pupil_clear"])
+
+
+@dataclass(frozen=True)
+class PeerRamp:
+    """An MA table as the peer reads it: read indices per resultant (1-based frames), the frame time,
+    the read noise per read, the fit ("ols" or "optimal") and the saturation level of the read signal."""
+
+    resultants: tuple[tuple[int, ...], ...]
+    frame_time_s: float
+    read_noise_e: float
+    fit: str = "optimal"
+    saturation_e: float = 1.1e5
+
+    @property
+    def exptime_s(self) -> float:
+        return self.resultants[-1][-1] * self.frame_time_s
+
+    def tbar(self) -> np.ndarray:
+        """Mean read time of each resultant in units of the exposure."""
+        return np.array([np.mean(r) * self.frame_time_s for r in self.resultants]) / self.exptime_s
+
+
+def romancal_usable(resultants: np.ndarray, ramp: PeerRamp) -> np.ndarray:
+    """Usable resultants per pixel (the first flagged one's index) by romancal's saturation step as
+    documented (stcal 1.20 flag_saturated_pixels: threshold, dilution pass, second-resultant pass),
+    vectorised over pixels; a pixel left with one resultant has no slope (0: unusable).
+    ``resultants``: (K, pixels) read signals."""
+    R = np.asarray(resultants, dtype=np.float64)
+    K, threshold = R.shape[0], ramp.saturation_e
+    saturated = np.maximum.accumulate(threshold <= R, axis=0)
+    flagged = saturated.copy()
+    for j in range(K - 2, -1, -1):
+        reads = ramp.resultants[j]
+        dilution = np.mean(reads) / reads[-1]
+        if dilution != 1:
+            flagged[j] |= saturated[j + 1] & (R[j] >= threshold * dilution)
+    if K > 2:
+        r1, r2 = R[0], R[1]
+        jump = (
+            (r1 / np.mean(ramp.resultants[0]) * ramp.resultants[2][-1] < threshold)
+            & (r2 - r1 > (threshold - r1) / len(ramp.resultants[1]))
+            & saturated[2]
+            & ~saturated[1]
+        )
+        flagged[1] |= jump
+    usable = np.where(flagged.any(axis=0), np.argmax(flagged, axis=0), K)
+    return np.where(usable == 1, 0, usable)
+
+
+def _resultant_covariance_parts(ramp: PeerRamp) -> tuple[np.ndarray, np.ndarray]:
+    """(A, D): cov(R_i, R_j) = total charge x A_ij + read_noise^2 x D_ij, built read by read (Poisson
+    counts are cumulative, cov(Q_a, Q_b) = rate min(t_a, t_b); read noise independent per read)."""
+    K = len(ramp.resultants)
+    A, D = np.zeros((K, K)), np.zeros((K, K))
+    for i, ri in enumerate(ramp.resultants):
+        for j, rj in enumerate(ramp.resultants):
+            a = np.array(ri, dtype=float)[:, None]
+            b = np.array(rj, dtype=float)[None, :]
+            A[i, j] = np.mean(np.minimum(a, b)) * ramp.frame_time_s / ramp.exptime_s
+            D[i, j] = np.mean(a == b)
+    return A, D
+
+
+def fit_ramp(resultants: np.ndarray, usable: np.ndarray, measured: np.ndarray, ramp: PeerRamp) -> np.ndarray:
+    """Fitted image (slope x exposure, e-) per pixel from its usable resultants: OLS or the generalised
+    least-squares (likelihood) fit with the covariance at the measured linear charge; a pixel with no
+    slope reports its first resultant over its mean time. ``resultants``: (K, pixels)."""
+    R = np.asarray(resultants, dtype=np.float64)
+    t = ramp.tbar()
+    out = R[0] / t[0]
+    A, D = _resultant_covariance_parts(ramp)
+    for k in np.unique(usable):
+        if k < 2:
+            continue
+        pix = np.flatnonzero(usable == k)
+        X = np.stack([np.ones(k), t[:k]], axis=1)
+        y = R[:k, pix].T  # (P, k)
+        if ramp.fit == "ols":
+            out[pix] = np.linalg.lstsq(X, y.T, rcond=None)[0][1]
+            continue
+        C = measured[pix, None, None] * A[None, :k, :k] + ramp.read_noise_e**2 * D[None, :k, :k]
+        Ci = np.linalg.inv(C)
+        XtCi = np.einsum("ka,pkl->pal", X, Ci)  # (P, 2, k)
+        normal = XtCi @ X  # (P, 2, 2)
+        rhs = np.einsum("pal,pl->pa", XtCi, y)
+        out[pix] = np.linalg.solve(normal, rhs[..., None])[:, 1, 0]
+    return out
+
+
+@dataclass
+class RampSlopes:
+    """Per-centroid slopes d metric / d beta of the peer at the corrected state, and what was read."""
+
+    dR_over_R: np.ndarray
+    de1: np.ndarray
+    de2: np.ndarray
+    fitted_on_fewer: np.ndarray  # pixels per centroid fitted on fewer than all resultants
+    unusable: np.ndarray  # pixels per centroid without a slope
+    beta_points: tuple[float, float]
+    elapsed_s: float
+
+    def mean(self, metric: str) -> tuple[float, float]:
+        values = getattr(self, metric)
+        return float(np.mean(values)), float(np.std(values, ddof=1) / math.sqrt(values.size))
+
+
+class GalSimRomanDefault:
+    """GalSim's peer of the Roman default scene for one (band, SCA, position): the PSF integrated over
+    the band (midpoint rule in ``n_waves`` equal bins, each bin's weight the star's photons through
+    the bandpass there, GalSim's ``SED.calculateFlux``), the official pupil scale, jitter and diffusion,
+    the ramp read by read with IPC after the NL (GalSim's ``applyIPC``), HSM moments.
+
+    The monochromatic OpticalPSFs are built one at a time (GalSim's ``ChromaticOpticalPSF.interpolate``
+    at a padded pupil held ~1.5 GB per wavelength); ``pupil_oversampling`` pads GalSim's pupil plane
+    (see the module's note)."""
+
+    def __init__(
+        self,
+        band: str,
+        sca: int,
+        sca_pos: tuple[float, float],
+        temperature_k: float = 5270.0,
+        jitter_arcsec: float = 0.006,
+        diffusion_px: float = 0.332,
+        n_waves: int = 16,
+        pupil_oversampling: float = 2.0,
+        oversampling: int = 3,
+        stamp: int = 96,
+        weight_cut_rho2: float = 25.0,
+        ipc: bool = True,
+    ):
+        import galsim
+        import galsim.roman
+
+        self.galsim = galsim
+        self.band, self.sca, self.sca_pos = band, sca, sca_pos
+        self.oversampling, self.stamp = oversampling, stamp
+        self.scale = galsim.roman.pixel_scale / oversampling
+        self.bandpass = official_bandpass(band, sca)
+        h, c, k = 6.62607015e-34, 2.99792458e8, 1.380649e-23
+
+        def planck(wave_nm):
+            lam = np.asarray(wave_nm) * 1e-9
+            return 1.0 / lam**5 / np.expm1(h * c / (lam * k * temperature_k))
+
+        self.sed = galsim.SED(galsim.LookupTable(*_planck_table(planck, self.bandpass)), "nm", "flambda")
+        self.blurs = [s for s in (jitter_arcsec, diffusion_px * galsim.roman.pixel_scale) if s > 0]
+        self.n_waves, self.pupil_oversampling = n_waves, pupil_oversampling
+        self.ipc_kernel = galsim.roman.ipc_kernel.copy() if ipc else None
+        self.hsm = galsim.hsm.HSMParams(convergence_threshold=weight_cut_threshold(weight_cut_rho2), max_mom2_iter=10000)
+        self.pupil_scale_m = None  # set by _aperture
+
+    def electrons(self, magnitude: float, exptime_s: float) -> float:
+        """Electrons of an AB magnitude through the official bandpass (SED-independent for AB in-band)."""
+        return 10 ** (-0.4 * (magnitude - self.bandpass.zeropoint)) * _AREA_REFERENCE_M2 * 1e4 * exptime_s
+
+    def _aperture(self):
+        import os
+
+        galsim = self.galsim
+        from galsim.roman import roman_psfs
+
+        longwave = self.band in galsim.roman.longwave_bands
+        mask = roman_psfs.pupil_plane_file_longwave if longwave else roman_psfs.pupil_plane_file_shortwave
+        path = os.path.join(galsim.meta_data.share_dir, "roman", f"{mask}{self.sca}{roman_psfs.pupil_plane_filesuff}")
+        image = galsim.fits.read(path).bin(4, 4).flip_ud()
+        # The official rule: the binned mask as GalSim uses it (a pixel open if any sub-pixel is)
+        # has the official clear area of this mask and SCA.
+        n_open = int(np.count_nonzero(image.array > 0))
+        self.pupil_scale_m = math.sqrt(official_clear_area_m2(self.band, self.sca) / n_open)
+        return galsim.Aperture(
+            lam=self.bandpass.blue_limit,
+            diam=galsim.roman.diameter,
+            pupil_plane_im=image,
+            pupil_plane_scale=self.pupil_scale_m,
+            oversampling=self.pupil_oversampling,
+        )
+
+    def wavelength_bins(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centre wavelengths [nm], weights summing to 1): the star's photons in each equal bin."""
+        edges = np.linspace(self.bandpass.blue_limit, self.bandpass.red_limit, self.n_waves + 1)
+        flux = np.array([self.sed.calculateFlux(self.bandpass.truncate(a, b)) for a, b in itertools.pairwise(edges)])
+        return 0.5 * (edges[:-1] + edges[1:]), flux / flux.sum()
+
+    def unit_stamps(self, offsets: np.ndarray) -> np.ndarray:
+        """(R, stamp, stamp) unit-flux images (x N^2: each fine pixel the charge of a native pixel at
+        that sub-pixel phase) at each centroid offset [fine pixels], band-integrated."""
+        galsim = self.galsim
+        from galsim.roman import roman_psfs
+
+        aperture = self._aperture()
+        table, x, y = roman_psfs._read_aberrations(self.sca)
+        aberrations = roman_psfs._interp_aberrations_bilinear(table, x, y, galsim.PositionD(*self.sca_pos))
+        aberrations[:4] = 0.0
+        waves, weights = self.wavelength_bins()
+        stamps = np.zeros((len(offsets), self.stamp, self.stamp))
+        for wave, weight in zip(waves, weights, strict=True):
+            psf = galsim.OpticalPSF(
+                lam=wave, diam=galsim.roman.diameter, aberrations=aberrations * roman_psfs.zemax_wavelength / wave, aper=aperture
+            )
+            parts = [psf, galsim.Pixel(galsim.roman.pixel_scale)] + [galsim.Gaussian(sigma=s) for s in self.blurs]
+            effective = galsim.Convolve(parts)
+            for r, (dx, dy) in enumerate(np.asarray(offsets, dtype=np.float64)):
+                image = effective.drawImage(
+                    nx=self.stamp, ny=self.stamp, scale=self.scale, method="no_pixel", offset=(dx, dy), dtype=np.float64
+                )
+                stamps[r] += weight * image.array
+            del psf, effective
+        return stamps * self.oversampling**2
+
+    def _ipc(self, array: np.ndarray) -> np.ndarray:
+        """GalSim's applyIPC on each native-pixel image the oversampled stamp interleaves."""
+        if self.ipc_kernel is None:
+            return array
+        out = array.copy()
+        n = self.oversampling
+        for a in range(n):
+            for b in range(n):
+                native = self.galsim.Image(np.ascontiguousarray(array[a::n, b::n]))
+                native.applyIPC(self.ipc_kernel, edge_treatment="extend")
+                out[a::n, b::n] = native.array
+        return out
+
+    def _resultants(self, charge: np.ndarray, ramp: PeerRamp, beta: float) -> np.ndarray:
+        """(K, pixels) resultants: every read's signal Q tau - beta (Q tau)^2, coupled by IPC (after
+        the NL), averaged over the resultant's reads."""
+        out = []
+        for reads in ramp.resultants:
+            acc = np.zeros_like(charge)
+            for index in reads:
+                q = charge * (index * ramp.frame_time_s / ramp.exptime_s)
+                acc += self._ipc(q - beta * q * q)
+            out.append((acc / len(reads)).ravel())
+        return np.array(out)
+
+    def _measure(self, array: np.ndarray) -> tuple[float, float, float]:
+        image = self.galsim.Image(array, scale=self.scale)
+        result = self.galsim.hsm.FindAdaptiveMom(image, precision=1e-10, hsmparams=self.hsm, strict=False)
+        if result.moments_status != 0:
+            return math.nan, math.nan, math.nan
+        return result.moments_sigma, result.observed_shape.e1, result.observed_shape.e2
+
+    def corrected_slopes(
+        self,
+        stamps: np.ndarray,
+        magnitude: float,
+        ramp: PeerRamp,
+        beta0: float,
+        background_e: float,
+        residual: float = 1e-2,
+        half_step: float = 0.05,
+    ) -> RampSlopes:
+        """d metric / d beta at the corrected state, per centroid: the symmetric difference of the
+        metrics at beta_c -+ h (beta_c = ``residual`` x beta0, h = ``half_step`` x beta0), each a ramp
+        read read by read, with the saturation flags of the raw detector (beta0's signal) as
+        romancal's saturation step sets them before the linearity correction. The metric is exact to
+        second order in h at fixed flags (the fit is linear in the data); the step is wide because
+        HSM returns float32 moments. The linear background level is removed after the fit."""
+        start = time.perf_counter()
+        flux = self.electrons(magnitude, ramp.exptime_s)
+        beta_c, h = residual * beta0, half_step * beta0
+        betas = (beta_c - h, beta_c + h)
+        rows, fewer, unusable = [], [], []
+        K = len(ramp.resultants)
+        for stamp in stamps:
+            charge = flux * stamp + background_e
+            measured = self._ipc(charge).ravel()
+            usable = romancal_usable(self._resultants(charge, ramp, beta0), ramp)
+            fewer.append(int(np.sum((usable < K) & (usable >= 2))))
+            unusable.append(int(np.sum(usable < 2)))
+            reference = self._measure(measured.reshape(stamp.shape) - background_e)
+            values = []
+            for beta in betas:
+                image = fit_ramp(self._resultants(charge, ramp, beta), usable, measured, ramp)
+                values.append(self._measure(image.reshape(stamp.shape) - background_e))
+            (s_lo, e1_lo, e2_lo), (s_hi, e1_hi, e2_hi) = values
+            rows.append(((s_hi - s_lo) / reference[0], e1_hi - e1_lo, e2_hi - e2_lo))
+        slopes = np.asarray(rows) / (2 * h)
+        return RampSlopes(*slopes.T, np.array(fewer), np.array(unusable), betas, elapsed_s=time.perf_counter() - start)
+
+
+def _planck_table(planck, bandpass, n: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """The Planck f_lambda tabulated finely over the band (a LookupTable keeps the SED picklable)."""
+    wave = np.linspace(bandpass.blue_limit - 1.0, bandpass.red_limit + 1.0, n)
+    values = planck(wave)
+    return wave, values / values.max()
