@@ -43,6 +43,8 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
         )
     if the_plan.grid is not None:
         out["slopes_from"] = f"the Roman default's field grid ({roman_default.GRID_FILE})"
+        # The slopes are the grid's, not the paper tables': their settings are the grid's nodes'.
+        out.update(grid_settings(the_plan.grid, request.band, request.sca))
     ramp = request.ramp
     if ramp is None:
         out["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
@@ -55,6 +57,19 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
         # Fainter than this the tables answer exactly at beta_eff (OLS); brighter, pixels drop resultants.
         out["ramp_table_exact_from_magnitude"] = slopes.exact_from() if slopes.ramp_factor is not None else None
         out["ramp_slopes_from"] = ramp_basis(slopes)
+    return out
+
+
+#: The table settings an answer's conditions quote (``tables.conditions``) that a field grid's nodes set.
+_GRID_SETTINGS = ("oversampling", "stamp", "realizations", "seed", "weight_cut_rho2", "pupil_scale")
+
+
+def grid_settings(grid, band: str, sca: int) -> dict:
+    """The conditions of an answer read from a field grid: its nodes' settings in place of the
+    paper tables' (the pupil-scale rule, centroids, stamp...) and the exposure and beta0 they hold."""
+    settings = grid.conditions(band, sca)["settings"]
+    out = {key: settings[key] for key in _GRID_SETTINGS if key in settings}
+    out["table_conditions"] = {"exptime_s": settings["exptime_s"], "beta0": settings["beta0"]}
     return out
 
 
