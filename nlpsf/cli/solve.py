@@ -228,10 +228,12 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
         text = with_error(value, payload["uncertainty"]) if solved else ("n/a" if value is None else f"{value:.6g}")
         print(f"  {name:<10} {text} {units[name]}{'  <- solved' if solved else ''}")
     if payload["uncertainty"] is not None:
+        # The Roman default counts the optics' vintage as one of its model parts (listed below), not apart.
+        optics_in_model = bool((solution.model or {}).get("optical_model_included"))
         parts = ", ".join(
             f"{k} {payload[f'uncertainty_{k}']:.2g}"
             for k in ("statistical", "fidelity", "optical_model", "model")
-            if payload[f"uncertainty_{k}"] is not None
+            if payload[f"uncertainty_{k}"] is not None and not (k == "optical_model" and optics_in_model)
         )
         print(f"  uncertainty ({parts})")
     slope_unit = "per (1/e-) of " + ("beta" if solution.mode == "bias" else "sigma_beta")
