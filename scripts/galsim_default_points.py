@@ -129,7 +129,9 @@ def run_point(index, point, args) -> dict:
     if "error" in probe:
         return {"point": point, "error": probe}
     bright = float(probe["saturation_magnitude"]) + 0.4
-    magnitude = bright + point["u"] * (21.5 - bright)
+    # Rounded as the command line passes it (``solve``'s %.3f), so nlpsf and the peer see the same flux:
+    # between the limits a 4e-4 flux offset moves pixels across a flag edge (docs/validation.md).
+    magnitude = round(bright + point["u"] * (21.5 - bright), 3)
     row = {"index": index, "point": {**point, "magnitude": magnitude}, "saturation_magnitude": probe["saturation_magnitude"]}
     b, s, pos, met = point["band"], point["sca"], point["position"], point["metric"]
     answers = {
