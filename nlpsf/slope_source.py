@@ -9,6 +9,7 @@ import math
 from . import defaults, ramps, tables
 from . import fidelity as levels
 from .checks import SimulationError
+from .flags import FlagCode
 from .request import SolveRequest
 
 
@@ -207,6 +208,21 @@ class Slopes:
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
+
+    #: Flags of a simulated slope that say how far it can be trusted; the answer carries them
+    #: (the simulation's other flags, saturation and validity, the solver states in its own terms).
+    SLOPE_QUALITY = (FlagCode.JUMPY_FINITE_DIFFERENCE,)
+
+    def slope_quality_flags(self) -> list:
+        """The slope-quality flags (:data:`SLOPE_QUALITY`) of the magnitudes simulated for this
+        answer, one per code (the first magnitude's)."""
+        seen: dict = {}
+        for result in self._results.values():
+            for flag in result.flags:
+                code = getattr(flag, "code", None)
+                if code in self.SLOPE_QUALITY and code not in seen:
+                    seen[code] = flag
+        return list(seen.values())
 
     def modulus_over_component(self, magnitude: float) -> float | None:
         """|c_e| / |c_ei| = hypot(c_e1, c_e2) / |c_ei| of this answer's own slopes at ``magnitude``

@@ -350,6 +350,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
+    flags += slopes.slope_quality_flags()
     if slopes.grid_misses:
         flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
     conditions = answer_conditions.conditions(request, the_plan, slopes)

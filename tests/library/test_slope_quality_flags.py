@@ -1,0 +1,25 @@
+"""A simulated answer carries its slope's quality flags: where the Monte Carlo finite difference is
+jumpy (a pixel crosses the moments' hard weight cut between the two beta values, K213 SCA 6 at
+(701, 1403), m = 17.9: one centroid of 100 off by 723 against the exact derivative, docs/validation.md),
+the answer says so, as the simulation does; the exact derivative (linear) raises no such flag."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from nlpsf import roman_default, solver
+from nlpsf.flags import FlagCode, codes
+
+
+def _answer(fidelity: str):
+    scene = replace(roman_default.base_scene(), position=(701.0, 1403.0))
+    return solver.solve("K213", 6, magnitude=17.9, precision=0.01, scene=scene, fidelity=fidelity)
+
+
+def test_a_jumpy_monte_carlo_slope_is_flagged_in_the_answer():
+    answer = _answer("polychromatic")
+    assert FlagCode.JUMPY_FINITE_DIFFERENCE.value in codes(answer.flags)
+    # The flag's reason: the slope's stated error is far above the exact derivative's.
+    exact = _answer("linear")
+    assert FlagCode.JUMPY_FINITE_DIFFERENCE.value not in codes(exact.flags)
+    assert answer.slope_uncertainty > 100 * exact.slope_uncertainty
