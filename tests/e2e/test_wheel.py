@@ -45,9 +45,10 @@ def test_wheel_holds_the_web_package_and_the_page_and_no_top_level_app(wheel):
 
 
 #: The wheel before the Roman default's field grid was added (26.3 MB, issue 17 asked to stay near it);
-#: with the grid, its W146 entries on 5 x 5 nodes, and the tables' companions without spline
-#: coefficients it measured 26.2 MB (docs/field.md). A budget, so a regrowth is seen.
-WHEEL_BUDGET_MB = 27.0
+#: with the grid (W146 and Z087 on 5 x 5 nodes) and the tables' companions without spline
+#: coefficients it measured 27.3 MB (docs/field.md). A budget, so a regrowth is seen: each band more
+#: on 5 x 5 adds about 1.1 MB.
+WHEEL_BUDGET_MB = 28.0
 
 
 def test_the_wheel_stays_near_its_size_before_the_field_grid(wheel):
