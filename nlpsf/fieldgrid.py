@@ -122,8 +122,8 @@ def _slope_columns() -> list[str]:
 #: saturates, rounded up (scripts/shipped_grid_error.py; docs/field.md). 3 x 3: 16 random positions
 #: over the 8 bands (size 5.1e-4, e1 2.5e-2, e2 6.0e-3). 5 x 5: 16 random W146 positions (size
 #: 4.4e-4, e1 4.9e-4, e2 3.9e-4, each at the +4 mag case, where the 3 x 3 grid's size error is the
-#: same: the magnitude spline's, not the field's) and 16 random Z087 positions (4.3e-4, 4.8e-4,
-#: 6.3e-4). FieldGrid.slope adds it to the stated error.
+#: same: the magnitude spline's, not the field's), 16 random Z087 positions (4.3e-4, 4.8e-4,
+#: 6.3e-4) and 16 random Y106 positions (4.2e-4, 3.3e-4, 5.0e-4). FieldGrid.slope adds it to the stated error.
 FIELD_INTERPOLATION_BY_GRID: dict[int, dict[str, float]] = {
     3: {"size": 1e-3, "e1": 3e-2, "e2": 1e-2},
     5: {"size": 1e-3, "e1": 1e-3, "e2": 1e-3},
@@ -156,7 +156,7 @@ def field_interpolation(n: int, band: str | None = None) -> dict[str, float]:
 
 
 #: The bands each grid size's term was measured in (a 3 x 3 term holds for every band).
-MEASURED_BANDS: dict[int, tuple[str, ...]] = {5: ("W146", "Z087")}
+MEASURED_BANDS: dict[int, tuple[str, ...]] = {5: ("W146", "Z087", "Y106")}
 
 
 #: The shipped field grid of the Roman default (``nlpsf tables build --scene roman --grid 3``, merged).
