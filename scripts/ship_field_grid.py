@@ -3,10 +3,16 @@
     nice -n 10 nlpsf tables build --scene roman --grid 3 --output build/roman_grid [--band B ...]
     python scripts/ship_field_grid.py build/roman_grid [--to nlpsf/data/tables/roman_field_grid.npz]
 
-Every (band, SCA) whose nine nodes are all built goes in (a build still running ships what has
+    # a denser grid for some (band, SCA)s, put into the shipped file in place of their 3 x 3 entries:
+    nice -n 10 nlpsf tables build --scene roman --grid 5 --band W146 --output build/roman_grid5
+    python scripts/ship_field_grid.py build/roman_grid5 --grid 5 --into nlpsf/data/tables/roman_field_grid.npz
+
+Every (band, SCA) whose n x n nodes are all built goes in (a build still running ships what has
 finished); the file's metadata records the code commit the nodes were built with (``CODE_COMMIT``
 in the build folder, else the current one), the date, the CPU time of every node and which
-(band, SCA) are covered. docs/field.md says what the shipped file holds.
+(band, SCA) are covered. With ``--into`` the entries replace those of an existing file
+(``fieldgrid.merge_grids``: each keeps its own build's provenance, the others stay bit for bit).
+docs/field.md says what the shipped file holds.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import argparse
 import datetime
 import statistics
 import subprocess
+import tempfile
 from pathlib import Path
 
 from nlpsf import __version__, defaults, fieldgrid, tablebuild
@@ -29,13 +36,16 @@ def _commit(build: Path) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("build", type=Path, help="folder of node tables (nlpsf tables build --grid 3 --output ...)")
+    parser.add_argument("build", type=Path, help="folder of node tables (nlpsf tables build --grid N --output ...)")
+    parser.add_argument("--grid", type=int, default=3, help="the build's grid size N")
     parser.add_argument("--to", type=Path, default=fieldgrid.shipped_grid_path())
+    parser.add_argument("--into", type=Path, default=None, help="put the entries into this existing field-grid file instead")
     args = parser.parse_args()
-    paths = sorted(args.build.glob("slopes_*_G3_*.ecsv"))
+    n = fieldgrid.check_grid(args.grid)
+    paths = sorted(args.build.glob(f"slopes_*_G{n}_*.ecsv"))
     started = (args.build / "STARTED").read_text().strip() if (args.build / "STARTED").is_file() else None
     provenance = {
-        "built_with": "nlpsf tables build --scene roman --grid 3 (TableSettings.roman())",
+        "built_with": f"nlpsf tables build --scene roman --grid {n} (TableSettings.roman())",
         "code_commit": _commit(args.build),
         "code_version": __version__,
         "build_started": started,
@@ -45,7 +55,13 @@ def main() -> None:
         "mean over 100 centroid draws shared by every node",
         "scene": "the Roman default (nlpsf.roman_default) at each node's position",
     }
-    out = tablebuild.merge_field_grid(paths, args.to, provenance=provenance, complete_only=True)
+    if args.into is None:
+        out = tablebuild.merge_field_grid(paths, args.to, provenance=provenance, complete_only=True)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            update = tablebuild.merge_field_grid(paths, Path(tmp) / "update.npz", provenance=provenance, complete_only=True)
+            merged = fieldgrid.merge_grids(fieldgrid.FieldGrid.load(args.into), fieldgrid.FieldGrid.load(update))
+        out = merged.save(args.into)
     grid = fieldgrid.FieldGrid.load(out)
     covered = grid.coverage()
     cpu = [c for entry in grid.meta["tables"].values() for row in entry["cpu_s"] for c in row]
@@ -54,7 +70,9 @@ def main() -> None:
     print(f"node CPU s: total {sum(cpu):.0f}, median {statistics.median(cpu):.2f}, max {max(cpu):.2f}")
     for band in defaults.BANDS:
         scas = [s for b, s in covered if b == band]
-        print(f"  {band}: {len(scas)} SCAs" + (f" ({', '.join(map(str, scas))})" if 0 < len(scas) < defaults.N_SCA else ""))
+        sizes = sorted({grid.meta["tables"][grid.key(band, s)]["grid"] for s in scas})
+        listed = f" ({', '.join(map(str, scas))})" if 0 < len(scas) < defaults.N_SCA else ""
+        print(f"  {band}: {len(scas)} SCAs{listed}, grid {' and '.join(f'{g} x {g}' for g in sizes)}")
 
 
 if __name__ == "__main__":

@@ -34,7 +34,8 @@ The package, by what each module holds (everything is importable from ``nlpsf.ta
 
 - ``model``: ``SlopeTable`` (one table, its lookups and rescaling), ``TableSet``, relabelling to
   another throughput (``with_throughput``), the column names;
-- ``splines``: the cubic splines' coefficients (scipy, at write time) and their evaluation (numpy);
+- ``splines``: the cubic splines' knot derivatives (scipy, at write time), their coefficients and
+  evaluation (numpy);
 - ``storage``: where the shipped files are, the binary companion (written and read) and the ECSV
   read by astropy when there is no matching companion;
 - ``curves``: slope curves and flat rows for plotting and download, with their conditions;
@@ -59,7 +60,7 @@ from .model import (
     with_throughput,
 )
 from .paper import PAPER_FIT_RANGE, paper_data, powerlaw_fit, powerlaw_fits, table2_comparison, table2_markdown
-from .splines import evaluate_cubic, spline_coefficients
+from .splines import evaluate_cubic, hermite_coefficients, knot_derivatives, spline_coefficients
 from .storage import (
     COMPANION_FORMAT,
     KEY_COLUMNS,
@@ -104,6 +105,8 @@ __all__ = [
     "evaluate_cubic",
     "field_table_path",
     "groups",
+    "hermite_coefficients",
+    "knot_derivatives",
     "load_ecsv",
     "load_tables",
     "paper_data",

@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import defaults, roman
 from ..checks import InputError
-from .splines import evaluate_cubic
+from .splines import evaluate_cubic, hermite_coefficients, knot_derivatives
 
 METRICS = defaults.METRICS
 MODES = defaults.MODES
@@ -45,8 +45,10 @@ class SlopeTable:
     settings: dict
     saturation_magnitude: float
     peak_fraction: float
-    #: (4, n - 1) piecewise-cubic coefficients per slope column, flux ascending (``splines``).
-    splines: dict[str, np.ndarray]
+    #: Per slope column, the spline's derivatives at the knots (flux ascending; ``splines``): its
+    #: coefficients are built from them with numpy when the column is first read. A column without
+    #: them (a table read from the ECSV) has them solved then, with scipy.
+    knot_derivatives: dict[str, np.ndarray] = field(default_factory=dict)
     #: Corner field point (1-4, ``roman.field_points``) and its pixel position; None: the SCA centre.
     field_point: int | None = None
     position: tuple[float, float] | None = None
@@ -78,7 +80,10 @@ class SlopeTable:
             value = self.columns[name][order]
             relative = np.abs(self.columns[f"{name}_err"][order] / np.where(value != 0, value, np.inf))
             interp = self.columns[f"{name}_interp"][order] / flux
-            coefficients = self.splines[name]
+            derivatives = self.knot_derivatives.get(name)
+            if derivatives is None:
+                derivatives = knot_derivatives(flux, self.columns[name][order])
+            coefficients = hermite_coefficients(flux, self.columns[name][order], derivatives)
 
             def spline(x, flux=flux, coefficients=coefficients):
                 return evaluate_cubic(flux, coefficients, np.asarray(x, dtype=np.float64))

@@ -14,17 +14,24 @@ TARGET = {"size": 0.01, "e1": 0.03, "e2": 0.03}
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
 
-def test_the_shipped_grid_holds_3x3_float32_nodes_and_says_how_it_was_built():
+#: The grid size of each band in the shipped file: W146, Z087 and Y106 on 5 x 5 nodes, where 3 x 3
+#: missed the e targets (docs/field.md), the other bands on 3 x 3.
+GRID_SIZE = {"W146": 5, "Z087": 5, "Y106": 5}
+
+
+def test_the_shipped_grid_holds_float32_nodes_and_says_how_it_was_built():
     assert GRID.coverage(), "the file covers no (band, SCA)"
     provenance = GRID.meta["provenance"]
     assert len(provenance["code_commit"]) == 40 and provenance["cpu_s"] > 0
     for band, sca in GRID.coverage():
         key = GRID.key(band, sca)
         assert GRID.arrays[f"{key}/values"].dtype == np.float32
-        assert GRID.arrays[f"{key}/values"].shape[:2] == (3, 3)
+        n = GRID_SIZE.get(band, 3)
+        assert GRID.arrays[f"{key}/values"].shape[:2] == (n, n)
         conditions = GRID.conditions(band, sca)
         assert conditions["settings"]["scene"] == "roman" and conditions["settings"]["linearise_at"] == "corrected"
-        assert conditions["settings"]["realizations"] == 100 and conditions["grid"] == 3
+        assert conditions["settings"]["realizations"] == 100 and conditions["grid"] == n
+        assert len(conditions["provenance"]["code_commit"]) == 40
         brightest, faintest = GRID.magnitude_range(band, sca)
         # The grid starts 1.5 mag (rounded down to its step) brighter than the ramp's limit at every node.
         assert faintest == defaults.TABLE_FAINT_LIMIT

@@ -272,3 +272,32 @@ def test_a_stale_companion_is_ignored(tmp_path):
     loaded = tables.load_tables(str(copy))
     assert loaded.meta["fingerprint"] == "feedfacefeedface"
     assert loaded.get("H158", 18).magnitudes.size > 10
+
+
+def test_the_companion_rebuilds_scipys_spline_coefficients_bit_for_bit():
+    """The companion stores each spline's knot derivatives, not its coefficients; the coefficients
+    numpy builds from them are scipy's CubicSpline coefficients exactly (so answers are unchanged)."""
+    from scipy.interpolate import CubicSpline
+
+    centre, field = tables.load_tables(), tables.load_tables(str(tables.field_table_path()))
+    for table in (centre.get("H158", 18), centre.get("R062", 3), field.get("W146", 6, 2), field.get("K213", 17, 4)):
+        assert set(table.knot_derivatives) == set(tables.SLOPE_COLUMNS)
+        order = np.argsort(table.flux_electrons)
+        flux = table.flux_electrons[order]
+        for name in tables.SLOPE_COLUMNS:
+            values = table.columns[name][order]
+            built = tables.hermite_coefficients(flux, values, table.knot_derivatives[name])
+            np.testing.assert_array_equal(built, CubicSpline(flux, values / flux).c)
+
+
+def test_byte_shuffling_is_lossless():
+    from nlpsf.tables.storage import shuffle_bytes, unshuffle_bytes
+
+    values = np.random.default_rng(3).normal(size=(7, 5)) * 10.0 ** np.arange(5)
+    values[2, 3] = np.nan
+    for dtype in (np.float64, np.float32):
+        packed = shuffle_bytes(values.astype(dtype))
+        assert packed.dtype == np.uint8 and packed.shape == (np.dtype(dtype).itemsize, 7, 5)
+        restored = unshuffle_bytes(packed, np.dtype(dtype).str)
+        assert restored.dtype == dtype
+        np.testing.assert_array_equal(restored, values.astype(dtype))
