@@ -493,6 +493,7 @@ _fidelity_error = fidelity_error  # the old private name (app/api.py calls it)
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request) -> Solution:
     """The answer for the worst position over the field (``nlpsf.over_field.worst_over_field``):
-    the centre and four corners of the given SCAs (``"all"``: the 18 of the focal plane).
+    the Roman default's field-grid nodes, or another scene's centre and four corners, of the given
+    SCAs (``"all"``: the 18 of the focal plane).
     ``filled_for``: the SCA whose Roman-default sky and read noise ``scene`` and ``ramp`` hold."""
     return worst_over_field(solve, band, scas, scene, progress, filled_for, **request)

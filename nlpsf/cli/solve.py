@@ -27,8 +27,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--over-field",
         action="store_true",
-        help="answer for the worst of the SCA's centre and four corner field points (all 18 SCAs with --sca all); "
-        "from the field-point tables, simulated with a scene or a simulating --fidelity",
+        help="answer for the worst position on the SCA (all 18 SCAs with --sca all): the Roman default's field-grid "
+        "nodes, read from its shipped grid; with --scene paper the centre and four corner field points, from the "
+        "field-point tables; simulated with a changed scene or a simulating --fidelity",
     )
     parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
     parser.add_argument(
