@@ -65,14 +65,9 @@ def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: fl
 def worst_over_field(
     solve, band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request
 ) -> Solution:
-    """The answer for the worst position over the field of the given SCAs (``"all"``: the 18 of the
-    focal plane), each position with its own aberrations: for the Roman default the nodes of each
-    SCA's field grid (:func:`range_positions`: 3 x 3, or 5 x 5 where the shipped grid is denser),
-    for another scene the centre and four corners.
-
-    At the table level the Roman default reads its shipped field grid, and the paper's scene the
-    SCA-centre tables and the shipped field-point tables (``field_slopes.ecsv.gz``), milliseconds
-    per point. A scene with other effects,
+    """The answer for the worst position over the given SCAs (``"all"``: the 18 of the focal plane):
+    the Roman default's field-grid nodes (:func:`range_positions`), another scene's centre and four
+    corners. At the table level it reads the default's grid or the paper's field-point tables. A scene with other effects,
     or a simulating fidelity, simulates every point (linear response unless another level is asked
     for; seconds per point). Worst means the most demanding answer: the smallest precision, the
     largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that
