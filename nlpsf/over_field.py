@@ -67,8 +67,8 @@ def worst_over_field(
 ) -> Solution:
     """The answer for the worst position over the given SCAs (``"all"``: the 18 of the focal plane):
     the Roman default's field-grid nodes (:func:`range_positions`), another scene's centre and four
-    corners. At the table level it reads the default's grid or the paper's field-point tables. A scene with other effects,
-    or a simulating fidelity, simulates every point (linear response unless another level is asked
+    corners. At the table level it reads the default's grid or the paper's field-point tables.
+    A scene with other effects, or a simulating fidelity, simulates every point (linear response unless another level is asked
     for; seconds per point). Worst means the most demanding answer: the smallest precision, the
     largest tolerance, or the faintest brightest-usable magnitude. The Solution returned is that
     point's, with every point's value in ``conditions["over_field"]`` and where the worst lies in a
