@@ -9,11 +9,11 @@ scan starts from differs between the paper's single final frame and an up-the-ra
 
 Fainter than the scan reaches. Where even its faintest star misses the tolerance, a fainter one
 meets it only if |c| falls toward fainter stars: in the linear regime |c| is proportional to the
-flux and the answer is extrapolated so (:data:`FlagCode.EXTRAPOLATED_ANSWER`). With a sky, its own
-NL left in the image (docs/ramps.md) is a pedestal whose effect on the moments grows as 1 / flux:
-the Roman default's |c| grows toward fainter stars, and no star meets a tolerance its faintest
-scanned star misses -- an ``InputError`` naming the tolerance with the smallest one reachable
-(:class:`ToleranceUnreachable`), not an answer.
+flux and the answer is extrapolated so (:data:`FlagCode.EXTRAPOLATED_ANSWER`). Where |c| does not
+fall toward fainter stars, no star meets a tolerance its faintest scanned star misses -- an
+``InputError`` naming the tolerance with the smallest one reachable (:class:`ToleranceUnreachable`),
+not an answer. (The sky's own NL is removed with the local sky estimate, docs/ramps.md, so the Roman
+default's faint end falls with the flux like the paper's.)
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def scan_magnitude(slopes, delta_beta: float, tolerance: float, m_sat: float, fi
         if not _falls_fainter(at_faint_end, brighter):
             reason = (
                 f"it does not fall toward fainter stars (it is {abs(brighter) * delta_beta:.3g} at "
-                f"m={grid.faintest - _TREND_MAG:.2f}): a sky's own NL left in the image weighs more against a fainter star"
+                f"m={grid.faintest - _TREND_MAG:.2f}), so no fainter star can be promised to meet it"
             )
             smallest = abs(at_faint_end) * delta_beta
             raise ToleranceUnreachable(field, tolerance, grid.faintest, smallest, smallest, reason)
@@ -178,8 +178,8 @@ def _ramp_grid(slopes, required: float, m_sat: float) -> _Grid:
     table = slopes.table
     scene = slopes.scene_model
     if scene is not None and scene.background_e > 0 and not (slopes.fidelity == "table" and slopes.ramp_factor is not None):
-        # A sky's own NL (a pedestal, docs/ramps.md) gives the scene's c(m) another shape than the
-        # paper tables' -- a sign change and growth toward faint stars -- so they bracket nothing:
+        # A sky changes the ramp's factors (the optimal weights see its rate) and the NL's cross terms,
+        # so the scene's c(m) has another shape than the paper tables' and they bracket nothing:
         # the scene's own slopes on a :data:`_SKY_STEP` grid (about 20 fresh magnitudes, ~0.5 CPU-s once
         # prepared). Away from saturation c(m) is a star term and a sky term, each a power of the flux, so
         # |c| is largest at a step's ends and the grid's nodes hold the promise between them.

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import photometry
+from . import photometry, seds
 
 
 def weight_cut_threshold(weight_cut_rho2: float) -> float:
@@ -413,7 +413,10 @@ class GalSimRomanDefault:
         stamp: int = 96,
         weight_cut_rho2: float = 25.0,
         ipc: bool = True,
+        sed: str | None = None,
     ):
+        """``sed``: a scene's SED text, ``blackbody:T`` or a vendored name (``nlpsf.seds``, read as
+        tabulated data only); None: the blackbody at ``temperature_k``."""
         import galsim
         import galsim.roman
 
@@ -428,7 +431,13 @@ class GalSimRomanDefault:
             lam = np.asarray(wave_nm) * 1e-9
             return 1.0 / lam**5 / np.expm1(h * c / (lam * k * temperature_k))
 
-        self.sed = galsim.SED(galsim.LookupTable(*_planck_table(planck, self.bandpass)), "nm", "flambda")
+        if sed is not None and seds.is_named(sed):
+            wave, flambda = seds.table(sed.strip().lower())
+            self.sed = galsim.SED(galsim.LookupTable(wave, flambda), "nm", "flambda")
+        else:
+            if sed is not None:
+                temperature_k = float(sed.split(":")[1])
+            self.sed = galsim.SED(galsim.LookupTable(*_planck_table(planck, self.bandpass)), "nm", "flambda")
         self.blurs = [s for s in (jitter_arcsec, diffusion_px * galsim.roman.pixel_scale) if s > 0]
         self.n_waves, self.pupil_oversampling = n_waves, pupil_oversampling
         self.ipc_kernel = galsim.roman.ipc_kernel.copy() if ipc else None
@@ -525,6 +534,16 @@ class GalSimRomanDefault:
             return math.nan, math.nan, math.nan
         return result.moments_sigma, result.observed_shape.e1, result.observed_shape.e2
 
+    def _star_free_levels(self, background_e: float, ramp: PeerRamp, beta0: float, betas) -> list[float]:
+        """A star-free pixel's fitted level at each beta (read by read, romancal's flags at beta0): what
+        a local sky estimate made on the same exposure subtracts."""
+        n = self.oversampling
+        sky = np.full((3 * n, 3 * n), float(background_e))  # uniform: IPC's edges change nothing
+        measured = self._ipc(sky).ravel()
+        usable = romancal_usable(self._resultants(sky, ramp, beta0), ramp)
+        centre = (3 * n // 2) * (3 * n) + 3 * n // 2
+        return [float(fit_ramp(self._resultants(sky, ramp, beta), usable, measured, ramp)[centre]) for beta in betas]
+
     def corrected_slopes(
         self,
         stamps: np.ndarray,
@@ -540,13 +559,15 @@ class GalSimRomanDefault:
         read read by read, with the saturation flags of the raw detector (beta0's signal) as
         romancal's saturation step sets them before the linearity correction. The metric is exact to
         second order in h at fixed flags (the fit is linear in the data); the step is wide because
-        HSM returns float32 moments. The linear background level is removed after the fit."""
+        HSM returns float32 moments. After the fit the sky is removed as a local sky estimate removes
+        it: a star-free pixel's fitted level at the same beta, its own NL included."""
         start = time.perf_counter()
         flux = self.electrons(magnitude, ramp.exptime_s)
         beta_c, h = residual * beta0, half_step * beta0
         betas = (beta_c - h, beta_c + h)
         rows, fewer, unusable = [], [], []
         K = len(ramp.resultants)
+        sky = self._star_free_levels(background_e, ramp, beta0, betas)
         for stamp in stamps:
             charge = flux * stamp + background_e
             measured = self._ipc(charge).ravel()
@@ -555,9 +576,9 @@ class GalSimRomanDefault:
             unusable.append(int(np.sum(usable < 2)))
             reference = self._measure(measured.reshape(stamp.shape) - background_e)
             values = []
-            for beta in betas:
+            for beta, level in zip(betas, sky, strict=True):
                 image = fit_ramp(self._resultants(charge, ramp, beta), usable, measured, ramp)
-                values.append(self._measure(image.reshape(stamp.shape) - background_e))
+                values.append(self._measure(image.reshape(stamp.shape) - level))
             (s_lo, e1_lo, e2_lo), (s_hi, e1_hi, e2_hi) = values
             rows.append(((s_hi - s_lo) / reference[0], e1_hi - e1_lo, e2_hi - e2_lo))
         slopes = np.asarray(rows) / (2 * h)

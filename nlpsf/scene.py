@@ -30,7 +30,8 @@ only). The effects, in the order a photon meets them (DESIGN.md, "The scene mode
     brighter-fatter (see :func:`brighter_fatter`), no default.
 ``background_e``
     sky plus dark charge per native pixel over the exposure, added before the NL and subtracted
-    afterwards as the linear model would (S(Q + B) - B).
+    afterwards as a local sky estimate does: a star-free pixel's own level, its NL included
+    (S(Q + B) - S(B); ``experiment.sky``).
 
 The kernels that act on the stamps (blurs, IPC, brighter-fatter, the detector chain) are in
 ``nlpsf.scene_kernels``, re-exported here. Why the rest is one module of ~700 lines: the registry,

@@ -98,7 +98,7 @@ def peer_slope(point, magnitude, conditions, waves, pupil_oversampling, realizat
     scene = conditions["scene"]
     peer = reference.GalSimRomanDefault(
         point["band"], point["sca"], tuple(point["position"]),
-        temperature_k=float(scene["sed"].split(":")[1]), jitter_arcsec=float(scene["jitter_arcsec"]),
+        sed=str(scene["sed"]), jitter_arcsec=float(scene["jitter_arcsec"]),
         diffusion_px=float(scene["charge_diffusion_px"]), n_waves=waves, pupil_oversampling=pupil_oversampling,
         oversampling=n, stamp=int(conditions["stamp"]), weight_cut_rho2=float(conditions["weight_cut_rho2"]),
     )  # fmt: skip

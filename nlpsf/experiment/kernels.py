@@ -12,6 +12,7 @@ from .config import METRICS, PAPER_BETA_STEP
 from .prepared import Scene, _peak_electrons, _weighted_region, star_peak_electrons
 from .readout import RampEffect, _nl_shape, ramp_effect
 from .results import Statistic, _metrics, _reference_summary
+from .sky import star_free_level
 from .validity import _noise_floor_flag, _validity_flags
 
 
@@ -34,7 +35,13 @@ class KernelResult:
 
 
 def nl_images(
-    scene: Scene, charge_scale: float, beta, count: int | None = None, effect: RampEffect | None = None, margin: int = 0
+    scene: Scene,
+    charge_scale: float,
+    beta,
+    count: int | None = None,
+    effect: RampEffect | None = None,
+    margin: int = 0,
+    sky_beta: float | None = None,
 ):
     """The detector at one flux: (linear image, its reference fit, NL perturbation, d perturbation / d beta).
 
@@ -46,7 +53,9 @@ def nl_images(
     is made here, from the stored one. Up the ramp (``effect``) the NL pattern is psi^2 c_2
     (``_nl_shape``); a ramp with the scene's detector effects is refused by the configuration.
     ``margin`` trims that many pixels from every side of the images (centre kept; see
-    :func:`_perturbed_fit`); the paper's detector then computes only the core.
+    :func:`_perturbed_fit`); the paper's detector then computes only the core. With a sky, its own NL
+    is removed as a local sky estimate removes it (``sky.star_free_level``), at the uniform
+    ``sky_beta`` (default: ``beta``, or the mean of per-pixel values).
     """
     config = scene.config
     model = config.scene
@@ -74,14 +83,22 @@ def nl_images(
         perturbation, derivative = ramps.scene_perturbation(
             sr, beta, model.nl_coefficients, model.ipc, model.ipc_order, config.oversampling
         )
-        if sr.margin:  # already the core
-            return stamps[core], reference, perturbation / charge_scale, derivative / charge_scale
-        return stamps[core], reference, perturbation[core] / charge_scale, derivative[core] / charge_scale
+        level, level_derivative = _sky_level(scene, charge_scale, beta, sky_beta, up_the_ramp=True)
+        if not sr.margin:
+            perturbation, derivative = perturbation[core], derivative[core]
+        return stamps[core], reference, perturbation / charge_scale - level, derivative / charge_scale - level_derivative
     shift, perturbation, derivative = scenes.detector_chain(scene.charge[pick], charge_scale, beta, model, config.oversampling)
     if shift is not None:
         reference = moments.fit_perturbed(stamps, shift, reference, config.moment_settings)
         stamps = stamps + shift
-    return stamps[core], reference, perturbation[core], derivative[core]
+    level, level_derivative = _sky_level(scene, charge_scale, beta, sky_beta, up_the_ramp=False)
+    return stamps[core], reference, perturbation[core] - level, derivative[core] - level_derivative
+
+
+def _sky_level(scene: Scene, charge_scale: float, beta, sky_beta: float | None, up_the_ramp: bool) -> tuple[float, float]:
+    """The sky's own NL a local sky estimate removes (``sky.star_free_level``), at one uniform b2."""
+    uniform = sky_beta if sky_beta is not None else float(np.mean(beta))
+    return star_free_level(scene, charge_scale, uniform, up_the_ramp)
 
 
 def _perturbed_fit(
@@ -174,7 +191,7 @@ def _simulate_scatter(
     stamp_ref, reference0, _, _ = nl_images(scene, charge_scale, beta, count=1)
     stamp = stamp_ref[0]
     if config.method == "monte_carlo":
-        d_r, d_e1, d_e2, status = _scatter_monte_carlo(scene, charge_scale, betas, stamp, shape, reference0, settings)
+        d_r, d_e1, d_e2, status = _scatter_monte_carlo(scene, charge_scale, beta, betas, stamp, shape, reference0, settings)
     else:
         if model.plain_detector:
             # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
@@ -209,8 +226,11 @@ def _simulate_scatter(
     return KernelResult(d_r, d_e1, d_e2, status, flags, peak, _reference_summary(scene, 0), offset, extras)
 
 
-def _scatter_monte_carlo(scene: Scene, charge_scale: float, betas, stamp, shape, reference0, settings: moments.MomentSettings):
-    """Every per-pixel beta map fitted to convergence at the first centroid: (dR/R, de1, de2, status)."""
+def _scatter_monte_carlo(
+    scene: Scene, charge_scale: float, beta: float, betas, stamp, shape, reference0, settings: moments.MomentSettings
+):
+    """Every per-pixel beta map (about the uniform ``beta``) fitted to convergence at the first centroid:
+    (dR/R, de1, de2, status)."""
     draws = scene.config.realizations
     model = scene.config.scene
     ref_params = reference0.parameters()[0]
@@ -228,7 +248,7 @@ def _scatter_monte_carlo(scene: Scene, charge_scale: float, betas, stamp, shape,
         if model.plain_detector:
             perturbation = -(block * charge_scale) * shape
         else:
-            perturbation = nl_images(scene, charge_scale, block, count=1)[2]
+            perturbation = nl_images(scene, charge_scale, block, count=1, sky_beta=beta)[2]
         parts.append(
             moments.fit_perturbed(
                 base,

@@ -1,11 +1,13 @@
 """The Roman default's polychromatic slope against GalSim's own computation of the same scene.
 
 The peer (``nlpsf.reference.GalSimRomanDefault``) is GalSim only: ``OpticalPSF`` at the star's position
-with the official pupil scale (from the official clear area), a 5270 K blackbody through the SCA's
-official bandpass (``galsim.SED`` / ``Bandpass``), jitter and diffusion Gaussians, ``applyIPC`` after
-the NL, the background, the C2A_IMG_HLWAS ramp read by read with romancal's saturation flags and the
-likelihood fit (written from the physics, checked here against the read-by-read brute force of
-``test_ramps_readout``), HSM moments, and the slope at the corrected state by a symmetric difference
+with the official pupil scale (from the official clear area), the default star's SED (its tabulated
+spectrum or blackbody, as the answer's conditions name it) through the SCA's official bandpass
+(``galsim.SED`` / ``Bandpass``), jitter and diffusion Gaussians, ``applyIPC`` after the NL, the
+background (removed after the fit as a local sky estimate removes it, its own NL included), the
+C2A_IMG_HLWAS ramp read by read with romancal's saturation flags and the likelihood fit (written
+from the physics, checked here against the read-by-read brute force of ``test_ramps_readout``), HSM
+moments, and the slope at the corrected state by a symmetric difference
 in beta. It is drawn at the answer's own centroids (the answer's seed), so the two differ only by
 their physics and numerics. ``scripts/galsim_default_points.py`` runs the same comparison at random
 points (docs/validation.md, last section).
@@ -65,7 +67,9 @@ def test_polychromatic_default_agrees_with_galsim(band, sca, position, metric, m
     answer = solve(band, sca, metric, magnitude=magnitude, tolerance=1e-4, fidelity="polychromatic", scene=scene)
     conditions = answer.conditions
     offsets = (np.random.default_rng(conditions["seed"]).random((conditions["realizations"], 2)) - 0.5) * 3
-    peer = reference.GalSimRomanDefault(band, sca, position, temperature_k=5270.0, jitter_arcsec=0.006, diffusion_px=0.332)
+    peer = reference.GalSimRomanDefault(
+        band, sca, position, sed=conditions["scene"]["sed"], jitter_arcsec=0.006, diffusion_px=0.332
+    )
     stamps = peer.unit_stamps(offsets)
     slopes = peer.corrected_slopes(
         stamps, magnitude, _peer_ramp(conditions), conditions["beta0"], conditions["scene"]["background_e"]

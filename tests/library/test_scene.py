@@ -141,8 +141,15 @@ def test_detector_scene_equals_building_the_image_the_plain_way(name):
     signal = detector.apply_polynomial_nonlinearity(charge, 5e-7, model.nl_coefficients)
     if model.ipc is not None and model.ipc_order == "after":
         signal = scenes.apply_ipc(signal, model.ipc, 3)
+    # The local sky estimate: a star-free pixel's own signal, the sky's NL included (uniform, so IPC
+    # multiplies it by the kernel's sum; brighter-fatter moves no charge between equal pixels).
+    ksum = 1.0 if model.ipc is None else float(np.sum(model.ipc))
+    sky_charge = model.background_e * (ksum if model.ipc_order == "before" else 1.0)
+    sky = float(detector.apply_polynomial_nonlinearity(np.array(sky_charge), 5e-7, model.nl_coefficients))
+    if model.ipc is not None and model.ipc_order == "after":
+        sky *= ksum
     settings = config.moment_settings
-    plain = moments.fit(signal - model.background_e, settings)
+    plain = moments.fit(signal - sky, settings)
     reference = moments.fit(linear - model.background_e, settings)
     d_r, d_e1, d_e2 = moments.differences(plain, reference)
     assert result.dR_over_R.mean == pytest.approx(d_r.mean(), rel=1e-7)
@@ -174,16 +181,18 @@ def test_ipc_after_linear_scatter_matches_monte_carlo():
         assert runs["linear"].scatter[metric]["value"] == pytest.approx(mc["value"], abs=3 * mc["uncertainty"])
 
 
-def test_background_is_a_pedestal_and_a_flux_term_only():
-    # S(Q + B) - B = Q - beta Q^2 - 2 beta B Q - beta B^2: the moments see the -beta B^2 pedestal
-    # and nothing of the flux-like term; the saturation check sees Q + B.
-    config = SimulationConfig(realizations=6, scene=scenes.SceneModel(background_e=1000.0))
-    prepared = experiment.prepare(config)
-    with_bg = experiment.simulate(config, [19.0], [5e-7], scene=prepared)[0]
-    plain = experiment.simulate(SimulationConfig(realizations=6), [19.0], [5e-7])[0]
-    assert with_bg.peak_electrons == pytest.approx(plain.peak_electrons + 1000.0, rel=1e-12)
-    assert with_bg.dR_over_R.mean != plain.dR_over_R.mean
-    assert with_bg.dR_over_R.mean == pytest.approx(plain.dR_over_R.mean, rel=0.2)
+def test_a_sky_after_its_local_estimate_only_rescales_the_star():
+    # S(Q + B) - S(B) = Q (1 - 2 beta B) - beta Q^2: with the star-free level subtracted (the local sky
+    # estimate), the star's image is scaled by (1 - 2 beta B), which the moments ignore, and keeps its own NL:
+    # exactly the plain detector at beta / (1 - 2 beta B). The saturation check sees Q + B.
+    beta, background = 5e-7, 1000.0
+    config = SimulationConfig(realizations=6, scene=scenes.SceneModel(background_e=background))
+    with_bg = experiment.simulate(config, [19.0], [beta], scene=experiment.prepare(config))[0]
+    plain = experiment.simulate(SimulationConfig(realizations=6), [19.0], [beta / (1 - 2 * beta * background)])[0]
+    assert with_bg.peak_electrons == pytest.approx(plain.peak_electrons + background, rel=1e-12)
+    for metric in ("dR_over_R", "de1", "de2"):
+        ours, theirs = getattr(with_bg, metric).mean, getattr(plain, metric).mean
+        assert ours == pytest.approx(theirs, rel=1e-7, abs=1e-12)
 
 
 # --- optics: position and SED -------------------------------------------------------------------
@@ -326,8 +335,8 @@ def test_roman_preset_round_trips_through_json(tmp_path):
 
 
 def test_scaling_rule_holds_for_linear_effects_and_breaks_for_flux_dependent_ones():
-    def ratio(model):
-        config = SimulationConfig(realizations=4, scene=model, method="linear")
+    def ratio(model, method="linear"):
+        config = SimulationConfig(realizations=4, scene=model, method=method)
         prepared = experiment.prepare(config)
         a = experiment.simulate(config, [19.0], [5e-7], scene=prepared)[0].dR_over_R.mean
         b = experiment.simulate(config, [19.0 - 2.5 * math.log10(2)], [2.5e-7], scene=prepared)[0].dR_over_R.mean
@@ -335,9 +344,16 @@ def test_scaling_rule_holds_for_linear_effects_and_breaks_for_flux_dependent_one
 
     assert ratio(DETECTOR_SCENES["ipc after"]) == pytest.approx(1.0, rel=1e-12)
     assert scenes.SceneModel(jitter_arcsec=0.014).breaks_beta_q_scaling() == []
-    for name in ("cubic+quartic", "bfe", "background"):
+    for name in ("cubic+quartic", "bfe"):
         assert DETECTOR_SCENES[name].breaks_beta_q_scaling()
         assert abs(ratio(DETECTOR_SCENES[name]) - 1) > 1e-6
+    # A sky, once its own NL is removed with the local sky estimate, adds -2 b2 B psi: proportional to the
+    # star's image, which the moments ignore, so to first order in beta it keeps the scaling exactly;
+    # beyond it the star's image is scaled by (1 - 2 b2 B) and the rule breaks at that level.
+    background = DETECTOR_SCENES["background"]
+    assert background.breaks_beta_q_scaling()
+    assert ratio(background) == pytest.approx(1.0, rel=1e-12)
+    assert abs(ratio(background, "monte_carlo") - 1) > 1e-6
 
 
 def test_conditions_name_the_scene():
