@@ -29,7 +29,7 @@ CHARGE_DIFFUSION_PX = 0.332
 #: (``psfstats`` compares with the official statistics under their own star, the real K0V). The
 #: real K0V spectrum is vendored (``--sed k0v``, Pickles 1998); the stand-in's error against it is
 #: the ``sed_standin`` part of ``roman_uncertainty``. Selectable.
-SED = "blackbody:5270"
+SED = "k0v"
 #: Background preset (``backgrounds.PRESETS``): twice the minimum zodiacal light, thermal and dark.
 BACKGROUND = backgrounds.DEFAULT_PRESET
 #: romanisim's default imaging MultiAccum table (romanisim-4) and romancal's likelihood ramp fit.
