@@ -178,18 +178,18 @@ def component_scale(slopes, magnitude: float | None) -> float:
 #: from the default's, the star is the user's and that spread is not the default's uncertainty.
 _CHOSEN_BY_REQUEST = {
     "sed": "sed",
-    "sed_standin": "sed",  # a request with its own SED (k0v included) is not answered for the stand-in
     "jitter": "jitter_arcsec",
     "charge_diffusion": "charge_diffusion_px",
 }
 #: What a part the request sets no longer means (it is dropped, with this reason).
 _SET_BY_REQUEST_WHY = {
-    "sed": "the default's SED spread (3500-10000 K against 5270 K) is not the uncertainty of the SED the request gives",
+    "sed": (
+        "the default's SED spread (3500-10000 K blackbodies against its K0V) is not the uncertainty of the SED the request gives"
+    ),
     "jitter": "the default's jitter spread (3.4-14 mas against 6 mas) is not the uncertainty of the jitter the request gives",
     "charge_diffusion": (
         "the default's diffusion spread (0.30 against 0.332 px) is not the uncertainty of the diffusion the request gives"
     ),
-    "sed_standin": "the 5270 K blackbody stand-in's error against the real K0V is not the error of the SED the request gives",
 }
 
 

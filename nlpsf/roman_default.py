@@ -24,11 +24,9 @@ JITTER_ARCSEC = 0.006
 #: Charge diffusion [native pixels rms]: sqrt((C11 + C22) / 2) of Givans et al. 2022 (PASP,
 #: arXiv:2110.08155; C11 = 0.1066, C22 = 0.1136 px^2), measured on Roman detectors.
 CHARGE_DIFFUSION_PX = 0.332
-#: The star: a K0V spectral type (the official PSF products'); a 5270 K blackbody stands in for the
-#: spectrum (Pecaut & Mamajek's K0V temperature) because the shipped field grid is built with it
-#: (``psfstats`` compares with the official statistics under their own star, the real K0V). The
-#: real K0V spectrum is vendored (``--sed k0v``, Pickles 1998); the stand-in's error against it is
-#: the ``sed_standin`` part of ``roman_uncertainty``. Selectable.
+#: The star: a K0V, the official PSF products' star, as the vendored Pickles (1998, PASP 110, 863)
+#: K0V spectrum (``nlpsf.seds``, ``--sed k0v``; its provenance and terms in nlpsf/data/SOURCES.md).
+#: Selectable (``--sed``); the spread over other stars is the ``sed`` part of ``roman_uncertainty``.
 SED = "k0v"
 #: Background preset (``backgrounds.PRESETS``): twice the minimum zodiacal light, thermal and dark.
 BACKGROUND = backgrounds.DEFAULT_PRESET
@@ -63,9 +61,9 @@ VALUES: tuple[DefaultValue, ...] = (
     DefaultValue(
         "sed",
         SED,
-        "K",
-        "K0V (the official PSF products' star), a 5270 K blackbody stand-in (Pecaut & Mamajek); the Pickles 1998 "
-        "K0V spectrum is --sed k0v, and the stand-in's error against it is the model part sed_standin",
+        "",
+        "K0V (the official PSF products' star): the Pickles 1998 (PASP 110, 863) K0V spectrum pickles_uk_31, "
+        "400-2500 nm, STScI CDBS via EXOSIMS; no licence statement, cite Pickles 1998 (nlpsf/data/SOURCES.md)",
     ),
     DefaultValue("jitter", JITTER_ARCSEC, "arcsec rms per axis", "STPSF's Roman jitter"),
     DefaultValue("charge_diffusion", CHARGE_DIFFUSION_PX, "native px rms", "Givans et al. 2022, PASP, arXiv:2110.08155"),

@@ -7,25 +7,20 @@ without, so the differences are systematic, not noise):
 
 choices and vintage (the default's value is a best estimate; the truth lies in a range)
     - ``optical_model``: the optical model's vintage. nlpsf's PSF under the official conditions
-      (their K0V star as the vendored Pickles K0V, not the default's blackbody stand-in, whose error
-      is ``sed_standin``) against the official post-CDR statistics (``psfstats``): the Gaussian variance that closes the
+      (their K0V star as the vendored Pickles K0V, the default's own star) against the official
+      post-CDR statistics (``psfstats``): the Gaussian variance that closes the
       N_eff gap or the FWHM gap, whichever is larger, added to the default's jitter; the slope change
       it causes (a gap that asks for a sharper PSF is measured as the same variance added and the
       sign turned, linear in the variance). SCAs without official statistics take the larger gap
       of the SCAs that have them (1 and 18).
     - ``sed``: the stars people fit PSF models with, 3500-10000 K blackbodies (M-dwarfs to A-stars)
-      against the default's 5270 K blackbody; the larger change of the two ends.
+      against the default's Pickles K0V spectrum; the larger change of the two ends.
     - ``jitter``: 3.4 mas (the official PSF products' 8 mas FWHM) and 14 mas (GalSim's) rms against
       the default's 6 mas; the larger.
     - ``charge_diffusion``: 0.30 px rms (STPSF's 0.033", the alternative nlpsf/data/SOURCES.md
       quotes) against the default's 0.332 px (Givans et al. 2022, one detector).
     - ``pupil_scale``: the pupil-mask scale rule, ``header`` against the ``official`` one used.
 effects left out (present in every real star, with a sign the physics fixes)
-    - ``sed_standin``: the default's star is a K0V simulated as a 5270 K blackbody stand-in (the
-      shipped field grid is built with it); the real K0V spectrum (``--sed k0v``: Pickles 1998,
-      ``nlpsf.seds``) against the stand-in. Its sign is fixed for the stated star (the spectrum's
-      features, e.g. the H- opacity bump near 1.6 um, are what the blackbody leaves out), so it
-      is counted with the effects left out, added linearly, not as an independent choice.
     - ``brighter_fatter``: a ramp refuses it (``ramps.RAMP_REFUSES``), so it is measured on the
       default scene read as one final frame of the same exposure: with the nearest-neighbour
       coefficient a = 3.54e-7 per electron, against without. Source: Freudenburg et al. 2020
@@ -84,8 +79,6 @@ PUPIL_ALTERNATIVE = "header"
 #: SCA 20829, the area change of a pixel per electron in a neighbour, not IPC-deconvolved. The
 #: value's digits are unverified (see the module docstring and nlpsf/data/SOURCES.md).
 BFE_COEFFICIENT = 3.54e-7
-#: The real spectrum of the default's K0V star (``nlpsf.seds``), measured against the stand-in.
-SED_STANDIN_REAL = "k0v"
 #: b3, b4 of the NL beyond the quadratic [e-^-2, e-^-3]: each 0.1 % of the signal at 1e5 e-.
 NL_SHAPE_COEFFICIENTS = (1e-13, 1e-18)
 
@@ -104,7 +97,7 @@ PARTS: tuple[Part, ...] = (
         "Gaussian variance closing nlpsf's N_eff or FWHM gap to the official SummaryPSFstats (the larger; official "
         "conditions, their K0V star as the Pickles K0V), added to the jitter; sign turned where the official PSF is sharper",
     ),
-    Part("sed", "choice", "blackbody 3500 K and 10000 K against the default's 5270 K blackbody; the larger"),
+    Part("sed", "choice", "blackbody 3500 K and 10000 K against the default's K0V (Pickles 1998); the larger"),
     Part("jitter", "choice", "3.4 mas and 14 mas rms against the default's 6 mas; the larger"),
     Part("charge_diffusion", "choice", "0.30 px (STPSF's 0.033\") against the default's 0.332 px rms"),
     Part("pupil_scale", "choice", "pupil-mask scale rule header against official (used)"),
@@ -115,19 +108,12 @@ PARTS: tuple[Part, ...] = (
         "a ramp refuses BFE (ramps.RAMP_REFUSES)",
     ),
     Part("nl_shape", "left_out", "b3 = 1e-13, b4 = 1e-18 /e- (0.1 % each at 1e5 e-) against the quadratic alone"),
-    Part(
-        "sed_standin",
-        "left_out",
-        "the K0V spectrum (Pickles 1998, --sed k0v) against the default's 5270 K blackbody stand-in for it; "
-        "a fixed-sign error of the stand-in",
-    ),
 )
 PART_NAMES = tuple(p.name for p in PARTS)
 KINDS = {p.name: p.kind for p in PARTS}
 COMBINATION = (
     "hypot of the choices (optical_model, sed, jitter, charge_diffusion, pupil_scale: independent unknowns) plus "
-    "the plain sum of the effects left out (brighter_fatter, nl_shape: present in every star, signs fixed; "
-    "sed_standin: the blackbody stand-in's error for the K0V star, sign fixed)"
+    "the plain sum of the effects left out (brighter_fatter, nl_shape: present in every star, signs fixed)"
 )
 
 
@@ -243,7 +229,6 @@ def variant_configs(config, optical_variance_arcsec2: float | None) -> dict[str,
     out["charge_diffusion"] = [(replace(config, scene=replace(scene, charge_diffusion_px=DIFFUSION_ALTERNATIVE_PX)), 1.0)]
     out["pupil_scale"] = [(replace(config, pupil_scale=PUPIL_ALTERNATIVE), 1.0)]
     out["nl_shape"] = [(replace(config, scene=replace(scene, nl_coefficients=NL_SHAPE_COEFFICIENTS)), 1.0)]
-    out["sed_standin"] = [(replace(config, scene=replace(scene, sed=SED_STANDIN_REAL)), 1.0)]
     return out
 
 

@@ -7,14 +7,12 @@
 
 For every band at SCA 1, 9 and 18 (the SCA centre), m = 18.5, 20 and 22, both modes, the parts of
 ``nlpsf.roman_uncertainty`` (optical-model vintage, SED spread, jitter, charge diffusion,
-pupil-scale rule, brighter-fatter, NL beyond the quadratic, the K0V spectrum against the default's
-blackbody stand-in) are measured inside the full default
+pupil-scale rule, brighter-fatter, NL beyond the quadratic) are measured inside the full default
 scene (``tablebuild.TableSettings.roman``, HLWAS optimal ramp, slopes at the "corrected" state)
 with the linear response and the same 50 centroid draws for every variant. The optical model's
 vintage first needs the width gap of nlpsf's PSF to the official statistics (``psfstats.width_gap``,
 official pupil scale) at SCA 1 and 18, under the conditions the statistics state: their K0V star is
-the vendored Pickles K0V (``OFFICIAL_SED``), not the default's 5270 K stand-in, whose own error is the
-``sed_standin`` part (so the vintage part does not count it again). SCA 9, which the official table
+the vendored Pickles K0V (``OFFICIAL_SED``), the default's own star. SCA 9, which the official table
 does not cover, takes the larger of the two. About 11 slope runs per (band, SCA), ~1-2 s each on one core: 5-10 minutes.
 
 Shipped per band, mode and metric: per SCA each part's signed value per magnitude (``by_magnitude``:
@@ -239,7 +237,6 @@ def main(argv: list[str] | None = None) -> int:
                 "scas": scas,
                 "magnitudes": list(MAGNITUDES),
                 "sed_range_k": list(ru.SED_RANGE_K),
-                "sed_standin_real": ru.SED_STANDIN_REAL,
                 "jitter_range_arcsec": list(ru.JITTER_RANGE_ARCSEC),
                 "diffusion_alternative_px": ru.DIFFUSION_ALTERNATIVE_PX,
                 "pupil_alternative": ru.PUPIL_ALTERNATIVE,

@@ -20,7 +20,7 @@ from nlpsf import accuracy, model_part, roman_default, solver
 from nlpsf.request import SolveRequest
 
 CHOICES = ("optical_model", "sed", "jitter", "charge_diffusion", "pupil_scale")
-LEFT_OUT = ("brighter_fatter", "nl_shape", "sed_standin")
+LEFT_OUT = ("brighter_fatter", "nl_shape")
 POSITION = (1000.0, 3000.0)
 
 

@@ -63,7 +63,7 @@ def test_the_peers_ramp_is_the_read_by_read_brute_force(fit):
     ids=["H158 size", "J129 e1"],
 )
 def test_polychromatic_default_agrees_with_galsim(band, sca, position, metric, magnitude):
-    scene = replace(roman_default.base_scene(), position=position)
+    scene = replace(roman_default.base_scene(), position=position)  # the default's own star, the Pickles K0V
     answer = solve(band, sca, metric, magnitude=magnitude, tolerance=1e-4, fidelity="polychromatic", scene=scene)
     conditions = answer.conditions
     offsets = (np.random.default_rng(conditions["seed"]).random((conditions["realizations"], 2)) - 0.5) * 3

@@ -1,4 +1,4 @@
-"""The vendored K0V spectrum (nlpsf.seds, ``--sed k0v``) and the stand-in's part of the uncertainty."""
+"""The vendored K0V spectrum (nlpsf.seds, ``--sed k0v``), the Roman default's star, and its ``sed`` part."""
 
 from dataclasses import replace
 from importlib import resources
@@ -65,15 +65,24 @@ def test_photon_weights_integrate_the_k0v_over_every_band(band):
     assert float(np.sum(waves * weights)) == pytest.approx(mean, rel=1e-4)
 
 
-def test_h158_sees_the_k0v_redder_than_its_blackbody_stand_in():
+def test_h158_sees_the_k0v_redder_than_a_blackbody_of_its_temperature():
     # The H- opacity minimum near 1.6 um makes a K dwarf bright in H: its photons in H158 are
-    # redder than a 5270 K blackbody's (the stand-in), by more than 5 nm.
+    # redder than a 5270 K blackbody's (Pecaut & Mamajek's K0V T_eff), by more than 5 nm.
     mean = {}
-    for sed in ("k0v", roman_default.SED):
+    for sed in ("k0v", "blackbody:5270"):
         spectrum = scenes.SceneModel(sed=sed).spectrum()
         w, p = optics.OpticsConfig(band="H158", n_wavelengths=8, spectrum=spectrum).wavelengths_and_weights()
         mean[sed] = float(np.sum(w * p))
-    assert mean["k0v"] - mean[roman_default.SED] > 5.0
+    assert mean["k0v"] - mean["blackbody:5270"] > 5.0
+
+
+def test_the_roman_default_star_is_the_vendored_k0v():
+    rows = _file_rows()
+    wave, flux = roman_default.base_scene().spectrum()
+    assert np.array_equal(np.asarray(wave), rows[:, 0] / 10.0)
+    assert np.allclose(flux, rows[:, 1] / rows[:, 1].max(), rtol=1e-15, atol=0)
+    named = {v["name"]: v for v in roman_default.conditions()}["sed"]
+    assert named["value"] == "k0v" and "Pickles 1998" in named["source"]
 
 
 def test_k0v_is_a_named_sed_everywhere_a_scene_is_read(tmp_path):
@@ -90,29 +99,34 @@ def test_k0v_is_a_named_sed_everywhere_a_scene_is_read(tmp_path):
     assert seds.NAMED["k0v"].file == "pickles_uk_31.txt"
 
 
-def test_sed_standin_part_is_the_k0v_against_the_stand_in():
-    # The part's variant is the default scene with the K0V spectrum and nothing else changed.
+def test_sed_part_is_the_larger_blackbody_end_against_the_k0v():
+    # The part's variants are the default scene with a 3500 K and a 10000 K blackbody and nothing
+    # else changed; the default's own star is the K0V spectrum, and no stand-in part is left.
     config = tablebuild.TableSettings.roman(realizations=6, seed=3).config("H158", 18)
-    ((variant, sign),) = ru.variant_configs(config, None)["sed_standin"]
-    assert sign == 1.0 and variant.scene == replace(config.scene, sed="k0v") and variant.scene != config.scene
-    assert ru.KINDS["sed_standin"] == "left_out"
-    # Measured directly on other draws, the H158 bias-size change at m = 20 has the sign and size
-    # of the shipped SCA-18 value (a fixed-sign error of the stand-in, a few tenths of a per cent).
-    fresh = [
-        experiment.slopes(c, [20.0], linearise_at=roman_default.LINEARISE_AT)[0].bias["dR_over_R"].mean for c in (config, variant)
-    ]
-    change = fresh[1] / fresh[0] - 1.0
-    part = ru.shipped()["per_band"]["H158"]["bias"]["size"]["per_sca"]["18"]["parts"]["sed_standin"]
+    assert config.scene.sed == "k0v"
+    variants = ru.variant_configs(config, None)["sed"]
+    assert [v.scene for v, _ in variants] == [replace(config.scene, sed=f"blackbody:{t:g}") for t in (3500, 10000)]
+    assert "sed_standin" not in ru.PART_NAMES
+    # Measured directly on other draws, the H158 bias-size change at m = 20 (the larger |change| of
+    # the two ends against the K0V) has the sign and size of the shipped SCA-18 value.
+    base, *ends = (
+        experiment.slopes(c, [20.0], linearise_at=roman_default.LINEARISE_AT)[0].bias["dR_over_R"].mean
+        for c in (config, *(v for v, _ in variants))
+    )
+    change = max((end / base - 1.0 for end in ends), key=abs)
+    part = ru.shipped()["per_band"]["H158"]["bias"]["size"]["per_sca"]["18"]["parts"]["sed"]
     shipped = {m: v for m, v, *_ in part["by_magnitude"]}
-    assert change < 0 and shipped[20.0] < 0
+    assert np.sign(change) == np.sign(shipped[20.0]) and abs(change) > 1e-3
     assert change == pytest.approx(shipped[20.0], rel=0.25)
 
 
-def test_a_request_with_its_own_sed_is_not_charged_the_stand_in():
-    scene = replace(roman_default.base_scene(), sed="k0v")
+def test_a_request_with_its_own_sed_is_not_charged_the_sed_spread():
+    # The old 5270 K blackbody stand-in is now a star of the request's own.
+    scene = replace(roman_default.base_scene(), sed="blackbody:5270")
     info = model_part.shipped_model("H158", 18, "size", "bias", scene, "linear", default="roman")
-    assert "sed_standin" not in [p["name"] for p in info["left_out"]]
-    dropped = {p["name"]: p for p in info["included"]}["sed_standin"]
+    assert "sed" not in [p["name"] for p in info["left_out"]]
+    dropped = {p["name"]: p for p in info["included"]}["sed"]
     assert dropped["impact"] is None and dropped["why"].startswith("set by the request")
     default = model_part.shipped_model("H158", 18, "size", "bias", None, "table", default="roman")
-    assert "sed_standin" in [p["name"] for p in default["left_out"]]
+    names = [p["name"] for p in default["left_out"]]
+    assert "sed" in names and "sed_standin" not in names

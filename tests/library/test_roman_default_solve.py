@@ -19,7 +19,7 @@ def test_a_request_without_a_scene_is_the_roman_default():
     scene = request.scene
     # Givans et al. 2022: sigma = sqrt((C11 + C22) / 2) with C11 = 0.1066, C22 = 0.1136 px^2.
     assert scene.charge_diffusion_px == pytest.approx(math.sqrt((0.1066 + 0.1136) / 2), abs=5e-4)
-    assert scene.jitter_arcsec == 0.006 and scene.sed == "blackbody:5270" and scene.ipc is not None
+    assert scene.jitter_arcsec == 0.006 and scene.sed == "k0v" and scene.ipc is not None
     assert scene.position is None and scene.background_e > 0
     # A given exposure keeps the default's table (its last read must fall within it); a ramp given replaces it.
     assert SolveRequest("H158", magnitude=19.0, tolerance=1e-4, exptime=200.0).exptime == 200.0
