@@ -13,9 +13,9 @@ K0V star sampled over the band and 8 mas FWHM Gaussian pointing jitter:
 :func:`psf_statistics` computes the same four numbers from nlpsf's optics (GalSim's Cycle-9
 Zernikes and pupil masks) under the same conditions, so the two optical models can be compared.
 The K0V star is the vendored Pickles (1998) K0V spectrum (``nlpsf.seds``, ``--sed k0v``), the
-star the official statistics state. ``sed="blackbody:5270"`` is the 5270 K blackbody stand-in
-(Pecaut & Mamajek's K0V effective temperature) used before the spectrum was vendored and still the
-Roman default's star (``roman_default``); it keeps ``nlpsf/data/optical_model_uncertainty.json``
+star the official statistics state and the Roman default's star (``roman_default``).
+``sed="blackbody:5270"`` is the 5270 K blackbody stand-in (Pecaut & Mamajek's K0V effective
+temperature) used before the spectrum was vendored; it keeps ``nlpsf/data/optical_model_uncertainty.json``
 (the paper scene's optical-model part) reproducible. Against the spectrum it moves N_eff by up to
 2.3 % (W146: the blackbody lacks the K dwarf's H- bump near 1.6 um), ``flat`` is flat f_nu.
 """
@@ -35,7 +35,8 @@ from .checks import InputError
 
 #: K0V effective temperature [K] (Pecaut & Mamajek 2013) for the blackbody stand-in SED.
 K0V_TEMPERATURE_K = 5270.0
-#: The blackbody stand-in for the K0V star, by its scene name (the Roman default's star).
+#: The blackbody stand-in for the K0V star, by its scene name (the Roman default's star before
+#: the Pickles spectrum was vendored; the paper scene's optical-model part was measured with it).
 K0V_STANDIN = f"blackbody:{K0V_TEMPERATURE_K:g}"
 #: The official PSFs' pointing jitter: Gaussian of 8 mas FWHM.
 OFFICIAL_JITTER_FWHM_ARCSEC = 0.008

@@ -237,8 +237,9 @@ def galsim_electrons(band: str, magnitude: float, exptime_s: float) -> tuple[flo
 # --- the Roman default's scene, by GalSim's route -------------------------------------------------
 #
 # The peer of ``nlpsf solve`` with the Roman default (nlpsf/roman_default.py): optics at the position
-# with the official pupil scale, a blackbody star through the SCA's official bandpass, jitter and
-# charge diffusion as Gaussians, IPC after the NL, a background, an MA table read up the ramp with
+# with the official pupil scale, the star (a blackbody, or a vendored spectrum read as a table) through
+# the SCA's official bandpass, jitter and charge diffusion as Gaussians, IPC after the NL, a background
+# (removed as a local sky estimate does, its own NL included), an MA table read up the ramp with
 # romancal's saturation flags and an OLS or optimal (likelihood) fit, and the slope taken at the
 # corrected state. Nothing below imports nlpsf's physics: GalSim draws and measures, the ramp is read
 # read by read here (written from the physics as tests/library/test_ramps_readout.py's brute force
