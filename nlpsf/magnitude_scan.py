@@ -139,7 +139,7 @@ def _field_grid_scan(slopes, m_sat: float) -> _Grid:
     """The Roman default's field grid at the position: its own c(m) on a 0.05 mag grid from the
     grid's faint end to the saturation magnitude, in one vectorised look-up (the slopes the answer
     reads, so the bracket is the answer's: the paper tables' c(m) has neither the default's values
-    nor its sign change and growth toward faint stars)."""
+    nor the shape its ramp, IPC and sky give it)."""
     from .slope_source import grid_slope
 
     brightest, faintest = slopes.grid.magnitude_range(slopes.band, slopes.sca)
