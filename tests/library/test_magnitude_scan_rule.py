@@ -1,0 +1,86 @@
+"""The magnitude scan's rule at the faint end, on analytic c(m) (no simulation: the rule is arithmetic).
+
+c(m) = A 10^(-0.4 (m - 20)) is the linear regime (|c| in proportion to the flux): a tolerance the
+faintest scanned star misses is met by a fainter one, at the magnitude the flux law gives. Adding a
+term that grows toward faint stars, P 10^(+0.4 (m - 20)) (what a sky's NL left in the image did),
+makes a tolerance the faintest star misses unreachable: an InputError naming it, with the smallest
+tolerance reachable.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from nlpsf.flags import FlagCode
+from nlpsf.magnitude_scan import ToleranceUnreachable, scan_magnitude
+
+BRIGHT, FAINT = 14.0, 28.0
+DELTA_BETA = 5e-9  # 1 % of 5e-7
+
+
+class _AnalyticGrid:
+    """A field grid's reading interface over an analytic c(m)."""
+
+    column_value = None  # marks the vectorised reader
+
+    def __init__(self, c):
+        self.c = c
+
+    def magnitude_range(self, band, sca):
+        return BRIGHT, FAINT
+
+    def slope(self, band, sca, position, metric, mode, magnitudes):
+        values = self.c(np.asarray(magnitudes, dtype=float))
+        return values, np.zeros_like(values)
+
+
+def _slopes(c):
+    return SimpleNamespace(
+        grid=_AnalyticGrid(c),
+        band="H158",
+        sca=18,
+        scene_model=SimpleNamespace(position=(1000.0, 3000.0)),
+        metric="size",
+        mode="bias",
+        ramp=object(),
+        fidelity="table",
+        ramp_factor=None,
+        ramp_bases=set(),
+        at=lambda m: (float(c(np.asarray(m))), 0.0, None),
+    )
+
+
+def linear(m):
+    return 2e4 * 10 ** (-0.4 * (np.asarray(m) - 20.0))
+
+
+def test_inside_the_range_the_answer_is_where_the_flux_law_meets_the_tolerance():
+    tolerance = 1e-5
+    scan = scan_magnitude(_slopes(linear), DELTA_BETA, tolerance, m_sat=BRIGHT)
+    expected = 20.0 + 2.5 * math.log10(2e4 * DELTA_BETA / tolerance)
+    assert scan.magnitude == pytest.approx(expected, abs=1e-3)
+    assert FlagCode.EXTRAPOLATED_ANSWER not in [f.code for f in scan.flags]
+
+
+def test_fainter_than_the_range_the_answer_is_extrapolated_as_the_flux():
+    tolerance = 1e-9
+    scan = scan_magnitude(_slopes(linear), DELTA_BETA, tolerance, m_sat=BRIGHT)
+    assert FlagCode.EXTRAPOLATED_ANSWER in [f.code for f in scan.flags]
+    assert abs(linear(scan.magnitude)) * DELTA_BETA == pytest.approx(tolerance, rel=1e-9)
+    assert scan.magnitude > FAINT
+
+
+def test_an_error_growing_toward_faint_stars_makes_a_tolerance_unreachable():
+    def growing(m):
+        return linear(m) + 3.0 * 10 ** (0.4 * (np.asarray(m) - 20.0))
+
+    at_faint_end = abs(growing(FAINT)) * DELTA_BETA
+    with pytest.raises(ToleranceUnreachable) as raised:
+        scan_magnitude(_slopes(growing), DELTA_BETA, 0.5 * at_faint_end, m_sat=BRIGHT)
+    assert raised.value.argument == "tolerance"
+    assert raised.value.smallest == pytest.approx(at_faint_end, rel=1e-12)
+    assert raised.value.faintest == FAINT
