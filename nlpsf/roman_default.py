@@ -204,8 +204,8 @@ def is_default_scene(model, background_e: float) -> bool:
 
 # --- the shipped field grid of the default ----------------------------------------------------
 
-#: The shipped field grid of the default scene (3 x 3 nodes per SCA; 5 x 5 in W146, Z087 and Y106;
-#: built by ``nlpsf tables build --scene roman``).
+#: The shipped field grid of the default scene (5 x 5 nodes per SCA in R062, Z087, Y106, W146 and
+#: K213, 3 x 3 in J129, H158 and F184; built by ``nlpsf tables build --scene roman``).
 GRID_FILE = "roman_field_grid.npz"
 
 

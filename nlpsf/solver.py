@@ -449,6 +449,9 @@ def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: 
     slope, slope_err, region = slopes.at(magnitude)
     if request.ramp is None:
         flags += _magnitude_flags(slopes, magnitude, region, limits.saturation, beta0)
+    elif region > 0 and slopes.grid is not None:  # fainter than the field grid: its flux law (slope_source)
+        faintest = slopes.grid.magnitude_range(request.band, request.sca)[1]
+        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=faintest))
     averaging = 1.0 / math.sqrt(request.stars)
     c, c_err = abs(slope) * averaging, slope_err * averaging
     model_info = model_part.model_at(model_info, slopes, magnitude) if region >= 0 else None

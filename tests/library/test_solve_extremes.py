@@ -1,9 +1,11 @@
 """Extreme tolerances and precisions: every request gets an answer or an InputError naming its field.
 
-The Roman default's slope grows toward faint stars (its sky's own NL is a pedestal whose weight in
-the moments goes as 1 / flux), so a tolerance its faintest grid star misses is met by no star; the
-paper's scene has no sky and its answers are extrapolated in proportion to the flux. The checks
-read the field grid and the tables directly, not the magnitude scan.
+The Roman default's slope falls in proportion to the flux at the field grid's faint end (the linear
+regime, once the sky's own NL is removed with the local sky estimate, docs/ramps.md), so a tolerance
+its faintest grid star misses is met by a fainter star, extrapolated by that law (flagged), as the
+paper's scene extrapolates its tables. The checks read the field grid and the tables directly, not
+the magnitude scan. (Where |c| does not fall toward fainter stars no star meets such a tolerance:
+``test_magnitude_scan_rule`` checks that refusal on an analytic c(m).)
 """
 
 from __future__ import annotations
@@ -14,7 +16,6 @@ import numpy as np
 import pytest
 
 from nlpsf import cli, defaults, fieldgrid, tables
-from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode
 from nlpsf.request import SolveRequest
 from nlpsf.solver import answer
@@ -39,47 +40,50 @@ def _faint_end() -> float:
     return fieldgrid.shipped_grid().magnitude_range("H158", 18)[1]
 
 
-def test_the_defaults_error_grows_toward_faint_stars_at_the_grids_faint_end():
-    # The premise of the refusals below: fainter than the grid, no star does better.
+def test_the_defaults_error_falls_as_the_flux_at_the_grids_faint_end():
+    # The premise of the extrapolations below: half a magnitude fainter, 10^(-0.2) of the error.
     faint = _faint_end()
     at_end, brighter = _grid_error([faint, faint - 0.5])
-    assert at_end > brighter > 0
+    assert at_end / brighter == pytest.approx(10**-0.2, rel=0.02)
 
 
-@pytest.mark.parametrize("tolerance", [1e-7, 1e-6, 1e-5])
-def test_a_tolerance_no_default_star_meets_names_the_tolerance(tolerance):
-    smallest = float(_grid_error([_faint_end()])[0])
-    assert tolerance < smallest  # the faintest star the grid holds already misses it
-    with pytest.raises(InputError) as raised:
-        answer(_default(tolerance))
-    assert raised.value.argument == "tolerance"
-    assert math.isclose(raised.value.smallest, smallest, rel_tol=1e-6)
+@pytest.mark.parametrize("tolerance", [1e-9, 1e-13])
+def test_a_tolerance_fainter_than_the_grid_is_extrapolated_as_the_flux(tolerance):
+    faint = _faint_end()
+    assert tolerance < float(_grid_error([faint])[0])  # the faintest star the grid holds misses it
+    solution = answer(_default(tolerance))
+    codes = [f.code for f in solution.flags]
+    assert FlagCode.EXTRAPOLATED_ANSWER in codes and solution.binding_limit == "nonlinearity"
+    at_answer = float(_grid_error([faint])[0]) * 10 ** (-0.4 * (solution.magnitude - faint))
+    assert math.isclose(at_answer, tolerance, rel_tol=1e-6)
+    assert (FlagCode.FAINTER_THAN_40 in codes) == (solution.magnitude > 40)
 
 
-def test_just_above_the_smallest_reachable_tolerance_every_fainter_star_meets_it():
+def test_just_above_the_faint_ends_error_every_fainter_star_meets_it():
     faint = _faint_end()
     tolerance = 1.02 * float(_grid_error([faint])[0])
     solution = answer(_default(tolerance))
     assert solution.binding_limit == "nonlinearity"
+    assert FlagCode.EXTRAPOLATED_ANSWER not in [f.code for f in solution.flags]
     fainter = np.arange(solution.magnitude + 0.01, faint + 1e-9, 0.01)
     assert np.all(_grid_error(fainter) <= tolerance)  # the answer's promise, on the grid itself
     assert _grid_error([solution.magnitude - 0.02])[0] > tolerance  # and it is the brightest such star
-    assert FlagCode.SLOPE_CHANGES_SIGN in [f.code for f in solution.flags]  # the default's size slope crosses zero
 
 
-def test_without_a_position_the_sca_range_refuses_it_too():
-    with pytest.raises(InputError) as raised:
-        answer(_default(1e-7, position=None))
-    assert raised.value.argument == "tolerance"
+def test_without_a_position_the_sca_range_extrapolates_alike():
+    solution = answer(_default(1e-9, position=None))
+    codes = [f.code for f in solution.flags]
+    assert FlagCode.SCA_RANGE in codes and FlagCode.EXTRAPOLATED_ANSWER in codes
 
 
-def test_a_shear_budget_that_no_star_meets_names_the_budget():
+def test_a_shear_budget_is_answered_from_the_grid():
     request = SolveRequest.from_json(
         {"band": "H158", "precision": PRECISION, "shear_m": 1e-7, "size_ratio": 1.5, "scene": {"position": list(POSITION)}}
     )
-    with pytest.raises(InputError) as raised:
-        answer(request)
-    assert raised.value.argument == "shear_m"
+    solution = answer(request)
+    assert solution.binding_limit == "nonlinearity"
+    # m = 2 dR/R / rho^2 for a PSF size error (rho = R_gal / R_psf = 1.5): the tolerance on dR/R is m rho^2 / 2.
+    assert float(_grid_error([solution.magnitude])[0]) == pytest.approx(1e-7 * 1.5**2 / 2, rel=1e-3)
 
 
 @pytest.mark.parametrize("precision", [defaults.PRECISION_RANGE[0], 1e-6])
@@ -117,20 +121,32 @@ def test_the_paper_scene_extrapolates_in_proportion_to_the_flux(tolerance):
     assert (FlagCode.FAINTER_THAN_40 in codes) == (solution.magnitude > 40)
 
 
-def test_the_cli_names_the_option(capsys):
-    argv = ["solve", "--band", "H158", "--precision", "0.01", "--tolerance", "1e-7", "--json"]
-    assert cli.main([*argv, "--position", "1000,3000"]) == 2
-    assert "--tolerance" in capsys.readouterr().err
-    assert cli.main([*argv, "--scene", "paper"]) == 0
+def test_the_cli_answers_beyond_the_grid_with_its_flag(capsys):
+    argv = ["solve", "--band", "H158", "--precision", "0.01", "--tolerance", "1e-9", "--json"]
+    for extra in (["--position", "1000,3000"], ["--scene", "paper"]):
+        assert cli.main([*argv, *extra]) == 0
+        assert "extrapolated_answer" in capsys.readouterr().out
 
 
-def test_a_simulated_default_refuses_alike_and_its_bound_is_its_own_slope_there():
-    # Another beta0 than the grid's: the default is simulated, and its scan reads its own slopes
-    # (the paper tables' c(m) has neither its sign change nor its growth toward faint stars).
+def test_a_simulated_default_extrapolates_alike_from_its_own_slopes():
+    # Another beta0 than the grid's: the default is simulated, and its scan reads its own slopes.
     body = {"band": "H158", "precision": PRECISION, "beta0": 1e-6, "scene": {"position": list(POSITION)}}
-    with pytest.raises(InputError) as raised:
-        answer(SolveRequest.from_json({**body, "tolerance": 1e-7}))
-    assert raised.value.argument == "tolerance"
-    # The bound is the NL error of a star at that faintest magnitude, solved for directly.
-    there = answer(SolveRequest.from_json({**body, "magnitude": raised.value.faintest}))
-    assert math.isclose(raised.value.smallest, there.tolerance, rel_tol=1e-9)
+    solution = answer(SolveRequest.from_json({**body, "tolerance": 1e-9}))
+    assert FlagCode.EXTRAPOLATED_ANSWER in [f.code for f in solution.flags]
+    # The NL error of a star at the answer, solved for directly, is the tolerance.
+    there = answer(SolveRequest.from_json({**body, "magnitude": solution.magnitude}))
+    assert math.isclose(there.tolerance, 1e-9, rel_tol=1e-3)
+
+
+def test_a_star_fainter_than_the_grid_is_read_by_the_flux_law_and_agrees_with_a_simulation():
+    from dataclasses import replace
+
+    from nlpsf import roman_default, solve
+
+    extrapolated = answer(
+        SolveRequest.from_json({"band": "H158", "magnitude": 30.0, "precision": PRECISION, "scene": {"position": list(POSITION)}})
+    )
+    assert FlagCode.EXTRAPOLATED_FAINT in [f.code for f in extrapolated.flags]
+    scene = replace(roman_default.base_scene(), position=POSITION)
+    fresh = solve("H158", 18, "size", magnitude=30.0, precision=PRECISION, fidelity="linear", scene=scene)
+    assert extrapolated.slope == pytest.approx(fresh.slope, rel=1e-3)

@@ -67,13 +67,15 @@ def test_an_accuracy_is_still_a_job(client):
     [{"scene": {"position": [1000, 3000]}}, {}, {"scene": {"preset": "roman", "position": [1000, 3000]}}],
     ids=["scene-position", "sca-range", "preset-position"],
 )
-@pytest.mark.parametrize("tolerance", [1e-7, 1e-6])
-def test_a_tolerance_no_default_star_meets_is_a_422_naming_it(client, extra, tolerance):
+@pytest.mark.parametrize("tolerance", [1e-9, 1e-13])
+def test_a_tolerance_beyond_the_defaults_grid_is_answered_inline_and_flagged(client, extra, tolerance):
+    # Fainter than the field grid the default's error falls as the flux (docs/ramps.md): extrapolated, inline.
     body = {"band": "H158", "precision": 0.01, "tolerance": tolerance, **extra}
     response = client.post("/api/v1/solve", json=body)
-    assert response.status_code == 422, response.text
-    problem = response.json()
-    assert problem["field"] == "tolerance" and problem["type"].endswith("/problems/invalid-combination")
+    assert response.status_code == 200, response.text
+    answer = response.json()
+    assert answer["binding_limit"] == "nonlinearity" and "extrapolated_answer" in answer["flag_codes"]
+    assert ("fainter_than_40" in answer["flag_codes"]) == (answer["magnitude"] > 40)
 
 
 def test_the_paper_scene_answers_extreme_tolerances(client):
