@@ -16,7 +16,8 @@ slopes) or ``lagrange`` (the tensor-product polynomial through every node, biqua
 ``scripts/field_interpolation_error.py`` measures both against fresh simulations at random positions.
 
 The runtime format is one ``.npz`` (numpy only): per (band, SCA) the node positions, each node's
-magnitude grid and its slope columns in float32, and the metadata as JSON. Each (band, SCA) has its
+magnitude grid, its slope columns in float32 and their error columns as 16-bit codes rounded up
+(:func:`pack_errors`), and the metadata as JSON. Each (band, SCA) has its
 own grid size n (``meta["tables"][key]["grid"]``), so a file can hold denser grids where the
 field interpolation needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere.
 """
@@ -39,10 +40,53 @@ SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
 GRID_SIZES: tuple[int, ...] = (2, 3, 5, 7, 9)
 #: The scene names a table build understands ("paper": the shipped tables' idealised scene).
 TABLE_SCENES: tuple[str, ...] = ("paper", "roman")
-#: Runtime format tag of a field-grid file (2: arrays byte-shuffled, ``tables.storage.shuffle_bytes``;
-#: 1, read too: plain arrays).
-FORMAT = "nlpsf-field-grid-2"
-FORMATS_READ: tuple[str, ...] = ("nlpsf-field-grid-1", FORMAT)
+#: Runtime format tag of a field-grid file (3: the error columns as 16-bit codes, :func:`pack_errors`;
+#: read too: 2, every array float and byte-shuffled, ``tables.storage.shuffle_bytes``; 1, plain arrays).
+FORMAT = "nlpsf-field-grid-3"
+FORMATS_READ: tuple[str, ...] = ("nlpsf-field-grid-1", "nlpsf-field-grid-2", FORMAT)
+#: Mantissa bits an error keeps in a -3 file (float16's 10): rounded up, an error grows by less than
+#: 2**-10 = 9.8e-4 of itself and never shrinks.
+ERROR_MANTISSA_BITS = 10
+_DROPPED_BITS = 23 - ERROR_MANTISSA_BITS
+#: The codes with a meaning of their own (every other code is a positive error).
+_ZERO_CODE, _NAN_CODE = 0, 0xFFFF
+
+
+def _is_error_column(name: str) -> bool:
+    return name.endswith(("_err", "_interp"))
+
+
+def pack_errors(errors: np.ndarray) -> tuple[np.ndarray, int]:
+    """Non-negative float32 errors as uint16 codes and the array's exponent offset, rounded up.
+
+    A code is a float32's bit pattern without its sign (an error is never negative) and with its
+    mantissa rounded up to :data:`ERROR_MANTISSA_BITS` bits (the bit pattern of a positive float
+    grows with its value, so rounding the integer up rounds the value up, carrying into the exponent),
+    counted from the array's smallest positive error. float16 has the same mantissa but a 5-bit
+    exponent (30 normal binades): the shipped errors span 39 (1.5e-9 to 1.2e3, slope units), so
+    float16 would flush the smallest to zero or to a few bits; the 16 bits here hold 6 of exponent
+    (63 binades from the offset) and 10 of mantissa. 0: an error of zero; 0xFFFF: NaN (padding)."""
+    errors = np.asarray(errors, dtype=np.float32)
+    finite = np.isfinite(errors)
+    if np.any(np.isinf(errors)) or np.any(errors[finite] < 0):
+        raise InputError("field grid", "errors must be finite and non-negative (or NaN padding) to be packed")
+    bits = np.where(finite, errors, 0).view(np.uint32).astype(np.int64)
+    rounded = (bits + (1 << _DROPPED_BITS) - 1) >> _DROPPED_BITS
+    positive = rounded[finite & (rounded > 0)]
+    offset = int(positive.min()) if positive.size else 0
+    codes = np.where(rounded > 0, rounded - offset + 1, _ZERO_CODE)
+    codes = np.where(finite, codes, _NAN_CODE)
+    if codes[finite].size and (codes[finite].max() >= _NAN_CODE or (rounded[finite] << _DROPPED_BITS).max() >= 0x7F800000):
+        raise InputError("field grid", "the errors span more binades than a 16-bit code holds (63)")
+    return codes.astype(np.uint16), offset
+
+
+def unpack_errors(codes: np.ndarray, offset: int) -> np.ndarray:
+    """The float32 errors :func:`pack_errors` coded (each at or above the error packed)."""
+    codes = np.asarray(codes, dtype=np.int64)
+    bits = np.where(codes == _ZERO_CODE, 0, (codes - 1 + int(offset)) << _DROPPED_BITS)
+    values = bits.astype(np.uint32).view(np.float32)
+    return np.where(codes == _NAN_CODE, np.float32(np.nan), values).astype(np.float32)
 
 
 def check_grid(n: int) -> int:
@@ -294,18 +338,40 @@ class FieldGrid:
         for name, how in meta.pop("shuffled", {}).items():
             array = unshuffle_bytes(arrays[name], how["dtype"])
             arrays[name] = np.ascontiguousarray(np.moveaxis(array, 0, -1)) if how["columns_first"] else array
+        for key, how in meta.pop("packed_errors", {}).items():
+            # -3: the slope columns float32, the error columns coded; every caller sees (.., C) float32.
+            slopes, codes = arrays.pop(f"{key}/values"), arrays.pop(f"{key}/error_codes")
+            values = np.empty((*slopes.shape[:-1], len(meta["columns"])), dtype=np.float32)
+            errors = [i for i, c in enumerate(meta["columns"]) if _is_error_column(c)]
+            values[..., [i for i in range(values.shape[-1]) if i not in errors]] = slopes
+            values[..., errors] = unpack_errors(codes, how["offset"])
+            arrays[f"{key}/values"] = values
         meta["format"] = FORMAT
         return cls(meta, arrays)
 
     def save(self, destination: Path | str) -> Path:
-        """Write this grid as one ``.npz``, atomically: every array through
-        ``tables.storage.shuffle_bytes`` (lossless; the slope values column by column), 20 % smaller
-        deflated than the plain arrays."""
+        """Write this grid as one ``.npz`` (:data:`FORMAT`), atomically: every array through
+        ``tables.storage.shuffle_bytes`` (lossless; the values column by column), 20 % smaller
+        deflated than the plain arrays, the slope columns as they are (float32, bit for bit) and the
+        error columns as :func:`pack_errors`' codes (rounded up; 36 % smaller again)."""
         from .tables.storage import shuffle_bytes
 
-        shuffled = {k: {"dtype": v.dtype.str, "columns_first": k.endswith("/values")} for k, v in self.arrays.items()}
-        arrays = {k: shuffle_bytes(np.moveaxis(v, -1, 0) if shuffled[k]["columns_first"] else v) for k, v in self.arrays.items()}
-        meta = {**self.meta, "format": FORMAT, "shuffled": shuffled}
+        errors = [i for i, c in enumerate(self.meta["columns"]) if _is_error_column(c)]
+        slopes = [i for i in range(len(self.meta["columns"])) if i not in errors]
+        stored: dict[str, np.ndarray] = {}
+        packed: dict[str, dict] = {}
+        for name, array in self.arrays.items():
+            if name.endswith("/values") and array.dtype == np.float32:
+                key = name.removesuffix("/values")
+                stored[name] = array[..., slopes]
+                stored[f"{key}/error_codes"], offset = pack_errors(array[..., errors])
+                packed[key] = {"offset": offset, "mantissa_bits": ERROR_MANTISSA_BITS}
+            else:
+                stored[name] = array
+        columns_first = ("/values", "/error_codes")
+        shuffled = {k: {"dtype": v.dtype.str, "columns_first": k.endswith(columns_first)} for k, v in stored.items()}
+        arrays = {k: shuffle_bytes(np.moveaxis(v, -1, 0) if shuffled[k]["columns_first"] else v) for k, v in stored.items()}
+        meta = {**self.meta, "format": FORMAT, "shuffled": shuffled, "packed_errors": packed}
         arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         destination = Path(destination)
         destination.parent.mkdir(parents=True, exist_ok=True)
