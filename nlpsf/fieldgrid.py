@@ -48,45 +48,58 @@ FORMATS_READ: tuple[str, ...] = ("nlpsf-field-grid-1", "nlpsf-field-grid-2", FOR
 #: 2**-10 = 9.8e-4 of itself and never shrinks.
 ERROR_MANTISSA_BITS = 10
 _DROPPED_BITS = 23 - ERROR_MANTISSA_BITS
-#: The codes with a meaning of their own (every other code is a positive error).
-_ZERO_CODE, _NAN_CODE = 0, 0xFFFF
+#: The codes with a meaning of their own (every other code is a positive error): an exact zero,
+#: an error too small for the array's 63 binades (kept exactly, float32, in the outliers), NaN.
+_ZERO_CODE, _OUTLIER_CODE, _NAN_CODE = 0, 0xFFFE, 0xFFFF
+_LARGEST_CODE = 0xFFFD
 
 
 def _is_error_column(name: str) -> bool:
     return name.endswith(("_err", "_interp"))
 
 
-def pack_errors(errors: np.ndarray) -> tuple[np.ndarray, int]:
-    """Non-negative float32 errors as uint16 codes and the array's exponent offset, rounded up.
+def pack_errors(errors: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+    """Non-negative float32 errors as uint16 codes rounded up: (codes, exponent offset, outliers).
 
     A code is a float32's bit pattern without its sign (an error is never negative) and with its
     mantissa rounded up to :data:`ERROR_MANTISSA_BITS` bits (the bit pattern of a positive float
-    grows with its value, so rounding the integer up rounds the value up, carrying into the exponent),
-    counted from the array's smallest positive error. float16 has the same mantissa but a 5-bit
-    exponent (30 normal binades): the shipped errors span 39 (1.5e-9 to 1.2e3, slope units), so
-    float16 would flush the smallest to zero or to a few bits; the 16 bits here hold 6 of exponent
-    (63 binades from the offset) and 10 of mantissa. 0: an error of zero; 0xFFFF: NaN (padding)."""
+    grows with its value, so rounding the integer up rounds the value up, carrying into the
+    exponent), counted from an offset: 6 bits of exponent (63 binades) and 10 of mantissa, float16's
+    mantissa with a wider exponent. float16 itself holds 30 normal binades; the shipped errors span
+    up to 67 (6e-18 to 1.2e3 in slope units: a leave-one-out estimate can be all but zero), so it
+    would flush the smallest to zero or to a few bits. The 63 binades end at the array's largest
+    error; an error below them (a negligible one, next to its standard error) is an outlier: code
+    0xFFFE, its float32 kept exactly, in order. 0: an error of zero; 0xFFFF: NaN (padding)."""
     errors = np.asarray(errors, dtype=np.float32)
     finite = np.isfinite(errors)
     if np.any(np.isinf(errors)) or np.any(errors[finite] < 0):
         raise InputError("field grid", "errors must be finite and non-negative (or NaN padding) to be packed")
     bits = np.where(finite, errors, 0).view(np.uint32).astype(np.int64)
     rounded = (bits + (1 << _DROPPED_BITS) - 1) >> _DROPPED_BITS
-    positive = rounded[finite & (rounded > 0)]
-    offset = int(positive.min()) if positive.size else 0
-    codes = np.where(rounded > 0, rounded - offset + 1, _ZERO_CODE)
+    if np.any(rounded << _DROPPED_BITS >= 0x7F800000):
+        raise InputError("field grid", "an error rounded up would overflow float32")
+    positive = finite & (rounded > 0)
+    offset = 0
+    if positive.any():
+        offset = max(int(rounded[positive].min()), int(rounded[positive].max()) - (_LARGEST_CODE - 1))
+    outlier = positive & (rounded < offset)
+    codes = np.where(positive, rounded - offset + 1, _ZERO_CODE)
+    codes = np.where(outlier, _OUTLIER_CODE, codes)
     codes = np.where(finite, codes, _NAN_CODE)
-    if codes[finite].size and (codes[finite].max() >= _NAN_CODE or (rounded[finite] << _DROPPED_BITS).max() >= 0x7F800000):
-        raise InputError("field grid", "the errors span more binades than a 16-bit code holds (63)")
-    return codes.astype(np.uint16), offset
+    return codes.astype(np.uint16), offset, errors[outlier].astype(np.float32)
 
 
-def unpack_errors(codes: np.ndarray, offset: int) -> np.ndarray:
+def unpack_errors(codes: np.ndarray, offset: int, outliers: np.ndarray | None = None) -> np.ndarray:
     """The float32 errors :func:`pack_errors` coded (each at or above the error packed)."""
     codes = np.asarray(codes, dtype=np.int64)
-    bits = np.where(codes == _ZERO_CODE, 0, (codes - 1 + int(offset)) << _DROPPED_BITS)
-    values = bits.astype(np.uint32).view(np.float32)
-    return np.where(codes == _NAN_CODE, np.float32(np.nan), values).astype(np.float32)
+    coded = (codes >= 1) & (codes <= _LARGEST_CODE)
+    bits = np.where(coded, (codes - 1 + int(offset)) << _DROPPED_BITS, 0)
+    values = bits.astype(np.uint32).view(np.float32).copy()
+    values[codes == _NAN_CODE] = np.nan
+    outlier = codes == _OUTLIER_CODE
+    if outlier.any():
+        values[outlier] = outliers
+    return values
 
 
 def check_grid(n: int) -> int:
@@ -344,7 +357,8 @@ class FieldGrid:
             values = np.empty((*slopes.shape[:-1], len(meta["columns"])), dtype=np.float32)
             errors = [i for i, c in enumerate(meta["columns"]) if _is_error_column(c)]
             values[..., [i for i in range(values.shape[-1]) if i not in errors]] = slopes
-            values[..., errors] = unpack_errors(codes, how["offset"])
+            outliers = arrays.pop(f"{key}/error_outliers", None)  # written only where there are any
+            values[..., errors] = unpack_errors(codes, how["offset"], outliers)
             arrays[f"{key}/values"] = values
         meta["format"] = FORMAT
         return cls(meta, arrays)
@@ -364,7 +378,9 @@ class FieldGrid:
             if name.endswith("/values") and array.dtype == np.float32:
                 key = name.removesuffix("/values")
                 stored[name] = array[..., slopes]
-                stored[f"{key}/error_codes"], offset = pack_errors(array[..., errors])
+                stored[f"{key}/error_codes"], offset, outliers = pack_errors(array[..., errors])
+                if outliers.size:
+                    stored[f"{key}/error_outliers"] = outliers
                 packed[key] = {"offset": offset, "mantissa_bits": ERROR_MANTISSA_BITS}
             else:
                 stored[name] = array

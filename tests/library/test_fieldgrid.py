@@ -196,6 +196,7 @@ def test_a_format_2_file_rewritten_keeps_its_slopes_and_only_rounds_its_errors_u
     values[:, :, -3:] = np.nan  # a shorter magnitude grid at every node
     values[0, 0, 0, is_error] = 0.0
     values[1, 0, 0, is_error] = np.float32(1.4787224e-09)  # the shipped file's smallest error
+    values[2, 0, 0, is_error] = np.float32(6.1e-18)  # a rebuild's: 67 binades below its largest
     arrays = {"H158_01/values": values, "H158_01/flux": rng.uniform(1, 2, size=shape[:3])}
     arrays["H158_01/positions"] = np.ones((5, 5, 2))
     _write_format_2(tmp_path / "two.npz", arrays, columns)
@@ -223,13 +224,17 @@ def test_a_format_2_file_rewritten_keeps_its_slopes_and_only_rounds_its_errors_u
     assert again.arrays["H158_01/values"].tobytes() == back["H158_01/values"].tobytes()
 
 
-def test_packing_refuses_errors_it_cannot_state():
+def test_packing_refuses_errors_it_cannot_state_and_keeps_the_tiny_ones_exactly():
     with pytest.raises(InputError):
         fieldgrid.pack_errors(np.array([1.0, np.inf], dtype=np.float32))
     with pytest.raises(InputError):
         fieldgrid.pack_errors(np.array([1.0, -1e-3], dtype=np.float32))
-    with pytest.raises(InputError):  # 70 binades: more than 6 bits of exponent
-        fieldgrid.pack_errors(np.array([1e-20, 1e1], dtype=np.float32))
     # 1 + 2**-23 (one float32 step above 1) is stated as 1 + 2**-10, the next code up.
-    codes, offset = fieldgrid.pack_errors(np.array([1.0, np.nextafter(np.float32(1), np.float32(2))], dtype=np.float32))
-    assert fieldgrid.unpack_errors(codes, offset).tolist() == [1.0, 1.0 + 2.0**-10]
+    codes, offset, outliers = fieldgrid.pack_errors(np.array([1.0, np.nextafter(np.float32(1), np.float32(2))], dtype=np.float32))
+    assert fieldgrid.unpack_errors(codes, offset, outliers).tolist() == [1.0, 1.0 + 2.0**-10] and outliers.size == 0
+    # 70 binades: more than the codes' 63 below the largest; the error below them is kept as it is.
+    errors = np.array([2.0**-66 * 1.2345, 3.0, 10.0, 0.0, np.nan], dtype=np.float32)
+    codes, offset, outliers = fieldgrid.pack_errors(errors)
+    back = fieldgrid.unpack_errors(codes, offset, outliers)
+    assert outliers.tolist() == [errors[0]] and back[0] == errors[0] and back[1:3].tolist() == [3.0, 10.0]
+    assert back[3] == 0.0 and np.isnan(back[4])
