@@ -65,8 +65,8 @@ def pack_errors(errors: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
     mantissa rounded up to :data:`ERROR_MANTISSA_BITS` bits (the bit pattern of a positive float
     grows with its value, so rounding the integer up rounds the value up, carrying into the
     exponent), counted from an offset: 6 bits of exponent (63 binades) and 10 of mantissa, float16's
-    mantissa with a wider exponent. float16 itself holds 30 normal binades; the shipped errors span
-    up to 67 (6e-18 to 1.2e3 in slope units: a leave-one-out estimate can be all but zero), so it
+    mantissa with a wider exponent. float16 itself holds 30 normal binades; the errors of a grid span
+    up to 67 (6e-18 to 1.2e3 in slope units in the 5-band rebuild: a leave-one-out estimate can be all but zero), so it
     would flush the smallest to zero or to a few bits. The 63 binades end at the array's largest
     error; an error below them (a negligible one, next to its standard error) is an outlier: code
     0xFFFE, its float32 kept exactly, in order. 0: an error of zero; 0xFFFF: NaN (padding)."""
