@@ -16,7 +16,8 @@ slopes) or ``lagrange`` (the tensor-product polynomial through every node, biqua
 ``scripts/field_interpolation_error.py`` measures both against fresh simulations at random positions.
 
 The runtime format is one ``.npz`` (numpy only): per (band, SCA) the node positions, each node's
-magnitude grid and its slope columns in float32, and the metadata as JSON. Each (band, SCA) has its
+magnitude grid, its slope columns in float32 and their error columns as 16-bit codes rounded up
+(:func:`pack_errors`), and the metadata as JSON. Each (band, SCA) has its
 own grid size n (``meta["tables"][key]["grid"]``), so a file can hold denser grids where the
 field interpolation needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere.
 """
@@ -39,10 +40,66 @@ SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
 GRID_SIZES: tuple[int, ...] = (2, 3, 5, 7, 9)
 #: The scene names a table build understands ("paper": the shipped tables' idealised scene).
 TABLE_SCENES: tuple[str, ...] = ("paper", "roman")
-#: Runtime format tag of a field-grid file (2: arrays byte-shuffled, ``tables.storage.shuffle_bytes``;
-#: 1, read too: plain arrays).
-FORMAT = "nlpsf-field-grid-2"
-FORMATS_READ: tuple[str, ...] = ("nlpsf-field-grid-1", FORMAT)
+#: Runtime format tag of a field-grid file (3: the error columns as 16-bit codes, :func:`pack_errors`;
+#: read too: 2, every array float and byte-shuffled, ``tables.storage.shuffle_bytes``; 1, plain arrays).
+FORMAT = "nlpsf-field-grid-3"
+FORMATS_READ: tuple[str, ...] = ("nlpsf-field-grid-1", "nlpsf-field-grid-2", FORMAT)
+#: Mantissa bits an error keeps in a -3 file (float16's 10): rounded up, an error grows by less than
+#: 2**-10 = 9.8e-4 of itself and never shrinks.
+ERROR_MANTISSA_BITS = 10
+_DROPPED_BITS = 23 - ERROR_MANTISSA_BITS
+#: The codes with a meaning of their own (every other code is a positive error): an exact zero,
+#: an error too small for the array's 63 binades (kept exactly, float32, in the outliers), NaN.
+_ZERO_CODE, _OUTLIER_CODE, _NAN_CODE = 0, 0xFFFE, 0xFFFF
+_LARGEST_CODE = 0xFFFD
+
+
+def _is_error_column(name: str) -> bool:
+    return name.endswith(("_err", "_interp"))
+
+
+def pack_errors(errors: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+    """Non-negative float32 errors as uint16 codes rounded up: (codes, exponent offset, outliers).
+
+    A code is a float32's bit pattern without its sign (an error is never negative) and with its
+    mantissa rounded up to :data:`ERROR_MANTISSA_BITS` bits (the bit pattern of a positive float
+    grows with its value, so rounding the integer up rounds the value up, carrying into the
+    exponent), counted from an offset: 6 bits of exponent (63 binades) and 10 of mantissa, float16's
+    mantissa with a wider exponent. float16 itself holds 30 normal binades; the errors of a grid span
+    up to 67 (6e-18 to 1.2e3 in slope units in the 5-band rebuild: a leave-one-out estimate can be all but zero), so it
+    would flush the smallest to zero or to a few bits. The 63 binades end at the array's largest
+    error; an error below them (a negligible one, next to its standard error) is an outlier: code
+    0xFFFE, its float32 kept exactly, in order. 0: an error of zero; 0xFFFF: NaN (padding)."""
+    errors = np.asarray(errors, dtype=np.float32)
+    finite = np.isfinite(errors)
+    if np.any(np.isinf(errors)) or np.any(errors[finite] < 0):
+        raise InputError("field grid", "errors must be finite and non-negative (or NaN padding) to be packed")
+    bits = np.where(finite, errors, 0).view(np.uint32).astype(np.int64)
+    rounded = (bits + (1 << _DROPPED_BITS) - 1) >> _DROPPED_BITS
+    if np.any(rounded << _DROPPED_BITS >= 0x7F800000):
+        raise InputError("field grid", "an error rounded up would overflow float32")
+    positive = finite & (rounded > 0)
+    offset = 0
+    if positive.any():
+        offset = max(int(rounded[positive].min()), int(rounded[positive].max()) - (_LARGEST_CODE - 1))
+    outlier = positive & (rounded < offset)
+    codes = np.where(positive, rounded - offset + 1, _ZERO_CODE)
+    codes = np.where(outlier, _OUTLIER_CODE, codes)
+    codes = np.where(finite, codes, _NAN_CODE)
+    return codes.astype(np.uint16), offset, errors[outlier].astype(np.float32)
+
+
+def unpack_errors(codes: np.ndarray, offset: int, outliers: np.ndarray | None = None) -> np.ndarray:
+    """The float32 errors :func:`pack_errors` coded (each at or above the error packed)."""
+    codes = np.asarray(codes, dtype=np.int64)
+    coded = (codes >= 1) & (codes <= _LARGEST_CODE)
+    bits = np.where(coded, (codes - 1 + int(offset)) << _DROPPED_BITS, 0)
+    values = bits.astype(np.uint32).view(np.float32).copy()
+    values[codes == _NAN_CODE] = np.nan
+    outlier = codes == _OUTLIER_CODE
+    if outlier.any():
+        values[outlier] = outliers
+    return values
 
 
 def check_grid(n: int) -> int:
@@ -294,18 +351,43 @@ class FieldGrid:
         for name, how in meta.pop("shuffled", {}).items():
             array = unshuffle_bytes(arrays[name], how["dtype"])
             arrays[name] = np.ascontiguousarray(np.moveaxis(array, 0, -1)) if how["columns_first"] else array
+        for key, how in meta.pop("packed_errors", {}).items():
+            # -3: the slope columns float32, the error columns coded; every caller sees (.., C) float32.
+            slopes, codes = arrays.pop(f"{key}/values"), arrays.pop(f"{key}/error_codes")
+            values = np.empty((*slopes.shape[:-1], len(meta["columns"])), dtype=np.float32)
+            errors = [i for i, c in enumerate(meta["columns"]) if _is_error_column(c)]
+            values[..., [i for i in range(values.shape[-1]) if i not in errors]] = slopes
+            outliers = arrays.pop(f"{key}/error_outliers", None)  # written only where there are any
+            values[..., errors] = unpack_errors(codes, how["offset"], outliers)
+            arrays[f"{key}/values"] = values
         meta["format"] = FORMAT
         return cls(meta, arrays)
 
     def save(self, destination: Path | str) -> Path:
-        """Write this grid as one ``.npz``, atomically: every array through
-        ``tables.storage.shuffle_bytes`` (lossless; the slope values column by column), 20 % smaller
-        deflated than the plain arrays."""
+        """Write this grid as one ``.npz`` (:data:`FORMAT`), atomically: every array through
+        ``tables.storage.shuffle_bytes`` (lossless; the values column by column), 20 % smaller
+        deflated than the plain arrays, the slope columns as they are (float32, bit for bit) and the
+        error columns as :func:`pack_errors`' codes (rounded up; 36 % smaller again)."""
         from .tables.storage import shuffle_bytes
 
-        shuffled = {k: {"dtype": v.dtype.str, "columns_first": k.endswith("/values")} for k, v in self.arrays.items()}
-        arrays = {k: shuffle_bytes(np.moveaxis(v, -1, 0) if shuffled[k]["columns_first"] else v) for k, v in self.arrays.items()}
-        meta = {**self.meta, "format": FORMAT, "shuffled": shuffled}
+        errors = [i for i, c in enumerate(self.meta["columns"]) if _is_error_column(c)]
+        slopes = [i for i in range(len(self.meta["columns"])) if i not in errors]
+        stored: dict[str, np.ndarray] = {}
+        packed: dict[str, dict] = {}
+        for name, array in self.arrays.items():
+            if name.endswith("/values") and array.dtype == np.float32:
+                key = name.removesuffix("/values")
+                stored[name] = array[..., slopes]
+                stored[f"{key}/error_codes"], offset, outliers = pack_errors(array[..., errors])
+                if outliers.size:
+                    stored[f"{key}/error_outliers"] = outliers
+                packed[key] = {"offset": offset, "mantissa_bits": ERROR_MANTISSA_BITS}
+            else:
+                stored[name] = array
+        columns_first = ("/values", "/error_codes")
+        shuffled = {k: {"dtype": v.dtype.str, "columns_first": k.endswith(columns_first)} for k, v in stored.items()}
+        arrays = {k: shuffle_bytes(np.moveaxis(v, -1, 0) if shuffled[k]["columns_first"] else v) for k, v in stored.items()}
+        meta = {**self.meta, "format": FORMAT, "shuffled": shuffled, "packed_errors": packed}
         arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         destination = Path(destination)
         destination.parent.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,14 @@ finished); the file's metadata records the code commit the nodes were built with
 in the build folder, else the current one), the date, the CPU time of every node and which
 (band, SCA) are covered. With ``--into`` the entries replace those of an existing file
 (``fieldgrid.merge_grids``: each keeps its own build's provenance, the others stay bit for bit).
+
+    # a file of an earlier format rewritten in today's (fieldgrid.FORMAT), nothing rebuilt:
+    python scripts/ship_field_grid.py --resave nlpsf/data/tables/roman_field_grid.npz
+
+``--resave`` keeps every slope bit for bit and rounds the errors up to the format's precision; the
+file's provenance records the file it was made from (format, size and git blob id, so
+``git cat-file blob ID`` gives it back where it was committed: tests/library/test_shipped_field_grid.py
+compares against it).
 docs/field.md says what the shipped file holds.
 """
 
@@ -19,10 +27,14 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
+import json
 import statistics
 import subprocess
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 from nlpsf import __version__, defaults, fieldgrid, tablebuild
 
@@ -34,13 +46,42 @@ def _commit(build: Path) -> str:
     return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False).stdout.strip()
 
 
+def git_blob_id(path: Path) -> str:
+    """The id git gives ``path``'s content (``git hash-object``), computed without git."""
+    content = path.read_bytes()
+    return hashlib.sha1(b"blob %d\0" % len(content) + content).hexdigest()
+
+
+def resave(path: Path) -> Path:
+    """Rewrite a field-grid file in today's format, recording what it was made from."""
+    grid = fieldgrid.FieldGrid.load(path)
+    with open(path, "rb") as handle:
+        old_format = json.loads(np.load(handle)["meta"].tobytes().decode())["format"]
+    provenance = grid.meta.setdefault("provenance", {})
+    provenance["converted_from"] = {
+        "format": old_format,
+        "bytes": path.stat().st_size,
+        "git_blob": git_blob_id(path),
+        "converted": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
+    return grid.save(path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("build", type=Path, help="folder of node tables (nlpsf tables build --grid N --output ...)")
+    parser.add_argument("build", type=Path, nargs="?", help="folder of node tables (nlpsf tables build --grid N --output ...)")
     parser.add_argument("--grid", type=int, default=3, help="the build's grid size N")
     parser.add_argument("--to", type=Path, default=fieldgrid.shipped_grid_path())
     parser.add_argument("--into", type=Path, default=None, help="put the entries into this existing field-grid file instead")
+    parser.add_argument("--resave", type=Path, default=None, help="rewrite this field-grid file in today's format instead")
     args = parser.parse_args()
+    if args.resave is not None:
+        before = args.resave.stat().st_size
+        out = resave(args.resave)
+        print(f"{out}: {before / 1e6:.2f} MB -> {out.stat().st_size / 1e6:.2f} MB ({fieldgrid.FORMAT})")
+        return
+    if args.build is None:
+        parser.error("give a build folder or --resave FILE")
     n = fieldgrid.check_grid(args.grid)
     paths = sorted(args.build.glob(f"slopes_*_G{n}_*.ecsv"))
     started = (args.build / "STARTED").read_text().strip() if (args.build / "STARTED").is_file() else None

@@ -163,3 +163,78 @@ def test_local_dask_workers_keep_glibcs_dynamic_mmap_threshold(monkeypatch):
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
     with cluster.dask_client("local", workers=1) as client:
         assert set(client.run(_malloc_trim_threshold).values()) == {None}
+
+
+def _write_format_2(path, arrays: dict, columns: list[str]) -> None:
+    """A nlpsf-field-grid-2 file written here, not by ``fieldgrid``: every array float, its bytes
+    regrouped by significance (the values' columns first), the metadata as JSON bytes."""
+    import json
+
+    stored, shuffled = {}, {}
+    for name, array in arrays.items():
+        columns_first = name.endswith("/values")
+        a = np.ascontiguousarray(np.moveaxis(array, -1, 0) if columns_first else array)
+        stored[name] = np.ascontiguousarray(np.moveaxis(a.view(np.uint8).reshape(*a.shape, a.itemsize), -1, 0))
+        shuffled[name] = {"dtype": array.dtype.str, "columns_first": columns_first}
+    meta = {"format": "nlpsf-field-grid-2", "columns": columns, "tables": {}, "value_dtype": "float32", "shuffled": shuffled}
+    stored["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez_compressed(path, **stored)
+
+
+def test_a_format_2_file_rewritten_keeps_its_slopes_and_only_rounds_its_errors_up(tmp_path):
+    """Errors over the shipped file's span (1e-9 to 1e3 in slope units, 39 binades, wider than
+    float16's 30) and slopes to 1e5, with NaN padding and an exact zero: read back from the -3 file,
+    every slope is the float32 written, bit for bit, and every error at or above the one written,
+    by less than 2**-10 of it (float16's mantissa), never flushed to zero nor made infinite."""
+    columns = fieldgrid._slope_columns()
+    is_error = np.array([c.endswith(("_err", "_interp")) for c in columns])
+    rng = np.random.default_rng(17)
+    shape = (5, 5, 40, len(columns))
+    values = np.where(
+        is_error, 10 ** rng.uniform(-9, 3, size=shape), rng.choice([-1, 1], size=shape) * 10 ** rng.uniform(-6, 5, size=shape)
+    ).astype(np.float32)
+    values[:, :, -3:] = np.nan  # a shorter magnitude grid at every node
+    values[0, 0, 0, is_error] = 0.0
+    values[1, 0, 0, is_error] = np.float32(1.4787224e-09)  # the shipped file's smallest error
+    values[2, 0, 0, is_error] = np.float32(6.1e-18)  # a rebuild's: 67 binades below its largest
+    arrays = {"H158_01/values": values, "H158_01/flux": rng.uniform(1, 2, size=shape[:3])}
+    arrays["H158_01/positions"] = np.ones((5, 5, 2))
+    _write_format_2(tmp_path / "two.npz", arrays, columns)
+
+    read = fieldgrid.FieldGrid.load(tmp_path / "two.npz")
+    three = read.save(tmp_path / "three.npz")
+    back = fieldgrid.FieldGrid.load(three).arrays
+    assert back["H158_01/values"].dtype == np.float32 and back["H158_01/values"].shape == shape
+    for name in ("H158_01/flux", "H158_01/positions"):
+        assert back[name].tobytes() == arrays[name].tobytes()
+    slopes_written, slopes_read = values[..., ~is_error], back["H158_01/values"][..., ~is_error]
+    assert slopes_read.tobytes() == slopes_written.tobytes()  # bit for bit, NaNs included
+    written = values[..., is_error].astype(np.float64)
+    stated = back["H158_01/values"][..., is_error].astype(np.float64)
+    finite = np.isfinite(written)
+    assert np.array_equal(finite, np.isfinite(stated))
+    assert np.all(stated[finite] >= written[finite])
+    positive = finite & (written > 0)
+    assert np.all(stated[positive] > 0) and np.all(stated[finite & (written == 0)] == 0)
+    growth = stated[positive] / written[positive] - 1
+    assert growth.max() < 2.0**-10 and growth.max() > 2.0**-11  # the bound is reached, not loose
+    assert three.stat().st_size < 0.75 * (tmp_path / "two.npz").stat().st_size
+    # Re-saving a -3 file changes nothing more (its errors are on the code's grid already).
+    again = fieldgrid.FieldGrid.load(fieldgrid.FieldGrid(fieldgrid.FieldGrid.load(three).meta, back).save(tmp_path / "again.npz"))
+    assert again.arrays["H158_01/values"].tobytes() == back["H158_01/values"].tobytes()
+
+
+def test_packing_refuses_errors_it_cannot_state_and_keeps_the_tiny_ones_exactly():
+    with pytest.raises(InputError):
+        fieldgrid.pack_errors(np.array([1.0, np.inf], dtype=np.float32))
+    with pytest.raises(InputError):
+        fieldgrid.pack_errors(np.array([1.0, -1e-3], dtype=np.float32))
+    # 1 + 2**-23 (one float32 step above 1) is stated as 1 + 2**-10, the next code up.
+    codes, offset, outliers = fieldgrid.pack_errors(np.array([1.0, np.nextafter(np.float32(1), np.float32(2))], dtype=np.float32))
+    assert fieldgrid.unpack_errors(codes, offset, outliers).tolist() == [1.0, 1.0 + 2.0**-10] and outliers.size == 0
+    # 70 binades: more than the codes' 63 below the largest; the error below them is kept as it is.
+    errors = np.array([2.0**-66 * 1.2345, 3.0, 10.0, 0.0, np.nan], dtype=np.float32)
+    codes, offset, outliers = fieldgrid.pack_errors(errors)
+    back = fieldgrid.unpack_errors(codes, offset, outliers)
+    assert outliers.tolist() == [errors[0]] and back[0] == errors[0] and back[1:3].tolist() == [3.0, 10.0]
+    assert back[3] == 0.0 and np.isnan(back[4])

@@ -42,6 +42,62 @@ def test_the_shipped_grid_holds_float32_nodes_and_says_how_it_was_built():
     assert all(GRID.covers(b, s) == ((b, s) in covered) for b in defaults.BANDS for s in range(1, defaults.N_SCA + 1))
 
 
+def _format_2_values(content: bytes) -> dict[str, np.ndarray]:
+    """Every ``{key}/values`` of a nlpsf-field-grid-2 file, decoded here (not by ``fieldgrid``)."""
+    import io
+    import json
+
+    with np.load(io.BytesIO(content)) as data:
+        meta = json.loads(data["meta"].tobytes().decode())
+        assert meta["format"] == "nlpsf-field-grid-2"
+        out = {}
+        for name in (n for n in data.files if n.endswith("/values")):
+            planes = data[name]  # (itemsize, columns, n, n, M) bytes
+            raw = np.ascontiguousarray(np.moveaxis(planes, 0, -1)).view(meta["shuffled"][name]["dtype"])[..., 0]
+            out[name] = np.moveaxis(raw, 0, -1)
+    return out
+
+
+def test_the_shipped_errors_are_stated_rounded_up_and_its_slopes_as_built():
+    """Against the float32 file the shipped one was converted from (``scripts/ship_field_grid.py
+    --resave`` records its git blob): every slope bit for bit, every error at or above its float32
+    value by less than 2**-10 of it (0.1 %), none flushed to zero or infinite."""
+    import subprocess
+
+    from ..servers import ROOT
+
+    source = GRID.meta["provenance"].get("converted_from")
+    if source is None:
+        pytest.skip("the shipped grid was written in this format, not converted")
+    blob = subprocess.run(["git", "cat-file", "blob", source["git_blob"]], capture_output=True, cwd=ROOT, check=False)
+    if blob.returncode != 0:
+        pytest.skip(f"the file converted from (git blob {source['git_blob']}) is not in this checkout's history")
+    before = _format_2_values(blob.stdout)
+    columns = GRID.meta["columns"]
+    is_error = np.array([c.endswith(("_err", "_interp")) for c in columns])
+    assert sorted(before) == sorted(f"{k}/values" for k in GRID.meta["tables"])
+    worst = 0.0
+    for name, written in before.items():
+        stated = GRID.arrays[name]
+        assert stated.dtype == np.float32 and stated.shape == written.shape
+        assert stated[..., ~is_error].tobytes() == written[..., ~is_error].tobytes(), name
+        w, s = written[..., is_error].astype(np.float64), stated[..., is_error].astype(np.float64)
+        finite = np.isfinite(w)
+        assert np.array_equal(finite, np.isfinite(s)) and np.all(s[finite] >= w[finite]) and np.all(s[finite] > 0), name
+        worst = max(worst, float(np.max(s[finite] / w[finite] - 1)))
+    assert worst < 2.0**-10
+
+
+def test_the_shipped_errors_are_positive_wherever_a_slope_is_stated():
+    assert GRID.meta["format"] == fieldgrid.FORMAT
+    is_error = np.array([c.endswith(("_err", "_interp")) for c in GRID.meta["columns"]])
+    for key in sorted(GRID.meta["tables"]):
+        values = GRID.arrays[f"{key}/values"]
+        stated = np.isfinite(values[..., ~is_error]).all(axis=-1)
+        errors = values[stated][:, is_error]
+        assert np.all(np.isfinite(errors) & (errors > 0)), key
+
+
 def test_the_reader_returns_none_without_the_file(monkeypatch, tmp_path):
     monkeypatch.setattr(fieldgrid, "shipped_grid_path", lambda: tmp_path / "absent.npz")
     fieldgrid.shipped_grid.cache_clear()
