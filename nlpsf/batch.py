@@ -14,8 +14,8 @@ Two checks, one before and one during the answer:
   every node of the SCA range when the Roman default has no position: an accuracy target (its
   effects are measured by simulation), a simulating level, a scene, pupil rule, state, exposure or
   beta0 the tables and the grid do not hold, all say so before anything runs;
-- a magnitude outside a grid node's magnitudes is found only while the answer reads the slopes
-  (a magnitude solve's scan can extrapolate fainter than the grid); :func:`no_simulation` makes the
+- a magnitude brighter than a grid node's magnitudes is found only while the answer reads the slopes
+  (fainter ones follow the flux law from the grid's faint end); :func:`no_simulation` makes the
   slope source refuse it (``slope_source.Slopes._simulate`` asks ``simulation_guard``) before the
   simulator is loaded, so a refused row costs table time only.
 """

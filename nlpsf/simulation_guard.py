@@ -39,5 +39,5 @@ def check_simulation_allowed(magnitude: float) -> None:
         raise NeedsSimulation(
             "magnitude",
             f"the slope at m={magnitude:.4g} is outside what the tables and the Roman default's field grid hold "
-            f"(a magnitude outside a node's grid), so it would be simulated: {REFUSAL}",
+            f"(a magnitude brighter than a node's grid), so it would be simulated: {REFUSAL}",
         )

@@ -39,7 +39,7 @@ class Slopes:
         self.linearise_at = linearise_at  # the detector state of the fresh simulations' slopes
         #: The Roman default's field grid where it holds the request (``roman_default.field_grid``), else None.
         self.grid = grid
-        #: Magnitudes the grid did not cover (outside a node's magnitude grid): simulated instead.
+        #: Magnitudes brighter than the grid covers (outside a node's magnitude grid): simulated instead.
         self.grid_misses: list[float] = []
         self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity

@@ -73,27 +73,34 @@ NEEDS_SIMULATION = [
     ({**BASE, "fidelity": "linear"}, "fidelity"),
     ({**BASE, "scene": "galsim-roman"}, "scene"),
     ({**BASE, "exptime": 200.0}, "exptime"),
-    # Outside every node's magnitudes: found while the slopes are read, refused before simulating.
-    ({**BASE, "magnitude": 30.0, "scene": {"position": [1000.0, 3000.0]}}, "magnitude"),
 ]
+#: Fainter than every node's magnitudes: answered from the grid's faint end by the flux law, flagged.
+FAINTER_THAN_THE_GRID = {**BASE, "magnitude": 30.0, "scene": {"position": [1000.0, 3000.0]}}
 
 
 def test_rows_that_need_a_simulation_are_refused_alone_with_where_to_send_them(client):
-    rows = [BASE, *(row for row, _ in NEEDS_SIMULATION), {**BASE, "magnitude": "x"}, {**BASE, "scene": "paper"}]
+    rows = [
+        BASE,
+        *(row for row, _ in NEEDS_SIMULATION),
+        {**BASE, "magnitude": "x"},
+        FAINTER_THAN_THE_GRID,
+        {**BASE, "scene": "paper"},
+    ]
     response = client.post("/api/v1/solve/batch", json={"requests": rows})
     assert response.status_code == 200
     body = response.json()
     results = body["results"]
     assert [r["index"] for r in results] == list(range(len(rows)))
-    assert (body["answered"], body["failed"]) == (2, len(NEEDS_SIMULATION) + 1)
-    assert results[0]["ok"] and results[-1]["ok"]
-    for (row, field), result in zip(NEEDS_SIMULATION, results[1:-2], strict=True):
+    assert (body["answered"], body["failed"]) == (3, len(NEEDS_SIMULATION) + 1)
+    assert results[0]["ok"] and results[-1]["ok"] and results[-2]["ok"]
+    assert "extrapolated_faint" in results[-2]["solution"]["flag_codes"]
+    for (row, field), result in zip(NEEDS_SIMULATION, results[1:-3], strict=True):
         assert not result["ok"], row
         error = result["error"]
         assert error["type"] == "/problems/needs-simulation" and error["status"] == 422, (row, error)
         assert error["field"] == field and error["send_to"] == "/api/v1/solve", (row, error)
         assert "/api/v1/solve" in error["detail"]
-    invalid = results[-2]["error"]
+    invalid = results[-3]["error"]
     assert invalid["type"] == "/problems/invalid-input" and invalid["field"] == "magnitude"
 
 
