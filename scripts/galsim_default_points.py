@@ -4,8 +4,9 @@ At N seeded random points (band, SCA, a position neither the SCA centre nor a co
 between the answer's saturation limit + 0.4 and 21.5, a metric), the slope d metric / d beta that
 ``nlpsf solve`` answers with the Roman default is compared with an independent GalSim computation of
 the same scene (``nlpsf.reference.GalSimRomanDefault``: GalSim's optics at the position with the
-official pupil scale, a 5270 K blackbody through the SCA's official bandpass, jitter and diffusion,
-IPC after the NL, the background, the C2A_IMG_HLWAS ramp read by read with romancal's saturation
+official pupil scale, the answer's star (the Pickles K0V as a tabulated ``galsim.SED``, or a blackbody)
+through the SCA's official bandpass, jitter and diffusion, IPC after the NL, the background (removed
+as a local sky estimate removes it), the C2A_IMG_HLWAS ramp read by read with romancal's saturation
 flags and the likelihood fit, the slope at the corrected state by a symmetric difference in beta):
 
 - (a) ``--fidelity polychromatic``: target within 0.5 % of the peer;
