@@ -40,8 +40,10 @@ def _probe(request, seed=None, realizations=accuracy.PROBE_REALIZATIONS):
 @pytest.mark.slow
 def test_effects_that_share_a_sign_are_not_left_out_together():
     # K213 size (issue 17: four effects each under 1 %, same sign, 1.8 % together). In the Roman
-    # default here the SED, IPC and jitter all lower the size slope; at A = 2 % each is below A alone.
-    a = 0.02
+    # default here the SED, IPC and jitter all lower the size slope (-2.26 %, -0.75 %, -0.07 % alone,
+    # -3.1 % together); at A = 2.5 % each is below A alone. (A was 2 % while the sky's own NL stayed in
+    # the image, when the SED alone was under 2 % here.)
+    a = 0.025
     request = _roman_request("K213", 7, "size", 19.0, (900.0, 3100.0), a)
     probe = _probe(request)
     alone = {name: probe.impact([name])[0] for name in accuracy._removable(probe.full.scene)}
