@@ -120,10 +120,10 @@ class Slopes:
         return (*self._simulated(magnitude), region)
 
     def _from_grid(self, magnitude: float) -> tuple[float, float, int]:
-        """The Roman default's slope from its field grid at the scene's position; a magnitude outside
-        brighter than a node's grid is simulated (and noted). Fainter than its faint end (m = 28), the
-        linear regime's flux law from there (region +1), as the paper's tables extrapolate: H158 SCA 18
-        at (1000, 3000), size, m = 30: 0.3639932 against 0.3639921 simulated."""
+        """The Roman default's slope from its field grid at the scene's position; a magnitude brighter
+        than a node's grid is simulated (and noted). Fainter than the grid's faint end (m = 28 in the
+        shipped file), the linear regime's flux law from there (region +1), as the paper's tables
+        extrapolate: H158 SCA 18 at (1000, 3000), size, m = 30: 0.3639932 against 0.3639921 simulated."""
         faint = self.grid.magnitude_range(self.band, self.sca)[1] if hasattr(self.grid, "magnitude_range") else math.inf
         if magnitude > faint:
             value, error = grid_slope(self.grid, self.band, self.sca, self.scene_model.position, self.metric, self.mode, faint)
