@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -126,22 +127,9 @@ class Ramp:
         """The star's final-frame charge [e-] in a pixel (background ``background_e`` on top) above which
         that pixel keeps fewer resultants than a slope needs, under this ramp's rules with the raw
         quadratic NL ``beta`` (``saturation_beta`` wins when set). Exact for either rule (bisection on
-        :func:`usable_resultants`, which only ever loses resultants as the charge grows)."""
-        needed = min(self.min_usable, self.table.n_resultants)
-
-        def keeps(q: float) -> bool:
-            return bool(usable_resultants(np.array([q + background_e]), self, exptime_s, full_well_e, (beta,))[0] >= needed)
-
-        low = 0.0
-        high = max(full_well_e, 1.0) / self.first_usable_fraction(exptime_s)
-        while keeps(high):
-            low, high = high, 2 * high
-        for _ in range(200):
-            middle = 0.5 * (low + high)
-            if middle in (low, high):
-                break
-            low, high = (middle, high) if keeps(middle) else (low, middle)
-        return low
+        :func:`usable_resultants`, which only ever loses resultants as the charge grows; memoised, as
+        a solve asks for the same limit at every position it checks)."""
+        return _limit_charge(self, float(exptime_s), float(full_well_e), float(beta), float(background_e))
 
     def saturation_shift_mag(
         self, exptime_s: float, full_well_e: float | None = None, beta: float = 0.0, background_e: float = 0.0
@@ -213,6 +201,26 @@ class Ramp:
         if self.table.name not in {"custom"} and not self.table.name.startswith("uniform-"):
             out["read_pattern"] = [list(r) for r in self.table.resultants]
         return out
+
+
+@lru_cache(maxsize=1024)
+def _limit_charge(ramp: Ramp, exptime_s: float, full_well_e: float, beta: float, background_e: float) -> float:
+    """:meth:`Ramp.limit_charge` (a pure function of a frozen ramp and four numbers)."""
+    needed = min(ramp.min_usable, ramp.table.n_resultants)
+
+    def keeps(q: float) -> bool:
+        return bool(usable_resultants(np.array([q + background_e]), ramp, exptime_s, full_well_e, (beta,))[0] >= needed)
+
+    low = 0.0
+    high = max(full_well_e, 1.0) / ramp.first_usable_fraction(exptime_s)
+    while keeps(high):
+        low, high = high, 2 * high
+    for _ in range(200):
+        middle = 0.5 * (low + high)
+        if middle in (low, high):
+            break
+        low, high = (middle, high) if keeps(middle) else (low, middle)
+    return low
 
 
 # --- what a read reports and which resultants a pixel keeps ------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
@@ -144,13 +145,24 @@ def load_ma_table(spec: str | Path) -> MATable:
         except (OSError, ValueError) as error:
             raise InputError("ma_table", f"cannot read {path} as JSON: {error}") from None
         return MATable.from_dict(data, name=path.stem)
-    key = str(spec).strip().lower()
+    table = _shipped_tables().get(str(spec).strip().lower())
+    if table is None:
+        shipped = ", ".join(shipped_table_names())
+        raise InputError("ma_table", f"no file and no shipped MA table named {spec!r}; shipped: {shipped}")
+    return table
+
+
+@lru_cache(maxsize=1)
+def _shipped_tables() -> dict[str, MATable]:
+    """Every shipped table under its file name and the names its source gives it (C2A_IMG_HLWAS),
+    lower case. Read once per process: a solve asks for its readout dozens of times."""
+    tables: dict[str, MATable] = {}
     for name in shipped_table_names():
         data = json.loads((shipped_table_dir() / f"{name}.json").read_text())
-        # A shipped table answers to its file name and to the names its source gives it (C2A_IMG_HLWAS).
-        if key in {name.lower(), *(alias.lower() for alias in data.get("aliases", ()))}:
-            return MATable.from_dict(data, name=name)
-    raise InputError("ma_table", f"no file and no shipped MA table named {spec!r}; shipped: {', '.join(shipped_table_names())}")
+        table = MATable.from_dict(data, name=name)
+        for key in (name, *data.get("aliases", ())):
+            tables[key.lower()] = table
+    return tables
 
 
 def _resultant_fractions(table: MATable, exptime_s: float) -> np.ndarray:
