@@ -40,6 +40,16 @@ def static_dir(settings: Settings) -> Path:
     return Path(settings.static_dir) if settings.static_dir else Path(str(resources.files("nlpsf.web.static")))
 
 
+def _answer_one_default_solve() -> None:
+    """Warm-up: a failure here is logged, not fatal, so the rest of the calculator still serves (the
+    same failure then reaches the client of a default /solve as its own answer)."""
+    first = {"band": defaults.BAND, "magnitude": defaults.MAGNITUDE, "tolerance": 1e-4}
+    try:
+        batch.answer_from_tables(SolveRequest.from_json(first))
+    except Exception:
+        log.exception("the warm-up default solve failed; default answers will fail the same way")
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
 
@@ -53,8 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             field.load_all()
         # One default answer (the Roman default at its field grid's nodes, its readout, sky and model
         # parts): what a first /solve would otherwise load lazily (~1.3 s, against ~40 ms after).
-        first = {"band": defaults.BAND, "magnitude": defaults.MAGNITUDE, "tolerance": 1e-4}
-        batch.answer_from_tables(SolveRequest.from_json(first))
+        _answer_one_default_solve()
         store = Store(settings.db_path)
         if store.state != "ok":
             log.error("starting without simulations: %s; the calculator runs, /health says why", store.reason)
