@@ -25,6 +25,8 @@ field interpolation needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere.
 from __future__ import annotations
 
 import json
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -322,6 +324,10 @@ def merge_grids(base: FieldGrid, update: FieldGrid) -> FieldGrid:
     return FieldGrid(meta, arrays)
 
 
+#: Bytes of (entry, column, magnitudes) evaluations a grid keeps, least recently used dropped first
+#: (a magnitude solve over a 5 x 5 SCA asks ~750 of them, 0.75 MB).
+_NODE_VALUES_KEPT_BYTES = 32 * 2**20
+
 #: The arrays a field-grid file holds per (band, SCA), ``{key}/{part}``.
 ARRAY_PARTS: tuple[str, ...] = ("positions", "magnitude", "flux", "values")
 
@@ -341,6 +347,9 @@ class FieldGrid:
     meta: dict
     arrays: dict
     _splines: dict = field(default_factory=dict, repr=False)
+    _node_values: OrderedDict = field(default_factory=OrderedDict, repr=False)
+    _node_values_bytes: list = field(default_factory=lambda: [0], repr=False)  # a frozen grid's one counter
+    _node_values_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @classmethod
     def load(cls, path: Path | str) -> FieldGrid:
@@ -476,23 +485,58 @@ class FieldGrid:
     def node_values(self, band: str, sca: int, column: str, magnitude) -> np.ndarray:
         """(n, n, ...) values of ``column`` at ``magnitude`` (a number or an array) at every node: a
         cubic spline of column / flux in flux along each node's magnitude grid, as ``nlpsf.tables``
-        reads a table; NaN outside a node's grid (no extrapolation across the field)."""
+        reads a table; NaN outside a node's grid (no extrapolation across the field). Read-only and
+        memoised: an answer over the SCA asks every node's value once per node it answers at."""
         key, _ = self._entry(band, sca)
         if column not in self.meta["columns"]:
             raise InputError("column", f"no column {column!r} in this field grid")
         m = np.asarray(magnitude, dtype=np.float64)
-        flux = self.arrays[f"{key}/flux"]
-        mags = self.arrays[f"{key}/magnitude"]
-        n = flux.shape[0]
+        memo_key = (key, column, m.shape, m.tobytes())
+        with self._node_values_lock:  # the service answers from threads
+            cached = self._node_values.get(memo_key)
+            if cached is not None:
+                self._node_values.move_to_end(memo_key)
+                return cached
+        out = self._evaluate_nodes(key, column, m)
+        out.flags.writeable = False
+        with self._node_values_lock:
+            if memo_key not in self._node_values:
+                self._node_values[memo_key] = out
+                self._node_values_bytes[0] += out.nbytes
+            while self._node_values_bytes[0] > _NODE_VALUES_KEPT_BYTES and len(self._node_values) > 1:
+                self._node_values_bytes[0] -= self._node_values.popitem(last=False)[1].nbytes
+        return out
+
+    def _evaluate_nodes(self, key: str, column: str, m: np.ndarray) -> np.ndarray:
+        references = self._references(key)
+        n = len(references)
         out = np.full((n, n, *m.shape), np.nan)
         for j in range(n):
             for i in range(n):
                 low, high, spline = self._spline(key, column, j, i)
-                first = int(np.nanargmax(flux[j, i]))
-                target = flux[j, i, first] * 10 ** (-0.4 * (m - mags[j, i, first]))
+                first_flux, first_magnitude = references[j][i]
+                target = first_flux * 10 ** (-0.4 * (m - first_magnitude))
                 inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
                 out[j, i] = np.where(inside, spline(np.clip(target, low, high)) * target, np.nan)
         return out
+
+    def _references(self, key: str) -> list[list[tuple]]:
+        """Per node, (flux, magnitude) of its brightest row: a magnitude is turned into that node's
+        flux from there (the node's own photometry)."""
+        cached = self._splines.get((key, "references"))
+        if cached is None:
+            flux = self.arrays[f"{key}/flux"]
+            mags = self.arrays[f"{key}/magnitude"]
+            n = flux.shape[0]
+            cached = []
+            for j in range(n):
+                row = []
+                for i in range(n):
+                    first = int(np.nanargmax(flux[j, i]))
+                    row.append((flux[j, i, first], mags[j, i, first]))
+                cached.append(row)
+            self._splines[(key, "references")] = cached
+        return cached
 
     def column_value(
         self,
