@@ -75,7 +75,7 @@ BENCHMARKS = (
     ),
     Benchmark(
         "service",
-        "Load on the service: table solves while simulations run",
+        "Load on the service: table solves while simulations run, and the Roman default's solves",
         ("benchmarks/bench_service.py",),
         r"req/s|p99|target",
     ),

@@ -20,6 +20,10 @@ magnitude grid, its slope columns in float32 and their error columns as 16-bit c
 (:func:`pack_errors`), and the metadata as JSON. Each (band, SCA) has its
 own grid size n (``meta["tables"][key]["grid"]``), so a file can hold denser grids where the
 field interpolation needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere.
+
+About 600 lines, kept as one module because the file format (its writer, reader and error codes)
+and the reads across the grid share one layout of arrays; the batch evaluation of the nodes'
+splines is its own module, ``nlpsf.node_splines``.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import roman
+from . import node_splines, roman
 from .checks import InputError, check_integer
 
 #: Interpolation schemes across the field grid.
@@ -508,33 +512,41 @@ class FieldGrid:
         return out
 
     def _evaluate_nodes(self, key: str, column: str, m: np.ndarray) -> np.ndarray:
-        references = self._references(key)
-        n = len(references)
-        out = np.full((n, n, *m.shape), np.nan)
+        first_flux, first_magnitude = self._references(key)
+        n = first_flux.shape[0]
+        # Each node's flux at m, from its own brightest row, one node at a time (numpy's scalar and
+        # array powers may differ in the last bit; the grid's answers are kept bit for bit).
+        target = np.empty((n, n, *m.shape))
         for j in range(n):
             for i in range(n):
-                low, high, spline = self._spline(key, column, j, i)
-                first_flux, first_magnitude = references[j][i]
-                target = first_flux * 10 ** (-0.4 * (m - first_magnitude))
-                inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
-                out[j, i] = np.where(inside, spline(np.clip(target, low, high)) * target, np.nan)
-        return out
+                target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m - first_magnitude[j, i]))
+        knots, coefficients, low, high = self._stacked_splines(key, column)
+        extra = (slice(None), slice(None), *([None] * m.ndim))
+        inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
+        clipped = np.clip(target, low[extra], high[extra])
+        return np.where(inside, node_splines.evaluate(knots, coefficients, clipped) * target, np.nan)
 
-    def _references(self, key: str) -> list[list[tuple]]:
-        """Per node, (flux, magnitude) of its brightest row: a magnitude is turned into that node's
+    def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every node's spline of ``column`` as padded arrays (``nlpsf.node_splines.stack``) and each
+        node's flux range (n, n)."""
+        cached = self._splines.get((key, column, "stacked"))
+        if cached is None:
+            n = self.arrays[f"{key}/flux"].shape[0]
+            splines = [[self._spline(key, column, j, i) for i in range(n)] for j in range(n)]
+            knots, coefficients = node_splines.stack([[spline for _, _, spline in row] for row in splines])
+            low = np.array([[node_low for node_low, _, _ in row] for row in splines])
+            high = np.array([[node_high for _, node_high, _ in row] for row in splines])
+            cached = self._splines[(key, column, "stacked")] = (knots, coefficients, low, high)
+        return cached
+
+    def _references(self, key: str) -> tuple[np.ndarray, np.ndarray]:
+        """(n, n) flux and magnitude of each node's brightest row: a magnitude becomes that node's
         flux from there (the node's own photometry)."""
         cached = self._splines.get((key, "references"))
         if cached is None:
-            flux = self.arrays[f"{key}/flux"]
-            mags = self.arrays[f"{key}/magnitude"]
-            n = flux.shape[0]
-            cached = []
-            for j in range(n):
-                row = []
-                for i in range(n):
-                    first = int(np.nanargmax(flux[j, i]))
-                    row.append((flux[j, i, first], mags[j, i, first]))
-                cached.append(row)
+            flux, mags = self.arrays[f"{key}/flux"], self.arrays[f"{key}/magnitude"]
+            first = np.nanargmax(flux, axis=-1)[..., None]
+            cached = np.take_along_axis(flux, first, -1)[..., 0], np.take_along_axis(mags, first, -1)[..., 0]
             self._splines[(key, "references")] = cached
         return cached
 

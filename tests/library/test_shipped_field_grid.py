@@ -126,3 +126,32 @@ def test_the_shipped_grid_matches_a_fresh_simulation_off_the_nodes():
                 continue  # near zero: a relative error says nothing
             assert abs(value / truth - 1) <= TARGET[metric], (metric, magnitude, value, truth)
             assert error > 0
+
+
+@pytest.mark.parametrize(("band", "sca"), [("W146", 6), ("H158", 18), ("R062", 3)])
+def test_every_node_reads_as_its_own_cubic_spline(band, sca):
+    """The grid evaluates all nodes at once; each node's value must be scipy's CubicSpline of that
+    node's own table (column / flux in flux, as nlpsf.tables reads a table), bit for bit, and NaN
+    outside the node's magnitude range. The truth is built here from the file's arrays."""
+    from scipy.interpolate import CubicSpline
+
+    key = GRID.key(band, sca)
+    flux = GRID.arrays[f"{key}/flux"]
+    magnitudes = GRID.arrays[f"{key}/magnitude"]
+    column = "bias_e1"
+    index = GRID.meta["columns"].index(column)
+    values = GRID.arrays[f"{key}/values"][..., index].astype(np.float64)
+    draws = np.random.default_rng(7).uniform(np.nanmin(magnitudes) - 0.5, np.nanmax(magnitudes) + 0.5, 64)
+    got = GRID.node_values(band, sca, column, draws)
+    n = flux.shape[0]
+    for j in range(n):
+        for i in range(n):
+            ok = np.isfinite(flux[j, i]) & np.isfinite(values[j, i])
+            order = np.argsort(flux[j, i][ok])
+            f, q = flux[j, i][ok][order], (values[j, i][ok] / flux[j, i][ok])[order]
+            brightest = int(np.nanargmax(flux[j, i]))
+            target = flux[j, i, brightest] * 10 ** (-0.4 * (draws - magnitudes[j, i, brightest]))
+            inside = (target >= f[0] * (1 - 1e-12)) & (target <= f[-1] * (1 + 1e-12))
+            expected = np.where(inside, CubicSpline(f, q)(np.clip(target, f[0], f[-1])) * target, np.nan)
+            assert inside.any() and (~inside).any()
+            np.testing.assert_array_equal(got[j, i], expected)
