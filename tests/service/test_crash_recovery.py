@@ -190,8 +190,8 @@ def test_kill_9_of_the_supervisor(tmp_path):
 def test_a_burst_of_200_connections_at_a_cold_start(tmp_path):
     """Tables load (and one default solve runs) before a worker listens: the first 200 concurrent
     requests all succeed. Latency is printed, not asserted (speed lives in benchmarks): 200 default
-    solves queue behind two workers (~30 ms each here), so the client waits as long as a hang would
-    take to show, not as long as a loaded machine may need to serve them."""
+    solves queue behind two workers (10-40 ms of CPU each here), so the client's timeout is long
+    enough for a loaded machine to serve them all and short enough to catch a hang."""
     port = free_port()
     server = start_server(tmp_path / "jobs.sqlite3", port, ENV, log=tmp_path / "server.log")
     body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
