@@ -4,7 +4,10 @@ Phases (issue 10): right after a cold start, a burst of 200 new connections (one
 the moment /health first answers); idle; while a maximal simulation
 runs (the largest the default limits allow); while simulating solves (fidelity monte_carlo, which
 are jobs) queue and run. Targets: >= 2000 req/s and p99 < 20 ms idle and with simulating solves,
-every request answered at the cold start. ``--process-models`` also measures uvicorn's own
+every request answered at the cold start. Those phases send the paper scene's table solves (what
+the targets were set for); the same run then measures the Roman default's solves (no scene
+option: the field grid, :func:`default_bodies`) at a cold start and idle, against no target.
+``--process-models`` also measures uvicorn's own
 ``--workers`` (one shared socket) against ``nlpsf serve``'s SO_REUSEPORT supervisor, idle, in the
 same run, for the process-model decision.
 
