@@ -472,19 +472,17 @@ class FieldGrid:
         return None if shift is None else self.saturation_magnitude(band, sca, position, scheme) + float(shift)
 
     def _spline(self, key: str, column: str, j: int, i: int):
-        """(flux range, cubic spline of column / flux in flux) of one node, as ``nlpsf.tables`` reads a table."""
+        """(flux range, cubic spline of column / flux in flux) of one node, as ``nlpsf.tables`` reads
+        a table (not kept: :meth:`_stacked_splines` keeps every node's polynomial as arrays)."""
         from scipy.interpolate import CubicSpline
 
-        cached = self._splines.get((key, column, j, i))
-        if cached is None:
-            index = self.meta["columns"].index(column)
-            flux = self.arrays[f"{key}/flux"][j, i]
-            values = self.arrays[f"{key}/values"][j, i, :, index].astype(np.float64)
-            ok = np.isfinite(flux) & np.isfinite(values)
-            f, q = flux[ok], values[ok] / flux[ok]
-            order = np.argsort(f)
-            cached = self._splines[(key, column, j, i)] = (f[order][0], f[order][-1], CubicSpline(f[order], q[order]))
-        return cached
+        index = self.meta["columns"].index(column)
+        flux = self.arrays[f"{key}/flux"][j, i]
+        values = self.arrays[f"{key}/values"][j, i, :, index].astype(np.float64)
+        ok = np.isfinite(flux) & np.isfinite(values)
+        f, q = flux[ok], values[ok] / flux[ok]
+        order = np.argsort(f)
+        return f[order][0], f[order][-1], CubicSpline(f[order], q[order])
 
     def node_values(self, band: str, sca: int, column: str, magnitude) -> np.ndarray:
         """(n, n, ...) values of ``column`` at ``magnitude`` (a number or an array) at every node: a
