@@ -45,9 +45,8 @@ sys.path.insert(0, str(ROOT))
 
 from tests.servers import free_port, start_server, wait_for  # noqa: E402
 
-#: Table solves of the paper's scene (its shipped tables: microseconds each), every unknown, band,
-#: metric and mode: what the service's targets below were set for.
-BODIES = [
+#: Solves of every unknown, band, metric and mode.
+SOLVES = [
     {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4},
     {"band": "J129", "sca": 3, "metric": "e2", "mode": "scatter", "precision": 0.05, "magnitude": 20.0},
     {"band": "Y106", "precision": 0.01, "tolerance": 1e-4},
@@ -57,12 +56,14 @@ BODIES = [
     {"band": "Z087", "sca": 1, "metric": "size", "mode": "scatter", "magnitude": 22.0, "tolerance": 1e-5},
     {"band": "R062", "sca": 18, "metric": "e2", "precision": 0.01, "tolerance": 1e-4},
 ]
-BODIES = [{**body, "scene": "paper"} for body in BODIES]
+#: Those solves for the paper's scene (its shipped tables: microseconds each): what the service's
+#: targets below were set for.
+BODIES = [{**body, "scene": "paper"} for body in SOLVES]
 
 
 def default_bodies(count: int = 1000, seed: int = 1) -> list[dict]:
     """Solves of the Roman default (no scene option: its shipped field grid), ``count`` distinct ones
-    so that a run's requests are (almost) all new: the bodies above at their own conditions (the
+    so that a run's requests are (almost) all new: :data:`SOLVES` at the grid's conditions (the
     grid holds one exposure and beta0, so the K213 one keeps neither), the known values moved by up
     to +-2 %, and every other one at a random position on its SCA."""
     import random
@@ -70,7 +71,7 @@ def default_bodies(count: int = 1000, seed: int = 1) -> list[dict]:
     draw = random.Random(seed)
     out = []
     for k in range(count):
-        body = {key: value for key, value in BODIES[k % len(BODIES)].items() if key not in ("scene", "beta0", "exptime")}
+        body = {key: value for key, value in SOLVES[k % len(SOLVES)].items() if key not in ("beta0", "exptime")}
         for key in ("precision", "tolerance"):
             if key in body:
                 body[key] *= 1 + draw.uniform(-0.02, 0.02)

@@ -22,8 +22,8 @@ own grid size n (``meta["tables"][key]["grid"]``), so a file can hold denser gri
 field interpolation needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere.
 
 About 600 lines, kept as one module because the file format (its writer, reader and error codes)
-and the reads across the grid share one layout of arrays; the batch evaluation of the nodes'
-splines is its own module, ``nlpsf.node_splines``.
+and the reads across the grid share one layout of arrays; the nodes' splines are evaluated
+together by ``nlpsf.tables.splines.evaluate_stacked_cubics``.
 """
 
 from __future__ import annotations
@@ -37,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import node_splines, roman
+from . import roman
 from .checks import InputError, check_integer
+from .tables.splines import evaluate_stacked_cubics, stack_cubics
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -522,16 +523,16 @@ class FieldGrid:
         extra = (slice(None), slice(None), *([None] * m.ndim))
         inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
         clipped = np.clip(target, low[extra], high[extra])
-        return np.where(inside, node_splines.evaluate(knots, coefficients, clipped) * target, np.nan)
+        return np.where(inside, evaluate_stacked_cubics(knots, coefficients, clipped) * target, np.nan)
 
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every node's spline of ``column`` as padded arrays (``nlpsf.node_splines.stack``) and each
+        """Every node's spline of ``column`` as padded arrays (``nlpsf.tables.splines.stack_cubics``) and each
         node's flux range (n, n)."""
         cached = self._splines.get((key, column, "stacked"))
         if cached is None:
             n = self.arrays[f"{key}/flux"].shape[0]
             splines = [[self._spline(key, column, j, i) for i in range(n)] for j in range(n)]
-            knots, coefficients = node_splines.stack([[spline for _, _, spline in row] for row in splines])
+            knots, coefficients = stack_cubics([[spline for _, _, spline in row] for row in splines])
             low = np.array([[node_low for node_low, _, _ in row] for row in splines])
             high = np.array([[node_high for _, node_high, _ in row] for row in splines])
             cached = self._splines[(key, column, "stacked")] = (knots, coefficients, low, high)

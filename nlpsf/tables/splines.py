@@ -8,10 +8,13 @@ solve, scipy/LAPACK), its coefficients are four elementwise numpy expressions of
 stores the knot derivatives (``knot_derivatives``, at write time, checked bit for bit against
 scipy's coefficients there) -- a quarter of what the coefficients took -- and ``nlpsf solve`` and
 the service build the coefficients without scipy or astropy. The tests check the evaluation
-against scipy's on the shipped tables.
+against scipy's on the shipped tables. The field grid's node splines (``nlpsf.fieldgrid``) are
+evaluated all at once, bit for bit as scipy evaluates each (:func:`evaluate_stacked_cubics`).
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -66,3 +69,41 @@ def evaluate_cubic(breaks: np.ndarray, coefficients: np.ndarray, x: np.ndarray) 
     d = x - breaks[index]
     c = coefficients[:, index]
     return ((c[0] * d + c[1]) * d + c[2]) * d + c[3]
+
+
+def stack_cubics(splines: Sequence[Sequence]) -> tuple[np.ndarray, np.ndarray]:
+    """(n, n) scipy CubicSplines (or PPolys of one order) -> knots (n, n, L), +inf past a node's
+    last, and coefficients (order, n, n, L - 1), zero past a node's last interval."""
+    n = len(splines)
+    size = max(spline.x.size for row in splines for spline in row)
+    order = splines[0][0].c.shape[0]
+    knots = np.full((n, n, size), np.inf)
+    coefficients = np.zeros((order, n, n, size - 1))
+    for j, row in enumerate(splines):
+        for i, spline in enumerate(row):
+            knots[j, i, : spline.x.size] = spline.x
+            coefficients[:, j, i, : spline.x.size - 1] = spline.c
+    return knots, coefficients
+
+
+def evaluate_stacked_cubics(knots: np.ndarray, coefficients: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Every node's polynomial at its own ``x`` (n, n, ...), at once (a field grid's nodes have
+    different knots, so scipy cannot evaluate them as one object, and calling them one by one cost
+    most of a default solve over an SCA). The interval k with knot_k <= x < knot_(k+1) (the last at
+    a node's last knot and beyond, the first below its first) and the sum scipy's PPoly forms
+    (``_ppoly.pyx`` ``evaluate_poly1``: c_last + c_(last-1) s + c_(last-2) s^2 + ..., in that order,
+    s = x - knot), so a node's value is bit for bit its CubicSpline's -- unlike
+    :func:`evaluate_cubic`'s Horner form, which the paper tables' readers have always used."""
+    n = knots.shape[0]
+    flat = x.reshape(n, n, -1)
+    last = np.sum(np.isfinite(knots), axis=-1)[..., None] - 2
+    interval = np.clip(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0, last)
+    s = flat - np.take_along_axis(knots, interval, axis=-1)
+    order = coefficients.shape[0]
+    value = np.zeros_like(flat)
+    power = np.ones_like(flat)
+    for k in range(order):
+        value = value + np.take_along_axis(coefficients[order - 1 - k], interval, axis=-1) * power
+        if k < order - 1:
+            power = power * s
+    return value.reshape(x.shape)

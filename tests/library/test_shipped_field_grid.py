@@ -130,9 +130,10 @@ def test_the_shipped_grid_matches_a_fresh_simulation_off_the_nodes():
 
 @pytest.mark.parametrize(("band", "sca"), [("W146", 6), ("H158", 18), ("R062", 3)])
 def test_every_node_reads_as_its_own_cubic_spline(band, sca):
-    """The grid evaluates all nodes at once; each node's value must be scipy's CubicSpline of that
-    node's own table (column / flux in flux, as nlpsf.tables reads a table), bit for bit, and NaN
-    outside the node's magnitude range. The truth is built here from the file's arrays."""
+    """The grid evaluates all nodes at once (tables.splines.evaluate_stacked_cubics); each node's
+    value must be scipy's CubicSpline of that node's own table (column / flux in flux, as
+    nlpsf.tables reads a table), bit for bit, and NaN outside the node's magnitude range. The truth
+    is built here from the file's arrays."""
     from scipy.interpolate import CubicSpline
 
     key = GRID.key(band, sca)
