@@ -20,9 +20,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import PlainTextResponse, Response
 
-from nlpsf import defaults, relation, tables
-from nlpsf import solver as solver_module
+from nlpsf import defaults
 from nlpsf.checks import InputError
+from nlpsf.slopes import tables
+from nlpsf.solve import relation
+from nlpsf.solve import solver as solver_module
 
 from . import models, params, solve_api
 from .errors import SafeJSONResponse, json_safe
@@ -229,7 +231,7 @@ def impact_terms(
     precision: Positive,
     impact: Annotated[list[float], Query(max_length=50, description="slope with ÷ without − 1 for each effect")],
 ) -> SafeJSONResponse:
-    # The relation is the library's (nlpsf.relation); a vanishing slope asks no precision (null).
+    # The relation is the library's (nlpsf.solve.relation); a vanishing slope asks no precision (null).
     asked = [relation.precision_with_impact(precision, x) for x in impact]
     return SafeJSONResponse(
         {
@@ -291,7 +293,7 @@ PRESETS: list[dict[str, Any]] = [
 
 def scene_presets() -> dict[str, Any]:
     """The scene form's fields for each library scene preset, and the name the library gives the scene."""
-    from nlpsf import roman_default
+    from nlpsf.request import presets as roman_default
 
     out = {}
     for name in roman_default.PRESETS:

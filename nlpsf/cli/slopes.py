@@ -37,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"per-pixel beta scatter of the Monte Carlo scatter slope [1/e-] (default {defaults.SIGMA_BETA_FRACTION:g} |beta0|)",
     )
-    from ..experiment.config import LINEARISE_STATES
+    from nlpsf.sim.experiment.config import LINEARISE_STATES
 
     parser.add_argument(
         "--linearise-at",
@@ -50,14 +50,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def _state(args: argparse.Namespace) -> str:
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
+
     from .options import simulation_preset
 
     return roman_default.LINEARISE_AT if simulation_preset(args) == roman_default.NAME else "beta0"
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import experiment
+    from nlpsf.sim import experiment
 
     config = config_from(args, roman_default_applies=True)
     args.beta0 = beta_from_coefficients(args.beta0, scene_from(args)[1], defaults.BETA0)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from nlpsf.slopes.fidelity import LEVELS
+
 from .. import defaults
-from ..fidelity import LEVELS
 from . import progress_printer
 from .options import add_exposure, add_scene_options, print_json, ramp_from, scene_from, with_error
 
@@ -81,7 +82,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help=f"pupil mask scale rule of fresh simulations: default the tables' own ({defaults.PUPIL_SCALE}); "
         "another one simulates (fidelity linear); see nlpsf/data/SOURCES.md",
     )
-    from ..experiment.config import LINEARISE_STATES
+    from nlpsf.sim.experiment.config import LINEARISE_STATES
 
     parser.add_argument(
         "--linearise-at",
@@ -147,15 +148,15 @@ _REQUEST_OPTIONS = (
 def _readout(args: argparse.Namespace, preset: str):
     """(ramp, exptime) of the options: None, None where the preset's own readout applies (the Roman
     default's HLWAS ramp and exposure; the paper's 168.1 s final frame)."""
-    from ..roman_default import NAME, RAMP_FIT
+    from nlpsf.request.presets import NAME, RAMP_FIT
 
     ramp, exptime = ramp_from(args, RAMP_FIT if preset == NAME else "ols")
     return ramp, (exptime if ramp is not None or args.exptime_given else None)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..request import SolveRequest
-    from ..solver import answer, solve_over_field
+    from nlpsf.request.resolve import SolveRequest
+    from nlpsf.solve.solver import answer, solve_over_field
 
     if args.batch:
         return run_batch(args)
@@ -287,7 +288,7 @@ def _scene(args: argparse.Namespace):
     """(scene, preset): the scene options on their base -- the Roman default unless ``--scene``
     names another preset or a file -- or (None, preset) when no effect was changed (the preset's
     own scene: the Roman default's at the star's position, or the paper's)."""
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
 
     preset = roman_default.NAME
     if args.scene is not None and args.scene.strip().lower() in roman_default.PRESETS:
@@ -310,7 +311,7 @@ _FILLED_FOR = 18
 
 
 def _default_with_changes(args: argparse.Namespace):
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
 
     sca = args.sca if isinstance(args.sca, int) else _FILLED_FOR
     ramp, exptime = _readout(args, roman_default.NAME)
@@ -387,9 +388,10 @@ def run_batch(args: argparse.Namespace) -> int:
     import csv
     import sys
 
+    from nlpsf.request.resolve import SolveRequest
+    from nlpsf.solve.solver import answer
+
     from ..checks import InputError, SimulationError
-    from ..request import SolveRequest
-    from ..solver import answer
 
     scene, preset = _scene(args)
     ramp, exptime = _readout(args, preset)

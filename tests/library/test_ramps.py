@@ -14,11 +14,13 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, solver, tablebuild
-from nlpsf import scene as scenes
 from nlpsf.checks import InputError
-from nlpsf.experiment import SimulationConfig, simulate, slopes
 from nlpsf.flags import FlagCode, codes
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim import scene as scenes
+from nlpsf.sim.experiment import SimulationConfig, simulate, slopes
+from nlpsf.slopes import tablebuild
+from nlpsf.solve import solver
 
 from .. import shipped
 
@@ -481,7 +483,7 @@ def test_cli_simulate_and_slopes_with_a_ramp_match_the_library(capsys):
 
 
 def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_from(capsys, tmp_path, make_client):
-    from nlpsf import backgrounds
+    from nlpsf.roman import backgrounds
 
     # Library: the SCA's median CDS noise / sqrt(2) (backgrounds, checked against the CDS table there).
     official = {sca: backgrounds.read_noise(sca) for sca in (1, 3, 18)}
@@ -551,7 +553,7 @@ def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(be
 def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
     # The charge rule at the resultant a slope needs, for a linear detector judged by its charge:
     # k = 2 (romancal: one resultant gives no slope) or k = 1 (through zero), ending at k T / n.
-    from nlpsf.request import SolveRequest
+    from nlpsf.request.resolve import SolveRequest
 
     n = 8
     frame = paper_solve("H158", precision=0.01, magnitude=19.0).saturation_magnitude

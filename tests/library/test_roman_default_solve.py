@@ -6,8 +6,10 @@ from importlib import resources
 
 import pytest
 
-from nlpsf import experiment, ramps, roman_default, solver
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.sim import experiment, ramps
+from nlpsf.solve import solver
 
 
 def test_a_request_without_a_scene_is_the_roman_default():

@@ -1,4 +1,4 @@
-"""The Roman default's model uncertainty by part (nlpsf.roman_uncertainty, model_part, fidelity)."""
+"""The Roman default's model uncertainty by part (nlpsf.solve.roman_uncertainty, model_part, fidelity)."""
 
 import json
 import math
@@ -6,8 +6,12 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import experiment, fidelity, flags, model_part, roman_default, tablebuild
-from nlpsf import roman_uncertainty as ru
+from nlpsf import flags
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import experiment
+from nlpsf.slopes import fidelity, tablebuild
+from nlpsf.solve import model_part
+from nlpsf.solve import roman_uncertainty as ru
 
 
 def test_combination_rule_against_hand_computed_case():
@@ -169,7 +173,7 @@ def test_the_shipped_roman_fidelity_covers_every_band_and_level():
 
 
 def test_a_roman_default_answer_quotes_its_parts_and_counts_the_optics_once():
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     answer = solver.solve(
         "H158", precision=0.01, magnitude=18.5, scene=replace(roman_default.base_scene(), position=(1000.0, 3000.0))

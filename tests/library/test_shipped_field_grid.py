@@ -4,7 +4,9 @@ simulation of the Roman default at a position that is no node, with the same cen
 import numpy as np
 import pytest
 
-from nlpsf import defaults, experiment, fieldgrid, tablebuild
+from nlpsf import defaults
+from nlpsf.sim import experiment
+from nlpsf.slopes import fieldgrid, tablebuild
 
 GRID = fieldgrid.shipped_grid()
 pytestmark = pytest.mark.skipif(GRID is None, reason="no shipped field grid in this checkout")
@@ -132,7 +134,7 @@ def test_the_shipped_grid_matches_a_fresh_simulation_off_the_nodes():
 def test_every_node_reads_as_its_own_cubic_spline(band, sca):
     """The grid evaluates all nodes at once (tables.splines.evaluate_stacked_cubics); each node's
     value must be scipy's CubicSpline of that node's own table (column / flux in flux, as
-    nlpsf.tables reads a table), bit for bit, and NaN outside the node's magnitude range. The truth
+    nlpsf.slopes.tables reads a table), bit for bit, and NaN outside the node's magnitude range. The truth
     is built here from the file's arrays."""
     from scipy.interpolate import CubicSpline
 

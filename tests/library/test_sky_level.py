@@ -11,9 +11,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, roman_default, solve
-from nlpsf.experiment import sky
-from nlpsf.scene import ROMAN_IPC_KERNEL, SceneModel
+from nlpsf import solve
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim.experiment import sky
+from nlpsf.sim.scene import ROMAN_IPC_KERNEL, SceneModel
 
 from .test_ramps_readout import brute_force
 

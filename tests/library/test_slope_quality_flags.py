@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from nlpsf import roman_default, solver
 from nlpsf.flags import FlagCode, codes
+from nlpsf.request import presets as roman_default
+from nlpsf.solve import solver
 
 
 def _answer(fidelity: str):

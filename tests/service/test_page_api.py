@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import solver
 from nlpsf.checks import InputError
+from nlpsf.solve import solver
 
 from .. import shipped
 
@@ -84,7 +84,7 @@ def test_presets_carry_sources(client):
 
 
 def test_the_page_reads_its_limits_and_impacts_from_the_library(client):
-    from nlpsf import relation
+    from nlpsf.solve import relation
 
     params = {"band": "J129", "sca": 3, "beta0": 1e-6, "exptime": 100.0}
     limits = client.get("/api/v1/page/limits", params=params).json()
