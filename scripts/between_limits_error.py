@@ -31,7 +31,8 @@ import time
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from nlpsf import experiment, fieldgrid, tablebuild
+from nlpsf.sim import experiment
+from nlpsf.slopes import fieldgrid, tablebuild
 
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
@@ -43,9 +44,7 @@ def simulate(band, sca, position, magnitudes, seed=1, realizations=100):
     results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, linearise_at=settings.linearise_at)
     out = {metric: [(r.bias[name].mean, r.bias[name].stderr) for r in results] for metric, name in METRICS.items()}
     out["flux"] = [r.flux_electrons for r in results]
-    out["ramp"] = [
-        {k: r.extras.get("ramp", {}).get(k) for k in ("fitted_on_fewer", "unusable", "pixels")} for r in results
-    ]
+    out["ramp"] = [{k: r.extras.get("ramp", {}).get(k) for k in ("fitted_on_fewer", "unusable", "pixels")} for r in results]
     return out
 
 

@@ -12,9 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import cli, fieldgrid, solver
+from nlpsf import cli
 from nlpsf.flags import FlagCode, codes
-from nlpsf.solve_validity import COMPONENT_SMALL_FRACTION
+from nlpsf.slopes import fieldgrid
+from nlpsf.solve import solver
+from nlpsf.solve.validity import COMPONENT_SMALL_FRACTION
 
 from .. import shipped
 
