@@ -19,6 +19,9 @@ part is also measured for node tables sampled every STEP mag between the limits 
 (the grid's own: not-a-knot cubic of slope/flux in flux) evaluated at m.
 
     nice -n 10 python scripts/between_limits_error.py --points 12 --output build/between_limits.json
+
+``--answers``: also what a user gets there, the default answer (``nlpsf.answer``; simulated afresh
+between the limits since issue 28), against a fresh ``--fidelity polychromatic`` answer.
 """
 
 from __future__ import annotations
@@ -48,8 +51,8 @@ def simulate(band, sca, position, magnitudes, seed=1, realizations=100):
     return out
 
 
-def draw_point(grid, rng, band=None):
-    covered = [pair for pair in grid.coverage() if band is None or pair[0] == band]
+def draw_point(grid, rng, band=None, only=None):
+    covered = [pair for pair in grid.coverage() if (band is None or pair[0] == band) and (not only or pair in only)]
     band, sca = covered[int(rng.integers(len(covered)))]
     position = tuple(float(v) for v in rng.uniform(60.0, 4030.0, 2))
     ramp = grid.saturation_magnitude(band, sca, position)
@@ -124,6 +127,33 @@ def measure(grid, band, sca, position, magnitude, dense=None) -> dict:
     return out
 
 
+def answers(band, sca, position, magnitude) -> dict:
+    """The default answer at the point (``nlpsf.answer``, what a user gets) against a fresh
+    ``--fidelity polychromatic`` answer of the same scene (Monte Carlo, 8 wavelengths, the same 100
+    centroids), per metric: their slopes and the default's flag codes."""
+    from dataclasses import replace
+
+    from nlpsf import SolveRequest, answer
+    from nlpsf.request import presets
+
+    scene = replace(presets.base_scene(), position=tuple(position))
+    out = {}
+    for metric in METRICS:
+        request = {"sca": sca, "metric": metric, "magnitude": magnitude, "precision": 0.01, "scene": scene}
+        default = answer(SolveRequest(band, **request))
+        poly = answer(SolveRequest(band, fidelity="polychromatic", **request))
+        out[metric] = {
+            "default": default.slope,
+            "default_error": default.slope_uncertainty,
+            "default_fidelity": default.fidelity,
+            "default_flags": [getattr(f, "code", None) and f.code.value for f in default.flags],
+            "polychromatic": poly.slope,
+            "polychromatic_error": poly.slope_uncertainty,
+            "relative": (default.slope - poly.slope) / abs(poly.slope) if poly.slope else None,
+        }
+    return out
+
+
 def relative(row: dict, part: str, metric: str) -> float:
     m = row["metrics"][metric]
     return m[part] / abs(m["fresh"]) if m["fresh"] else math.nan
@@ -150,17 +180,29 @@ def main() -> None:
     parser.add_argument("--band", default=None)
     parser.add_argument("--grid", default=None, help="field-grid file (default: the shipped one)")
     parser.add_argument("--dense", type=float, default=None, help="also the node magnitude error at this row step")
+    parser.add_argument("--only", default=None, help="draw in these (band, SCA)s only: B:S,B:S,...")
+    parser.add_argument(
+        "--answers", action="store_true", help="also the default answer against a fresh --fidelity polychromatic one"
+    )
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
     grid = fieldgrid.FieldGrid.load(args.grid) if args.grid else fieldgrid.shipped_grid()
     rng = np.random.default_rng(args.seed)
+    only = None if not args.only else [(b, int(s)) for b, s in (item.split(":") for item in args.only.split(","))]
     rows = []
     for index in range(args.points):
-        band, sca, position, magnitude, ramp, final = draw_point(grid, rng, args.band)
+        band, sca, position, magnitude, ramp, final = draw_point(grid, rng, args.band, only)
         if index < args.first:
             continue
         cpu = time.process_time()
         row = measure(grid, band, sca, position, magnitude, args.dense)
+        if args.answers:
+            row["answers"] = answers(band, sca, position, magnitude)
+            print(
+                "   default vs polychromatic: "
+                + ", ".join(f"{m} {100 * a['relative']:+.2f} %" for m, a in row["answers"].items() if a["relative"] is not None),
+                flush=True,
+            )
         row.update(index=index, limits=[ramp, final], cpu_s=time.process_time() - cpu)
         rows.append(row)
         text = ", ".join(

@@ -33,6 +33,11 @@ def no_simulation():
         _REFUSING.reset(token)
 
 
+def refusing() -> bool:
+    """Whether a solve here must not simulate (inside :func:`no_simulation`)."""
+    return _REFUSING.get()
+
+
 def check_simulation_allowed(magnitude: float) -> None:
     """Called by the slope source before it simulates; refuses inside :func:`no_simulation`."""
     if _REFUSING.get():

@@ -96,6 +96,8 @@ from .validity import (  # noqa: F401
     _magnitude_flags,
     _ramp_magnitude_flags,
     _validity_flags,
+    between_limits,
+    between_limits_flag,
     component_flags,
 )
 
@@ -214,6 +216,9 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
         tables_set = _corner_tables(simulated_scene, request.sca)
     tables_set = tables_set or tables.load_tables()
     grid, grid_miss = (None, None) if request.preset != roman_default.NAME else default_grid(request, chosen)
+    between_realizations = _between_limits_check(request, grid, notes)
+    if between_realizations:
+        grid, chosen = None, "linear"  # simulated afresh at the position: the grid misses there
     needs_simulation = (
         simulated_scene is not None
         and not simulated_scene.is_paper
@@ -245,8 +250,33 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
-    realizations = selection.realizations if request.accuracy is not None else None
+    realizations = selection.realizations if request.accuracy is not None else between_realizations
     return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations=realizations, grid=grid)
+
+
+def _between_limits_check(request: SolveRequest, grid, notes: list, magnitude: float | None = None) -> int | None:
+    """Where the Roman default's grid would answer at a position between the saturation limits
+    (``validity.between_limits``) at ``magnitude`` (None: the request's): the grid's centroid count,
+    for a fresh simulation there, and the flag in ``notes``; None elsewhere. At table cost (a batch)
+    it refuses instead."""
+    if grid is None:
+        return None
+    position = request.scene.position
+    magnitude = request.magnitude if magnitude is None else magnitude
+    limits = between_limits(grid, request.band, request.sca, position, magnitude)
+    if limits is None:
+        return None
+    from nlpsf.slopes import guard
+
+    if guard.refusing():
+        raise guard.NeedsSimulation(
+            "magnitude",
+            f"m={magnitude:.4g} lies between the saturation limits at this position (m={limits[0]:.2f} to "
+            f"{limits[1]:.2f}), where the Roman default is simulated afresh: {guard.REFUSAL}",
+        )
+    realizations = int(grid.conditions(request.band, request.sca)["settings"]["realizations"])
+    notes.append(between_limits_flag(position, float(magnitude), limits, realizations))
+    return realizations
 
 
 def _measured_default(request: SolveRequest) -> str:
@@ -353,6 +383,12 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
         result = _answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        if the_plan.grid is not None and between_limits(
+            the_plan.grid, request.band, request.sca, request.scene.position, result.magnitude
+        ):
+            # The grid's answer lies between the saturation limits: answered again at that magnitude's
+            # neighbourhood by fresh simulations (a magnitude solve on them), flagged as such.
+            return _fresh_between_limits(request, tables_set, the_plan.grid, result.magnitude, start)
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
@@ -401,6 +437,17 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
         shear=shear_answer,
         model=result.model,
     )
+
+
+def _fresh_between_limits(request: SolveRequest, tables_set, grid, magnitude: float, start: float) -> Solution:
+    """A magnitude answer the grid puts between the saturation limits at a position, solved again on
+    fresh simulations with the grid's centroids (``validity.between_limits``)."""
+    limits = between_limits(grid, request.band, request.sca, request.scene.position, magnitude)
+    notes: list = []
+    _between_limits_check(request, grid, notes, magnitude)
+    fresh = answer(request.with_changes(fidelity="linear"), tables_set)
+    conditions = {**fresh.conditions, "between_limits": {"grid_magnitude": magnitude, "limits": list(limits)}}
+    return replace(fresh, flags=[*notes, *fresh.flags], conditions=conditions, elapsed_s=time.perf_counter() - start)
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:

@@ -137,3 +137,37 @@ def component_flags(slopes, metric: str, magnitude: float | None, slope: float |
             limit=COMPONENT_SMALL_FRACTION,
         )
     ]
+
+
+def between_limits(grid, band: str, sca: int, position, magnitude: float | None) -> tuple[float, float] | None:
+    """(the ramp's saturation limit, the final frame's) at ``position`` where ``magnitude`` lies
+    between them -- pixels lose resultants there and the field grid's interpolation misses a fresh
+    simulation (docs/field.md, "Between the saturation limits") -- else None. None at a node of the
+    grid too (only the magnitude is interpolated there) and where the grid states no final-frame limit."""
+    if grid is None or position is None or magnitude is None or not math.isfinite(magnitude):
+        return None
+    final = grid.final_frame_saturation_magnitude(band, sca, position)
+    if final is None:
+        return None
+    ramp = grid.saturation_magnitude(band, sca, position)
+    if not ramp <= magnitude < final:
+        return None
+    from nlpsf.slopes import fieldgrid
+
+    n = int(grid.conditions(band, sca)["grid"])
+    if any(abs(x - position[0]) < 1e-6 and abs(y - position[1]) < 1e-6 for _, _, (x, y) in fieldgrid.grid_positions(n)):
+        return None
+    return float(ramp), float(final)
+
+
+def between_limits_flag(position, magnitude: float, limits: tuple[float, float], realizations: int) -> Flag:
+    """The flag of a Roman-default answer simulated afresh between the saturation limits."""
+    return make(
+        FlagCode.DEFAULT_BETWEEN_LIMITS,
+        x=position[0],
+        y=position[1],
+        magnitude=magnitude,
+        m_sat=limits[0],
+        m_sat_final=limits[1],
+        realizations=realizations,
+    )

@@ -56,6 +56,16 @@ def differences(old, new, rtol: float, where: str = "") -> list[str]:
 ADDED_FLAG_CODES = frozenset({"e_component_small"})
 
 
+#: Answers another issue changed on purpose, by the flag code the new answer carries: not compared
+#: (issue 28: a Roman-default answer at a position between the saturation limits is simulated
+#: afresh there instead of read from the field grid).
+CHANGED_ON_PURPOSE = frozenset({"default_between_limits"})
+
+
+def changed_on_purpose(out: dict) -> bool:
+    return bool(CHANGED_ON_PURPOSE & set(out.get("flag_codes") or []))
+
+
 def without_added_flags(out: dict) -> dict:
     codes = out.get("flag_codes")
     if not codes:
@@ -88,7 +98,10 @@ def test_stored_answers_are_answered_again_alike(kind):
     failures = []
     for entry in entries:
         rtol = 0.0 if _is_paper(entry["body"]) else DEFAULT_RTOL
-        found = differences(entry["answer"], answered(entry["body"]), rtol)
+        new = answered(entry["body"])
+        if changed_on_purpose(new):
+            continue
+        found = differences(entry["answer"], new, rtol)
         if found:
             failures.append(f"{entry['body']}: {found[:3]}")
     assert not failures, f"{len(failures)} of {len(entries)} differ; first: {failures[:3]}"
