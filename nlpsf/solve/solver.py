@@ -357,6 +357,8 @@ class _Answer:
     brightest: float | None = None
     binding: str | None = None
     m_nl: float | None = None
+    #: d ln|c| / dm at a magnitude answer (its uncertainty and conservative answer are carried by it).
+    log_derivative: float | None = None
 
 
 def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> Solution:
@@ -392,11 +394,13 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
-    flags += component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
+    flags += [f for f in component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
+              if f.code not in {getattr(g, "code", None) for g in flags}]  # fmt: skip
     flags += slopes.slope_quality_flags()
     if slopes.grid_misses:
         flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
     conditions = answer_conditions.conditions(request, the_plan, slopes)
+    conservative, ranges = model_part.answer_extras(request.solved_for, result, result.log_derivative)
     shear_answer = None
     if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
         statistical = result.parts.statistical if request.solved_for == "tolerance" else None
@@ -436,6 +440,8 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
         applies_to=conditions["applies_to"],
         shear=shear_answer,
         model=result.model,
+        conservative=conservative,
+        ranges=ranges,
     )
 
 
@@ -491,7 +497,7 @@ def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dic
         flags.append(
             make(FlagCode.ERROR_AT_SATURATION, metric=request.metric, mode=request.mode, error=error, tolerance=tolerance)
         )
-    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info, magnitude, binding, m_nl)
+    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info, magnitude, binding, m_nl, log_derivative)
 
 
 def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:

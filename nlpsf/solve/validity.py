@@ -102,12 +102,19 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
 def component_flags(slopes, metric: str, magnitude: float | None, slope: float | None, error: float | None) -> list:
     """The flag of an e1 / e2 answer whose slope is small against the modulus |c_e| (below
     :data:`COMPONENT_SMALL_FRACTION` of it) or within :data:`COMPONENT_ZERO_SIGMAS` standard errors
-    of zero, whatever was solved for; none for size, e or a slope not known. |c_e| is read from the
+    of zero, whatever was solved for; for size and e, ``slope_consistent_with_zero`` where the
+    slope is within those standard errors of zero; none for a slope not known. |c_e| is read from the
     answer's own slopes (the field grid's or the simulation's at that magnitude), else the tables'."""
-    if metric not in ("e1", "e2") or magnitude is None or slope is None or not math.isfinite(magnitude):
+    if magnitude is None or slope is None or not math.isfinite(magnitude):
         return []
     c, sigma = abs(float(slope)), abs(float(error or 0.0))
     zero = c <= COMPONENT_ZERO_SIGMAS * sigma
+    if metric not in ("e1", "e2"):
+        # size or |e|: a slope its own error cannot tell from zero (between the saturation limits the
+        # size slope changes sign) is said, whatever is solved for.
+        if not zero:
+            return []
+        return [make(FlagCode.SLOPE_CONSISTENT_WITH_ZERO, metric=metric, magnitude=magnitude, slope=float(slope), error=sigma)]
     ratio = slopes.modulus_over_component(magnitude) if hasattr(slopes, "modulus_over_component") else None
     if ratio is None and c > 0:
         from .model_part import component_scale  # the tables' |c_e| / |c_ei|

@@ -66,6 +66,18 @@ def changed_on_purpose(out: dict) -> bool:
     return bool(CHANGED_ON_PURPOSE & set(out.get("flag_codes") or []))
 
 
+#: Keys added to every answer since (issue 28: the conservative answer and the star-to-star ranges),
+#: and the Roman default's model uncertainty, rebuilt from the sources' stated uncertainties (issue
+#: 28): not compared (the paper scene's are, bit for bit).
+ADDED_KEYS = frozenset({"conservative", "ranges"})
+REBUILT_DEFAULT_KEYS = frozenset({"uncertainty", "uncertainty_model", "model"})
+
+
+def without_changed_keys(old: dict, new: dict, paper: bool) -> tuple[dict, dict]:
+    drop = ADDED_KEYS if paper else ADDED_KEYS | REBUILT_DEFAULT_KEYS
+    return {k: v for k, v in old.items() if k not in drop}, {k: v for k, v in new.items() if k not in drop}
+
+
 def without_added_flags(out: dict) -> dict:
     codes = out.get("flag_codes")
     if not codes:
@@ -101,7 +113,8 @@ def test_stored_answers_are_answered_again_alike(kind):
         new = answered(entry["body"])
         if changed_on_purpose(new):
             continue
-        found = differences(entry["answer"], new, rtol)
+        old, new = without_changed_keys(entry["answer"], new, _is_paper(entry["body"]))
+        found = differences(old, new, rtol)
         if found:
             failures.append(f"{entry['body']}: {found[:3]}")
     assert not failures, f"{len(failures)} of {len(entries)} differ; first: {failures[:3]}"
@@ -121,5 +134,6 @@ def test_stored_answers_over_the_field_are_answered_again_alike():
         scas, scene = body.pop("scas"), body.pop("scene", None)
         out = solve_over_field(body.pop("band"), scas=scas, scene=scene, **body).to_dict()
         out.pop("elapsed_s")
-        found = differences(entry["answer"], without_added_flags(json.loads(json.dumps(out))), rtol)
+        old, new = without_changed_keys(entry["answer"], without_added_flags(json.loads(json.dumps(out))), rtol == 0.0)
+        found = differences(old, new, rtol)
         assert not found, (entry["body"], found[:3])
