@@ -145,6 +145,17 @@ def _whole_usable(sr: ramps.SceneRamp) -> np.ndarray:
     return sr.usable if not sr.margin else sr.whole().usable
 
 
+def star_free_ramp(config, raw_beta: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """(levels, weights) of a star-free pixel's resultants, as ``ramps.CorrectedRamp`` holds them (K,);
+    None without a sky."""
+    cr = _star_free_ramp(config, float(raw_beta))
+    if cr is None:
+        return None
+    size = 3 * config.oversampling
+    centre = size * size // 2 + size // 2
+    return cr.level[centre].copy(), cr.weights[centre].copy()
+
+
 def star_free_correction(scene: Scene, raw_beta: float) -> tuple[float, float]:
     """(a star-free pixel's corrected level less the linear sky, its d / d Delta_beta) [e-]: what a local
     sky estimate removes under the per-resultant correction (``sky.star_free_level``'s counterpart)."""
@@ -153,9 +164,22 @@ def star_free_correction(scene: Scene, raw_beta: float) -> tuple[float, float]:
 
 @lru_cache(maxsize=256)
 def _star_free_correction(config, raw_beta: float) -> tuple[float, float]:
+    cr = _star_free_ramp(config, raw_beta)
+    if cr is None:
+        return 0.0, 0.0
+    size = 3 * config.oversampling
+    centre = size * size // 2 + size // 2
+    derivative = cr.response(ramps.correction.quadratic_residual(1.0))
+    return float(cr.baseline[centre]), float(derivative[centre])
+
+
+@lru_cache(maxsize=256)
+def _star_free_ramp(config, raw_beta: float) -> ramps.CorrectedRamp | None:
+    """The per-resultant correction of a uniform, star-free stamp (3 x 3 native pixels: its centre sees the
+    whole IPC kernel); None without a sky."""
     model = config.scene
     if model.background_e <= 0:
-        return 0.0, 0.0
+        return None
     n = config.oversampling
     size = 3 * n  # IPC reaches n fine pixels: the centre of a 3 x 3 native stamp sees the whole kernel
     sky = np.full((1, size, size), model.background_e)
@@ -166,9 +190,6 @@ def _star_free_correction(config, raw_beta: float) -> tuple[float, float]:
         usable = ramps.scene_factors(
             sky, ramp, config.exptime_s, config.full_well_e, state, (2,), model.ipc, model.ipc_order, n
         ).usable
-    cr = ramps.corrected_images(
+    return ramps.corrected_images(
         sky, ramp, config.exptime_s, usable, (raw_beta,), model.nl_coefficients, model.ipc, model.ipc_order, n
     )
-    centre = size * size // 2 + size // 2
-    derivative = cr.response(ramps.correction.quadratic_residual(1.0))
-    return float(cr.baseline[centre]), float(derivative[centre])
