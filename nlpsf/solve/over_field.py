@@ -210,11 +210,22 @@ def default_grid(request, fidelity: str):
         same = math.isclose(float(held), float(value), rel_tol=1e-6) if numeric else held == value
         if not same:
             return None, f"the grid's {name} is {held!r}, the request's {value!r}"
+    held_model = grid_residual_model(settings)
+    if request.residual_nl is not None and request.residual_nl != held_model:
+        return None, f"the grid's residual_nl is {held_model!r}, the request's {request.residual_nl!r}"
     if request.throughput not in (None, settings.get("throughput")):
         return None, f"the grid's throughput is {settings.get('throughput')!r}"
     if request.metric == "e" and not hasattr(grid, "column_value"):
         return None, "the grid holds e1 and e2, not the modulus"
     return grid, None
+
+
+def grid_residual_model(settings: dict) -> str | None:
+    """The residual model a field grid's nodes were built with: their ``residual_nl`` setting; a grid built
+    in the corrected state before the setting existed holds the earlier model, "per_read_beta"."""
+    if settings.get("linearise_at", "beta0") != "corrected":
+        return None
+    return settings.get("residual_nl") or "per_read_beta"
 
 
 def grid_size(grid, request) -> int:
