@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Protocol
 from nlpsf import __version__
 from nlpsf.request import presets as roman_default
 from nlpsf.slopes import fidelity as levels
-from nlpsf.slopes import tables
+from nlpsf.slopes import fieldgrid, tables
 
 if TYPE_CHECKING:
     from nlpsf.request.resolve import SolveRequest
@@ -44,7 +44,7 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
             request.ramp != own.ramp
         )
     if the_plan.grid is not None:
-        out["slopes_from"] = f"the Roman default's field grid ({roman_default.GRID_FILE})"
+        out["slopes_from"] = f"the Roman default's field grid ({fieldgrid.SHIPPED_NAME})"
         # The slopes are the grid's, not the paper tables': their settings are the grid's nodes'.
         out.update(grid_settings(the_plan.grid, request.band, request.sca))
     ramp = request.ramp
