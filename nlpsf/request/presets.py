@@ -38,6 +38,11 @@ PUPIL_SCALE = "official"
 #: The state a slope is taken at: "corrected" (the pipeline removes the NL before the ramp fit, so a
 #: calibration error acts on an almost linear detector; docs/ramps.md). The paper's is "beta0".
 LINEARISE_AT = "corrected"
+#: How the calibration error acts in that state (``experiment.correction.RESIDUAL_MODELS``): the
+#: pipeline's linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as
+#: romancal's linearity step applies it ("per_read_beta", a residual beta on every read before IPC, is the
+#: earlier model; docs/ramps.md).
+RESIDUAL_NL = "per_resultant_correction"
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,13 @@ VALUES: tuple[DefaultValue, ...] = (
     DefaultValue("readout", MA_TABLE, "", "romanisim 0.15.0 imaging MA table 4 (BSD)"),
     DefaultValue("ramp_fit", RAMP_FIT, "", "romancal's likelihood ramp fit, saturation on the read signal"),
     DefaultValue("linearise_at", LINEARISE_AT, "", "romancal corrects the NL before the ramp fit (docs/ramps.md)"),
+    DefaultValue(
+        "residual_nl",
+        RESIDUAL_NL,
+        "",
+        "romancal's linearity step (stcal linearity_correction) evaluates the correction on each resultant of the "
+        "measured, IPC-coupled signal (docs/ramps.md, docs/calibration.md)",
+    ),
 )
 
 

@@ -135,6 +135,12 @@ class FieldGrid:
             same = math.isclose(float(held), float(value), rel_tol=1e-6) if numeric else held == value
             if not same:
                 return Refusal(RefusalCode.SETTING, field, f"the grid's {name} is {held!r}, the request's {value!r}")
+        from .fieldgrid import grid_residual_model
+
+        held_model = grid_residual_model(settings)
+        if request.residual_nl is not None and request.residual_nl != held_model:
+            why = f"the grid's residual_nl is {held_model!r}, the request's {request.residual_nl!r}"
+            return Refusal(RefusalCode.SETTING, "residual_nl", why)
         if request.throughput not in (None, settings.get("throughput")):
             return Refusal(RefusalCode.THROUGHPUT, "throughput", f"the grid's throughput is {settings.get('throughput')!r}")
         return Coverage(self.name, "table", grid=grid)

@@ -38,10 +38,12 @@ class Slopes:
         linearise_at: str = "beta0",
         grid=None,
         realizations: int | None = None,
+        residual_nl: str | None = None,
         simulate: bool = True,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.linearise_at = linearise_at  # the detector state of the fresh simulations' slopes
+        self.residual_nl = residual_nl  # how a calibration error acts there (experiment.correction)
         #: The Roman default's field grid where it covers the request (``providers.FieldGrid``), else None.
         self.grid = grid
         #: Magnitudes brighter than the grid covers (outside a node's magnitude grid): simulated instead.
@@ -89,6 +91,7 @@ class Slopes:
             linearise_at=request.linearise_at,
             grid=the_plan.grid,
             realizations=the_plan.realizations,
+            residual_nl=request.residual_model,
             simulate=the_plan.simulate,
         )
 
@@ -225,7 +228,9 @@ class Slopes:
 
         scene = self.prepare()
         config = scene.config
-        result = experiment.slopes(config, [magnitude], beta0=self.beta0, scene=scene, linearise_at=self.linearise_at)[0]
+        result = experiment.slopes(
+            config, [magnitude], beta0=self.beta0, scene=scene, linearise_at=self.linearise_at, residual_nl=self.residual_nl
+        )[0]
         self._results[round(magnitude, 9)] = result
         value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
         if value is None:

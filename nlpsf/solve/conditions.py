@@ -37,6 +37,12 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
     # Which scene the answer is for, and the detector state its slope is taken at.
     out["scene_name"] = request.preset
     out["linearise_at"] = request.linearise_at
+    # How a calibration error acts there: the field grid's own model where the answer reads it, else
+    # what the fresh simulations ran.
+    if the_plan.grid is not None:
+        out["residual_nl"] = fieldgrid.grid_residual_model(the_plan.grid.conditions(request.band, request.sca)["settings"])
+    else:
+        out["residual_nl"] = request.residual_model
     if request.preset == roman_default.NAME:
         out["roman_default"] = roman_default.conditions()
         own = roman_default.fill(roman_default.NAME, request.band, request.sca, request.exptime, None, None, None)

@@ -114,6 +114,7 @@ def solve(
     pupil_scale: str | None = None,
     linearise_at: str | None = None,
     preset: str | None = None,
+    residual_nl: str | None = None,
 ) -> Solution:
     """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
     error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
@@ -146,10 +147,12 @@ def solve(
     nodes, with the range in ``conditions["sca_range"]``. ``scene="paper"`` is the paper's
     idealised scene and final frame (the shipped tables, today's answers), ``"galsim-roman"``
     GalSim's Roman constants on it; ``preset`` names the base when ``scene`` is a ``SceneModel``.
+    ``residual_nl`` (``experiment.correction.RESIDUAL_MODELS``): how a calibration error acts in the
+    corrected state; None the default's (the correction on every resultant, as romancal applies it).
     """
     request = SolveRequest(
         band, sca, metric, mode, beta0, exptime, precision, tolerance, magnitude, full_well, fidelity, accuracy,
-        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale, linearise_at, preset,
+        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale, linearise_at, preset, residual_nl,
     )  # fmt: skip
     return answer(request, tables_set)
 
