@@ -293,6 +293,12 @@ class SolveRequest(RampFields):
         None,
         description="(no unit) the detector state the slope is taken at: null for the scene's (roman: corrected; paper: beta0)",
     )
+    residual_nl: Literal["per_resultant_correction", "per_read_beta"] | None = Field(
+        None,
+        description="(no unit) how a calibration error acts in the corrected state: null for the default "
+        "(per_resultant_correction: the linearity correction on every resultant of the measured signal, as romancal "
+        "applies it); per_read_beta: the earlier model, a residual beta on every read before IPC",
+    )
     over_field: Literal["sca", "focal_plane"] | None = Field(
         None,
         description="(no unit) answer for the worst position: over the SCA's centre and four corner field points (sca) "

@@ -281,6 +281,7 @@ def main(argv: list[str] | None = None) -> int:
             "scene": "the Roman default (nlpsf.request.presets, TableSettings.roman().config), SCA centre",
             "default_values": roman_default.conditions(),
             "method": "linear response, slopes at the corrected state, the same centroid draws for every variant",
+            "residual_nl": roman_default.RESIDUAL_NL,
             "realizations": REALIZATIONS,
             "seed": SEED,
             "scas": scas,

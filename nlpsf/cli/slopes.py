@@ -45,7 +45,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="where the slope is taken (default corrected for the Roman default, beta0 for --scene paper): "
         "beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
-        "linearity correction: a residual NL of 1%% of beta0, saturation flagged at the raw beta0)",
+        "linearity correction, saturation flagged at the raw beta0; --residual-nl says how the error acts there)",
+    )
+    from nlpsf.sim.experiment.correction import RESIDUAL_MODELS
+
+    parser.add_argument(
+        "--residual-nl",
+        choices=RESIDUAL_MODELS,
+        default=None,
+        help="how a calibration error acts in the corrected state: per_resultant_correction (the default: the "
+        "linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as romancal's linearity "
+        "step applies it) or per_read_beta (the earlier model: a residual beta on every read before IPC)",
     )
 
 
@@ -70,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         sigma_beta=args.sigma_beta,
         beta_convention=args.beta_convention,
         linearise_at=args.linearise_at or _state(args),
+        residual_nl=args.residual_nl,
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:

@@ -91,6 +91,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="the detector state the slope is taken at: corrected (after the pipeline's linearity correction; the "
         "Roman default's) or beta0 (the uncorrected detector; the paper's, --scene paper's default)",
     )
+    from nlpsf.sim.experiment.correction import RESIDUAL_MODELS
+
+    parser.add_argument(
+        "--residual-nl",
+        choices=RESIDUAL_MODELS,
+        default=None,
+        help="how a calibration error acts in the corrected state: per_resultant_correction (the default: the "
+        "linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as romancal's linearity "
+        "step applies it) or per_read_beta (the earlier model: a residual beta on every read before IPC)",
+    )
     add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
     parser.add_argument(
@@ -142,6 +152,7 @@ ANSWER_COLUMNS = (
 _REQUEST_OPTIONS = (
     "band", "sca", "metric", "mode", "beta0", "precision", "tolerance", "magnitude", "full_well", "fidelity",
     "accuracy", "throughput", "shear_m", "shear_c", "size_ratio", "stars", "pupil_scale", "linearise_at",
+    "residual_nl",
 )  # fmt: skip
 
 
@@ -174,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
             filled_for=_FILLED_FOR if args.sca == "all" else args.sca,  # the SCA _default_with_changes filled
             preset=preset,
             linearise_at=args.linearise_at,
+            residual_nl=args.residual_nl,
             progress=progress_printer(not args.json),
             metric=args.metric,
             mode=args.mode,
@@ -222,7 +234,12 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     if solution.conditions.get("scene_name") == "roman":
         changed = " (changed by the options given)" if solution.conditions.get("roman_default_changed") else ""
         scene = solution.conditions.get("scene_description", "").removeprefix("roman: ")  # its name is said already
-        print(f"  scene      the Roman default{changed}: {scene}; linearised at {solution.conditions['linearise_at']}")
+        from nlpsf.request.presets import RESIDUAL_NL
+
+        state = solution.conditions["linearise_at"]
+        residual = solution.conditions.get("residual_nl")
+        state += f" (residual model {residual})" if residual and residual != RESIDUAL_NL else ""
+        print(f"  scene      the Roman default{changed}: {scene}; linearised at {state}")
     units = {"precision": "(fraction of beta0)", "tolerance": _tolerance_unit(solution.metric), "magnitude": "AB"}
     for name in ("precision", "tolerance", "magnitude"):
         value = payload[name]
@@ -428,7 +445,7 @@ def run_batch(args: argparse.Namespace) -> int:
                 row_ramp = _readout(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}), preset)[0]
             request = SolveRequest.from_mapping(
                 {**arguments, "ramp": row_ramp, "pupil_scale": args.pupil_scale, "scene": scene, "preset": preset,
-                 "linearise_at": args.linearise_at}
+                 "linearise_at": args.linearise_at, "residual_nl": args.residual_nl}
             )  # fmt: skip
             solution = answer(request)
             answers.append({"index": index, "ok": True, "solution": solution.to_dict()})

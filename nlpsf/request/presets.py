@@ -38,6 +38,11 @@ PUPIL_SCALE = "official"
 #: The state a slope is taken at: "corrected" (the pipeline removes the NL before the ramp fit, so a
 #: calibration error acts on an almost linear detector; docs/ramps.md). The paper's is "beta0".
 LINEARISE_AT = "corrected"
+#: How the calibration error acts in that state (``experiment.correction.RESIDUAL_MODELS``): the
+#: pipeline's linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as
+#: romancal's linearity step applies it ("per_read_beta", a residual beta on every read before IPC, is the
+#: earlier model; docs/ramps.md).
+RESIDUAL_NL = "per_resultant_correction"
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,13 @@ VALUES: tuple[DefaultValue, ...] = (
     DefaultValue("readout", MA_TABLE, "", "romanisim 0.15.0 imaging MA table 4 (BSD)"),
     DefaultValue("ramp_fit", RAMP_FIT, "", "romancal's likelihood ramp fit, saturation on the read signal"),
     DefaultValue("linearise_at", LINEARISE_AT, "", "romancal corrects the NL before the ramp fit (docs/ramps.md)"),
+    DefaultValue(
+        "residual_nl",
+        RESIDUAL_NL,
+        "",
+        "romancal's linearity step (stcal linearity_correction) evaluates the correction on each resultant of the "
+        "measured, IPC-coupled signal (docs/ramps.md, docs/calibration.md)",
+    ),
 )
 
 
@@ -200,32 +212,3 @@ def load_scene(name_or_path: str) -> scenes.SceneModel:
 def is_default_scene(model, background_e: float) -> bool:
     """Whether ``model`` is the Roman default's scene (any position) with this background."""
     return model is not None and replace(model, position=None) == scene(None, background_e)
-
-
-# --- the shipped field grid of the default ----------------------------------------------------
-
-#: The shipped field grid of the default scene (5 x 5 nodes per SCA in R062, Z087, Y106, W146 and
-#: K213, 3 x 3 in J129, H158 and F184; built by ``nlpsf tables build --scene roman``).
-GRID_FILE = "roman_field_grid.npz"
-
-
-def grid_path():
-    from importlib import resources
-
-    return resources.files("nlpsf") / "data" / "tables" / GRID_FILE
-
-
-_GRID: dict = {}
-
-
-def field_grid():
-    """The shipped field grid of the default (``fieldgrid.FieldGrid``), None where none is installed."""
-    path = grid_path()
-    if not path.is_file():
-        return None
-    key = str(path)
-    if key not in _GRID:
-        from nlpsf.slopes.fieldgrid import FieldGrid
-
-        _GRID[key] = FieldGrid.load(str(path))
-    return _GRID[key]

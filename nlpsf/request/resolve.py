@@ -79,6 +79,10 @@ class SolveRequest:
     #: The preset whose readout, exposure, pupil rule and state fill what the request leaves unset
     #: (``roman_default.fill``); None: the scene's name when it names one, else "roman".
     preset: str | None = None
+    #: How the calibration error acts in the corrected state (``experiment.correction.RESIDUAL_MODELS``):
+    #: None, the default model ("per_resultant_correction"; a field-grid answer says which model its grid
+    #: holds); "per_read_beta", the earlier model. Only with ``linearise_at`` "corrected".
+    residual_nl: str | None = None
     #: The shear budget (``shear_m`` / ``shear_c`` with ``size_ratio``) and the size ratio, checked.
     budget: shear.Budget | None = field(default=None, init=False, compare=False, repr=False)
     ratio: shear.SizeRatio | None = field(default=None, init=False, compare=False, repr=False)
@@ -164,6 +168,27 @@ class SolveRequest:
         self._set("ramp", filled.ramp)
         self._set("pupil_scale", filled.pupil_scale)
         self._set("linearise_at", filled.linearise_at)
+        if self.residual_nl is not None:
+            from nlpsf.sim.experiment.correction import RESIDUAL_MODELS
+
+            check_choice(self.residual_nl, "residual_nl", RESIDUAL_MODELS)
+            if self.linearise_at != "corrected":
+                raise InputError(
+                    "residual_nl",
+                    f"the residual model applies to the corrected state; this request is linearised at {self.linearise_at}",
+                )
+
+    @property
+    def residual_model(self) -> str | None:
+        """The residual model fresh simulations use: the one given, else the default's in the corrected
+        state (None at beta0)."""
+        if self.linearise_at != "corrected":
+            return None
+        if self.residual_nl is not None:
+            return self.residual_nl
+        from . import presets as roman_default
+
+        return roman_default.RESIDUAL_NL
 
     def _check_budget(self) -> None:
         if self.shear_m is not None or self.shear_c is not None:
@@ -218,7 +243,7 @@ class SolveRequest:
         first pass that finds where a magnitude answer lies."""
         return replace(
             self, fidelity="table", accuracy=None, ramp=None, scene="paper", preset="paper", pupil_scale=None,
-            linearise_at=None,
+            linearise_at=None, residual_nl=None,
         )  # fmt: skip
 
     @classmethod

@@ -78,6 +78,9 @@ class TableSettings:
     #: Where the slopes are taken (``experiment.LINEARISE_STATES``): "beta0" (the paper's) or
     #: "corrected" (the Roman default's).
     linearise_at: str = "beta0"
+    #: How a calibration error acts in the corrected state (``experiment.correction.RESIDUAL_MODELS``);
+    #: None: the default's there ("per_resultant_correction"), nothing at beta0.
+    residual_nl: str | None = None
     #: Rows every this many magnitudes between a ramp's saturation limit and the final frame's
     #: (:data:`BETWEEN_LIMITS_STEP` for the Roman default; None: the plain grid, as the paper tables).
     between_step: float | None = None
@@ -92,6 +95,7 @@ class TableSettings:
             raise InputError(
                 "linearise_at", f"must be one of {', '.join(experiment.LINEARISE_STATES)}, got {self.linearise_at!r}"
             )
+        object.__setattr__(self, "residual_nl", experiment.correction.check_model(self.residual_nl, self.linearise_at))
         if self.between_step is not None and not 0.01 <= float(self.between_step) <= self.magnitude_step:
             raise InputError("between_step", f"must lie in [0.01, {self.magnitude_step:g}] mag, got {self.between_step!r}")
 
@@ -104,6 +108,7 @@ class TableSettings:
             "pupil_scale": roman_default.PUPIL_SCALE,
             "exptime_s": roman_default.exptime_s(),
             "linearise_at": roman_default.LINEARISE_AT,
+            "residual_nl": roman_default.RESIDUAL_NL,
             "between_step": BETWEEN_LIMITS_STEP,
         }
         return cls(**(base | changes))
@@ -147,11 +152,24 @@ class TableSettings:
         Fields added after the shipped tables were built enter only when they differ from their
         default, so the paper tables keep their fingerprints."""
         settings = asdict(self)
-        for name, default in (("scene", "paper"), ("fidelity", "linear"), ("linearise_at", "beta0"), ("between_step", None)):
+        added = (
+            ("scene", "paper"),
+            ("fidelity", "linear"),
+            ("linearise_at", "beta0"),
+            ("residual_nl", None),
+            ("between_step", None),
+        )
+        for name, default in added:
             if settings[name] == default:
                 settings.pop(name)
         text = json.dumps({**settings, "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _residual_method(model: str | None) -> str:
+    if model == "per_read_beta":
+        return f"a residual {experiment.CORRECTED_RESIDUAL:g} beta0 on every read before IPC"
+    return "the correction on every resultant as romancal applies it, d metric / d Delta_beta of r(Q) = -Delta_beta Q^2"
 
 
 #: The corner field points of every SCA (``roman.field_points`` 1-4): with the SCA centre, the
@@ -241,7 +259,13 @@ def compute_table(
     scene = experiment.prepare(config)
     m_sat, magnitudes = table_magnitudes(scene, settings)
     results = experiment.slopes(
-        config, list(magnitudes), beta0=settings.beta0, scene=scene, progress=progress, linearise_at=settings.linearise_at
+        config,
+        list(magnitudes),
+        beta0=settings.beta0,
+        scene=scene,
+        progress=progress,
+        linearise_at=settings.linearise_at,
+        residual_nl=settings.residual_nl,
     )
     columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
     for metric in COLUMN_METRICS:
@@ -286,7 +310,7 @@ def compute_table(
             "method": (
                 "linear response at beta0, mean over centroid realizations"
                 if settings.linearise_at == "beta0"
-                else f"linear response at the {settings.linearise_at} state ({experiment.CORRECTED_RESIDUAL:g} beta0; "
+                else f"linear response at the {settings.linearise_at} state ({_residual_method(settings.residual_nl)}; "
                 "a ramp's saturation flags at the raw beta0), mean over centroid realizations"
             ),
             "data_version": roman.DATA_VERSION,

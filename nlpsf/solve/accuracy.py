@@ -86,6 +86,8 @@ class FullScene:
     pupil_scale: str
     linearise_at: str
     throughput: str | None
+    #: How a calibration error acts in the corrected state (``experiment.correction.RESIDUAL_MODELS``).
+    residual_nl: str | None = None
 
     @property
     def is_roman_default(self) -> bool:
@@ -114,7 +116,10 @@ def full_scene(request, table) -> FullScene:
     else:
         background = backgrounds.background_electrons(roman_default.BACKGROUND, request.band, request.sca, request.exptime)
         scene, source = roman_default.scene(None, background), "roman default"
-    return FullScene(scene, source, request.ramp, request.exptime, pupil, linearise_at, request.throughput or table.throughput)
+    residual = getattr(request, "residual_model", None)
+    return FullScene(
+        scene, source, request.ramp, request.exptime, pupil, linearise_at, request.throughput or table.throughput, residual
+    )
 
 
 # --- the fidelity level -------------------------------------------------------------------------
@@ -212,7 +217,13 @@ class Probe:
         key = replace(scene, name=None)
         if key not in self._slopes:
             config = replace(self.base, scene=key)
-            result = experiment.slopes(config, [self.magnitude], beta0=self.request.beta0, linearise_at=self.full.linearise_at)[0]
+            result = experiment.slopes(
+                config,
+                [self.magnitude],
+                beta0=self.request.beta0,
+                linearise_at=self.full.linearise_at,
+                residual_nl=self.full.residual_nl,
+            )[0]
             self._slopes[key] = result.slope(self.request.mode, defaults.METRIC_COLUMNS[self.request.metric])
             self.runs += 1
         return self._slopes[key]
@@ -352,7 +363,9 @@ def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, 
         ramp=full.ramp,
         full_well_e=request.full_well,
     )
-    result = experiment.slopes(config, [magnitude], beta0=request.beta0, linearise_at=full.linearise_at)[0]
+    result = experiment.slopes(
+        config, [magnitude], beta0=request.beta0, linearise_at=full.linearise_at, residual_nl=full.residual_nl
+    )[0]
     summary = result.extras.get("ramp") or {}
     if not (summary.get("fitted_on_fewer") or summary.get("unusable")):
         return None
@@ -464,6 +477,7 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
             "scene": full.scene.to_dict(),
             "description": full.scene.describe(),
             "linearise_at": full.linearise_at,
+            "residual_nl": full.residual_nl,
             "pupil_scale": full.pupil_scale,
             "ramp": None if full.ramp is None else full.ramp.conditions(full.exptime),
         },

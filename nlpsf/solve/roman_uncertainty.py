@@ -137,6 +137,10 @@ SED_RANGE_K = (3500.0, 10000.0)
 BFE_COEFFICIENT_PUBLISHED = 3.54e-7
 BFE_IPC_SMOOTHING = 0.72
 BFE_COEFFICIENT = BFE_COEFFICIENT_PUBLISHED / BFE_IPC_SMOOTHING
+#: The residual model the brighter-fatter pair is measured with: the per-resultant correction the
+#: default uses is not modelled with BFE (``experiment.correction``), so the pair (final frame with
+#: and without BFE) takes the residual on every read, and the part is the difference BFE makes there.
+BFE_RESIDUAL_NL = "per_read_beta"
 #: b3, b4 of the NL beyond the quadratic [e-^-2, e-^-3]: each 0.1 % of the signal at 1e5 e-.
 NL_SHAPE_COEFFICIENTS = (1e-13, 1e-18)
 
@@ -454,11 +458,11 @@ def _prepare_with_diffusion(config, profile: str):
     return Scene(config, psf, offsets, stamps, reference, time.perf_counter() - start, unit_charge)
 
 
-def _slopes(config, magnitudes, linearise_at, scene=None):
+def _slopes(config, magnitudes, linearise_at, scene=None, residual_nl: str = presets.RESIDUAL_NL):
     from nlpsf.sim import experiment
 
     try:
-        results = experiment.slopes(config, list(magnitudes), linearise_at=linearise_at, scene=scene)
+        results = experiment.slopes(config, list(magnitudes), linearise_at=linearise_at, scene=scene, residual_nl=residual_nl)
         return [_metric_values(r) for r in results]
     except Exception as error:  # a variant the simulator refuses is recorded, not fatal
         return [{"error": f"{type(error).__name__}: {error}"} for _ in magnitudes]
@@ -477,7 +481,12 @@ def measure_point(band: str, sca: int, magnitudes, realizations: int = 50, seed:
         runs[name] = (base, _slopes(variant, magnitudes, linearise), factor)
     runs["diffusion_profile"] = (base, _slopes(config, magnitudes, linearise, prepare_sech_diffusion(config)), 1.0)
     frame, with_bfe = bfe_pair(config)
-    runs["brighter_fatter"] = (_slopes(frame, magnitudes, linearise), _slopes(with_bfe, magnitudes, linearise), 1.0)
+    # The per-resultant correction is not modelled with BFE: the pair's difference at the per-read residual.
+    runs["brighter_fatter"] = (
+        _slopes(frame, magnitudes, linearise, residual_nl=BFE_RESIDUAL_NL),
+        _slopes(with_bfe, magnitudes, linearise, residual_nl=BFE_RESIDUAL_NL),
+        1.0,
+    )
     out: dict = {"band": band, "sca": sca, "magnitudes": list(magnitudes), "changes": {}, "errors": {}}
     for name, (reference, variant, factor) in runs.items():
         per_mode: dict = {mode: {metric: [] for metric in METRICS} for mode in MODES}

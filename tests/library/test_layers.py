@@ -188,7 +188,7 @@ def test_modules_call_each_others_public_names_only():
 
 
 #: The simulation package in the order its modules may import each other (each only from earlier ones).
-EXPERIMENT_LAYERS = ("config", "prepared", "results", "readout", "validity", "kernels", "measure")
+EXPERIMENT_LAYERS = ("config", "prepared", "results", "readout", "validity", "correction", "kernels", "measure")
 
 
 def test_the_experiment_package_imports_one_way():

@@ -577,16 +577,25 @@ def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
 
 
 def test_cli_slopes_takes_the_linearisation_state(capsys):
-    # "corrected": the slope at the residual NL CORRECTED_RESIDUAL x beta0. A final frame's saturation
-    # does not depend on beta, so that is the paper's slope taken at beta0' = CORRECTED_RESIDUAL x beta0.
+    # "corrected" with the earlier residual model (per_read_beta): the slope at the residual NL
+    # CORRECTED_RESIDUAL x beta0. A final frame's saturation does not depend on beta, so that is the
+    # paper's slope taken at beta0' = CORRECTED_RESIDUAL x beta0.
     argv = ["slopes", "--realizations", "4", "--magnitude", "18", "--method", "linear", "--json"]
-    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected")
+    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected", "--residual-nl", "per_read_beta")
     assert code == 0
-    corrected = json.loads(out)[0]
-    assert corrected["conditions"]["linearised_at"]["state"] == "corrected"
+    earlier = json.loads(out)[0]
+    assert earlier["conditions"]["linearised_at"]["state"] == "corrected"
+    assert earlier["conditions"]["residual_nl"] == "per_read_beta"
     config = SimulationConfig(realizations=4, method="linear")
     at_residual = slopes(config, [18.0], beta0=experiment.CORRECTED_RESIDUAL * BETA)[0]
-    assert corrected["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(at_residual.bias["dR_over_R"].mean, rel=1e-12)
+    assert earlier["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(at_residual.bias["dR_over_R"].mean, rel=1e-12)
+    # The default model corrects the raw beta0 on the final frame (one resultant, no IPC): exactly, so the
+    # calibration error acts on the linear image, the paper's slope as beta0 -> 0 (here 1e-6 beta0).
+    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected")
+    corrected = json.loads(out)[0]
+    assert corrected["conditions"]["residual_nl"] == "per_resultant_correction"
+    vanishing = slopes(config, [18.0], beta0=1e-6 * BETA)[0]
+    assert corrected["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(vanishing.bias["dR_over_R"].mean, rel=1e-5)
     code, out, _ = _cli_json(capsys, *argv)
     raw = json.loads(out)[0]
     assert "linearised_at" not in raw["conditions"]

@@ -7,6 +7,7 @@ import pytest
 from nlpsf import defaults
 from nlpsf.sim import experiment
 from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes.fieldgrid import grid_residual_model
 
 GRID = fieldgrid.shipped_grid()
 pytestmark = pytest.mark.skipif(GRID is None, reason="no shipped field grid in this checkout")
@@ -116,7 +117,9 @@ def test_the_shipped_grid_matches_a_fresh_simulation_off_the_nodes():
     magnitudes = [20.0, 22.0]
     settings = tablebuild.TableSettings.roman()
     config = settings.config(band, sca, position=position)
-    fresh = experiment.slopes(config, magnitudes, beta0=settings.beta0, linearise_at=settings.linearise_at)
+    # The residual model the grid's nodes were built with (a grid built before the setting: the earlier one).
+    model = grid_residual_model(GRID.conditions(band, sca)["settings"])
+    fresh = experiment.slopes(config, magnitudes, beta0=settings.beta0, linearise_at=settings.linearise_at, residual_nl=model)
     assert m_sat < magnitudes[0]  # fainter than where any resultant saturates
     for magnitude, result in zip(magnitudes, fresh, strict=True):
         assert result.extras["ramp"]["fitted_on_fewer"] == 0  # no resultant saturates here

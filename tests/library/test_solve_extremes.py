@@ -150,5 +150,7 @@ def test_a_star_fainter_than_the_grid_is_read_by_the_flux_law_and_agrees_with_a_
     )
     assert FlagCode.EXTRAPOLATED_FAINT in [f.code for f in extrapolated.flags]
     scene = replace(roman_default.base_scene(), position=POSITION)
-    fresh = solve("H158", 18, "size", magnitude=30.0, precision=PRECISION, fidelity="linear", scene=scene)
+    # The simulation runs the residual model the grid holds (its answer names it).
+    model = extrapolated.conditions["residual_nl"]
+    fresh = solve("H158", 18, "size", magnitude=30.0, precision=PRECISION, fidelity="linear", scene=scene, residual_nl=model)
     assert extrapolated.slope == pytest.approx(fresh.slope, rel=1e-3)

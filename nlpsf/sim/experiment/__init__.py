@@ -25,7 +25,8 @@ Methods ("fidelity"):
   per-pixel beta is then sigma_beta * s * ||g (.) psi^2||, in closed form.
 
 The package holds, by module: ``config`` (SimulationConfig), ``prepared`` (the cached Scene and
-``prepare``), ``readout`` (the ramp inside a simulation), ``kernels`` (NL images and the bias and
+``prepare``), ``readout`` (the ramp inside a simulation), ``correction`` (the
+pipeline's linearity correction per resultant, the default's calibration residual), ``kernels`` (NL images and the bias and
 scatter fits, returning typed results), ``validity`` (the flags a result carries), ``results``
 (result types and serialisation) and ``measure`` (``simulate`` and ``slopes``). Every name is
 re-exported here, so ``from nlpsf.sim import experiment; experiment.X`` works as before.
@@ -44,6 +45,14 @@ from .config import (
     Progress,
     SimulationConfig,
     scenes,  # callers reach nlpsf.sim.scene through experiment.scenes
+)
+from .correction import (
+    DEFAULT_RESIDUAL_MODEL,
+    RESIDUAL_DESCRIPTIONS,
+    RESIDUAL_MODELS,
+    Correction,
+    corrected_effect,
+    star_free_correction,
 )
 from .kernels import (
     _SCATTER_CHUNK,

@@ -9,6 +9,7 @@ import numpy as np
 from .. import detector, moments, ramps
 from .. import scene as scenes
 from .config import METRICS, PAPER_BETA_STEP
+from .correction import corrected_effect, star_free_correction
 from .prepared import Scene, _peak_electrons, _weighted_region, star_peak_electrons
 from .readout import RampEffect, _nl_shape, ramp_effect
 from .results import Statistic, _metrics, _reference_summary
@@ -63,6 +64,8 @@ def nl_images(
     n = scene.stamps.shape[-1]
     core = (Ellipsis, slice(margin, n - margin), slice(margin, n - margin))
     reference = scene.reference if count is None else moments.select(scene.reference, pick)
+    if effect is not None and effect.correction is not None:
+        return _corrected_images(scene, charge_scale, beta, count, effect.correction, margin, reference, sky_beta)
     if model.plain_detector:
         stamps = scene.stamps[pick][core]
         # c_2 is per pixel (trimmed like the stamps), or one value broadcast over the stamp (a uniform ramp).
@@ -95,6 +98,24 @@ def nl_images(
     return stamps[core], reference, perturbation[core] - level, derivative[core] - level_derivative
 
 
+def _corrected_images(scene: Scene, charge_scale: float, beta, count: int | None, correction, margin: int, reference, sky_beta):
+    """``nl_images`` under the per-resultant correction (``experiment.correction``): ``beta`` is the
+    calibration error Delta_beta (scalar or per pixel), about a perfect calibration. The image is exactly
+    linear in it: baseline + Delta_beta x (the residual -Q^2's image), each per unit flux, less what a
+    local sky estimate removes (the star-free pixels' own corrected level, at the uniform ``sky_beta``)."""
+    corr, trim = correction.at_margin(margin)
+    baseline, direction = corr.baseline[trim], corr.quadratic[trim]
+    if count is not None and baseline.shape[0] > count:
+        baseline, direction = baseline[:count], direction[:count]
+    n = scene.stamps.shape[-1]
+    core = (Ellipsis, slice(margin, n - margin), slice(margin, n - margin))
+    stamps = scene.stamps[slice(None) if count is None else slice(0, count)][core]
+    level, level_derivative = star_free_correction(scene, correction.raw_beta)
+    uniform = sky_beta if sky_beta is not None else float(np.mean(beta))
+    perturbation = (baseline + beta * direction - (level + uniform * level_derivative)) / charge_scale
+    return stamps, reference, perturbation, (direction - level_derivative) / charge_scale
+
+
 def _sky_level(scene: Scene, charge_scale: float, beta, sky_beta: float | None, up_the_ramp: bool) -> tuple[float, float]:
     """The sky's own NL a local sky estimate removes (``sky.star_free_level``), at one uniform b2."""
     uniform = sky_beta if sky_beta is not None else float(np.mean(beta))
@@ -125,6 +146,9 @@ def _perturbed_fit(
 def _inside_factor_region(effect: RampEffect | None, fit: moments.Moments, margin: int, cut: float) -> bool:
     """Whether every fit's weight window lies where the ramp factors were computed (``SceneRamp.region``)."""
     sr = None if effect is None else effect.scene_ramp
+    corr = None if effect is None else effect.correction
+    if corr is not None and corr.region is not None and corr.margin == margin:
+        sr = corr  # the correction was computed on its own region (the scene ramp's, when there is one)
     if sr is None or sr.region is None or sr.margin != margin:
         return True
     if not np.all(fit.ok):
@@ -134,14 +158,23 @@ def _inside_factor_region(effect: RampEffect | None, fit: moments.Moments, margi
 
 
 def _simulate_bias(
-    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, saturation_beta: float | None = None
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    settings: moments.MomentSettings,
+    saturation_beta: float | None = None,
+    corrected: bool = False,
 ):
+    """``corrected``: the per-resultant correction (``experiment.correction``) of a detector whose raw NL
+    is ``saturation_beta``, ``beta`` being the calibration error Delta_beta."""
     config = scene.config
     peak = _peak_electrons(scene, charge_scale)
     state = beta if saturation_beta is None else saturation_beta
     effect = ramp_effect(scene, charge_scale, beta=state) if config.ramp is not None else None
-    flags = _validity_flags(scene, charge_scale, np.full(1, beta), peak, ramp_effect=effect)
+    flags = _validity_flags(scene, charge_scale, np.full(1, state if corrected else beta), peak, ramp_effect=effect)
     extras: dict = {} if effect is None else dict(effect.extras)
+    if corrected:
+        effect = corrected_effect(scene, charge_scale, state, effect)
     if config.method == "monte_carlo":
         fit, reference, *_ = _perturbed_fit(scene, charge_scale, beta, settings, effect)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
@@ -152,7 +185,7 @@ def _simulate_bias(
         stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect, margin=margin)
         if margin and not np.all(moments.within(reference, stamps.shape[-1], float(settings.weight_cut_rho2))):
             stamps, reference, perturbation, derivative = nl_images(scene, charge_scale, beta, effect=effect)
-        if config.scene.plain_detector:
+        if config.scene.plain_detector and not corrected:
             linear = moments.response_to(stamps, reference, derivative, settings)[0] * beta
         else:
             linear = moments.response_to(stamps, reference, perturbation, settings)[0]
@@ -174,7 +207,10 @@ def _simulate_scatter(
     settings: moments.MomentSettings,
     stream: int,
     saturation_beta: float | None = None,
+    corrected: bool = False,
 ):
+    """``corrected``: as in :func:`_simulate_bias`; each pixel's own coefficient error then changes that
+    measured pixel alone."""
     config = scene.config
     draws = config.realizations
     stamp = scene.stamps[0]
@@ -183,17 +219,22 @@ def _simulate_scatter(
     peak = np.full(draws, float(_peak_electrons(scene, charge_scale, 1)[0]))
     state = beta if saturation_beta is None else saturation_beta
     effect = ramp_effect(scene, charge_scale, index=0, beta=state) if config.ramp is not None else None
-    flags = _validity_flags(scene, charge_scale, betas, peak[:1], index=0, ramp_effect=effect)
+    flags = _validity_flags(scene, charge_scale, np.full(1, state) if corrected else betas, peak[:1], index=0, ramp_effect=effect)
     offset = [float(v) for v in scene.offsets[0]]
     extras: dict = {} if effect is None else dict(effect.extras)
-    shape = _nl_shape(stamp, None if effect is None else effect.factor[0])
+    if corrected:
+        effect = corrected_effect(scene, charge_scale, state, effect, index=0)
     model = config.scene
+    plain = model.plain_detector and not corrected
+    shape = _nl_shape(stamp, None if effect is None else effect.factor[0]) if plain else None
     stamp_ref, reference0, _, _ = nl_images(scene, charge_scale, beta, count=1)
     stamp = stamp_ref[0]
     if config.method == "monte_carlo":
-        d_r, d_e1, d_e2, status = _scatter_monte_carlo(scene, charge_scale, beta, betas, stamp, shape, reference0, settings)
+        d_r, d_e1, d_e2, status = _scatter_monte_carlo(
+            scene, charge_scale, beta, betas, stamp, shape, reference0, settings, effect if corrected else None
+        )
     else:
-        if model.plain_detector:
+        if plain:
             # First order about the uniform-beta image, as the linear slopes are (``slopes(method="linear")``):
             # metric(beta_k) = metric(beta) + g(I_beta) . (-(beta_k - beta) s psi^2), exact at the mean beta
             # (psi^2 c_2 after a ramp fit).
@@ -207,7 +248,7 @@ def _simulate_scatter(
             response = gradient * (-shape * charge_scale)  # d metric / d beta_k, shape (3, n, n)
         else:
             # The same about the scene's uniform-beta image; the per-pixel response goes back through IPC.
-            stamps1, reference0, uniform, _ = nl_images(scene, charge_scale, beta, count=1)
+            stamps1, reference0, uniform, _ = nl_images(scene, charge_scale, beta, count=1, effect=effect if corrected else None)
             fit_beta = moments.fit_perturbed(stamps1, uniform, reference0, settings)
             base = np.array(moments.differences(fit_beta, reference0))[:, 0]
             gradient = moments.pixel_response(stamps1 + uniform, fit_beta, settings)[0]
@@ -227,10 +268,18 @@ def _simulate_scatter(
 
 
 def _scatter_monte_carlo(
-    scene: Scene, charge_scale: float, beta: float, betas, stamp, shape, reference0, settings: moments.MomentSettings
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    betas,
+    stamp,
+    shape,
+    reference0,
+    settings: moments.MomentSettings,
+    corrected: RampEffect | None = None,
 ):
     """Every per-pixel beta map (about the uniform ``beta``) fitted to convergence at the first centroid:
-    (dR/R, de1, de2, status)."""
+    (dR/R, de1, de2, status). ``corrected``: the first centroid's per-resultant correction (its effect)."""
     draws = scene.config.realizations
     model = scene.config.scene
     ref_params = reference0.parameters()[0]
@@ -245,10 +294,10 @@ def _scatter_monte_carlo(
     for s in range(0, draws, _SCATTER_CHUNK):
         block = betas[s : s + _SCATTER_CHUNK]
         base = np.broadcast_to(stamp, block.shape)
-        if model.plain_detector:
+        if model.plain_detector and corrected is None:
             perturbation = -(block * charge_scale) * shape
         else:
-            perturbation = nl_images(scene, charge_scale, block, count=1, sky_beta=beta)[2]
+            perturbation = nl_images(scene, charge_scale, block, count=1, effect=corrected, sky_beta=beta)[2]
         parts.append(
             moments.fit_perturbed(
                 base,
@@ -272,6 +321,11 @@ def _per_pixel_beta_response(
     ramp the measuring pixel's factor c_2 multiplies the gradient first (``ramps.scene_factors``).
     """
     model = scene.config.scene
+    if effect is not None and effect.correction is not None:
+        # The per-resultant correction: pixel k's own coefficient corrects pixel k's measured resultants
+        # (after IPC), so its error changes that pixel alone, by Delta_beta_k times the residual's image.
+        corr, _ = effect.correction.at_margin(0)
+        return gradient * corr.quadratic[0] / charge_scale
     charge = scenes.charge_before_nl(scene.charge[:1], charge_scale, model, scene.config.oversampling)[0]
     pulled = gradient
     if effect is not None and effect.scene_ramp is not None:
@@ -282,16 +336,25 @@ def _per_pixel_beta_response(
 
 
 def _finite_difference_slopes(
-    scene: Scene, charge_scale: float, beta: float, settings: moments.MomentSettings, effect: RampEffect | None = None
+    scene: Scene,
+    charge_scale: float,
+    beta: float,
+    settings: moments.MomentSettings,
+    effect: RampEffect | None = None,
+    step: float | None = None,
 ):
+    """Symmetric difference over beta +- ``step`` (default: the paper's, beta0 x 1 %)."""
+    # The paper's states as the paper's arithmetic (beta x 0.99, x 1.01: its answers bit for bit).
+    states = [beta * (1 - PAPER_BETA_STEP), beta * (1 + PAPER_BETA_STEP)] if step is None else [beta - step, beta + step]
+    step = PAPER_BETA_STEP * beta if step is None else step
     values = []
     statuses = []
-    for factor in (1 - PAPER_BETA_STEP, 1 + PAPER_BETA_STEP):
-        fit, reference, *_ = _perturbed_fit(scene, charge_scale, beta * factor, settings, effect)
+    for state in states:
+        fit, reference, *_ = _perturbed_fit(scene, charge_scale, state, settings, effect)
         d_r, d_e1, d_e2, status = _metrics(fit, reference)
         values.append(np.stack([d_r, d_e1, d_e2]))
         statuses.append(status)
-    slope = (values[1] - values[0]) / (2 * PAPER_BETA_STEP * beta)
+    slope = (values[1] - values[0]) / (2 * step)
     status = np.where(statuses[0] != moments.MomentStatus.OK, statuses[0], statuses[1])
     return {name: Statistic.of(slope[k]) for k, name in enumerate(METRICS)}, status
 

@@ -15,6 +15,7 @@ from nlpsf.sim import detector, moments
 from nlpsf.threads import single_blas
 
 from .config import CORRECTED_RESIDUAL, LINEARISE_STATES, METRICS, PAPER_BETA_STEP, Progress, SimulationConfig
+from .correction import RESIDUAL_DESCRIPTIONS, RESIDUAL_MODELS, check_model, corrected_effect
 from .kernels import _finite_difference_slopes, _linear_slopes, _simulate_bias, _simulate_scatter
 from .prepared import Scene, _peak_electrons, prepare, star_peak_electrons
 from .readout import RampEffect, ramp_effect
@@ -40,11 +41,17 @@ def simulate(
     scene: Scene | None = None,
     progress: Progress | None = None,
     saturation_beta: float | None = None,
+    residual_nl: str | None = None,
 ) -> list[SimulationResult]:
     """Change of ΔR/R, Δe1, Δe2 for every (magnitude, beta) pair, magnitude outermost.
 
     ``saturation_beta``: the raw detector's beta (paper convention) a ramp's "signal" saturation rule
     sees, when it is not the beta simulated (a residual NL after the linearity correction).
+
+    ``residual_nl="per_resultant_correction"`` (``experiment.correction``): the detector's raw NL is
+    ``saturation_beta`` (default beta0), corrected on every resultant as romancal does, and each ``beta``
+    is the calibration error Delta_beta it leaves, r(Q) = -Delta_beta Q^2; the metrics are against the
+    linear image. None / "per_read_beta": ``beta`` is the NL on every read, as before.
 
     With ``sigma_beta`` > 0 each fine pixel gets its own beta ~ N(beta, sigma_beta^2) and, as in
     the paper, the centroid is fixed (the first realization's) while the ``realizations`` are
@@ -54,10 +61,18 @@ def simulate(
     given_betas = check_numbers(betas, "beta")
     paper_betas = [detector.to_paper_beta(b, beta_convention) for b in given_betas]
     sigma_beta = check_sigma_beta(sigma_beta)
+    if residual_nl is not None:
+        check_choice(residual_nl, "residual_nl", RESIDUAL_MODELS)
+    corrected = residual_nl == "per_resultant_correction"
+    if corrected and saturation_beta is None:
+        saturation_beta = defaults.BETA0
     scene = scene or prepare(config)
     if scene.config != config:
         raise InputError("scene", "the scene was prepared for a different configuration")
     conditions = config.conditions()
+    if corrected:
+        conditions["residual_nl"] = residual_nl
+        conditions["raw_beta"] = saturation_beta
     settings = config.moment_settings
     scene_flags = _scene_flags(scene)
     results: list[SimulationResult] = []
@@ -72,10 +87,10 @@ def simulate(
                 progress(m_index * len(paper_betas) + b_index, total, f"m={magnitude:g} beta={beta_given:g}")
             if sigma_beta > 0:
                 result = _simulate_scatter(
-                    scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index, saturation_beta
+                    scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index, saturation_beta, corrected
                 )
             else:
-                result = _simulate_bias(scene, charge_scale, beta, settings, saturation_beta)
+                result = _simulate_bias(scene, charge_scale, beta, settings, saturation_beta, corrected)
             status = result.status
             results.append(
                 SimulationResult(
@@ -114,13 +129,18 @@ def slopes(
     scene: Scene | None = None,
     progress: Progress | None = None,
     linearise_at: str = "beta0",
+    residual_nl: str | None = None,
 ) -> list[SlopeResult]:
     """Bias and scatter slopes at ``beta0`` for each magnitude (paper Figs. 3 and 5).
 
     ``linearise_at`` (:data:`LINEARISE_STATES`): "beta0", the paper's, the slope of the uncorrected
     detector at beta0; "corrected", the slope a calibration error acts through once the pipeline has
-    corrected the NL: taken at the residual CORRECTED_RESIDUAL x beta0, with a ramp's saturation flags
-    those of the raw beta0 (docs/ramps.md). The scatter keeps sigma_beta (a per-pixel calibration error).
+    corrected the NL, modelled by ``residual_nl`` (``experiment.correction.RESIDUAL_MODELS``; None: the
+    default, "per_resultant_correction"): the raw beta0 read by read, IPC, resultants, the correction on
+    every resultant as romancal applies it, and the slope d metric / d Delta_beta of the residual
+    r(Q) = -Delta_beta Q^2 about a perfect calibration; or "per_read_beta", the earlier model, a residual
+    CORRECTED_RESIDUAL x beta0 on every read before IPC. Either way a ramp's saturation flags are those of
+    the raw beta0 (docs/ramps.md). The scatter keeps sigma_beta (a per-pixel calibration error).
 
     ``monte_carlo``: the paper's method. The bias slope is the finite difference over
     beta0 * {0.99, 1.01} (identical to its 3-point linear fit) for each centroid; the scatter slope
@@ -134,13 +154,15 @@ def slopes(
     """
     mags = check_magnitudes(magnitudes)
     check_choice(linearise_at, "linearise_at", LINEARISE_STATES)
+    model = check_model(residual_nl, linearise_at)
+    corrected = model == "per_resultant_correction"
     raw, beta, sigma_beta = _slope_betas(beta0, beta_convention, linearise_at, sigma_beta)
+    if corrected:
+        beta = 0.0  # about a perfect calibration; the raw beta0 is corrected on every resultant
     scene = scene or prepare(config)
     if scene.config != config:
         raise InputError("scene", "the scene was prepared for a different configuration")
-    conditions = config.conditions()
-    if linearise_at != "beta0":
-        conditions["linearised_at"] = {"state": linearise_at, "beta": beta, "saturation_beta": raw}
+    conditions = _slope_conditions(config, linearise_at, beta, raw, model)
     settings = config.moment_settings
     scene_flags = _scene_flags(scene)
     out: list[SlopeResult] = []
@@ -151,14 +173,11 @@ def slopes(
             progress(index, len(mags), f"m={magnitude:g}")
         flux = float(config.electrons(magnitude))
         charge_scale = flux * config.oversampling**2
-        peak = _peak_electrons(scene, charge_scale)
-        effect = ramp_effect(scene, charge_scale, beta=raw) if config.ramp is not None else None
-        flags = scene_flags + _validity_flags(
-            scene, charge_scale, np.full(1, raw * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect
-        )
+        effect, flags, extras = _readout_at(scene, charge_scale, raw, corrected)
+        flags = scene_flags + flags
         if config.method == "monte_carlo":
             bias, scatter, status, basis = _monte_carlo_slopes(
-                scene, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags
+                scene, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags, model
             )
         else:
             bias, scatter, status = _linear_slopes(scene, charge_scale, beta, settings, effect)
@@ -177,12 +196,35 @@ def slopes(
                 failed_realizations=int(np.sum(status != moments.MomentStatus.OK)),
                 flags=flags + _failure_flag(status),
                 elapsed_s=time.perf_counter() - start + share,
-                extras={} if effect is None else dict(effect.extras),
+                extras=extras,
             )
         )
     if progress:
         progress(len(mags), len(mags), "done")
     return out
+
+
+def _readout_at(scene: Scene, charge_scale: float, raw: float, corrected: bool) -> tuple[RampEffect | None, list, dict]:
+    """(the readout's effect at this flux, its validity flags, its extras): the ramp's factors and flags at
+    the raw beta0, and the per-resultant correction when the residual is modelled that way."""
+    config = scene.config
+    peak = _peak_electrons(scene, charge_scale)
+    effect = ramp_effect(scene, charge_scale, beta=raw) if config.ramp is not None else None
+    flags = _validity_flags(scene, charge_scale, np.full(1, raw * (1 + PAPER_BETA_STEP)), peak, ramp_effect=effect)
+    extras = {} if effect is None else dict(effect.extras)
+    if corrected:
+        effect = corrected_effect(scene, charge_scale, raw, effect)
+    return effect, flags, extras
+
+
+def _slope_conditions(config: SimulationConfig, linearise_at: str, beta: float, raw: float, model: str | None) -> dict:
+    """The configuration's conditions with the state a slope is taken at and its residual model."""
+    conditions = config.conditions()
+    if linearise_at != "beta0":
+        conditions["linearised_at"] = {"state": linearise_at, "beta": beta, "saturation_beta": raw, "residual_nl": model}
+        conditions["residual_nl"] = model
+        conditions["residual_nl_description"] = RESIDUAL_DESCRIPTIONS[model]
+    return conditions
 
 
 def _cut_jump_flags(
@@ -220,15 +262,29 @@ def _cut_jump_flags(
 
 
 def _monte_carlo_slopes(
-    scene: Scene, magnitude: float, charge_scale: float, beta: float, raw: float, sigma_beta: float, effect, flags: list
+    scene: Scene,
+    magnitude: float,
+    charge_scale: float,
+    beta: float,
+    raw: float,
+    sigma_beta: float,
+    effect,
+    flags: list,
+    model: str | None = None,
 ):
     """The paper's slopes at one magnitude: the bias by finite differences over centroids, the scatter
-    as the spread over per-pixel beta maps at a fixed centroid; adds their flags to ``flags``."""
+    as the spread over per-pixel beta maps at a fixed centroid; adds their flags to ``flags``. Under the
+    per-resultant correction the difference is over Delta_beta = +-PAPER_BETA_STEP x CORRECTED_RESIDUAL x beta0
+    about a perfect calibration (the earlier corrected model's step; the image is exactly linear in Delta_beta,
+    so only the moments' curvature, (1e-4)^2 relative, separates it from the derivative)."""
     config = scene.config
     settings = config.moment_settings
-    bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect)
+    step = PAPER_BETA_STEP * CORRECTED_RESIDUAL * abs(raw) if model == "per_resultant_correction" else None
+    bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect, step)
     flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
-    scatter_runs = simulate(config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene, saturation_beta=raw)[0]
+    scatter_runs = simulate(
+        config, [magnitude], [beta], sigma_beta=sigma_beta, scene=scene, saturation_beta=raw, residual_nl=model
+    )[0]
     scatter = {}
     for name in METRICS:
         stat: Statistic = getattr(scatter_runs, name)

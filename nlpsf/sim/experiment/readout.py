@@ -29,6 +29,9 @@ class RampEffect:
     #: A scene with detector effects (IPC, background, polynomial NL): every order's factor and the
     #: charge the NL acts on (``ramps.scene_factors``); None for the paper's detector.
     scene_ramp: ramps.SceneRamp | None = None
+    #: The pipeline's linearity correction per resultant (``experiment.correction.Correction``), when the
+    #: residual is modelled that way (``residual_nl="per_resultant_correction"``); None otherwise.
+    correction: object | None = None
 
 
 def ramp_effect(scene: Scene, charge_scale: float, index: int | None = None, beta: float = 0.0) -> RampEffect:

@@ -14,7 +14,9 @@ it always did):
   a pixel keeps (the saturation rules), and ``build``, the one builder;
 - ``fits``: OLS / optimal slope weights, the per-pixel ramp factors, the read-by-read reference;
 - ``in_scene``: ramps with IPC, a background and a polynomial NL (``scene_factors``,
-  ``CoupledPowers``), and what a ramp still refuses.
+  ``CoupledPowers``), and what a ramp still refuses;
+- ``correction``: the pipeline's linearity correction applied per resultant and the residual a
+  calibration leaves (``CorrectedRamp``; built in a scene by ``corrected_coupled`` / ``corrected_images``).
 
 Pixel physics (noiseless, as the rest of the simulator):
 
@@ -66,6 +68,7 @@ M = D^-1/2 P D^-1/2: one eigendecomposition of M per number of usable resultants
 covariance of every pixel at once, and each pixel's weights cost O(k) instead of a k x k solve.
 """
 
+from . import correction
 from .config import (
     DEFAULT_READ_NOISE_E,
     RAMP_FITS,
@@ -79,12 +82,15 @@ from .config import (
     signal_usable,
     usable_resultants,
 )
+from .correction import CorrectedRamp
 from .fits import RampImage, nonlinearity_perturbation, order_factors, simulate_pixels, slope_weights, usage_summary
 from .in_scene import (
     RAMP_REFUSES,
     CoupledPowers,
     SceneRamp,
     check_scene,
+    corrected_coupled,
+    corrected_images,
     scene_factors,
     scene_factors_coupled,
     scene_perturbation,
@@ -99,6 +105,7 @@ __all__ = [
     "ROMAN_FRAME_TIME_S",
     "SATURATION_RULES",
     "SINGLE_RESULTANT_RULES",
+    "CorrectedRamp",
     "CoupledPowers",
     "MATable",
     "Ramp",
@@ -106,6 +113,9 @@ __all__ = [
     "SceneRamp",
     "build",
     "check_scene",
+    "corrected_coupled",
+    "corrected_images",
+    "correction",
     "load_ma_table",
     "nonlinearity_perturbation",
     "order_factors",

@@ -10,8 +10,10 @@ import numpy as np
 
 from nlpsf.checks import InputError
 
+from . import correction
 from .config import Ramp, polynomial_response, signal_usable, usable_resultants
-from .fits import _factors_for
+from .correction import CorrectedRamp
+from .fits import _factors_for, slope_weights
 
 RAMP_REFUSES: dict[str, str] = {
     "brighter_fatter": (
@@ -374,3 +376,87 @@ def scene_perturbation(
         if power is not None:
             power = power * q
     return perturbation, derivative
+
+
+# --- the pipeline's linearity correction per resultant (``correction``) ------------------------
+
+
+def _mean_powers(ramp: Ramp | None, exptime_s: float, count: int) -> np.ndarray:
+    """<tau^n>_j for n = 1 .. count: the ramp's, or a final frame's one resultant at tau = 1."""
+    if ramp is None:
+        return np.ones((count, 1))
+    return ramp.table.mean_powers(exptime_s, tuple(range(1, count + 1)))
+
+
+def _pixel_weights(rate: np.ndarray, usable: np.ndarray | None, ramp: Ramp | None, exptime_s: float) -> np.ndarray:
+    """(P, K) slope weights of P pixels (the optimal ones at their measured rate); a final frame: 1."""
+    if ramp is None:
+        return np.ones((rate.size, 1))
+    return slope_weights(rate, usable, ramp, exptime_s).reshape(rate.size, ramp.table.n_resultants)
+
+
+def corrected_coupled(
+    powers: CoupledPowers,
+    scale: float,
+    background: float,
+    ramp: Ramp | None,
+    exptime_s: float,
+    usable: np.ndarray | None,
+    raw: Sequence[float],
+    residual_terms: Sequence[float] = (),
+    pick=slice(None),
+    margin: int = 0,
+    region: np.ndarray | None = None,
+) -> CorrectedRamp:
+    """:func:`correction.correct` for IPC after the NL on Q = ``scale`` psi + ``background``, every coupled
+    power from ``powers``: on the stamps' core (``margin``) and, with ``region``, only there (the pixels
+    a moments fit whose window stays inside reads; zero elsewhere, as ``scene_factors_coupled``'s).
+    ``usable``: the core's usable resultants (any broadcastable shape; None for a final frame)."""
+    shape = powers.unit[pick].shape
+    n = shape[-1]
+    rows = pick if margin == 0 else (pick, slice(margin, n - margin), slice(margin, n - margin))
+    rate = powers.at(scale, background, 1, rows)
+    core_shape = rate.shape
+    index = None if region is None else np.flatnonzero(region)
+
+    def take(a: np.ndarray) -> np.ndarray:
+        flat = np.ascontiguousarray(a).reshape(-1)
+        return flat if index is None else flat[index]
+
+    flat_rate = take(rate)
+    kept = None if usable is None else take(np.broadcast_to(usable, core_shape))
+    raw = tuple(raw)
+    orders = [k for k, b in enumerate(raw, start=2) if b != 0]
+    coupled = {k: take(powers.at(scale, background, k, rows)) for k in orders}
+    weights = _pixel_weights(flat_rate, kept, ramp, exptime_s)
+    means = _mean_powers(ramp, exptime_s, 1 + len(raw))
+    return correction.correct(flat_rate, coupled, raw, means, weights, core_shape, index, residual_terms)
+
+
+def corrected_images(
+    charge: np.ndarray,
+    ramp: Ramp | None,
+    exptime_s: float,
+    usable: np.ndarray | None,
+    raw: Sequence[float],
+    residual_terms: Sequence[float] = (),
+    ipc=None,
+    ipc_order: str = "after",
+    oversampling: int = 1,
+) -> CorrectedRamp:
+    """:func:`correction.correct` on whole images of the charge ``charge`` (star plus background, before
+    IPC): IPC after the NL couples each power of the charge, IPC before couples the charge itself."""
+    total = np.asarray(charge, dtype=np.float64)
+    after = ipc is not None and ipc_order == "after"
+    if ipc is not None and not after:
+        total = _ipc(total, ipc, oversampling)
+    raw = tuple(raw)
+    rate = _ipc(total, ipc, oversampling) if after else total
+    coupled = {}
+    for k, b in enumerate(raw, start=2):
+        if b != 0:
+            coupled[k] = (_ipc(total**k, ipc, oversampling) if after else total**k).reshape(-1)
+    kept = None if usable is None else np.broadcast_to(usable, total.shape).reshape(-1)
+    weights = _pixel_weights(rate.reshape(-1), kept, ramp, exptime_s)
+    means = _mean_powers(ramp, exptime_s, 1 + len(raw))
+    return correction.correct(rate.reshape(-1), coupled, raw, means, weights, total.shape, None, residual_terms)
