@@ -21,7 +21,9 @@ part is also measured for node tables sampled every STEP mag between the limits 
     nice -n 10 python scripts/between_limits_error.py --points 12 --output build/between_limits.json
 
 ``--answers``: also what a user gets there, the default answer (``nlpsf.answer``; simulated afresh
-between the limits since issue 28), against a fresh ``--fidelity polychromatic`` answer.
+between the limits since issue 28, with the request's residual model), against a fresh
+``--fidelity polychromatic`` answer of the same request. The grid comparisons use the grid's own
+residual model (its nodes' setting), so that they differ by the interpolation alone.
 """
 
 from __future__ import annotations
@@ -40,11 +42,18 @@ from nlpsf.slopes import fieldgrid, tablebuild
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
 
+#: The residual model the simulations use: the grid's own (``fieldgrid.grid_residual_model``), set by
+#: :func:`main` from the grid read, so that grid and fresh values differ by the interpolation alone.
+RESIDUAL_NL: str | None = None
+
+
 def simulate(band, sca, position, magnitudes, seed=1, realizations=100):
     """{metric: [(value, stderr), ...]} and the ramp summary per magnitude, the grid's settings."""
-    settings = tablebuild.TableSettings.roman(realizations=realizations, seed=seed)
+    settings = tablebuild.TableSettings.roman(realizations=realizations, seed=seed, residual_nl=RESIDUAL_NL)
     config = settings.config(band, sca, position=position)
-    results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, linearise_at=settings.linearise_at)
+    results = experiment.slopes(
+        config, list(magnitudes), beta0=settings.beta0, linearise_at=settings.linearise_at, residual_nl=settings.residual_nl
+    )
     out = {metric: [(r.bias[name].mean, r.bias[name].stderr) for r in results] for metric, name in METRICS.items()}
     out["flux"] = [r.flux_electrons for r in results]
     out["ramp"] = [{k: r.extras.get("ramp", {}).get(k) for k in ("fitted_on_fewer", "unusable", "pixels")} for r in results]
@@ -187,6 +196,10 @@ def main() -> None:
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
     grid = fieldgrid.FieldGrid.load(args.grid) if args.grid else fieldgrid.shipped_grid()
+    global RESIDUAL_NL
+    band, sca = grid.coverage()[0]
+    RESIDUAL_NL = fieldgrid.grid_residual_model(grid.conditions(band, sca)["settings"])
+    print(f"the grid's residual model: {RESIDUAL_NL}", flush=True)
     rng = np.random.default_rng(args.seed)
     only = None if not args.only else [(b, int(s)) for b, s in (item.split(":") for item in args.only.split(","))]
     rows = []

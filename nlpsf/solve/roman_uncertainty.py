@@ -52,6 +52,10 @@ relative to |c_e| = hypot(c_e1, c_e2) (``model_part.model_at`` restates them aga
 component's own slope). The reading side is a function of (band, SCA, mode, metric, magnitude)
 that takes arrays (:func:`relative`); the measuring side (``scripts/model_uncertainty_roman.py``,
 ``nlpsf/data/roman_model_uncertainty.json``) imports the simulator lazily.
+
+About 600 lines, kept as one module: the sources' stated values, the parts built from them, the
+reader that answers read them with and the measurement that ships them share those constants, and
+a part's reading must follow its measuring exactly.
 """
 
 from __future__ import annotations

@@ -83,9 +83,9 @@ from .validity import (
     _magnitude_flags,
     _ramp_magnitude_flags,
     _validity_flags,
-    between_limits,
-    between_limits_flag,
+    between_limits_note,
     component_flags,
+    fresh_between_limits,
 )
 
 METRICS = defaults.METRICS
@@ -211,7 +211,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simul
         simulated_scene = request.scene
     tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
     coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
-    between = _between_limits_check(request, coverage.grid, request.magnitude)
+    between = between_limits_note(request, coverage.grid, request.magnitude)
     if between is None:
         notes.extend(_coverage_notes(request, coverage, refusals, tableset))
     else:
@@ -305,20 +305,6 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
     notes = "; ".join(str(n) for n in the_plan.notes if getattr(n, "code", None) in simulated)
     why = f"it needs a fresh simulation ({notes or 'fidelity ' + the_plan.fidelity}): {providers.REFUSAL}"
     raise providers.NeedsSimulation(refusal(first.code, first.field, why))
-
-
-def _between_limits_check(request: SolveRequest, grid, magnitude: float | None) -> tuple[Flag, int] | None:
-    """Where the Roman default's grid would answer at a position between the saturation limits
-    (``validity.between_limits``) at ``magnitude``: the flag and the grid's centroid count, for a
-    fresh simulation there; None elsewhere."""
-    if grid is None:
-        return None
-    position = request.scene.position
-    limits = between_limits(grid, request.band, request.sca, position, magnitude)
-    if limits is None:
-        return None
-    realizations = int(grid.conditions(request.band, request.sca)["settings"]["realizations"])
-    return between_limits_flag(position, float(magnitude), limits, realizations), realizations
 
 
 def _measured_default(request: SolveRequest) -> str:
@@ -428,10 +414,12 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
         result = _answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
-        between = _between_limits_check(request, the_plan.grid, result.magnitude)
+        between = None if result.binding != "nonlinearity" else between_limits_note(request, the_plan.grid, result.magnitude)
         if between is not None:
-            # The grid's answer lies between the saturation limits: solved again on fresh simulations.
-            return _fresh_between_limits(request, tables_set, simulate, between[0], result.magnitude, start)
+            # The grid's NL limit lies between the saturation limits: solved again on fresh simulations
+            # (where saturation binds, the answer is the grid's limit itself, not the slope's).
+            fresh = fresh_between_limits(partial(answer, tables_set=tables_set), request, simulate, between[0], result.magnitude)
+            return replace(fresh, elapsed_s=time.perf_counter() - start)
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
@@ -484,18 +472,6 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
         conservative=conservative,
         ranges=ranges,
     )
-
-
-def _fresh_between_limits(request: SolveRequest, tables_set, simulate: bool, flag: Flag, magnitude: float, start: float):
-    """A magnitude answer the grid puts between the saturation limits at a position, solved again on
-    fresh simulations with the grid's centroids (``validity.between_limits``); at table cost refused."""
-    if not simulate:
-        why = f"the answer lies between the saturation limits ({flag}): {providers.REFUSAL}"
-        raise providers.NeedsSimulation(providers.Refusal(providers.RefusalCode.FIDELITY, "magnitude", why))
-    fresh = answer(request.with_changes(fidelity="linear"), tables_set)
-    limits = [flag.values["m_sat"], flag.values["m_sat_final"]]
-    conditions = {**fresh.conditions, "between_limits": {"grid_magnitude": magnitude, "limits": limits}}
-    return replace(fresh, flags=[flag, *fresh.flags], conditions=conditions, elapsed_s=time.perf_counter() - start)
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:

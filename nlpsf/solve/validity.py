@@ -178,3 +178,34 @@ def between_limits_flag(position, magnitude: float, limits: tuple[float, float],
         m_sat_final=limits[1],
         realizations=realizations,
     )
+
+
+def between_limits_note(request, grid, magnitude: float | None) -> tuple[Flag, int] | None:
+    """Where the Roman default's grid would answer at a position between the saturation limits
+    (:func:`between_limits`) at ``magnitude``: the flag and the grid's centroid count, for a fresh
+    simulation there (``solver.plan``); None elsewhere."""
+    if grid is None:
+        return None
+    position = request.scene.position
+    limits = between_limits(grid, request.band, request.sca, position, magnitude)
+    if limits is None:
+        return None
+    realizations = int(grid.conditions(request.band, request.sca)["settings"]["realizations"])
+    return between_limits_flag(position, float(magnitude), limits, realizations), realizations
+
+
+def fresh_between_limits(answer, request, simulate: bool, flag: Flag, magnitude: float):
+    """A magnitude answer the grid puts between the saturation limits at a position, solved again
+    on fresh simulations with the grid's centroids; at table cost refused. ``answer`` is the
+    solver's (``answer(request)``, passed in: this module sits below it)."""
+    from dataclasses import replace
+
+    from nlpsf.slopes import providers
+
+    if not simulate:
+        why = f"the answer lies between the saturation limits ({flag}): {providers.REFUSAL}"
+        raise providers.NeedsSimulation(providers.Refusal(providers.RefusalCode.FIDELITY, "magnitude", why))
+    fresh = answer(request.with_changes(fidelity="linear"))
+    limits = [flag.values["m_sat"], flag.values["m_sat_final"]]
+    conditions = {**fresh.conditions, "between_limits": {"grid_magnitude": magnitude, "limits": limits}}
+    return replace(fresh, flags=[flag, *fresh.flags], conditions=conditions)
