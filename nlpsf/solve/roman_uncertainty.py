@@ -291,13 +291,16 @@ def optics_value(fit: dict, sensitivity: np.ndarray, log_scale_offset: float = 0
     return np.sqrt(offset**2 + spread), offset
 
 
-def relative(band: str, sca: int, mode: str, metric: str, magnitude, pupil_log_scale_offset: float = 0.0) -> dict:
+def relative(band: str, sca: int, mode: str, metric: str, magnitude, pupil_log_scale_offset: float = 0.0, position=None) -> dict:
     """The Roman default's relative model uncertainty at ``magnitude`` (a number or an array), as a
     function of (band, SCA, mode, metric): every part's |value| (e1 / e2 against |c_e|), the
     standard parts in quadrature and the shifts' sum, their combination (:func:`combine`) and the
     SED range's two ends (signed). Vectorised over magnitudes; an unmeasured SCA reads the worst
     over the measured ones. ``pupil_log_scale_offset``: ln(s_rule / s_official) of the answer's pupil
-    rule (0: the official rule the default uses)."""
+    rule (0: the official rule the default uses). ``position``: accepted for any pixel position;
+    the parts are measured at the SCA centre and stand for every position on it (re-measured at two
+    others: the combination within 1.2 % of |c_e|, docs/validation.md, "Off the SCA centre")."""
+    del position  # the centre's parts stand for the SCA (see above)
     own, where = entry(band, sca, mode, metric)
     m = np.atleast_1d(np.asarray(magnitude, dtype=np.float64))
     parts = {}
