@@ -19,11 +19,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from nlpsf import __version__, detector, experiment, fidelity, roman
-from nlpsf import scene as scenes
+from nlpsf import __version__, roman
 from nlpsf.checks import InputError
-from nlpsf.request import RAMP_REQUEST_FIELDS, SolveRequest
+from nlpsf.request.resolve import RAMP_REQUEST_FIELDS, SolveRequest
 from nlpsf.serialise import json_safe
+from nlpsf.sim import detector, experiment
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import fidelity
 
 from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
@@ -58,7 +60,7 @@ def request_field(argument: str) -> str:
 
 def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
     """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``."""
-    from nlpsf import roman_default
+    from nlpsf.request import presets as roman_default
 
     data = dict(fields or {})
     named = data.pop("preset", None)
@@ -296,7 +298,7 @@ def _steps(progress: Progress | None):
 
 
 def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
-    from nlpsf import impact
+    from nlpsf.solve import impact
 
     arguments = dict(arguments)
     scene = build_scene(arguments.pop("scene"))
@@ -304,7 +306,7 @@ def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[st
 
 
 def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     if progress:
         progress(0.0, "simulating the slopes this solve needs")
@@ -382,13 +384,16 @@ def _result_row(result) -> dict[str, Any]:
 
 def simulation_scene_defaults(payload: dict[str, Any], given: set[str]) -> dict[str, Any]:
     """What a simulation leaves unset, filled as the CLI's ``simulate`` fills it (one owner:
-    ``nlpsf.roman_default``): without a scene (or with preset "roman") the Roman default -- its
+    ``nlpsf.request.presets``): without a scene (or with preset "roman") the Roman default -- its
     scene at the request's position (the SCA centre otherwise), the HLWAS readout with the
     likelihood fit and its exposure unless a ramp, MA table or exptime is given, the official pupil
     scale, and its sky over that exposure unless ``scene.background`` is given. ``scene`` "paper"
     (or "galsim-roman"): the paper's final frame of 168.1 s and the tables' pupil scale, as before.
     The normalised request names every value, so its hash says which scene was simulated."""
-    from nlpsf import backgrounds, defaults, ramps, roman_default
+    from nlpsf import defaults
+    from nlpsf.request import presets as roman_default
+    from nlpsf.roman import backgrounds
+    from nlpsf.sim import ramps
 
     from .models import build_ramp
 
@@ -431,7 +436,7 @@ def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> d
     """A solve that needs simulated slopes: everything checked at table cost (the library's request,
     the table solve of the same question, the fidelity choice), then the job's arguments: the
     request's JSON fields, which the job process reads into the same typed request."""
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     body = solve_body(fields, given)
     request = solve_request(body)
@@ -442,7 +447,7 @@ def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> d
 
 def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
     from nlpsf import defaults
-    from nlpsf import impact as impact_module
+    from nlpsf.solve import impact as impact_module
 
     limits = settings.limits
     arguments = dict(fields)

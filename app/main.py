@@ -22,8 +22,10 @@ from fastapi.staticfiles import StaticFiles
 from starlette.middleware.gzip import GZipMiddleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from nlpsf import __version__, batch, defaults, solver, tables
-from nlpsf.request import SolveRequest
+from nlpsf import __version__, defaults
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.slopes import tables
+from nlpsf.solve import batch, solver
 
 from . import api, errors, models, page_api, simulations
 from .jobs import Dispatcher, Notifier

@@ -3,7 +3,7 @@ limits a refusal quotes, requirement presets with their sources, a CSV batch, an
 
 The page draws; every number it draws comes from here or from the resource endpoints. The plots'
 endpoints take POST /solve's body, so what they draw is that request's scene, position and readout;
-the curves are the library's (``nlpsf.requirement_curves``: the solver's own slope source and
+the curves are the library's (``nlpsf.solve.curves``: the solver's own slope source and
 relation at each magnitude), so the relation T = |c(m)| p β₀ (× 1/√n for a scatter average) has one
 owner, the library, and the answer's point lies on its curve.
 """
@@ -22,9 +22,11 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import PlainTextResponse, Response
 
-from nlpsf import relation, requirement_curves, tables
 from nlpsf.checks import InputError
-from nlpsf.request import SolveRequest
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.slopes import tables
+from nlpsf.solve import curves as requirement_curves
+from nlpsf.solve import relation
 
 from . import job_kinds, models, solve_api
 from .errors import SafeJSONResponse, json_safe
@@ -56,14 +58,14 @@ def _no_curve(body: models.SolveRequest) -> str | None:
 
 @router.post("/limits", summary="The limits of a solve request: saturation for its readout, the brightest magnitude answered")
 def limits_endpoint(body: models.SolveRequest) -> SafeJSONResponse:
-    # The request's own scene, position and readout (the solver's rules, nlpsf.requirement_curves).
+    # The request's own scene, position and readout (the solver's rules, nlpsf.solve.curves).
     return SafeJSONResponse(json_safe(requirement_curves.limits(_request(body))))
 
 
 @router.post("/requirement", summary="The calculator's two plots for a solve request: p(m) around its T, c(m), limits")
 def requirement(body: models.SolveRequest, at: At = None, overlay: Overlay = False) -> SafeJSONResponse:
     """The body is POST /solve's: the curves are that request's (its scene, position and readout),
-    each value the solver's own at its magnitude (nlpsf.requirement_curves)."""
+    each value the solver's own at its magnitude (nlpsf.solve.curves)."""
     request = _request(body)
     why = _no_curve(body)
     curves = requirement_curves.curves(request, at=at or (), refuse=why)
@@ -72,7 +74,7 @@ def requirement(body: models.SolveRequest, at: At = None, overlay: Overlay = Fal
     return SafeJSONResponse(
         json_safe(
             {
-                "source": "the solver's own slopes and relation at each magnitude (nlpsf.requirement_curves)",
+                "source": "the solver's own slopes and relation at each magnitude (nlpsf.solve.curves)",
                 "curves": curves.to_dict(),
                 "paper": None if paper is None else paper.to_dict(),
                 "published": published,
@@ -120,7 +122,7 @@ def impact_terms(
     precision: Positive,
     impact: Annotated[list[float], Query(max_length=50, description="slope with ÷ without − 1 for each effect")],
 ) -> SafeJSONResponse:
-    # The relation is the library's (nlpsf.relation); a vanishing slope asks no precision (null).
+    # The relation is the library's (nlpsf.solve.relation); a vanishing slope asks no precision (null).
     asked = [relation.precision_with_impact(precision, x) for x in impact]
     return SafeJSONResponse(
         {
@@ -182,7 +184,7 @@ PRESETS: list[dict[str, Any]] = [
 
 def scene_presets() -> dict[str, Any]:
     """The scene form's fields for each library scene preset, and the name the library gives the scene."""
-    from nlpsf import roman_default
+    from nlpsf.request import presets as roman_default
 
     out = {}
     for name in roman_default.PRESETS:

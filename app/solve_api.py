@@ -9,9 +9,10 @@ from fastapi import APIRouter
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
-from nlpsf import batch, defaults, solver
+from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
+from nlpsf.solve import batch, solver
 
 from . import job_kinds, models
 from .deps import CallerDep, ServicesDep
@@ -81,7 +82,7 @@ def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
 
 def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
     """One batch entry: the same typed request as POST /solve, answered by the library where the
-    tables or the Roman default's field grid hold it (``nlpsf.batch.answer_from_tables``: the very
+    tables or the Roman default's field grid hold it (``nlpsf.solve.batch.answer_from_tables``: the very
     ``solver.answer`` a single solve runs), refused on its own otherwise."""
     from pydantic import ValidationError
 

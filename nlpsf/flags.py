@@ -25,7 +25,7 @@ from enum import StrEnum
 class FlagCode(StrEnum):
     """Stable codes of result flags (the value is what JSON carries)."""
 
-    # Simulations (nlpsf.experiment)
+    # Simulations (nlpsf.sim.experiment)
     SATURATED = "saturated"
     NL_NOT_MONOTONIC = "nl_not_monotonic"
     NEGATIVE_BETA = "negative_beta"
@@ -38,7 +38,7 @@ class FlagCode(StrEnum):
     NO_CHANGE = "no_change"
     BELOW_MONTE_CARLO_RESOLUTION = "below_monte_carlo_resolution"
     JUMPY_FINITE_DIFFERENCE = "jumpy_finite_difference"
-    # Solutions (nlpsf.solver, nlpsf.fidelity, nlpsf.shear)
+    # Solutions (nlpsf.solve.solver, nlpsf.slopes.fidelity, nlpsf.request.shear)
     FIDELITY_CHOSEN = "fidelity_chosen"
     FIDELITY_NONE_MEETS = "fidelity_none_meets"
     FIDELITY_ERROR_UNKNOWN = "fidelity_error_unknown"
@@ -63,7 +63,7 @@ class FlagCode(StrEnum):
     OUTSIDE_LINEAR_REGIME = "outside_linear_regime"
     SHEAR_CROSS_TERM = "shear_cross_term"
     WORST_OVER_FIELD = "worst_over_field"
-    # The Roman default (nlpsf.roman_default)
+    # The Roman default (nlpsf.request.presets)
     DEFAULT_FROM_GRID = "default_from_grid"
     DEFAULT_SIMULATED = "default_simulated"
     LINEARISED_SIMULATED = "linearised_simulated"

@@ -31,7 +31,7 @@ const FIELD_NAMES = {
   scene: "scene", csv: "CSV", over_field: "over the field", throughput: "throughput",
 };
 // The page's words for each scene effect, by the registry's name (GET /api/v1/meta → scene_effects,
-// nlpsf.scene.REGISTRY, is the list of effects and their facts); an effect without words here shows
+// nlpsf.sim.scene.REGISTRY, is the list of effects and their facts); an effect without words here shows
 // under its registry name.
 const EFFECT_WORDS = {
   position: ["position on the detector", "the optics change across a detector: the PSF at a corner differs from the centre the tables hold"],

@@ -40,3 +40,12 @@ def test_every_readme_example_runs_and_prints_what_the_readme_shows():
     assert len(results) >= 3
     failed = [f"README.md:{e.line}: {why}" for e, ok, why in results if not ok]
     assert not failed, "\n\n".join(failed)
+
+
+def test_every_calibration_example_runs_and_prints_what_the_page_shows(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the kernel example writes its ECSV into the working folder
+    env = check_docs.environment()
+    results = [(e, *check_docs.run(e, env, None)) for e in check_docs.examples(ROOT / "docs" / "calibration.md")]
+    assert len(results) >= 1
+    failed = [f"docs/calibration.md:{e.line}: {why}" for e, ok, why in results if not ok]
+    assert not failed, "\n\n".join(failed)

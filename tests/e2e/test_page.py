@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import solver
 from nlpsf.checks import InputError
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS, solve_for
 
@@ -153,7 +153,7 @@ def test_a_shear_budget_shows_the_tolerance_it_sets_greyed(page, server):
     assert page.is_disabled("#solve-tolerance")
     assert "derived" in page.get_attribute("#solve-tolerance", "class")
     solution = solve_for(page, "precision", {"magnitude": "18.3"})
-    # Shear relation (nlpsf.shear): dR/R = |m| rho^2 / 2.
+    # Shear relation (nlpsf.request.shear): dR/R = |m| rho^2 / 2.
     assert solution["shear"]["tolerance"] == pytest.approx(3.2e-4 * 1.5**2 / 2, rel=1e-9)
     assert float(page.input_value("#solve-tolerance")) == pytest.approx(3.6e-4, rel=1e-3)
     page.select_option("#req-preset", "euclid-e")
@@ -270,8 +270,8 @@ def test_plots_are_readable(page, server):
 def test_impact_in_requirement_terms(page, server):
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "19"})
-    from nlpsf import roman_default
-    from nlpsf import scene as scenes
+    from nlpsf.request import presets as roman_default
+    from nlpsf.sim import scene as scenes
 
     page.select_option("#scene-preset", "roman")  # the Roman default's values, as the library holds them
     assert float(page.input_value("#scene-jitter")) == roman_default.JITTER_ARCSEC

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import solver
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS, answer_point_is_drawn, solve_for
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import pytest
 
-from nlpsf import roman_default, solver
+from nlpsf.request import presets as roman_default
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS
 

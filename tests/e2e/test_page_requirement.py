@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from nlpsf import solver
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS, answer_point_is_drawn, solve_for
 
@@ -197,7 +197,7 @@ def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):
 
 
 def test_the_effect_explanations_list_the_registrys_effects(page):
-    from nlpsf import scene as scenes
+    from nlpsf.sim import scene as scenes
 
     terms = page.locator("#effect-explanations dt").all_inner_texts()
     # One per registry effect (in the page's words), then the pupil-scale rule.

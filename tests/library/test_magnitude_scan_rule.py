@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from nlpsf.flags import FlagCode
-from nlpsf.magnitude_scan import ToleranceUnreachable, scan_magnitude
+from nlpsf.solve.magnitude_scan import ToleranceUnreachable, scan_magnitude
 
 BRIGHT, FAINT = 14.0, 28.0
 DELTA_BETA = 5e-9  # 1 % of 5e-7

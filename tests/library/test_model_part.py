@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nlpsf import impact, roman, solver
-from nlpsf import scene as scenes
+from nlpsf import roman
+from nlpsf.sim import scene as scenes
+from nlpsf.solve import impact, solver
 
 # The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
 paper_solve = functools.partial(solver.solve, preset="paper")

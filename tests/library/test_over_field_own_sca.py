@@ -7,9 +7,11 @@ from dataclasses import fields, replace
 
 import pytest
 
-from nlpsf import backgrounds, roman_default, solver
-from nlpsf.over_field import own_conditions
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.roman import backgrounds
+from nlpsf.solve import solver
+from nlpsf.solve.over_field import own_conditions
 
 BODY = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 

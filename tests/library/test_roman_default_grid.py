@@ -6,7 +6,8 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import roman_default, solver
+from nlpsf.request import presets as roman_default
+from nlpsf.solve import solver
 
 pytestmark = pytest.mark.skipif(roman_default.field_grid() is None, reason="no shipped Roman field grid installed")
 
@@ -41,7 +42,9 @@ def test_the_defaults_saturation_is_its_own_stars_not_the_paper_tables():
     """Where the grid answers, the saturation limits are the Roman default's star: its brightest pixel
     (through the default's optics, diffusion and IPC, on its sky) reaching the full well, computed here
     from the peak of a fresh preparation of that scene -- not from the paper table's sharper star."""
-    from nlpsf import experiment, photometry, tablebuild
+    from nlpsf.roman import photometry
+    from nlpsf.sim import experiment
+    from nlpsf.slopes import tablebuild
 
     position = (1000.0, 3000.0)
     readout = roman_default.readout("H158", 18)

@@ -11,9 +11,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, roman_default, solve
-from nlpsf.experiment import sky
-from nlpsf.scene import ROMAN_IPC_KERNEL, SceneModel
+from nlpsf import solve
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim.experiment import sky
+from nlpsf.sim.scene import ROMAN_IPC_KERNEL, SceneModel
 
 from .test_ramps_readout import brute_force
 
@@ -70,9 +72,13 @@ def test_far_from_the_star_the_nl_is_the_skys_gain_change_only(sky_scene):
 def test_faint_roman_default_slopes_scale_as_the_flux(band):
     # In the linear regime the NL image is beta Q^2: the moments' slope is proportional to the flux, so
     # 2 mag fainter is 10^(-0.8) of the slope. A sky NL left in the image would add a term growing as
-    # 1 / flux and turn the slope's sign (K213 near m = 21 before the change).
+    # 1 / flux and turn the slope's sign (K213 near m = 21 before the change). The law is not exact up the
+    # ramp: the likelihood fit's weights depend on each pixel's rate, so its ramp factors drift between the
+    # read-noise- and the Poisson-dominated regime, by up to 1.0 % per 2 mag at m = 22-24 with no sky at all
+    # (H158, the per-resultant correction; 0.9 % under the per-read residual): 1.5 % leaves that room, and a
+    # pedestal left in moves the ratio by orders of magnitude.
     scene = replace(roman_default.base_scene(), position=(2000.0, 2000.0))
     slopes = [solve(band, 18, "size", magnitude=m, precision=0.01, fidelity="linear", scene=scene).slope for m in (22, 24, 26)]
     assert slopes[0] > 0 and slopes[1] > 0 and slopes[2] > 0
     for bright, faint in itertools.pairwise(slopes):
-        assert faint / bright == pytest.approx(10**-0.8, rel=0.01)
+        assert faint / bright == pytest.approx(10**-0.8, rel=0.015)

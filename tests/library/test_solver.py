@@ -10,10 +10,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nlpsf import cli, roman, shear, solver, tables
-from nlpsf import scene as scenes
+from nlpsf import cli, roman
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode, codes
+from nlpsf.request import shear
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import tables
+from nlpsf.solve import solver
 
 from .. import shipped
 
@@ -209,7 +212,7 @@ def test_fresh_simulation_fidelity_agrees_with_the_table():
 
 
 def test_accuracy_picks_the_cheapest_level_that_meets_it():
-    from nlpsf import fidelity
+    from nlpsf.slopes import fidelity
 
     errors = fidelity.measured()["errors"]["H158"]["bias"]["size"]
     paper = scenes.preset("paper")  # the tables' own scene: without a scene, accuracy holds to the Roman default
@@ -283,7 +286,7 @@ def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulati
     assert galsim.conditions["throughput"] == "galsim-2021" and default.conditions["throughput"] == "roman-2024"
     assert FlagCode.THROUGHPUT_RELABELLED in codes(galsim.flags)
     # More electrons per magnitude in GalSim's 2021 curve: stars saturate fainter, by the zero-point gap.
-    from nlpsf import photometry
+    from nlpsf.roman import photometry
 
     gap = photometry.zero_point("J129", sca=11, throughput="galsim-2021") - photometry.zero_point(
         "J129", sca=11, throughput="roman-2024"
@@ -298,7 +301,7 @@ def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulati
 
 @pytest.mark.slow
 def test_another_pupil_scale_rule_is_simulated_with_that_rule_and_says_so(capsys):
-    from nlpsf import experiment
+    from nlpsf.sim import experiment
 
     request = {"band": "H158", "sca": 18, "magnitude": 18.3, "precision": 0.01}
     official = paper_solve(**request, pupil_scale="official")

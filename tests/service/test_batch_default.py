@@ -4,7 +4,7 @@ that need a fresh simulation, naming the field and where to send them."""
 
 import pytest
 
-from nlpsf import roman_default
+from nlpsf.request import presets as roman_default
 
 pytestmark = pytest.mark.skipif(roman_default.field_grid() is None, reason="the Roman default's field grid is not installed")
 

@@ -6,8 +6,8 @@ given, and a fit or read noise without a ramp was ignored, the answer silently t
 import pytest
 from nlpsf.web import job_kinds, models
 
-from nlpsf import roman_default
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
 
 BODY = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 

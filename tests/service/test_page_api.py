@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import solver
+from nlpsf.solve import solver
 
 from .. import shipped
 
