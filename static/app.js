@@ -365,6 +365,8 @@ function plainWords(text) {
     .replace(/Input should be a valid list/g, "must be a list of numbers")
     .replace(/Input should be/g, "must be")
     .replace(/Extra inputs are not permitted/g, "is not a field the server knows")
+    .replace(/\bQ_peak\b/g, "Q (the brightest pixel's charge)")
+    .replace(/\bbeta0 x Q\b/g, "β₀ × Q")
     // "≥ 0.000000000000001" as a power of ten.
     .replace(/\b0\.0{4,}\d+/g, (t) => fmt(Number(t)));
   for (const [key, name] of Object.entries(FIELD_NAMES)) {
@@ -1359,7 +1361,8 @@ async function solve(event) {
   const asked = (state.solveSeq = (state.solveSeq || 0) + 1);
   const cancel = document.getElementById("solve-cancel");
   try {
-    const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true,
+    // wait=1: an answer that needs a simulation comes back as its job after a second, so its progress shows.
+    const s = await api("/solve?wait=1", { method: "POST", body: JSON.stringify(body), followJob: true,
       onJob: (location) => {
         button.textContent = "Simulating…";
         cancel.onclick = () => fetch(location, { method: "DELETE" }).catch(() => {});
@@ -1661,8 +1664,8 @@ async function tooBright(body, original) {
     const m = body.magnitude;
     const brightest = limits.brightest_answered_magnitude.toFixed(2);
     const readout = limits.readout === "ramp" ? "up the ramp, in the resultant a slope needs" : "in the final frame";
-    return [`${plainWords(original)} The brightest star answered at these conditions is m = ${brightest}; stars brighter than ` +
-      `m = ${limits.saturation_magnitude.toFixed(2)} saturate ${readout}.`,
+    return [`m = ${fmt(m)} is too bright: the brightest star answered at these conditions is m = ${brightest} (stars brighter ` +
+      `than m = ${limits.saturation_magnitude.toFixed(2)} saturate ${readout}). Why: ${plainWords(original.replace(/^magnitude: /, ""))}.`,
     `m = ${fmt(m)} is too bright (brightest answered: m = ${brightest})`];
   } catch (_) {
     return [plainWords(original), null];

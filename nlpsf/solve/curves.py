@@ -165,7 +165,7 @@ def curves(
         )  # fmt: skip
     faint = min(n.faint for n in nodes)
     magnitudes = _grid(max(n.bright for n in nodes), faint, step, at)
-    slope, slope_error, chosen, missed = _envelope(nodes, magnitudes)
+    magnitudes, slope, slope_error, chosen, missed = _refined(nodes, magnitudes, *_envelope(nodes, magnitudes))
     c, c_err = np.abs(slope) * averaging, slope_error * averaging
     beta0 = request.beta0
     if tolerance is None:
@@ -229,25 +229,78 @@ def _envelope(nodes: list[_Node], magnitudes: np.ndarray) -> tuple[np.ndarray, n
     answer, as the SCA range ranks them)."""
     values = np.full((len(nodes), magnitudes.size), np.nan)
     errors = np.full_like(values, np.nan)
-    missed = []
-    with no_simulation():
-        for k, node in enumerate(nodes):
-            for i, m in enumerate(magnitudes):
-                if m < node.bright - 1e-9:
-                    continue  # the solver refuses here (too bright for the slopes or the ramp's margin)
-                try:
-                    value, error, region = node.slopes.at(float(m))
-                except NeedsSimulation:
-                    missed.append(float(m))
-                    continue
-                if region >= 0:
-                    values[k, i], errors[k, i] = value, error
+    missed: list[float] = []
+    for k, node in enumerate(nodes):
+        values[k], errors[k] = _node_slopes(node, magnitudes, missed)
     complete = np.all(np.isfinite(values), axis=0)
     chosen = np.where(complete, np.argmax(np.where(np.isfinite(values), np.abs(values), -np.inf), axis=0), -1)
     columns = np.arange(magnitudes.size)
     slope = np.where(complete, values[np.maximum(chosen, 0), columns], np.nan)
     slope_error = np.where(complete, errors[np.maximum(chosen, 0), columns], np.nan)
     return slope, slope_error, chosen, missed
+
+
+def _node_slopes(node: _Node, magnitudes: np.ndarray, missed: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """One node's (c, its error) at ``magnitudes``, NaN where the solver refuses. Inside the Roman
+    default's field grid, its reader over all the magnitudes at once (as the solver's own magnitude
+    scan reads it, ``magnitude_scan._field_grid_scan``); elsewhere the slope source one magnitude at
+    a time (the tables, the grid's flux law fainter than it, a simulation refused at table cost)."""
+    values = np.full(magnitudes.shape, np.nan)
+    errors = np.full(magnitudes.shape, np.nan)
+    todo = magnitudes >= node.bright - 1e-9  # brighter, the solver refuses (the slopes' reach, the ramp's margin)
+    slopes, request = node.slopes, node.request
+    grid = getattr(slopes, "grid", None)
+    if grid is not None and hasattr(grid, "column_value"):
+        low, high = grid.magnitude_range(request.band, request.sca)
+        inside = todo & (magnitudes >= low) & (magnitudes <= high)
+        if inside.any():
+            position = slopes.scene_model.position
+            value, error = grid.slope(request.band, request.sca, position, request.metric, request.mode, magnitudes[inside])
+            values[inside], errors[inside] = value, np.abs(error)
+        todo &= ~np.isfinite(values)
+    with no_simulation():
+        for i in np.flatnonzero(todo):
+            try:
+                value, error, region = slopes.at(float(magnitudes[i]))
+            except NeedsSimulation:
+                missed.append(float(magnitudes[i]))
+                continue
+            if region >= 0:
+                values[i], errors[i] = value, error
+    return values, errors
+
+
+#: Where the curve is refined: linear (and log) interpolation between neighbours within this
+#: fraction of the solver's value at their midpoint, down to :data:`REFINE_DEPTH` halvings.
+REFINE_TOLERANCE = 0.002
+REFINE_DEPTH = 7
+
+
+def _refined(nodes: list[_Node], magnitudes, slope, error, chosen, missed):
+    """The grid with midpoints added wherever interpolating c(m) (or 1/|c|, which p follows) between
+    neighbours misses the solver's value there by more than :data:`REFINE_TOLERANCE`: where the
+    most demanding node changes, |c| dips through a sign change, or resultants saturate."""
+    for _ in range(REFINE_DEPTH):
+        left = np.flatnonzero(np.isfinite(slope[:-1]) & np.isfinite(slope[1:]))
+        if left.size == 0:
+            break
+        middle = 0.5 * (magnitudes[left] + magnitudes[left + 1])
+        m_slope, m_error, m_chosen, m_missed = _envelope(nodes, middle)
+        a, b, c = np.abs(slope[left]), np.abs(slope[left + 1]), np.abs(m_slope)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            misses = np.maximum.reduce([
+                np.abs(0.5 * (a + b) / c - 1), np.abs(0.5 * (1 / a + 1 / b) * c - 1), np.abs(np.sqrt(a * b) / c - 1),
+            ])  # fmt: skip
+        bad = ~(misses <= REFINE_TOLERANCE)  # NaN (a gap at the midpoint) counts as a miss too
+        if not bad.any():
+            break
+        missed += m_missed
+        order = np.argsort(np.concatenate([magnitudes, middle[bad]]), kind="stable")
+        magnitudes = np.concatenate([magnitudes, middle[bad]])[order]
+        slope = np.concatenate([slope, m_slope[bad]])[order]
+        error = np.concatenate([error, m_error[bad]])[order]
+        chosen = np.concatenate([chosen, m_chosen[bad]])[order]
+    return magnitudes, slope, error, chosen, missed
 
 
 def _nodes(request: SolveRequest) -> tuple[list[_Node], str | None]:

@@ -135,3 +135,27 @@ def test_the_tables_refusal_says_what_depends_on_beta0():
     assert "several times over" not in text and "beta0 x Q_peak" in text
     multiple = float(shipped.peak_electrons("W146", 18, 18.3, exptime)) / 1.1e5
     assert f"{multiple:.2g} x the full well" in text
+
+
+@pytest.mark.parametrize(("band", "options", "position"), CASES[:3] + CASES[4:5])
+def test_between_its_points_the_curve_reads_the_answer_within_one_percent(band, options, position):
+    # A reader interpolates the drawn line between its points (linearly, or straight on the log axis):
+    # at random magnitudes off the grid that reading is within 1 % of the solver's answer there, also
+    # between the saturation limits, where |c| dips through sign changes and the most demanding node
+    # changes (the grid is refined there, requirement_curves.REFINE_TOLERANCE).
+    request = request_for(band, options, position, tolerance=1e-4, magnitude=19.0)
+    curves = requirement_curves.curves(request)
+    m, p = curves.magnitude, curves.precision[1.0]
+    drawn = np.isfinite(p) & (p < 1)
+    rng = random.Random(band)
+    checked = 0
+    while checked < 25:
+        x = rng.uniform(m[drawn].min(), m[drawn].max())
+        j = int(np.searchsorted(m, x))
+        if not (drawn[j - 1] and drawn[j]):
+            continue
+        truth = solver.answer(request.with_changes(magnitude=x)).precision
+        linear = p[j - 1] + (p[j] - p[j - 1]) * (x - m[j - 1]) / (m[j] - m[j - 1])
+        logarithmic = p[j - 1] * (p[j] / p[j - 1]) ** ((x - m[j - 1]) / (m[j] - m[j - 1]))
+        assert linear == pytest.approx(truth, rel=0.01) and logarithmic == pytest.approx(truth, rel=0.01), x
+        checked += 1

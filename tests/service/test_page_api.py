@@ -212,3 +212,20 @@ def test_the_page_reads_its_impacts_from_the_library(client):
     impacts = client.get("/api/v1/page/impact-terms", params={"precision": 0.01, "impact": [0.25, -1.0, -1.5]}).json()
     # T = |c| p beta0 at fixed T: p / |1 + impact|; a vanishing slope asks no precision (null).
     assert impacts["precision"] == [pytest.approx(0.008), None, pytest.approx(0.02)]
+
+
+def test_the_page_can_ask_for_a_simulated_answers_job_at_once(client):
+    # The page shows the progress of an answer that needs a simulation: with wait=0 /solve returns
+    # its job (202, Location) instead of waiting solve_wait_s; the job ends with the same answer.
+    from ..servers import finished_job
+
+    body = {"band": "H158", "tolerance": 1e-4, "magnitude": 19.0, "scene": "paper", "fidelity": "linear"}
+    response = client.post("/api/v1/solve", params={"wait": 0}, json=body)
+    if response.status_code == 200:  # an identical earlier request: answered from stored results
+        assert response.json()["fidelity"] == "linear"
+        return
+    assert response.status_code == 202 and response.headers["location"].startswith("/api/v1/simulations/")
+    job = finished_job(client, response.json()["id"]).json()
+    assert job["status"] == "done"
+    waited = client.post("/api/v1/solve", json=body).json()  # now from stored results
+    assert job["result"]["precision"] == pytest.approx(waited["precision"], rel=1e-12)
