@@ -260,6 +260,11 @@ function withUncertainty(value, error, unit = "") {
   const place = Math.floor(Math.log10(error)) - 1; // the uncertainty's second digit
   const a = Math.abs(value);
   if (a >= 1e-3 && a < 1e5 && place >= -8) {
+    if (place > 0) {
+      // 30255 ± 220 is 30260 ± 220: no digit finer than the uncertainty's second.
+      const step = 10 ** place;
+      return `${Math.round(value / step) * step}${u} ± ${Math.round(error / step) * step}${u}`;
+    }
     const decimals = Math.max(0, -place);
     return `${value.toFixed(decimals)}${u} ± ${error.toFixed(decimals)}${u}`;
   }
@@ -303,7 +308,8 @@ function axisFormatter(logScale) {
     }));
     return splits.map((v) => {
       if (v === null || !Number.isFinite(v)) return "";
-      if (!exponentForm || v === 0) return v.toFixed(Math.min(decimals, 4));
+      if (v === 0) return "0";
+      if (!exponentForm) return v.toFixed(Math.min(decimals, 4));
       const exponent = Math.floor(Math.log10(Math.abs(v)) + 1e-9);
       const mantissa = Number((v / 10 ** exponent).toPrecision(3));
       return mantissa === 1 ? pow10(exponent) : `${mantissa}×${pow10(exponent)}`;
@@ -563,7 +569,7 @@ function describeValue(c, v, j) {
   if (stat == null && fid == null) return fmt(v);
   const parts = [];
   if (stat != null) parts.push(`± ${fmt(stat, 2)} stat`);
-  if (fid != null) parts.push(`± ${fmt(fid, 2)} fidelity`);
+  if (fid != null) parts.push(`± ${fmt(fid, 2)} method`);
   return `${fmt(v)} ${parts.join(" ")}`;
 }
 
@@ -841,7 +847,6 @@ function exportPng(name) {
   const scale = Math.max(1, source.width / u.width);
   const font = 14 * scale;
   const row = 20 * scale;
-  const titleLines = plot.title.split("\n");
   const entries = [
     ...plot.columns.map((c) => ({ label: c.label, color: c.series.stroke || "#000", dash: c.series.dash, point: !c.series.width })),
     ...(plot.markers || []).map((m) => ({ label: `${m.label}: m = ${fmt(m.x)}`, color: m.color, dash: [6, 4] })),
@@ -850,10 +855,16 @@ function exportPng(name) {
   const canvas = document.createElement("canvas");
   const ctx = canvas.getContext("2d");
   ctx.font = `${font}px sans-serif`;
-  const width = Math.max(...entries.map((e) => ctx.measureText(e.label).width)) + 48 * scale;
+  // Title lines wrapped at the image's width: nothing is cut.
+  const titleLines = plot.title.split("\n").flatMap((line) => wrapText(ctx, line, source.width - 16 * scale));
+  const width = Math.min(source.width - 16 * scale, Math.max(...entries.map((e) => ctx.measureText(e.label).width)) + 48 * scale);
   const perRow = Math.max(1, Math.floor((source.width - 16 * scale) / width));
+  // Each key entry's label wrapped to its column: nothing is cut at the image's edge.
+  entries.forEach((e) => { e.lines = wrapText(ctx, e.label, width - 44 * scale); });
+  const rows = [];
+  for (let i = 0; i < entries.length; i += perRow) rows.push(Math.max(...entries.slice(i, i + perRow).map((e) => e.lines.length)));
   const top = row * titleLines.length + 10 * scale;
-  const bottom = row * Math.ceil(entries.length / perRow) + 12 * scale;
+  const bottom = row * rows.reduce((a, n) => a + n, 0) + 12 * scale;
   canvas.width = source.width;
   canvas.height = source.height + top + bottom;
   ctx.fillStyle = "#fff";
@@ -863,8 +874,9 @@ function exportPng(name) {
   titleLines.forEach((line, i) => ctx.fillText(line, 8 * scale, row * (i + 1)));
   ctx.drawImage(source, 0, top);
   entries.forEach((e, i) => {
+    const r = Math.floor(i / perRow);
     const x = 8 * scale + (i % perRow) * width;
-    const y = top + source.height + row * (Math.floor(i / perRow) + 1);
+    const y = top + source.height + row * (rows.slice(0, r).reduce((a, n) => a + n, 0) + 1);
     ctx.save();
     if (e.fill) {
       ctx.fillStyle = e.fill;
@@ -885,7 +897,7 @@ function exportPng(name) {
     }
     ctx.restore();
     ctx.fillStyle = "#1d2330";
-    ctx.fillText(e.label, x + 36 * scale, y);
+    e.lines.forEach((line, k) => ctx.fillText(line, x + 36 * scale, y + k * row));
   });
   // Synchronously (not canvas.toBlob): the download must start within the click, or the browser
   // counts it as an automatic download and may block it.
@@ -893,6 +905,23 @@ function exportPng(name) {
   const buffer = new Uint8Array(bytes.length);
   for (let i = 0; i < bytes.length; i++) buffer[i] = bytes.charCodeAt(i);
   downloadBlob(`${plotFileName(name)}.png`, new Blob([buffer], { type: "image/png" }));
+}
+
+// A line of text broken at spaces into lines no wider than `width` on `ctx`.
+function wrapText(ctx, text, width) {
+  const lines = [];
+  let line = "";
+  for (const word of String(text).split(" ")) {
+    const next = line ? `${line} ${word}` : word;
+    if (line && ctx.measureText(next).width > width) {
+      lines.push(line);
+      line = word;
+    } else {
+      line = next;
+    }
+  }
+  if (line) lines.push(line);
+  return lines;
 }
 
 function download(filename, url) {
@@ -1048,7 +1077,7 @@ async function copyLink() {
 
 function fillReadout(group) {
   const select = document.getElementById(`${group}-readout`);
-  const options = [["final", "the scene's (Roman: HLWAS; paper: final frame)"], ["uniform", "uniform ramp, N reads"],
+  const options = [["final", "the scene's readout"], ["uniform", "uniform ramp, N reads"],
     ...(state.meta.ma_tables || []).map((t) => [`table:${t.name}`,
       `MA table ${t.name} (${t.resultants} resultants, ${fmt(t.last_read_s)} s)`])];
   select.innerHTML = options.map(([v, l]) => `<option value="${escapeHtml(v)}">${escapeHtml(l)}</option>`).join("");
@@ -1405,7 +1434,7 @@ function scaRangeText(s) {
   const most = range.most_demanding;
   const least = range.least_demanding;
   const solved = range.solved_for;
-  const value = (v) => (v === null || v === undefined ? "n/a" : solved === "precision" ? (v >= 1 ? "no constraint" : `${fmt(100 * v, 4)} %`)
+  const value = (v) => (v === null || v === undefined ? "n/a" : solved === "precision" ? (v >= 1 ? "no constraint" : percent(v, s.uncertainty).split(" ± ")[0])
     : solved === "magnitude" ? `m = ${fmt(v, 4)}` : fmt(v, 4));
   return `no position given: the answer holds everywhere on SCA ${s.sca}, the most demanding of its ${range.nodes.length} ` +
     `field-grid positions, pixel (${most.position.join(", ")}): ${value(most[solved])}; the least demanding, pixel ` +
@@ -1768,7 +1797,9 @@ function drawRequirementPlot(data, solution) {
     const label = `T = ${fmt(r.tolerance, 3)}${chosen ? " (chosen)" : ""}`;
     const y = r.precision.map(pct);
     const err = r.statistical.map((e, i) => (e == null || y[i] == null ? null : 100 * e));
-    return { label, tag: `T = ${fmt(r.tolerance, 2)}`, tagAt: "start", x: c.magnitude, y, err, fid: c.method_relative, band: chosen,
+    // Only the chosen T carries its uncertainty band (the others would be a thicket of whiskers).
+    return { label, tag: `T = ${fmt(r.tolerance, 2)}`, tagAt: "start", x: c.magnitude, y, err: chosen ? err : null,
+      fid: chosen ? c.method_relative : null, band: chosen ? true : undefined,
       series: { ...lineSeries(label, chosen ? color : shade(color, r.factor), chosen ? undefined : dashes[r.factor] || [4, 4], chosen ? 3 : 1.4) } };
   }).filter((col) => col.label && col.x.length);
   const overlay = document.getElementById("calc-paper").checked;
@@ -2009,8 +2040,8 @@ async function drawBeta() {
   if (log) {
     for (const column of columns) column.y = column.y.map((v) => (v === null ? null : Math.abs(v)));
   }
-  const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
-  document.getElementById("beta-caption").textContent = `Tables, to first order in β. ${conditionsText(data.conditions)}. ` +
+  const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}: the paper's idealised scene (shipped tables, first order)\n${conditionsText(data.conditions)}`;
+  document.getElementById("beta-caption").textContent = `The paper's idealised scene: its tables, to first order in β. ${conditionsText(data.conditions)}. ` +
     `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty: statistical ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}` +
     `${data.fidelity_relative_uncertainty != null ? `, method ${fmt(data.fidelity_relative_uncertainty, 2)}` : ""}). ` +
     "A fresh simulation with several β gives the full, nonlinear response." + flagsText(data.flags);
@@ -2030,8 +2061,8 @@ async function drawSigma() {
     series: lineSeries(label, BAND_COLORS[band] || "#333", BAND_DASH[band]) }];
   const fresh = simulationPoints("sigma", band, metric, Number(magnitude));
   columns.push(...fresh);
-  const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
-  document.getElementById("sigma-caption").textContent = `Tables, to first order in σβ. ${conditionsText(data.conditions)}. ` +
+  const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}: the paper's idealised scene (shipped tables, first order)\n${conditionsText(data.conditions)}`;
+  document.getElementById("sigma-caption").textContent = `The paper's idealised scene: its tables, to first order in σβ. ${conditionsText(data.conditions)}. ` +
     `Scatter slope = ${fmt(data.slope)} per unit σβ. A fresh simulation with σβ values gives Monte Carlo points.` +
     flagsText(data.flags) + freshNote(fresh, band, Number(magnitude), metric);
   drawPlot("sigma", { title, xLabel: "σβ [1/e⁻]", yLabel: `σ(${METRIC_LABEL[metric]})`, columns, logX: log, logY: log });
@@ -2319,7 +2350,7 @@ function fillExplanations() {
 
 // The answer first (it must never scroll away), the scene in a few words (the whole of it in the cell's title).
 const COMPARE_COLUMNS = [
-  ["answer", (s) => answerHeadline(s)], ["band", (s) => s.band], ["detector", (s) => s.sca], ["PSF quantity", (s) => METRIC_LABEL[s.metric]],
+  ["answer", (s) => answerHeadline(s).replace(/^(precision|tolerance|magnitude) /, "")], ["band", (s) => s.band], ["detector", (s) => s.sca], ["PSF quantity", (s) => METRIC_LABEL[s.metric]],
   ["kind", (s) => s.mode], ["given", (s) => givenText(s)], ["scene", (s) => sceneShort(s), (s) => sceneName(s)],
   ["method", (s) => fidelityName(s.fidelity)], ["exposure [s]", (s) => fmt(s.exptime)], ["β₀ [1/e⁻]", (s) => fmt(s.beta0)],
 ];

@@ -50,7 +50,7 @@ def test_requirement_plot_hover_reads_the_requirement(page):
     text = readout.inner_text()
     assert "statistical" in text and "method" in text and "T = 1e-4" in text
     legend = page.inner_text("#plot-req .u-legend")
-    assert "stat" in legend and "fidelity" in legend, "hover gives both uncertainties"
+    assert "stat" in legend and "method" in legend, "hover gives both uncertainties"
     page.locator("#calculator").screenshot(path=str(ARTIFACTS / "e2e-requirement.png"))
     with page.expect_download() as png:
         page.click("button[data-png=req]")
