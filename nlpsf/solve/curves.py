@@ -17,7 +17,7 @@ refuses at any node (it then refuses the whole request). Solving for the magnitu
 crossing of the required slope, scanned from the faint end, is the faintest of the nodes' crossings:
 the answer the range returns.
 
-Curves are read at table cost only: inside ``slopes.guard.no_simulation``, a magnitude whose
+Curves are read at table cost only: on a plan made with ``simulate=False`` a magnitude whose
 slope would be simulated is NaN (``gaps`` says why), and a request whose every slope is simulated
 (another scene, exposure or beta0 than the grid or the tables hold, a simulating level, an accuracy
 target) has no curve, only its answer (``needs_simulation`` says why).
@@ -36,7 +36,7 @@ from nlpsf.checks import InputError
 from nlpsf.request import presets as roman_default
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import tables
-from nlpsf.slopes.guard import NeedsSimulation, no_simulation
+from nlpsf.slopes.providers import NeedsSimulation
 
 #: Tolerances drawn around the chosen one (multiples of T).
 TOLERANCE_FACTORS: tuple[float, ...] = (0.1, 1 / 3, 1.0, 3.0, 10.0)
@@ -258,15 +258,14 @@ def _node_slopes(node: _Node, magnitudes: np.ndarray, missed: list[float]) -> tu
             value, error = grid.slope(request.band, request.sca, position, request.metric, request.mode, magnitudes[inside])
             values[inside], errors[inside] = value, np.abs(error)
         todo &= ~np.isfinite(values)
-    with no_simulation():
-        for i in np.flatnonzero(todo):
-            try:
-                value, error, region = slopes.at(float(magnitudes[i]))
-            except NeedsSimulation:
-                missed.append(float(magnitudes[i]))
-                continue
-            if region >= 0:
-                values[i], errors[i] = value, error
+    for i in np.flatnonzero(todo):  # the plan's slopes refuse to simulate (simulate=False)
+        try:
+            value, error, region = slopes.at(float(magnitudes[i]))
+        except NeedsSimulation:
+            missed.append(float(magnitudes[i]))
+            continue
+        if region >= 0:
+            values[i], errors[i] = value, error
     return values, errors
 
 
@@ -313,12 +312,20 @@ def _nodes(request: SolveRequest) -> tuple[list[_Node], str | None]:
     nodes = []
     for position in _positions(request):
         node_request = request if position is None else request.with_changes(scene=replace(request.scene, position=position))
-        the_plan = solver.plan(node_request)
+        # At table cost: a slope the plan would simulate is refused (providers.NeedsSimulation).
+        the_plan = solver.plan(node_request, simulate=False)
         if the_plan.fidelity != "table":
             notes = "; ".join(str(n) for n in the_plan.notes)
             return [], f"its slopes are simulated ({notes or 'fidelity ' + the_plan.fidelity})"
-        nodes.append(_node(solver, node_request, the_plan))
+        try:
+            nodes.append(_node(solver, node_request, the_plan))
+        except _Simulated as simulated:
+            return [], str(simulated)
     return nodes, None
+
+
+class _Simulated(Exception):
+    """A request whose every slope is simulated, found while its node is read."""
 
 
 def limits(request: SolveRequest) -> dict:
@@ -358,8 +365,12 @@ def _node(solver, request: SolveRequest, the_plan) -> _Node:
     # The solver's limits and conditions for this node, from its answer at the faint end (where it
     # always answers): precision 1, so that its tolerance is |c| beta0 and the method error relative.
     reference = request.with_changes(precision=1.0, tolerance=None, magnitude=faint, shear_m=None, shear_c=None, size_ratio=None)
-    with no_simulation():
-        answer = solver.answer(reference)
+    if request.ramp is not None and request.preset != roman_default.NAME and slopes.ramp_factor is None:
+        raise _Simulated("the paper's scene up a ramp the tables do not map (not an OLS fit) is simulated at every magnitude")
+    # The table solve (a batch's: it refuses rather than simulates); a ramp on the paper's scene is
+    # refused there outright, but at the faint end its OLS mapping onto the tables is exact.
+    table_cost = not (request.ramp is not None and request.preset != roman_default.NAME)
+    answer = solver.answer(reference, simulate=not table_cost)
     # Past the ramp's bright margin the solver refuses (solve_validity._ramp_magnitude_flags); in a
     # final frame, brighter than the tables reach (region < 0).
     bright = answer.saturation_magnitude - tables.BRIGHT_MARGIN_MAG if request.ramp is not None else slopes.range()[0]
