@@ -213,16 +213,19 @@ async function waitForJob(location, onProgress = null) {
 }
 
 // "40 % · about 12 s left": the fraction the server reports and the time its own clock says is left.
-function progressText(job) {
+// `since` (ms, this page's clock): when the page asked; else the server's own start and last update.
+function progressText(job, since = null) {
   const fraction = Math.max(0, Math.min(1, job.progress || 0));
   const parts = [`${Math.round(100 * fraction)} % done`];
   if (job.status === "queued") return `queued${job.queue_position ? ` (${job.queue_position} ahead)` : ""}`;
-  const elapsed = job.started_at && job.updated_at ? job.updated_at - job.started_at : null;
+  const elapsed = since !== null ? (Date.now() - since) / 1000 : job.started_at && job.updated_at ? job.updated_at - job.started_at : null;
+  const seconds = (t) => (t < 90 ? `${Math.round(t)} s` : `${Math.round(t / 60)} min`);
+  if (since !== null && elapsed !== null) parts.push(`${seconds(elapsed)} so far`);
   if (elapsed !== null && fraction > 0.02 && fraction < 1) {
     const left = (elapsed * (1 - fraction)) / fraction;
-    parts.push(left < 1 ? "under a second left" : `about ${left < 90 ? Math.round(left) + " s" : Math.round(left / 60) + " min"} left`);
+    parts.push(left < 1 ? "under a second left" : `about ${seconds(left)} left`);
   } else if (fraction < 1) {
-    parts.push("time left: after the first step");
+    parts.push("time left: known after the first step");
   }
   if (job.message) parts.push(job.message);
   return parts.join(" · ");
@@ -501,6 +504,8 @@ function drawPlot(name, opts) {
   const defaultIdx = xs.reduce((best, x, i) => (Math.abs(x - target) < Math.abs(xs[best] - target) ? i : best), 0);
   const edges = [...markers.map((m) => m.x), ...shades.map((s) => s.to)].filter(Number.isFinite);
   const rangeWith = edges.length;
+  // A lone point (an answer without a curve) gets a few magnitudes either side, not uPlot's 0 to 40.
+  const lone = !logX && xs.length === 1 ? { range: () => [xs[0] - 3, xs[0] + 3] } : null;
   const options = {
     width: Math.max(280, el.clientWidth || 800),
     height: 320,
@@ -508,8 +513,8 @@ function drawPlot(name, opts) {
     padding: [12, 28, 0, 0],
     scales: {
       x: { time: false, distr: logX ? 3 : 1,
-        ...(rangeWith && !logX ? { range: (u, lo, hi) => [Math.min(lo, ...edges.map((x) => x - 0.5)), hi + 0.9] }
-          : (!logX ? { range: (u, lo, hi) => [lo, hi + (hi - lo) * 0.12] } : {})) },
+        ...(lone || (rangeWith && !logX ? { range: (u, lo, hi) => [Math.min(lo, ...edges.map((x) => x - 0.5)), hi + 0.9] }
+          : (!logX ? { range: (u, lo, hi) => [lo, hi + (hi - lo) * 0.12] } : {}))) },
       y: { distr: logY ? 3 : 1 },
     },
     hooks: {
@@ -744,7 +749,7 @@ function drawKey(name, markers, shades) {
 }
 
 // "no answer" over a plot that keeps its axes and curves.
-function setNoAnswer(name, reason) {
+function setNoAnswer(name, reason, prefix = "no answer: ") {
   const el = document.getElementById(`plot-${name}`);
   el.querySelectorAll(".no-answer").forEach((n) => n.remove());
   el.dataset.answer = reason ? "none" : el.dataset.answer;
@@ -752,7 +757,7 @@ function setNoAnswer(name, reason) {
   const note = document.createElement("div");
   note.className = "no-answer";
   note.dataset.testid = "no-answer";
-  note.textContent = `no answer: ${reason}`;
+  note.textContent = `${prefix}${reason}`;
   el.appendChild(note);
 }
 
@@ -817,11 +822,22 @@ function renderTable(name) {
 function exportCsv(name) {
   const plot = state.exports[name];
   if (!plot) return;
-  const lines = [`# ${plot.title.replace(/\n/g, " ")}`, `series,${plot.xLabel},${plot.yLabel},uncertainty`];
+  // Downloads hold fractions: a percent axis is written as a fraction, and says so.
+  const percentAxis = /\[%\]/.test(plot.yLabel);
+  const scale = percentAxis ? 0.01 : 1;
+  const yLabel = percentAxis ? plot.yLabel.replace("[%]", "[fraction]") : plot.yLabel;
+  const quote = (t) => `"${String(t).replace(/"/g, "'")}"`;
+  const meta = state.meta ? `# nlpsf ${state.meta.code_version}; optical data: ${state.meta.data_version}` : "# nlpsf";
+  const lines = [`# ${plot.title.replace(/\n/g, " · ")}`, meta, `# link: ${location.href}`,
+    `# columns: series; x = ${plot.xLabel}; y = ${yLabel}; uncertainty = the 1-sigma statistical part of y, same unit` +
+    (percentAxis ? " (the page shows y in percent)" : ""),
+    `series,${quote(plot.xLabel)},${quote(yLabel)},uncertainty`];
   for (const c of plot.columns) {
-    c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]},${c.err && c.err[i] != null ? c.err[i] : ""}`));
+    c.x.forEach((x, i) => lines.push(`${quote(c.label)},${x},${c.y[i] === null ? "" : c.y[i] * scale},` +
+      `${c.err && c.err[i] != null ? c.err[i] * scale : ""}`));
   }
-  for (const m of plot.markers || []) lines.push(`"${m.label.replace(/"/g, "'")}",${m.x},,`);
+  for (const m of plot.markers || []) lines.push(`${quote(m.label)},${m.x},,`);
+  for (const sh of plot.shades || []) lines.push(`${quote(sh.label)},${sh.to},,`);
   downloadText(`${plotFileName(name)}.csv`, lines.join("\n") + "\n", "text/csv");
 }
 
@@ -1362,7 +1378,7 @@ function showSolveProgress(job) {
   }
   row.hidden = false;
   document.getElementById("solve-progress").value = job.progress || 0;
-  document.getElementById("solve-progress-text").textContent = `Simulating the answer: ${progressText(job)}`;
+  document.getElementById("solve-progress-text").textContent = `Simulating the answer: ${progressText(job, state.solveStarted || null)}`;
 }
 
 async function solve(event) {
@@ -1388,6 +1404,7 @@ async function solve(event) {
   // A Roman default answer can be a job that takes seconds: an answer to an older question that
   // arrives after a newer one was asked is dropped, never shown over it.
   const asked = (state.solveSeq = (state.solveSeq || 0) + 1);
+  state.solveStarted = Date.now();
   const cancel = document.getElementById("solve-cancel");
   try {
     // wait=1: an answer that needs a simulation comes back as its job after a second, so its progress shows.
@@ -1845,7 +1862,7 @@ function drawRequirementPlot(data, solution) {
   if (solution) el.dataset.point = `${solution.magnitude},${solution.precision}`;
   el.dataset.answer = !solution ? "none" : noConstraint ? "no-constraint" : "shown";
   setNoAnswer("req", solution && noConstraint ? "no constraint: p ≥ 100 % at the answer" : null);
-  if (c.needs_simulation && solution) setNoAnswer("req", "no curve at table cost for this scene: the point is the answer");
+  if (c.needs_simulation && solution) setNoAnswer("req", "no curve at table cost for this question (see below): the point is the answer", "");
   const u = state.plots.req;
   const readout = document.getElementById("req-readout");
   readout.textContent = "";
@@ -1922,7 +1939,7 @@ function drawCalculatorPlot(data, solution) {
   const el = document.getElementById("plot-calc");
   if (solution) el.dataset.point = `${solution.magnitude},${solution.slope}`;
   el.dataset.answer = solution ? "shown" : "none";
-  setNoAnswer("calc", c.needs_simulation && solution ? "no curve at table cost for this scene: the point is the answer" : null);
+  setNoAnswer("calc", c.needs_simulation && solution ? "no curve at table cost for this question (see below): the point is the answer" : null, "");
 }
 
 // ---- curves -----------------------------------------------------------------------------------

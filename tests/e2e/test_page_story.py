@@ -8,7 +8,9 @@ library's for the same question (``solver.solve``), never the page's own."""
 
 from __future__ import annotations
 
+import csv
 import random
+from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 import pytest
@@ -89,6 +91,18 @@ def test_the_curves_are_the_answers_own_and_pass_through_it(page, scene, positio
     page.locator("#calculator").screenshot(path=str(ARTIFACTS / name))
     page.fill("#solve-position", "")
     page.select_option("#solve-scene", "")
+
+
+def test_the_requirement_csv_holds_fractions_with_units_and_provenance(page):
+    solution = solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "19.2"})
+    with page.expect_download() as download:
+        page.click("button[data-csv=req]")
+    text = Path(download.value.path()).read_text()
+    header = [line for line in text.splitlines() if line.startswith("#")]
+    assert any("optical data" in line for line in header) and any("[fraction]" in line for line in header)
+    rows = list(csv.DictReader(line for line in text.splitlines() if not line.startswith("#")))
+    chosen = [r for r in rows if r["series"].endswith("(chosen)") and float(r["magnitude (AB)"]) == 19.2]
+    assert float(chosen[0]["precision p = Δβ/β₀ [fraction]"]) == pytest.approx(solution["precision"], rel=1e-12)
 
 
 def test_a_magnitude_answer_lies_on_its_tolerance_curve(page):
