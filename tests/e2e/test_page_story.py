@@ -160,27 +160,29 @@ def test_an_edit_greys_the_answer_and_pin_and_downloads_wait_for_a_new_one(page)
 
 def test_a_pending_question_is_in_the_url_greys_the_answer_shows_progress_and_survives_a_reload(page, server):
     first = solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
-    # beta0 = 9e-7 is not the field grid's: the Roman default's answer is a fresh simulation (seconds).
+    # beta0 = 9e-7 is not the field grid's: the Roman default's answer over the SCA is a fresh
+    # simulation at each of its nodes (seconds), whose steps the page shows.
     page.fill("#solve-beta0", "9e-7")
-    page.fill("#solve-position", "2000,1500")
     page.click("#solve-button")
     page.wait_for_selector("[data-testid=stale-note]")
     asked = question(page)
-    assert asked["beta0"] == ["9e-7"] and asked["position"] == ["2000,1500"], "the URL records the question as asked"
+    assert asked["beta0"] == ["9e-7"], "the URL records the question as asked"
     assert "m = 18.3" in page.inner_text("[data-testid=stale-note]")
     assert page.is_disabled("#pin-answer") and page.is_disabled("#download-json")
-    page.wait_for_function("() => /% done/.test(document.getElementById('solve-progress-text').textContent)", timeout=60_000)
-    assert "Simulating the answer" in page.inner_text("[data-testid=solve-progress-text]")
+    page.wait_for_function(
+        "() => /[1-9][0-9]* % done · .* so far · about .* left/.test(document.getElementById('solve-progress-text').textContent)",
+        timeout=120_000,
+    )
+    assert "field-grid node" in page.inner_text("[data-testid=solve-progress-text]")
     # Reload mid-simulation: the question comes back from the URL and is asked again.
     page.reload()
     page.wait_for_selector("body[data-ready='true']", timeout=60_000)
-    assert page.input_value("#solve-beta0") == "9e-7" and page.input_value("#solve-position") == "2000,1500"
+    assert page.input_value("#solve-beta0") == "9e-7"
     page.wait_for_function("() => state.lastSolution && state.lastSolution.beta0 === 9e-7", timeout=300_000)
     answer = page.evaluate("() => state.lastSolution")
     assert answer["precision"] != first["precision"] and answer["conditions"]["beta0"] == 9e-7
     assert page.locator("[data-testid=stale-note]").count() == 0
     page.fill("#solve-beta0", "5e-7")
-    page.fill("#solve-position", "")
 
 
 def test_the_position_is_a_calculator_field_carried_in_the_url(page, server):
