@@ -1340,6 +1340,12 @@ function setStale(reason) {
   state.current = Boolean(state.lastSolution) && !reason;
   box.classList.toggle("stale", stale);
   top.classList.toggle("stale", Boolean(reason));
+  const mark = top.querySelector(".stale-mark");
+  if (reason && state.lastSolution && !mark) {
+    top.insertAdjacentHTML("afterbegin", '<strong class="stale-mark">Out of date (an earlier question\'s): </strong>');
+  } else if (!reason && mark) {
+    mark.remove();
+  }
   let note = box.querySelector(".stale-note");
   if (stale) {
     if (!note) {
