@@ -54,6 +54,7 @@ class Effect:
             "bias": {k: {"value": v, "uncertainty": e} for k, (v, e) in self.values.items()},
             "conditions": self.conditions,
             "flags": [str(f) for f in self.flags],
+            "flag_codes": [str(getattr(f, "code", "")) for f in self.flags],
         }
 
 

@@ -86,6 +86,7 @@ def star_response(scene: experiment.Scene, magnitude: float, raw_beta: float = d
         config.oversampling,
         scene.stamps.shape[-1],
         float(raw_beta),
+        None if config.scene.position is None else tuple(float(v) for v in config.scene.position),
     )
 
 
