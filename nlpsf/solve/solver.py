@@ -96,6 +96,7 @@ from .validity import (  # noqa: F401
     _magnitude_flags,
     _ramp_magnitude_flags,
     _validity_flags,
+    component_flags,
 )
 
 METRICS = defaults.METRICS
@@ -358,6 +359,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> 
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
+    flags += component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
     flags += slopes.slope_quality_flags()
     if slopes.grid_misses:
         flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
