@@ -22,6 +22,8 @@ from ..checks import InputError, check_magnitude
 from .kernel import Response, nodes
 from .response import star_response
 
+#: A progress report: (steps done, steps in all, what is being done).
+Progress = Callable[[int, int, str], None]
 #: Magnitude step of a scan (the magnitude solve refines between its points by bisection).
 SCAN_STEP_MAG = 0.25
 BISECTION_STEPS = 24
@@ -108,8 +110,10 @@ def solve_scale(
     tolerance: float | None = None,
     magnitude: float | None = None,
     faint: float = 26.0,
+    progress: Progress | None = None,
 ) -> ScaleAnswer:
-    """Given two of ``scale``, ``tolerance``, ``magnitude``, the third (see the module)."""
+    """Given two of ``scale``, ``tolerance``, ``magnitude``, the third (see the module). ``progress(done, total,
+    message)`` after each star simulated (a magnitude solve's total is its scan and its bisection)."""
     given = [name for name, v in (("scale", scale), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None]
     if len(given) != 2:
         raise InputError("scale", f"give exactly two of scale, tolerance, magnitude (got {', '.join(given) or 'none'})")
@@ -118,8 +122,14 @@ def solve_scale(
     if scale is not None and not (math.isfinite(scale) and scale != 0):
         raise InputError("scale", "must be a finite, non-zero number")
 
-    def at(m: float) -> tuple[float, float]:
-        return star_response(scene, m, raw_beta).integrate(shape)[metric]
+    done = [0]
+
+    def at(m: float, total: int = 1) -> tuple[float, float]:
+        value = star_response(scene, m, raw_beta).integrate(shape)[metric]
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total, f"star m = {m:.3f} simulated")
+        return value
 
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
@@ -133,7 +143,8 @@ def solve_scale(
     # The magnitude: the brightest star whose error stays within the tolerance (scanned, then bisected).
     low = _brightest_usable(scene)
     grid = np.arange(low, faint + 1e-9, SCAN_STEP_MAG)
-    errors = np.array([abs(scale * at(float(m))[0]) for m in grid])
+    total = grid.size + BISECTION_STEPS + 1
+    errors = np.array([abs(scale * at(float(m), total)[0]) for m in grid])
     within = errors <= tolerance
     notes = []
     if within[0]:
@@ -145,12 +156,12 @@ def solve_scale(
         a, b = float(grid[last_bad]), float(grid[last_bad + 1])
         for _ in range(BISECTION_STEPS):
             middle = 0.5 * (a + b)
-            if abs(scale * at(middle)[0]) <= tolerance:
+            if abs(scale * at(middle, total)[0]) <= tolerance:
                 b = middle
             else:
                 a = middle
         m = b
-    value, error = at(m)
+    value, error = at(m, total)
     return ScaleAnswer(metric, shape_name, scale, tolerance, m, value, error, "magnitude", notes)
 
 
@@ -176,6 +187,7 @@ def envelope(
     tolerance: float,
     magnitudes: tuple[float, float],
     step: float = SCAN_STEP_MAG,
+    progress: Progress | None = None,
 ) -> dict:
     """eps(Q): the largest residual of ``shape``'s family allowed at each charge level for every star in
     ``magnitudes`` (brightest, faintest): T / max_m |I(m)| x |shape(Q)|, on the kernel's nodes up to the largest
@@ -183,7 +195,9 @@ def envelope(
     bright, faint = sorted(check_magnitude(v) for v in magnitudes)
     grid = np.arange(bright, faint + 1e-9, step)
     worst, worst_m, top = 0.0, None, 1.0
-    for m in grid:
+    for index, m in enumerate(grid):
+        if progress is not None:
+            progress(index, grid.size, f"star m = {m:.2f} of {bright:.2f}-{faint:.2f}")
         response = star_response(scene, float(m), raw_beta)
         value = abs(response.integrate(shape)[metric][0])
         top = max(top, float(response.levels.max(initial=1.0)))
