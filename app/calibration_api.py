@@ -83,7 +83,9 @@ async def kernel_ecsv(job_id: JobId, services: ServicesDep) -> Response:
     table.write(out, format="ascii.ecsv")
     meta = result["meta"]
     conditions = meta.get("conditions") or {}
-    name = f"nlpsf-kernel-{conditions.get('band', 'band')}-sca{conditions.get('sca', '')}-m{meta.get('magnitude', '')}.ecsv"
+    magnitude = meta.get("magnitude")
+    where = f"{conditions.get('band', 'band')}-sca{conditions.get('sca', '')}"
+    name = f"nlpsf-kernel-{where}-m{magnitude:g}.ecsv" if isinstance(magnitude, (int, float)) else f"nlpsf-kernel-{where}.ecsv"
     return Response(out.getvalue(), media_type="text/x-ecsv", headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
@@ -99,6 +101,7 @@ async def residual(body: cm.ResidualRequest, services: ServicesDep, caller: Call
 
 @router.post(
     "/requirement",
+    response_model=cm.RequirementResponse,
     responses=_ANSWERS,
     summary="For a residual shape: two of scale, tolerance, magnitude give the third, or the envelope eps(Q) (a job)",
 )

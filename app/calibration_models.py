@@ -185,7 +185,7 @@ class RequirementRequest(StarFields):
         json_schema_extra={
             "examples": [
                 {"band": "H158", "sca": 7, "magnitude": 19.0, "shape": "power_law:2", "tolerance": 1e-4, "metric": "size"},
-                {"band": "H158", "sca": 7, "shape": "constant_fraction", "tolerance": 1e-4, "envelope": [18.0, 21.0]},
+                {"band": "H158", "sca": 7, "shape": "power_law:2", "tolerance": 1e-4, "envelope": [18.0, 21.0]},
             ]
         },
     )
@@ -228,6 +228,11 @@ class KernelResponse(BaseModel):
         "charge_e in e-; per metric (" + ", ".join(kernel.KERNEL_METRICS) + ") K in 1/e- and <metric>_err its standard "
         "error: Delta metric = integral K(Q) r(Q) dQ (trapezoid rule on the nodes), r in e-"
     )
+    fractional_bins: dict[str, list[float | None]] = _f(
+        "the kernel in tenths of a decade of charge: edges_e (e-), and per metric the change of the metric were the "
+        "residual the whole charge (r = Q) in a bin, with <metric>_err (dimensionless; a fractional residual eps there "
+        "changes the metric by eps times it)"
+    )
     meta: dict[str, Any] = _f(
         "magnitude (AB mag), flux_electrons (e-), full_well_e (e- of signal), saturation_e (the full well in e- of charge), "
         "realizations (count), quadratic_slopes (integral K (-Q^2) dQ per metric, in e-: the solver's slope), "
@@ -252,3 +257,23 @@ class ResidualResponse(BaseModel):
     conditions: dict[str, Any] = _f("the star, its scene and readout, the residual and the method")
     flags: list[str] = _f("warnings about the answer's validity (text)")
     flag_codes: list[str] = _f("the code of each flag, in the same order")
+
+
+class RequirementResponse(BaseModel):
+    """For a residual shape: the two-of-three answer (scale, tolerance, magnitude), or the envelope eps(Q)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    metric: str = _f("the PSF metric (no unit)")
+    shape: str = _f("the residual's shape family, as a formula (text)")
+    tolerance: float = _f("the tolerated error of the metric, dimensionless")
+    scale: float | None = _f("the shape's scale s (unit: the shape's, so that r is in e-)", None)
+    magnitude: float | None = _f("the star's magnitude, AB mag (solved for, or given)", None)
+    solved_for: str | None = _f("scale, tolerance or magnitude (no unit); absent for an envelope", None)
+    response_per_unit_scale: float | None = _f("the metric's change per unit scale, integral K(Q) shape(Q) dQ", None)
+    response_uncertainty: float | None = _f("its 1-sigma statistical uncertainty", None)
+    charge_e: list[float] | None = _f("envelope: the charge levels Q, in e-", None)
+    epsilon_e: list[float] | None = _f("envelope: eps(Q), the largest residual of the shape allowed at each Q, in e-", None)
+    worst_magnitude: float | None = _f("envelope: the magnitude (AB mag) whose response sets the scale", None)
+    magnitudes: list[float] | None = _f("envelope: [brightest, faintest] in AB mag", None)
+    conditions: dict[str, Any] = _f("the star's scene, readout and settings")

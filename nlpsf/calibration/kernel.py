@@ -46,6 +46,8 @@ SCA_CENTRE = roman.SCA_PIXELS / 2
 FIRST_NODE_E = 1.0
 #: The fraction of the quadratic residual's effect a kernel's signal range holds.
 SIGNAL_FRACTION = 0.9
+#: Bins per decade of charge of :meth:`Kernel.fractional_bins`.
+BINS_PER_DECADE = 10
 #: Units of a kernel's columns (the ECSV's and the JSON's).
 KERNEL_UNITS = {
     "charge_e": "electron",
@@ -180,9 +182,7 @@ class Kernel:
         error = (self.per_node.std(axis=0, ddof=1) / math.sqrt(R) if R > 1 else np.zeros_like(mean)) / h[:, None]
         out = {name: (mean[:, k], error[:, k]) for name, k in _MEASURED.items()}
         # |e| along the quadratic residual's direction (see KERNEL_METRICS).
-        slopes = self.response.beta_slopes.mean(axis=0)
-        modulus = math.hypot(slopes[1], slopes[2])
-        u = (slopes[1] / modulus, slopes[2] / modulus) if modulus > 0 else (0.0, 0.0)
+        u = self._e_direction()
         out["e"] = (u[0] * mean[:, 1] + u[1] * mean[:, 2], np.hypot(u[0] * error[:, 1], u[1] * error[:, 2]))
         return out
 
@@ -214,6 +214,42 @@ class Kernel:
             out[f"{name}_err"] = error
         return out
 
+    def fractional_bins(self, per_decade: int = BINS_PER_DECADE) -> dict[str, np.ndarray]:
+        """The kernel in bins of 1 / ``per_decade`` of a decade of charge, as the effect of a fractional residual:
+        per metric, sum_i k_i Q_i over the nodes in each bin (and its standard error over the realizations), the
+        change of the metric were the residual the whole charge (r = Q) in that bin and zero elsewhere. A residual
+        of a fraction eps of the charge there changes the metric by eps times it. ``edges_e`` (B + 1,) [e-]: the
+        bins' edges, from the decade below the first node above zero to the one above the last. Unlike the density
+        K(Q), whose samples at the few levels a uniform sky's resultants take are spikes one node wide, a bin's
+        value is an integral: the sky estimate's part and the star's compare by their areas."""
+        q = self.charge_e
+        positive = q > 0
+        low = math.floor(math.log10(float(q[positive].min())) * per_decade + 1e-9)
+        high = math.ceil(math.log10(float(q.max())) * per_decade - 1e-9)
+        edges = 10.0 ** (np.arange(low, max(high, low + 1) + 1) / per_decade)
+        which = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, edges.size - 2)
+        weighted = self.per_node * q[None, :, None]  # (R, N, 3): k_i Q_i per realization
+        R, B = weighted.shape[0], edges.size - 1
+        sums = np.zeros((R, B, 3))
+        for k in range(3):
+            for r in range(R):
+                sums[r, :, k] = np.bincount(which[positive], weights=weighted[r, positive, k], minlength=B)
+        mean = sums.mean(axis=0)
+        error = sums.std(axis=0, ddof=1) / math.sqrt(R) if R > 1 else np.zeros_like(mean)
+        out: dict[str, np.ndarray] = {"edges_e": edges}
+        for name, k in _MEASURED.items():
+            out[name], out[f"{name}_err"] = mean[:, k], error[:, k]
+        u = self._e_direction()
+        out["e"] = u[0] * mean[:, 1] + u[1] * mean[:, 2]
+        out["e_err"] = np.hypot(u[0] * error[:, 1], u[1] * error[:, 2])
+        return out
+
+    def _e_direction(self) -> tuple[float, float]:
+        """The unit (e1, e2) direction of the quadratic residual's effect, along which the ``e`` column is taken."""
+        slopes = self.response.beta_slopes.mean(axis=0)
+        modulus = math.hypot(slopes[1], slopes[2])
+        return (slopes[1] / modulus, slopes[2] / modulus) if modulus > 0 else (0.0, 0.0)
+
     def meta(self) -> dict:
         """What the kernel is for: the star, its limits, the identity it satisfies, the quadratic residual's
         slopes through it and the signal range each metric draws on, its flags and conditions."""
@@ -243,10 +279,14 @@ class Kernel:
         return kernel_table(self.columns(), self.meta())
 
     def to_dict(self) -> dict:
-        """JSON: the table's columns by the same names, and its meta."""
+        """JSON: the table's columns by the same names, the kernel in tenths of a decade as a fractional residual's
+        effect (``fractional_bins``), and its meta."""
         from ..serialise import json_number
 
-        return {"columns": {k: [json_number(v) for v in values] for k, values in self.columns().items()}, "meta": self.meta()}
+        def listed(columns: dict) -> dict:
+            return {k: [json_number(v) for v in values] for k, values in columns.items()}
+
+        return {"columns": listed(self.columns()), "fractional_bins": listed(self.fractional_bins()), "meta": self.meta()}
 
 
 def kernel_table(columns: dict, meta: dict):

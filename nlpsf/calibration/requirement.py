@@ -41,6 +41,24 @@ def scene_for(request) -> experiment.Scene:
     return Slopes.for_request(linear, plan(linear)).prepare()
 
 
+#: Below this fraction of the sum of its terms' sizes, a residual's effect is a cancellation to rounding: none.
+CANCELLED = 1e-9
+NO_RESPONSE = (
+    " (its effect cancels: a residual that is the same fraction of the charge everywhere, a gain error, scales the "
+    "image and the sky alike and leaves size and ellipticity unchanged)"
+)
+
+
+def response_to(response, shape: Callable, metric: str) -> tuple[float, float]:
+    """(effect, standard error) of ``shape`` on ``metric``; (0, error) where the effect is a cancellation to
+    rounding (below CANCELLED of the sum of its terms' sizes), as a gain error's is."""
+    value, error = response.integrate(shape)[metric]
+    terms = np.abs(response.weights * np.asarray(shape(response.levels), dtype=np.float64)[:, None]).sum(axis=0)
+    if abs(value) <= CANCELLED * float(terms.max()) / max(response.count, 1):
+        return 0.0, error
+    return value, error
+
+
 @dataclass(frozen=True)
 class Effect:
     """A residual's effect on one star: {metric: (value, standard error)} and what it is for."""
@@ -125,7 +143,7 @@ def solve_scale(
     done = [0]
 
     def at(m: float, total: int = 1) -> tuple[float, float]:
-        value = star_response(scene, m, raw_beta).integrate(shape)[metric]
+        value = response_to(star_response(scene, m, raw_beta), shape, metric)
         done[0] += 1
         if progress is not None:
             progress(done[0], total, f"star m = {m:.3f} simulated")
@@ -136,7 +154,7 @@ def solve_scale(
         value, error = at(magnitude)
         if scale is None:
             if value == 0:
-                raise InputError("magnitude", "the metric does not respond to this shape at this magnitude")
+                raise InputError("shape", f"{metric} does not respond to this shape at m = {magnitude:g}{NO_RESPONSE}")
             scale = tolerance / abs(value)
             return ScaleAnswer(metric, shape_name, scale, tolerance, magnitude, value, error, "scale", [])
         return ScaleAnswer(metric, shape_name, scale, abs(scale * value), magnitude, value, error, "tolerance", [])
@@ -199,12 +217,12 @@ def envelope(
         if progress is not None:
             progress(index, grid.size, f"star m = {m:.2f} of {bright:.2f}-{faint:.2f}")
         response = star_response(scene, float(m), raw_beta)
-        value = abs(response.integrate(shape)[metric][0])
+        value = abs(response_to(response, shape, metric)[0])
         top = max(top, float(response.levels.max(initial=1.0)))
         if value > worst:
             worst, worst_m = value, float(m)
     if worst == 0:
-        raise InputError("shape", "the metric does not respond to this shape over the magnitude range")
+        raise InputError("shape", f"{metric} does not respond to this shape over the magnitude range{NO_RESPONSE}")
     scale = tolerance / worst
     charge = nodes(top, ratio=1.05)
     epsilon = scale * np.abs(np.asarray(shape(charge), dtype=np.float64))

@@ -58,6 +58,26 @@ def test_the_quadratic_residual_through_the_kernel_is_the_solvers_slope(point):
         assert integral == pytest.approx(answer.slope, rel=0.01), metric
 
 
+def test_a_gain_error_changes_nothing_and_the_fractional_bins_hold_the_kernel(h158):
+    """A residual that is the same fraction of the charge everywhere (r = s Q, a gain error) scales the image
+    and the sky estimate alike: the moments' size and ellipticity are scale-free, so it changes nothing (the
+    sum over the star's samples cancels to rounding). The kernel's fractional bins hold exactly that sum by
+    parts: they add up to zero, and with r = Q^2 weights they give the quadratic slope."""
+    _, scene = h158
+    response = star_response(scene, 19.0)
+    gain = response.integrate(lambda q: 1e-3 * q)
+    scale = np.abs(response.weights).sum(axis=0).max() * 1e-3 * response.levels.max()
+    for metric in ("size", "e1", "e2"):
+        assert abs(gain[metric][0]) < 1e-12 * scale, metric
+    kernel = response.kernel()
+    bins = kernel.fractional_bins()
+    assert bins["edges_e"].size == bins["size"].size + 1
+    assert np.all(np.diff(np.log10(bins["edges_e"])) == pytest.approx(0.1))
+    for metric in ("size", "e1", "e2"):
+        assert abs(bins[metric].sum()) < 1e-12 * np.abs(bins[metric]).sum(), metric
+        assert np.abs(bins[metric]).max() > 0
+
+
 @pytest.fixture(scope="module")
 def h158():
     settings = tablebuild.TableSettings.roman(realizations=3, stamp=48)

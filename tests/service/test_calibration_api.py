@@ -123,6 +123,19 @@ def test_a_quadratic_residual_in_any_form_is_delta_beta_times_the_slope(client, 
         assert effect["conditions"]["band"] == "H158" and effect["flag_codes"] == []
 
 
+def test_the_requirement_for_a_quadratic_shape_is_the_beta_answer_and_a_gain_error_is_refused(client, slopes):
+    tolerance = 1e-4
+    status, answer_, _ = answer(client, "/api/v1/calibration/requirement", {**STAR, "shape": "quadratic", "tolerance": tolerance})
+    assert status == 200, answer_
+    assert answer_["solved_for"] == "scale"
+    # r = -s Q^2 is Delta_beta = s: the tolerance over the solver's slope
+    assert answer_["scale"] == pytest.approx(tolerance / abs(slopes["size"]), rel=1e-4)
+    status, problem, _ = answer(
+        client, "/api/v1/calibration/requirement", {**STAR, "shape": "constant_fraction", "tolerance": tolerance}
+    )
+    assert status == 422 and problem["field"] == "shape" and "gain error" in problem["detail"]
+
+
 def _linearity_file(path, coeffs):
     from roman_datamodels import datamodels as rdd
 
