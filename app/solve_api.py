@@ -12,7 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
-from nlpsf.solve import batch, solver
+from nlpsf.solve import batch, over_field, solver
 
 from . import job_kinds, models
 from .deps import CallerDep, ServicesDep
@@ -50,7 +50,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
             pass  # it needs a fresh simulation: a job, below
         else:
             return SafeJSONResponse(answer.to_dict())
-    over_field_tables = solver.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
+    over_field_tables = over_field.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
     if tables_pupil and body.over_field is not None and over_field_tables:
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
         # tens of milliseconds, so off the event loop but not a job.

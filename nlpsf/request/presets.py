@@ -212,32 +212,3 @@ def load_scene(name_or_path: str) -> scenes.SceneModel:
 def is_default_scene(model, background_e: float) -> bool:
     """Whether ``model`` is the Roman default's scene (any position) with this background."""
     return model is not None and replace(model, position=None) == scene(None, background_e)
-
-
-# --- the shipped field grid of the default ----------------------------------------------------
-
-#: The shipped field grid of the default scene (5 x 5 nodes per SCA in R062, Z087, Y106, W146 and
-#: K213, 3 x 3 in J129, H158 and F184; built by ``nlpsf tables build --scene roman``).
-GRID_FILE = "roman_field_grid.npz"
-
-
-def grid_path():
-    from importlib import resources
-
-    return resources.files("nlpsf") / "data" / "tables" / GRID_FILE
-
-
-_GRID: dict = {}
-
-
-def field_grid():
-    """The shipped field grid of the default (``fieldgrid.FieldGrid``), None where none is installed."""
-    path = grid_path()
-    if not path.is_file():
-        return None
-    key = str(path)
-    if key not in _GRID:
-        from nlpsf.slopes.fieldgrid import FieldGrid
-
-        _GRID[key] = FieldGrid.load(str(path))
-    return _GRID[key]

@@ -211,6 +211,14 @@ FIELD_INTERPOLATION_BY_BAND: dict[tuple[int, str], dict[str, float]] = {
 FIELD_INTERPOLATION: dict[str, float] = FIELD_INTERPOLATION_BY_GRID[3]
 
 
+def grid_residual_model(settings: dict) -> str | None:
+    """The residual model a field grid's nodes were built with: their ``residual_nl`` setting; a grid built
+    in the corrected state before the setting existed holds the earlier model, "per_read_beta"."""
+    if settings.get("linearise_at", "beta0") != "corrected":
+        return None
+    return settings.get("residual_nl") or "per_read_beta"
+
+
 def field_interpolation(n: int, band: str | None = None) -> dict[str, float]:
     """The measured field-interpolation term of an n x n grid in ``band``. A grid size not measured
     in that band takes the band's 3 x 3 term (a denser grid through the same nodes interpolates no

@@ -14,6 +14,7 @@ from nlpsf.sim import ramps
 
 from . import fidelity as levels
 from . import tables
+from .providers import REFUSAL, NeedsSimulation, Refusal, RefusalCode
 
 
 class Slopes:
@@ -38,14 +39,17 @@ class Slopes:
         grid=None,
         realizations: int | None = None,
         residual_nl: str | None = None,
+        simulate: bool = True,
     ):
         self.band, self.sca, self.metric, self.mode = band, sca, metric, mode
         self.linearise_at = linearise_at  # the detector state of the fresh simulations' slopes
         self.residual_nl = residual_nl  # how a calibration error acts there (experiment.correction)
-        #: The Roman default's field grid where it holds the request (``roman_default.field_grid``), else None.
+        #: The Roman default's field grid where it covers the request (``providers.FieldGrid``), else None.
         self.grid = grid
         #: Magnitudes brighter than the grid covers (outside a node's magnitude grid): simulated instead.
         self.grid_misses: list[float] = []
+        #: Whether a magnitude the grid does not hold may be simulated (a batch's answer: no, refused).
+        self.simulate = simulate
         self.pupil_scale = pupil_scale  # of the fresh simulations (None: the tables' own)
         self.beta0, self.exptime, self.fidelity = beta0, exptime, fidelity
         self.ramp, self.full_well = ramp, full_well
@@ -88,6 +92,7 @@ class Slopes:
             grid=the_plan.grid,
             realizations=the_plan.realizations,
             residual_nl=request.residual_model,
+            simulate=the_plan.simulate,
         )
 
     @property
@@ -130,7 +135,7 @@ class Slopes:
         than a node's grid is simulated (and noted). Fainter than the grid's faint end (m = 28 in the
         shipped file), the linear regime's flux law from there (region +1), as the paper's tables
         extrapolate: H158 SCA 18 at (1000, 3000), size, m = 30: 0.3639932 against 0.3639921 simulated."""
-        faint = self.grid.magnitude_range(self.band, self.sca)[1] if hasattr(self.grid, "magnitude_range") else math.inf
+        faint = self.grid.magnitude_range(self.band, self.sca)[1]
         if magnitude > faint:
             value, error = grid_slope(self.grid, self.band, self.sca, self.scene_model.position, self.metric, self.mode, faint)
             scale = 10 ** (-0.4 * (magnitude - faint))
@@ -210,11 +215,17 @@ class Slopes:
         return float(config.electrons(magnitude)) * self.own_peak_fraction * config.oversampling**2
 
     def _simulate(self, magnitude: float) -> tuple[float, float]:
+        if not self.simulate:  # a batch answers at table cost: refused here, before any work
+            raise NeedsSimulation(
+                Refusal(
+                    RefusalCode.MAGNITUDE,
+                    "magnitude",
+                    f"the slope at m={magnitude:.4g} is outside what the tables and the Roman default's field grid hold "
+                    f"(a magnitude brighter than a node's grid), so it would be simulated: {REFUSAL}",
+                )
+            )
         from nlpsf.sim import experiment
 
-        from .guard import check_simulation_allowed
-
-        check_simulation_allowed(magnitude)  # a batch answers at table cost: refused there, before any work
         scene = self.prepare()
         config = scene.config
         result = experiment.slopes(
@@ -264,17 +275,6 @@ class Slopes:
 
 
 def grid_slope(grid, band: str, sca: int, position, metric: str, mode: str, magnitude: float) -> tuple[float, float]:
-    """(slope, standard error) of a field grid (``fieldgrid.FieldGrid``) at a position and magnitude.
-
-    Reads either side of the grid's reader: ``slope(band, sca, position, metric, mode, magnitude)``
-    returning both (the reader that also has ``column_value``), or the column reader
-    ``slope(band, sca, position, magnitude, column)``, whose node errors (statistical and magnitude
-    interpolation, in quadrature) are then interpolated like the slope."""
-    if hasattr(grid, "column_value"):
-        value, error = grid.slope(band, sca, position, metric, mode, magnitude)
-        return float(value), float(error)
-    column = f"{mode}_{metric}"
-    value = grid.slope(band, sca, position, magnitude, column)
-    parts = [c for c in (f"{column}_err", f"{column}_interp") if c in grid.meta["columns"]]
-    error = math.hypot(*(grid.slope(band, sca, position, magnitude, c) for c in parts))
+    """(slope, standard error) of a field grid (``fieldgrid.FieldGrid.slope``) at a position and magnitude."""
+    value, error = grid.slope(band, sca, position, metric, mode, magnitude)
     return float(value), float(error)

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Protocol
 from nlpsf import __version__
 from nlpsf.request import presets as roman_default
 from nlpsf.slopes import fidelity as levels
-from nlpsf.slopes import tables
+from nlpsf.slopes import fieldgrid, tables
 
 if TYPE_CHECKING:
     from nlpsf.request.resolve import SolveRequest
@@ -40,9 +40,7 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
     # How a calibration error acts there: the field grid's own model where the answer reads it, else
     # what the fresh simulations ran.
     if the_plan.grid is not None:
-        from .over_field import grid_residual_model
-
-        out["residual_nl"] = grid_residual_model(the_plan.grid.conditions(request.band, request.sca)["settings"])
+        out["residual_nl"] = fieldgrid.grid_residual_model(the_plan.grid.conditions(request.band, request.sca)["settings"])
     else:
         out["residual_nl"] = request.residual_model
     if request.preset == roman_default.NAME:
@@ -52,7 +50,7 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
             request.ramp != own.ramp
         )
     if the_plan.grid is not None:
-        out["slopes_from"] = f"the Roman default's field grid ({roman_default.GRID_FILE})"
+        out["slopes_from"] = f"the Roman default's field grid ({fieldgrid.SHIPPED_NAME})"
         # The slopes are the grid's, not the paper tables': their settings are the grid's nodes'.
         out.update(grid_settings(the_plan.grid, request.band, request.sca))
     ramp = request.ramp

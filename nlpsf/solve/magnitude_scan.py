@@ -140,15 +140,10 @@ def _field_grid_scan(slopes, m_sat: float) -> _Grid:
     grid's faint end to the saturation magnitude, in one vectorised look-up (the slopes the answer
     reads, so the bracket is the answer's: the paper tables' c(m) has neither the default's values
     nor the shape its ramp, IPC and sky give it)."""
-    from nlpsf.slopes.source import grid_slope
-
     brightest, faintest = slopes.grid.magnitude_range(slopes.band, slopes.sca)
     magnitudes = np.arange(faintest, max(m_sat, brightest) - 1e-9, -0.05)
     grid, position = slopes.grid, slopes.scene_model.position
-    if hasattr(grid, "column_value"):  # the field grid's own reader takes an array of magnitudes
-        values = grid.slope(slopes.band, slopes.sca, position, slopes.metric, slopes.mode, magnitudes)[0]
-    else:
-        values = [grid_slope(grid, slopes.band, slopes.sca, position, slopes.metric, slopes.mode, m)[0] for m in magnitudes]
+    values = grid.slope(slopes.band, slopes.sca, position, slopes.metric, slopes.mode, magnitudes)[0]
     slopes.ramp_bases.add("grid")
     everywhere = f"for every star from the field grid's faint end m={faintest:.2f} down to saturation m={m_sat:.2f}"
     return _Grid(magnitudes, np.asarray(values, dtype=np.float64), faintest, everywhere, m_sat, "over the scan")

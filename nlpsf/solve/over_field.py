@@ -10,7 +10,7 @@ from nlpsf import roman
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode, make
 from nlpsf.serialise import json_number
-from nlpsf.slopes import tables
+from nlpsf.slopes.providers import field_tables
 
 from .solution import Solution
 
@@ -21,39 +21,12 @@ class _Where:
     sca: int
 
 
-def _tables_hold(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
-    """Whether the tables already hold the scene: it differs from the paper's by its position alone,
-    and the table of (band, SCA) was built at that position (a field-point table, or the centre's)."""
-    if not replace(scene, position=None).is_paper or scene.position is None:
-        return False
-    held = tableset.get(band, sca).position_pixels
-    return all(abs(a - b) < 1e-6 for a, b in zip(held, scene.position, strict=True))
-
-
-def _corner_tables(scene, sca: int) -> tables.TableSet | None:
-    """The field-point tables at the scene's position, if it is one of the SCA's corner field points
-    and the scene has no other effect; None otherwise (or where no field-point tables are installed)."""
-    if scene.position is None or not replace(scene, position=None).is_paper:
-        return None
-    for point, position in enumerate(roman.field_points(sca)):
-        if point and all(abs(a - b) < 1e-6 for a, b in zip(position, scene.position, strict=True)):
-            corners = field_tables()
-            return None if corners is None else corners.at_point(point)
-    return None
-
-
 def field_points(sca: int) -> list[tuple[float, float]]:
     """Where ``solve_over_field`` looks on an SCA: its centre and the four corner field points
     (``roman.field_points`` 1-4). The Zernikes are interpolated bilinearly between the corners, so
     every coefficient takes its extremes there; the centre is where the SCA-centre tables are."""
     centre = (roman.SCA_PIXELS / 2, roman.SCA_PIXELS / 2)
     return [centre, *roman.field_points(sca)[1:]]
-
-
-def field_tables() -> tables.TableSet | None:
-    """The shipped field-point tables, None if this installation has none."""
-    path = tables.field_table_path()
-    return tables.load_tables(str(path)) if path.exists() else None
 
 
 def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: float | None = None, ramp=None) -> bool:
@@ -106,7 +79,7 @@ def worst_over_field(
             for position in range_positions(_Where(band, sca)):
                 points.append((sca, position))
     else:
-        # Each corner's own table is found by ``solve`` from the position (``_corner_tables``).
+        # Each corner's own table is found by ``solve`` from the position (``providers.PaperTables``).
         corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
         if corners is None and request.get("fidelity") in (None, "table"):
             # Without field-point tables (or with a scene they do not hold) every point is simulated.
@@ -178,56 +151,6 @@ def own_conditions(scene, request: dict, band: str, filled_for: int, sca: int) -
 # --- the Roman default over an SCA -----------------------------------------------------------
 
 
-def default_grid(request, fidelity: str):
-    """(the Roman default's field grid, None) where it holds ``request`` -- the default's scene
-    unmodified at a position, its readout, exposure, beta0, full well, pupil rule and state, the
-    table level -- else (None, why not) for the flag that says the point is simulated."""
-    from nlpsf.request import presets as roman_default
-
-    if fidelity != "table" or request.accuracy is not None:
-        return None, f"fidelity {fidelity}" if request.accuracy is None else "an accuracy is measured by simulation"
-    grid = roman_default.field_grid()
-    if grid is None:
-        return None, "none installed"
-    scene = request.scene
-    key = f"{request.band}_{request.sca:02d}"
-    entry = grid.meta["tables"].get(key)
-    if entry is None:
-        return None, f"the grid has no {request.band} SCA {request.sca}"
-    settings = entry.get("settings", {})
-    filled = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
-    if not roman_default.is_default_scene(scene, filled.background_e) or scene.position is None:
-        return None, "the scene differs from the default's"
-    if request.ramp != filled.ramp or not math.isclose(request.exptime, filled.exptime, rel_tol=1e-9):
-        return None, "the readout differs from the default's"
-    wanted = {
-        "exptime_s": request.exptime, "beta0": request.beta0, "full_well_e": request.full_well,
-        "pupil_scale": request.pupil_scale, "linearise_at": request.linearise_at, "scene": roman_default.NAME,
-    }  # fmt: skip
-    for name, value in wanted.items():
-        held = settings.get(name)
-        numeric = isinstance(value, float) and held is not None
-        same = math.isclose(float(held), float(value), rel_tol=1e-6) if numeric else held == value
-        if not same:
-            return None, f"the grid's {name} is {held!r}, the request's {value!r}"
-    held_model = grid_residual_model(settings)
-    if request.residual_nl is not None and request.residual_nl != held_model:
-        return None, f"the grid's residual_nl is {held_model!r}, the request's {request.residual_nl!r}"
-    if request.throughput not in (None, settings.get("throughput")):
-        return None, f"the grid's throughput is {settings.get('throughput')!r}"
-    if request.metric == "e" and not hasattr(grid, "column_value"):
-        return None, "the grid holds e1 and e2, not the modulus"
-    return grid, None
-
-
-def grid_residual_model(settings: dict) -> str | None:
-    """The residual model a field grid's nodes were built with: their ``residual_nl`` setting; a grid built
-    in the corrected state before the setting existed holds the earlier model, "per_read_beta"."""
-    if settings.get("linearise_at", "beta0") != "corrected":
-        return None
-    return settings.get("residual_nl") or "per_read_beta"
-
-
 def grid_size(grid, request) -> int:
     return int(grid.meta["tables"][f"{request.band}_{request.sca:02d}"]["grid"])
 
@@ -239,10 +162,9 @@ RANGE_GRID = 3
 def range_positions(request) -> list[tuple[float, float]]:
     """Where the SCA range looks: the field grid's nodes of this (band, SCA), else the 3 x 3 grid
     (corners, edge midpoints, centre), on which the Zernikes take their extremes (bilinear)."""
-    from nlpsf.request import presets as roman_default
     from nlpsf.slopes import fieldgrid
 
-    grid = roman_default.field_grid()
+    grid = fieldgrid.shipped_grid()
     key = f"{request.band}_{request.sca:02d}"
     if grid is not None and f"{key}/positions" in grid.arrays:
         nodes = grid.arrays[f"{key}/positions"].reshape(-1, 2)

@@ -58,6 +58,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 
 from nlpsf import defaults
 from nlpsf.checks import InputError
@@ -67,30 +68,16 @@ from nlpsf.request import shear
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.sim import ramps
 from nlpsf.slopes import fidelity as levels
-from nlpsf.slopes import tables
+from nlpsf.slopes import fieldgrid, providers, tables
 from nlpsf.slopes.fidelity import choose_fidelity, fidelity_error
 from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
 from . import model_part
 from .magnitude_scan import scan_magnitude
-
-# The answer's validity flags and the answers over the field live in their own modules; their names
-# stay importable from here for the callers of ``nlpsf.solve.solver``.
-from .over_field import (  # noqa: F401
-    _corner_tables,
-    _tables_hold,
-    default_grid,
-    field_points,
-    field_tables,
-    grid_size,
-    over_field_from_tables,
-    sca_range,
-    worst_over_field,
-)
+from .over_field import grid_size, sca_range, worst_over_field
 from .solution import Solution, Uncertainty
-from .validity import (  # noqa: F401
-    LINEAR_REGIME_LIMIT,
+from .validity import (
     _between_limits_flag,
     _binding,
     _magnitude_flags,
@@ -188,18 +175,25 @@ class SolvePlan:
     realizations: int | None = None
     #: The Roman default's field grid the slopes are read from (None: tables or simulations).
     grid: object | None = None
+    #: The provider that covers the request (``providers``: "field grid", "paper tables", "simulator").
+    provider: str = providers.PaperTables.name
+    #: Why the providers before it did not cover the request (empty where the first covered).
+    refusals: tuple[providers.Refusal, ...] = ()
+    #: Whether the answer may simulate a magnitude the grid turns out not to hold (a batch: no).
+    simulate: bool = True
 
     @property
     def reads(self) -> str:
         return "tables" if self.fidelity == "table" else f"fresh simulations at fidelity {self.fidelity}"
 
 
-def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> SolvePlan:
-    """Choose the fidelity, the scene to simulate and the tables to read for ``request``."""
+def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> SolvePlan:
+    """Choose the fidelity, the scene to simulate and the tables to read for ``request``: the first
+    provider (``nlpsf.slopes.providers``) that covers it. ``simulate`` False: the answer refuses
+    (``providers.NeedsSimulation``) where it would simulate a magnitude the grid does not hold."""
     default = _measured_default(request)
     chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode, default)
-    model_info, simulated_scene = None, None
-    scene = request.scene
+    model_info, simulated_scene, realizations = None, None, None
     if request.accuracy is not None:
         point = request.magnitude
         if point is None:
@@ -210,46 +204,95 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> So
 
         selection = select(request, float(point), tables_set)
         chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
-    elif scene is not None and not scene.is_paper:
-        simulated_scene = scene
-    if tables_set is None and simulated_scene is not None:
-        # A star at a corner field point: its own shipped table holds it.
-        tables_set = _corner_tables(simulated_scene, request.sca)
-    tables_set = tables_set or tables.load_tables()
-    grid, grid_miss = (None, None) if request.preset != roman_default.NAME else default_grid(request, chosen)
-    needs_simulation = (
-        simulated_scene is not None
-        and not simulated_scene.is_paper
-        and not _tables_hold(simulated_scene, tables_set, request.band, request.sca)
-    )
-    if grid is not None:
-        notes.append(make(FlagCode.DEFAULT_FROM_GRID, grid=grid_size(grid, request), scheme="lagrange",
-                          x=request.scene.position[0], y=request.scene.position[1]))  # fmt: skip
-    elif chosen == "table" and needs_simulation:
-        if request.preset == roman_default.NAME:
-            notes.append(make(FlagCode.DEFAULT_SIMULATED, why=grid_miss))
-        else:
-            notes.append(make(FlagCode.SCENE_SIMULATED))
-        chosen = "linear"
-    table_rule = str(tables_set.get(request.band, request.sca).settings["pupil_scale"])
-    if grid is None and request.pupil_scale is not None and request.pupil_scale != table_rule and chosen == "table":
-        notes.append(make(FlagCode.PUPIL_SCALE_SIMULATED, table_rule=table_rule, rule=request.pupil_scale))
-        chosen = "linear"
-    if grid is None and request.linearise_at != "beta0" and chosen == "table":
-        notes.append(make(FlagCode.LINEARISED_SIMULATED, state=request.linearise_at))
-        chosen = "linear"
+        realizations = selection.realizations
+    elif request.scene is not None and not request.scene.is_paper:
+        simulated_scene = request.scene
+    tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
+    coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
+    notes.extend(_coverage_notes(request, coverage, refusals, tableset))
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
+        table_rule = str(tableset.get(request.band, request.sca).settings["pupil_scale"])
         model_info = model_part.shipped_model(
-            request.band, request.sca, request.metric, request.mode, simulated_scene, chosen,
+            request.band, request.sca, request.metric, request.mode, simulated_scene, coverage.fidelity,
             default=default, pupil_scale=request.pupil_scale or table_rule, request=request,
         )  # fmt: skip
     breaking = simulated_scene.breaks_beta_q_scaling() if simulated_scene is not None else None
     if breaking:
         verb = "adds" if len(breaking) == 1 else "add"
         notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
-    realizations = selection.realizations if request.accuracy is not None else None
-    return SolvePlan(chosen, simulated_scene, tables_set, model_info, tuple(notes), realizations=realizations, grid=grid)
+    return SolvePlan(
+        coverage.fidelity, simulated_scene, tableset, model_info, tuple(notes), realizations=realizations,
+        grid=coverage.grid, provider=coverage.provider, refusals=tuple(refusals), simulate=simulate,
+    )  # fmt: skip
+
+
+def _cover(request: SolveRequest, fidelity: str, scene, tableset) -> tuple[providers.Coverage, list[providers.Refusal]]:
+    """The first provider that covers the request, and the refusals of those before it: the field
+    grid (the Roman default's preset only), the paper tables, the simulator."""
+    refusals = []
+    candidates = [providers.FieldGrid()] if request.preset == roman_default.NAME else []
+    for provider in candidates:
+        got = provider.covers(request, fidelity)
+        if isinstance(got, providers.Coverage):
+            return got, refusals
+        refusals.append(got)
+    got = providers.PaperTables().covers(request, scene, fidelity, tableset)
+    if isinstance(got, providers.Coverage):
+        return got, refusals
+    refusals.append(got)
+    return providers.Simulator().covers(request, fidelity, tableset), refusals
+
+
+def _coverage_notes(request: SolveRequest, coverage: providers.Coverage, refusals, tableset) -> list[Flag]:
+    """The flags that say where the slopes come from: the grid at the position, or why a table-level
+    request is simulated instead."""
+    code = providers.RefusalCode
+    if coverage.grid is not None and request.scene.position is not None:
+        size = grid_size(coverage.grid, request)
+        x, y = request.scene.position
+        return [make(FlagCode.DEFAULT_FROM_GRID, grid=size, scheme="lagrange", x=x, y=y)]
+    if coverage.provider != providers.Simulator.name or not refusals:
+        return []
+    last = refusals[-1]
+    if last.code == code.SCENE:
+        if request.preset == roman_default.NAME:
+            return [make(FlagCode.DEFAULT_SIMULATED, why=refusals[0].why)]
+        return [make(FlagCode.SCENE_SIMULATED)]
+    if last.code == code.PUPIL_SCALE:
+        table_rule = str(tableset.get(request.band, request.sca).settings["pupil_scale"])
+        return [make(FlagCode.PUPIL_SCALE_SIMULATED, table_rule=table_rule, rule=request.pupil_scale)]
+    if last.code == code.LINEARISED:
+        return [make(FlagCode.LINEARISED_SIMULATED, state=request.linearise_at)]
+    return []
+
+
+def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> SolvePlan:
+    """The plan of ``request`` where the tables or the field grid cover it (``simulate=False``: a
+    magnitude the grid does not hold is refused too); else ``providers.NeedsSimulation`` with the
+    first refusal's code and field, raised before anything is simulated."""
+    refusal = providers.Refusal
+    code = providers.RefusalCode
+    if request.accuracy is not None:
+        why = f"an accuracy target is met by measuring the scene's effects in fresh simulations: {providers.REFUSAL}"
+        raise providers.NeedsSimulation(refusal(code.ACCURACY, "accuracy", why))
+    if request.preset != roman_default.NAME and request.ramp is not None:
+        # The paper's scene up the ramp maps onto the tables only for some fits and magnitudes.
+        why = f"a ramp on the paper's scene is simulated where the tables do not map it exactly: {providers.REFUSAL}"
+        raise providers.NeedsSimulation(refusal(code.READOUT, "ramp", why))
+    the_plan = plan(request, tables_set, simulate=False)
+    if the_plan.fidelity == "table":
+        return the_plan
+    first = the_plan.refusals[0] if the_plan.refusals else refusal(code.FIDELITY, "fidelity", "")
+    simulated = {
+        FlagCode.SCENE_SIMULATED,
+        FlagCode.PUPIL_SCALE_SIMULATED,
+        FlagCode.DEFAULT_SIMULATED,
+        FlagCode.LINEARISED_SIMULATED,
+    }
+    notes = "; ".join(str(n) for n in the_plan.notes if getattr(n, "code", None) in simulated)
+    why = f"it needs a fresh simulation ({notes or 'fidelity ' + the_plan.fidelity}): {providers.REFUSAL}"
+    raise providers.NeedsSimulation(refusal(first.code, first.field, why))
 
 
 def _measured_default(request: SolveRequest) -> str:
@@ -299,7 +342,7 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         saturation = grid.saturation_magnitude(request.band, request.sca, position)
         final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
         if final is not None:
-            source = f"the Roman default's own star: its field grid's nodes ({roman_default.GRID_FILE}), interpolated"
+            source = f"the Roman default's own star: its field grid's nodes ({fieldgrid.SHIPPED_NAME}), interpolated"
             return _Limits(saturation, final, source)
     if _own_star(request, the_plan):
         # The star that is simulated (its optics, SED, blurs and sky), from its own prepared peak.
@@ -332,15 +375,16 @@ class _Answer:
     m_nl: float | None = None
 
 
-def answer(request: SolveRequest, tables_set: tables.TableSet | None = None) -> Solution:
-    """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty."""
+def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> Solution:
+    """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
+    ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows)."""
     start = time.perf_counter()
     if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
-        ranged = sca_range(answer, request, tables_set)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
-    the_plan = plan(request, tables_set)
+    the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
     slopes = _Slopes.for_request(request, the_plan)
     if "relabelled_from" in slopes.table.settings:
@@ -499,9 +543,6 @@ def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncert
     implied["given"] = "tolerance"
     implied["uncertainty"] = None if tolerance_uncertainty is None else tolerance_uncertainty * factor
     return implied
-
-
-_fidelity_error = fidelity_error  # the old private name (app/api.py calls it)
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request) -> Solution:

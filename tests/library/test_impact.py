@@ -11,7 +11,7 @@ from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode
 from nlpsf.sim import experiment
 from nlpsf.sim import scene as scenes
-from nlpsf.solve import impact, solver
+from nlpsf.solve import impact, over_field, solver
 
 # The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
 paper_solve = functools.partial(solver.solve, preset="paper")
@@ -122,7 +122,7 @@ def test_over_field_answers_for_the_worst_field_point():
 
     worst = solver.solve_over_field("H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4, preset="paper")
     points = worst.conditions["over_field"]
-    assert len(points) == 5 and {tuple(p["position"]) for p in points} == set(solver.field_points(18))
+    assert len(points) == 5 and {tuple(p["position"]) for p in points} == set(over_field.field_points(18))
     assert worst.precision == min(p["precision"] for p in points)
     assert worst.flags[0].code == FlagCode.WORST_OVER_FIELD and worst.flags[0].values["points"] == 5
     # Read from the tables (centre and field-point): each point is the plain solve at its position,

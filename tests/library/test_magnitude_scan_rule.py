@@ -25,8 +25,6 @@ DELTA_BETA = 5e-9  # 1 % of 5e-7
 class _AnalyticGrid:
     """A field grid's reading interface over an analytic c(m)."""
 
-    column_value = None  # marks the vectorised reader
-
     def __init__(self, c):
         self.c = c
 

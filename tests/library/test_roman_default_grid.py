@@ -7,13 +7,14 @@ from dataclasses import replace
 import pytest
 
 from nlpsf.request import presets as roman_default
+from nlpsf.slopes import fieldgrid
 from nlpsf.solve import solver
 
-pytestmark = pytest.mark.skipif(roman_default.field_grid() is None, reason="no shipped Roman field grid installed")
+pytestmark = pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="no shipped Roman field grid installed")
 
 
 def _covered(band: str, sca: int) -> bool:
-    return f"{band}_{sca:02d}" in roman_default.field_grid().meta["tables"]
+    return f"{band}_{sca:02d}" in fieldgrid.shipped_grid().meta["tables"]
 
 
 @pytest.mark.parametrize(("band", "sca", "position"), [("H158", 9, (1500.0, 2500.0)), ("F184", 1, (600.0, 3400.0))])

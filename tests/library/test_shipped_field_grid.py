@@ -7,7 +7,7 @@ import pytest
 from nlpsf import defaults
 from nlpsf.sim import experiment
 from nlpsf.slopes import fieldgrid, tablebuild
-from nlpsf.solve.over_field import grid_residual_model
+from nlpsf.slopes.fieldgrid import grid_residual_model
 
 GRID = fieldgrid.shipped_grid()
 pytestmark = pytest.mark.skipif(GRID is None, reason="no shipped field grid in this checkout")

@@ -16,7 +16,7 @@ from nlpsf.flags import FlagCode, codes
 from nlpsf.request import shear
 from nlpsf.sim import scene as scenes
 from nlpsf.slopes import tables
-from nlpsf.solve import solver
+from nlpsf.solve import solver, validity
 
 from .. import shipped
 
@@ -99,7 +99,7 @@ def test_extreme_precisions(precision):
     assert s.tolerance == pytest.approx(abs(float(shipped.slope("F184", 2, "size", "bias", 19.0))) * precision * 5e-7, rel=1e-9)
     peak = float(shipped.peak_electrons("F184", 2, 19.0))
     # Past delta_beta * Q_peak = 5 % the error is no longer linear in delta_beta: flagged.
-    assert (FlagCode.OUTSIDE_LINEAR_REGIME in codes(s.flags)) == (precision * 5e-7 * peak > solver.LINEAR_REGIME_LIMIT)
+    assert (FlagCode.OUTSIDE_LINEAR_REGIME in codes(s.flags)) == (precision * 5e-7 * peak > validity.LINEAR_REGIME_LIMIT)
 
 
 def test_magnitudes_brighter_than_saturation_and_fainter_than_30():
