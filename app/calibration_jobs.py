@@ -20,6 +20,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+
 from nlpsf.checks import InputError, check_magnitude
 from nlpsf.serialise import json_safe
 
@@ -197,8 +199,15 @@ def _run_requirement(arguments: dict[str, Any], progress) -> dict[str, Any]:
     from nlpsf.calibration import requirement, residuals
 
     request, scene = _star(arguments, progress)
-    description, shape = residuals.family(arguments["shape"])
+    description, family = residuals.family(arguments["shape"])
     steps = _steps(progress)
+
+    def shape(q):
+        values = family(q)
+        if not np.all(np.isfinite(values)):  # a power law of negative index at zero charge
+            raise InputError("shape", f"{arguments['shape']} is not finite at every charge level the star's resultants reach")
+        return values
+
     if arguments.get("envelope") is not None:
         out = requirement.envelope(
             scene, request.metric, shape, description, request.beta0, arguments["tolerance"], tuple(arguments["envelope"]),

@@ -56,7 +56,11 @@ class LimitError(InputError):
         self.limit = limit
 
 
-def request_field(argument: str) -> str:
+def request_field(argument: str, request: dict[str, Any] | None = None) -> str:
+    """The request field a library argument names: a simulation's own names (``magnitudes``, ...); the other
+    kinds' requests use the library's names (``request``: the job request, None for a simulation's)."""
+    if request is not None and request.get("kind", SIMULATION_KIND) != SIMULATION_KIND:
+        return argument
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 

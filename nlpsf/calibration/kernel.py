@@ -46,6 +46,13 @@ SCA_CENTRE = roman.SCA_PIXELS / 2
 FIRST_NODE_E = 1.0
 #: The fraction of the quadratic residual's effect a kernel's signal range holds.
 SIGNAL_FRACTION = 0.9
+#: Units of a residual's effect (``bias``, ``total``, ``scatter``: values and uncertainties alike).
+EFFECT_UNITS = {
+    "size": "dimensionless (Delta R / R)",
+    "e1": "dimensionless (Delta e1)",
+    "e2": "dimensionless (Delta e2)",
+    "e": "dimensionless (|Delta e|)",
+}
 #: Bins per decade of charge of :meth:`Kernel.fractional_bins`.
 BINS_PER_DECADE = 10
 #: Units of a kernel's columns (the ECSV's and the JSON's).

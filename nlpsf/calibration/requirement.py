@@ -19,7 +19,7 @@ import numpy as np
 from nlpsf.sim import experiment
 
 from ..checks import InputError, check_magnitude
-from .kernel import Response, nodes
+from .kernel import EFFECT_UNITS, Response, nodes
 from .response import star_response
 
 #: A progress report: (steps done, steps in all, what is being done).
@@ -72,6 +72,7 @@ class Effect:
         return {
             "magnitude": self.magnitude,
             "bias": {k: {"value": v, "uncertainty": e} for k, (v, e) in self.values.items()},
+            "units": dict(EFFECT_UNITS),
             "conditions": self.conditions,
             "flags": [str(f) for f in self.flags],
             "flag_codes": [str(getattr(f, "code", "")) for f in self.flags],

@@ -379,7 +379,7 @@ def pixel_effect(
     with its standard error over the centroid realizations, and the scatter part (the rms over centroids of the
     total less the bias), with the conditions. ``gain`` None: :data:`DEFAULT_GAIN`."""
     from ..serialise import json_safe
-    from .kernel import summarise
+    from .kernel import EFFECT_UNITS, summarise
 
     given = gain is not None
     gain = DEFAULT_GAIN if gain is None else float(gain)
@@ -394,6 +394,7 @@ def pixel_effect(
             "bias": {k: {"value": v, "uncertainty": e} for k, (v, e) in summarise(bias).items()},
             "total": {k: {"value": v, "uncertainty": e} for k, (v, e) in summarise(total).items()},
             "scatter": {name: {"value": float(scatter[k])} for k, name in enumerate(("size", "e1", "e2"))},
+            "units": dict(EFFECT_UNITS),
             "conditions": {
                 **response.conditions,
                 "residual": f"linearity {applied.source} less reference {reference.source}, gain {gain:g} e-/DN",

@@ -121,6 +121,7 @@ def test_a_quadratic_residual_in_any_form_is_delta_beta_times_the_slope(client, 
             assert value == pytest.approx(delta * slopes[metric], rel=2e-3 if name == "curve" else 1e-4), (name, metric)
             assert effect["bias"][metric]["uncertainty"] >= 0
         assert effect["conditions"]["band"] == "H158" and effect["flag_codes"] == []
+        assert effect["units"]["size"].startswith("dimensionless")
 
 
 def test_the_requirement_for_a_quadratic_shape_is_the_beta_answer_and_a_gain_error_is_refused(client, slopes):
@@ -233,6 +234,9 @@ def test_refusals_name_the_field(client):
     kernel = {k: v for k, v in STAR.items() if k != "magnitude"}
     response = client.post("/api/v1/calibration/kernel", json=kernel)
     assert response.status_code == 422 and response.json()["field"] == "magnitude"
+    # A star too bright for its readout is the request's fault, named, not a server error.
+    status, problem, _ = answer(client, "/api/v1/calibration/kernel", {**STAR, "magnitude": 5.0})
+    assert status == 422 and problem["field"] == "magnitude" and "too bright" in problem["detail"]
     requirement = {**STAR, "shape": "power_law:2", "tolerance": 1e-4, "scale": 1.0}
     response = client.post("/api/v1/calibration/requirement", json=requirement)
     assert response.status_code == 422 and response.json()["field"] == "scale"
