@@ -3,7 +3,9 @@ before anything is queued), how it runs (in the job process) and how long it is 
 
 - ``simulation``: a fresh simulation on a grid of magnitudes x betas x sigma_betas (POST /simulations);
 - ``solve``: a two-of-three solve that needs simulated slopes (POST /solve);
-- ``impact``: an impact report, every scene effect simulated with and without (POST /impact).
+- ``impact``: an impact report, every scene effect simulated with and without (POST /impact);
+- ``kernel``, ``residual``, ``requirement``: the calibration capability (POST /calibration/*,
+  ``calibration_jobs``).
 
 A job request is a JSON object: a simulation's normalised request, or ``{"kind": K, K: arguments}``
 for the others; :data:`KINDS` maps each kind to its entry. All physics is in the library; this
@@ -54,7 +56,11 @@ class LimitError(InputError):
         self.limit = limit
 
 
-def request_field(argument: str) -> str:
+def request_field(argument: str, request: dict[str, Any] | None = None) -> str:
+    """The request field a library argument names: a simulation's own names (``magnitudes``, ...); the other
+    kinds' requests use the library's names (``request``: the job request, None for a simulation's)."""
+    if request is not None and request.get("kind", SIMULATION_KIND) != SIMULATION_KIND:
+        return argument
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 
@@ -319,7 +325,8 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
         # The request was filled for its own SCA (the default's sky, read noise): the others get theirs.
         solution = solver.solve_over_field(band, scas, progress=_steps(progress), filled_for=sca, **rest).to_dict()
     else:
-        solution = solver.answer(request).to_dict()
+        # The SCA range's nodes are its steps (the Roman default without a position); else one step.
+        solution = solver.answer(request, progress=_steps(progress)).to_dict()
     if progress:
         progress(1.0, "done")
     return json_safe(solution)
@@ -482,6 +489,16 @@ KINDS: dict[str, JobKind] = {
     SOLVE_KIND: JobKind(SOLVE_KIND, _validate_solve, _run_solve, lambda _arguments: None),
     IMPACT_KIND: JobKind(IMPACT_KIND, _validate_impact, _run_impact, lambda _arguments: None),
 }
+
+
+def _calibration_kinds() -> dict[str, JobKind]:
+    """The calibration capability's kinds (kernel, residual, requirement: ``calibration_jobs``)."""
+    from . import calibration_jobs
+
+    return calibration_jobs.kinds()
+
+
+KINDS.update(_calibration_kinds())
 
 
 def _entry(request: dict[str, Any]) -> tuple[JobKind, dict[str, Any]]:

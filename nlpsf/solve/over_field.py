@@ -188,13 +188,19 @@ def _node(position, solution: Solution, solved: str) -> dict:
     return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
 
 
-def sca_range(answer, request, tables_set=None) -> Solution:
+def sca_range(answer, request, tables_set=None, progress=None) -> Solution:
     """The Roman default without a position: the answer at every node of the SCA's field grid, the
     most demanding one returned (it holds everywhere on the SCA: the smallest precision, the largest
     tolerance, the faintest brightest-usable star), the least demanding and every node's value in
-    ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solve.solver.answer`` (passed in)."""
+    ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solve.solver.answer`` (passed in).
+    ``progress(done, total, message)``, if given, is told as each node is answered."""
     positions = range_positions(request)
-    answers = [(p, answer(request.with_changes(scene=replace(request.scene, position=p)), tables_set)) for p in positions]
+    answers = []
+    for index, p in enumerate(positions):
+        if progress:
+            where = f"the SCA's field-grid node {index + 1} of {len(positions)}, pixel ({p[0]:g}, {p[1]:g})"
+            progress(index, len(positions), where)
+        answers.append((p, answer(request.with_changes(scene=replace(request.scene, position=p)), tables_set)))
     solved = answers[0][1].solved_for
     demand = _demand(solved)
     ranked = sorted(answers, key=lambda item: demand(item[1]))

@@ -389,14 +389,16 @@ class _Answer:
     log_derivative: float | None = None
 
 
-def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> Solution:
+def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
-    ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows)."""
+    ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
+    total, message)``: told as each node of an SCA range is answered (the Roman default without a
+    position)."""
     start = time.perf_counter()
     if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
-        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)

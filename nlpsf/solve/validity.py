@@ -43,11 +43,18 @@ def _magnitude_flags(slopes, magnitude: float, region: int, m_sat: float, beta0:
                 f"an m={magnitude:g} star is too bright for beta0={beta0:g}: the quadratic nonlinearity is not monotonic "
                 f"there (2 beta0 Q_peak = {2 * beta0 * peak:.2f} >= 1), so S = Q - beta Q^2 does not describe the detector",
             )
+        # The tables hold the slopes in beta0 x flux (the beta Q rule), so where they stop depends on
+        # beta0; saturation does not. Say both, with this star's own numbers.
+        full_well = float(getattr(slopes, "full_well", slopes.table.settings["full_well_e"]))
+        reach = beta0 * _peak_electrons(slopes, lo)
         raise InputError(
             "magnitude",
-            f"m={magnitude:g} is brighter than the tables reach at these conditions (m >= {lo:.2f}: the tables stop "
-            f"{tables.BRIGHT_MARGIN_MAG} mag past saturation, in beta0 x flux); such a star saturates the detector several "
-            "times over and has no meaningful NL answer",
+            f"m={magnitude:g} is past the tables at beta0={beta0:g}: they hold the NL strength beta0 x Q_peak up to "
+            f"{reach:.3g} (built to {tables.BRIGHT_MARGIN_MAG} mag past saturation at their own beta0 = "
+            f"{slopes.table.beta0:g}), reached at m={lo:.2f} at this beta0, and this star's is {beta0 * peak:.3g}; its "
+            f"brightest pixel would hold {peak / full_well:.2g} x the full well {full_well:g} e- in a single final frame "
+            f"(stars brighter than m={m_sat:.2f} saturate, whatever beta0). A smaller beta0, a fainter star or an up-the-ramp "
+            "readout (which reads the star before it saturates) is answered",
         )
     flags = []
     if region > 0:

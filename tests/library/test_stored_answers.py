@@ -122,6 +122,14 @@ def answered(body: dict) -> dict:
     return without_added_flags(json.loads(json.dumps(out)))  # as stored: tuples as lists
 
 
+def refusal_by_field(out: dict) -> dict:
+    """A refusal compared by the field at fault: its English reason may be reworded (the flag
+    catalogue's rule), and a reworded reason is no change of answer."""
+    if "error" in out:
+        return {"error": {"argument": out["error"]["argument"]}}
+    return out
+
+
 def _is_paper(body: dict) -> bool:
     scene = body.get("scene")
     return scene == "paper" or (isinstance(scene, dict) and scene.get("preset") == "paper")
@@ -140,7 +148,7 @@ def test_stored_answers_are_answered_again_alike(kind):
         new = without_added_flags(answered(entry["body"]), entry["answer"])
         if changed_on_purpose(new):
             continue
-        old, new = without_changed_keys(entry["answer"], new, _is_paper(entry["body"]))
+        old, new = without_changed_keys(refusal_by_field(entry["answer"]), refusal_by_field(new), _is_paper(entry["body"]))
         found = differences(old, new, rtol)
         if found:
             failures.append(f"{entry['body']}: {found[:3]}")
