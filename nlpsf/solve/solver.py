@@ -189,10 +189,14 @@ class SolvePlan:
         return "tables" if self.fidelity == "table" else f"fresh simulations at fidelity {self.fidelity}"
 
 
-def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> SolvePlan:
+def plan(
+    request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, fresh_between_limits: bool = True
+) -> SolvePlan:
     """Choose the fidelity, the scene to simulate and the tables to read for ``request``: the first
     provider (``nlpsf.slopes.providers``) that covers it. ``simulate`` False: the answer refuses
-    (``providers.NeedsSimulation``) where it would simulate a magnitude the grid does not hold."""
+    (``providers.NeedsSimulation``) where it would simulate a magnitude the grid does not hold.
+    ``fresh_between_limits`` False: the grid's plan even where the request's magnitude lies between
+    the saturation limits at its position (the page's curves, which leave those magnitudes out)."""
     default = _measured_default(request)
     chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode, default)
     model_info, simulated_scene, realizations = None, None, None
@@ -211,7 +215,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simul
         simulated_scene = request.scene
     tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
     coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
-    between = between_limits_note(request, coverage.grid, request.magnitude)
+    between = between_limits_note(request, coverage.grid, request.magnitude) if fresh_between_limits else None
     if between is None:
         notes.extend(_coverage_notes(request, coverage, refusals, tableset))
     else:
