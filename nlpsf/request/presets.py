@@ -11,6 +11,7 @@ field grid and the solver all read them here, and every answer quotes :func:`con
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cache, lru_cache
 
 from nlpsf.roman import backgrounds
 from nlpsf.sim import scene as scenes
@@ -103,6 +104,7 @@ def exptime_s() -> float:
     return float(ramps.load_ma_table(MA_TABLE).duration_s)
 
 
+@lru_cache(maxsize=1024)
 def readout(band: str, sca: int, exptime: float | None = None) -> Readout:
     """The HLWAS ramp (likelihood fit, the SCA's official read noise, romancal's rules) and the
     background over its exposure; ``exptime`` None: the table's own exposure."""
@@ -112,6 +114,7 @@ def readout(band: str, sca: int, exptime: float | None = None) -> Readout:
     return Readout(ramp, exposure, backgrounds.background_electrons(BACKGROUND, band, sca, exposure))
 
 
+@cache
 def base_scene() -> scenes.SceneModel:
     """The default's scene effects without position or background (those depend on the point)."""
     return scenes.SceneModel(
@@ -125,6 +128,7 @@ def base_scene() -> scenes.SceneModel:
     )
 
 
+@lru_cache(maxsize=4096)
 def scene(position: tuple[float, float] | None, background_e: float) -> scenes.SceneModel:
     """The default scene at ``position`` (None: the SCA centre) with ``background_e`` per pixel."""
     return replace(base_scene(), position=position, background_e=float(background_e))
@@ -162,6 +166,7 @@ class Filled:
     background_e: float | None
 
 
+@lru_cache(maxsize=4096)
 def fill(preset: str, band: str, sca: int, exptime: float | None, ramp, pupil_scale: str | None,
          linearise_at: str | None) -> Filled:  # fmt: skip
     """The request's readout, exposure, pupil rule and state with the preset's values where unset.
@@ -209,6 +214,7 @@ def load_scene(name_or_path: str) -> scenes.SceneModel:
     return scenes.load(name_or_path)
 
 
+@lru_cache(maxsize=4096)
 def is_default_scene(model, background_e: float) -> bool:
     """Whether ``model`` is the Roman default's scene (any position) with this background."""
     return model is not None and replace(model, position=None) == scene(None, background_e)

@@ -32,7 +32,7 @@ import json
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +40,7 @@ import numpy as np
 from nlpsf import roman
 from nlpsf.checks import InputError, check_integer
 
-from .tables.splines import evaluate_stacked_cubics, stack_cubics
+from .tables.splines import evaluate_stacked_cubics, not_a_knot_coefficients
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -149,7 +149,12 @@ def _bilinear_weights(axis: np.ndarray, x: float) -> np.ndarray:
 
 
 def weights(n: int, position: tuple[float, float], scheme: str = "lagrange") -> np.ndarray:
-    """(n, n) weights [j (y), i (x)] of the grid nodes for a value at ``position`` (pixels)."""
+    """(n, n) weights [j (y), i (x)] of the grid nodes for a value at ``position`` (pixels); read-only."""
+    return _weights(int(n), tuple(float(v) for v in position), scheme)
+
+
+@lru_cache(maxsize=4096)
+def _weights(n: int, position: tuple[float, ...], scheme: str) -> np.ndarray:
     if scheme not in SCHEMES:
         raise InputError("scheme", f"must be one of {', '.join(SCHEMES)}, got {scheme!r}")
     axis = grid_axis(n)
@@ -158,7 +163,9 @@ def weights(n: int, position: tuple[float, float], scheme: str = "lagrange") -> 
         if not (1.0 <= v <= roman.SCA_PIXELS):
             raise InputError("position", f"position must lie in [1, {roman.SCA_PIXELS}] pixels, got {position!r}")
     rule = _lagrange_weights if scheme == "lagrange" else _bilinear_weights
-    return np.outer(rule(axis, y), rule(axis, x))
+    out = np.outer(rule(axis, y), rule(axis, x))
+    out.flags.writeable = False
+    return out
 
 
 def interpolate(values: np.ndarray, position: tuple[float, float], scheme: str = "lagrange") -> np.ndarray:
@@ -442,6 +449,11 @@ class FieldGrid:
         return sorted(pairs, key=lambda p: (defaults.BANDS.index(p[0]), p[1]))
 
     def _entry(self, band: str, sca: int) -> tuple[str, dict]:
+        # A request's band and SCA were checked where it was read: look up first, check only on a miss.
+        key = f"{band}_{sca:02d}" if isinstance(band, str) and isinstance(sca, int) else None
+        entry = self.meta["tables"].get(key)
+        if entry is not None:
+            return key, entry
         key = self.key(band, sca)
         if key not in self.meta["tables"]:
             raise InputError("band", f"no field grid for {band} SCA {sca} in this file")
@@ -482,17 +494,22 @@ class FieldGrid:
         return None if shift is None else self.saturation_magnitude(band, sca, position, scheme) + float(shift)
 
     def _spline(self, key: str, column: str, j: int, i: int):
-        """(flux range, cubic spline of column / flux in flux) of one node, as ``nlpsf.slopes.tables`` reads
-        a table (not kept: :meth:`_stacked_splines` keeps every node's polynomial as arrays)."""
+        """(flux range, scipy's cubic spline of column / flux in flux) of one node, as
+        ``nlpsf.slopes.tables`` reads a table: the reference :meth:`_stacked_splines` equals (the
+        tests compare them; the grid itself builds its nodes' cubics with numpy)."""
         from scipy.interpolate import CubicSpline
 
-        index = self.meta["columns"].index(column)
+        f, q = self._node_series(key, self.meta["columns"].index(column), j, i)
+        return f[0], f[-1], CubicSpline(f, q)
+
+    def _node_series(self, key: str, index: int, j: int, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(flux ascending, column / flux) of one node's finite rows of column ``index``."""
         flux = self.arrays[f"{key}/flux"][j, i]
         values = self.arrays[f"{key}/values"][j, i, :, index].astype(np.float64)
         ok = np.isfinite(flux) & np.isfinite(values)
         f, q = flux[ok], values[ok] / flux[ok]
         order = np.argsort(f)
-        return f[order][0], f[order][-1], CubicSpline(f[order], q[order])
+        return f[order], q[order]
 
     def node_values(self, band: str, sca: int, column: str, magnitude) -> np.ndarray:
         """(n, n, ...) values of ``column`` at ``magnitude`` (a number or an array) at every node: a
@@ -535,17 +552,56 @@ class FieldGrid:
         return np.where(inside, evaluate_stacked_cubics(knots, coefficients, clipped) * target, np.nan)
 
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every node's spline of ``column`` as padded arrays (``nlpsf.slopes.tables.splines.stack_cubics``) and each
-        node's flux range (n, n)."""
+        """Every node's cubic of ``column`` as padded arrays (knots (n, n, L), +inf past a node's last;
+        coefficients (4, n, n, L - 1), zero past its last interval: ``splines.evaluate_stacked_cubics``' layout)
+        and each node's flux range (n, n). Built with numpy for the column and its two error columns
+        at once (``splines.not_a_knot_coefficients``: scipy's not-a-knot CubicSpline, bit for bit)."""
         cached = self._splines.get((key, column, "stacked"))
         if cached is None:
-            n = self.arrays[f"{key}/flux"].shape[0]
-            splines = [[self._spline(key, column, j, i) for i in range(n)] for j in range(n)]
-            knots, coefficients = stack_cubics([[spline for _, _, spline in row] for row in splines])
-            low = np.array([[node_low for node_low, _, _ in row] for row in splines])
-            high = np.array([[node_high for _, node_high, _ in row] for row in splines])
-            cached = self._splines[(key, column, "stacked")] = (knots, coefficients, low, high)
+            base = column.removesuffix("_err").removesuffix("_interp")
+            family = [c for c in (base, f"{base}_err", f"{base}_interp") if c in self.meta["columns"]] or [column]
+            for name, stacked in zip(family, self._build_stacked(key, family), strict=True):
+                self._splines[(key, name, "stacked")] = stacked
+            cached = self._splines[(key, column, "stacked")]
         return cached
+
+    def _build_stacked(self, key: str, columns: list[str]) -> list[tuple[np.ndarray, ...]]:
+        n = self.arrays[f"{key}/flux"].shape[0]
+        series = {
+            (c, j, i): self._node_series(key, self.meta["columns"].index(name), j, i)
+            for c, name in enumerate(columns)
+            for j in range(n)
+            for i in range(n)
+        }
+        # Every node's coefficients, the series of one length at a time.
+        coefficients_of: dict[tuple, np.ndarray] = {}
+        for length in sorted({f.size for f, _ in series.values()}):
+            keys = [k for k, (f, _) in series.items() if f.size == length]
+            x = np.stack([series[k][0] for k in keys])
+            y = np.stack([series[k][1] for k in keys])
+            if length >= 4:
+                built = not_a_knot_coefficients(x, y)
+            else:  # too short for the not-a-knot system: scipy's own special cases
+                from scipy.interpolate import CubicSpline
+
+                built = np.stack([CubicSpline(a, b).c for a, b in zip(x, y, strict=True)], axis=1)
+            for k, index in zip(keys, range(len(keys)), strict=True):
+                coefficients_of[k] = built[:, index]
+        out = []
+        for c in range(len(columns)):
+            size = max(series[(c, j, i)][0].size for j in range(n) for i in range(n))
+            order = coefficients_of[(c, 0, 0)].shape[0]
+            knots = np.full((n, n, size), np.inf)
+            coefficients = np.zeros((order, n, n, size - 1))
+            low, high = np.empty((n, n)), np.empty((n, n))
+            for j in range(n):
+                for i in range(n):
+                    f = series[(c, j, i)][0]
+                    knots[j, i, : f.size] = f
+                    coefficients[:, j, i, : f.size - 1] = coefficients_of[(c, j, i)]
+                    low[j, i], high[j, i] = f[0], f[-1]
+            out.append((knots, coefficients, low, high))
+        return out
 
     def _references(self, key: str) -> tuple[np.ndarray, np.ndarray]:
         """(n, n) flux and magnitude of each node's brightest row: a magnitude becomes that node's

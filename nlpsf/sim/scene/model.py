@@ -235,6 +235,19 @@ def _check_table(table) -> tuple[tuple[float, ...], tuple[float, ...]]:
 
 
 def check_kernel(kernel) -> tuple[tuple[float, ...], ...]:
+    """A 3x3 IPC kernel checked and normalised to unit sum (a kernel given as tuples is checked once:
+    every scene built from another, ``dataclasses.replace``, checks its kernel again)."""
+    if isinstance(kernel, tuple) and all(isinstance(row, tuple) for row in kernel):
+        return _checked_kernel(kernel)
+    return _check_kernel(kernel)
+
+
+@lru_cache(maxsize=256)
+def _checked_kernel(kernel: tuple) -> tuple[tuple[float, ...], ...]:
+    return _check_kernel(kernel)
+
+
+def _check_kernel(kernel) -> tuple[tuple[float, ...], ...]:
     try:
         array = np.asarray(kernel, dtype=np.float64)
     except (TypeError, ValueError):
