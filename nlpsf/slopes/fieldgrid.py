@@ -40,7 +40,7 @@ import numpy as np
 from nlpsf import roman
 from nlpsf.checks import InputError, check_integer
 
-from .tables.splines import evaluate_stacked_cubics, not_a_knot_coefficients
+from .tables.splines import evaluate_stacked_columns, evaluate_stacked_cubics, not_a_knot_coefficients
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -536,6 +536,59 @@ class FieldGrid:
                 self._node_values_bytes[0] -= self._node_values.popitem(last=False)[1].nbytes
         return out
 
+    def values_at_nodes(self, band: str, sca: int, column: str, magnitudes) -> np.ndarray:
+        """(n, n) each node's ``column`` at its own magnitude ``magnitudes[j, i]`` (any shape of n x n
+        numbers): bit for bit what :meth:`node_values` gives at that node for that one magnitude
+        (NaN outside the node's grid)."""
+        return self.columns_at_nodes(band, sca, (column,), magnitudes)[0]
+
+    def columns_at_nodes(self, band: str, sca: int, columns, magnitudes) -> list[np.ndarray]:
+        """:meth:`values_at_nodes` of several columns at once (each node's flux at its magnitude found once)."""
+        key, _ = self._entry(band, sca)
+        first_flux, first_magnitude = self._references(key)
+        n = first_flux.shape[0]
+        m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
+        target = np.empty((n, n))
+        for j in range(n):
+            for i in range(n):  # each node's own scalar power, as a single magnitude is read
+                target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m[j, i] - first_magnitude[j, i]))
+        stacked = [self._stacked_splines(key, column) for column in columns]
+        out: list[np.ndarray | None] = [None] * len(stacked)
+        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):  # columns sharing their knots together
+            chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
+            knots, _, low, high = stacked[chosen[0]]
+            inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
+            clipped = np.minimum(np.maximum(target, low), high)  # np.clip, without its dtype checks
+            read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
+            for c, values in zip(chosen, read, strict=True):
+                out[c] = np.where(inside, values * target, np.nan)
+        return out
+
+    def slopes_at_nodes(self, band: str, sca: int, metric: str, mode: str, magnitudes) -> tuple[np.ndarray, np.ndarray]:
+        """(slope, standard error), each (n, n): node k's at its own magnitude ``magnitudes[k]`` as
+        :meth:`slope` gives them at that node's position for that one magnitude (the nodes'
+        interpolation weights are 0 and 1 there), every node at once. The field-interpolation term
+        (the median over the nodes) is read from one evaluation of every node at every magnitude
+        asked, which can differ from reading each magnitude alone in the last bit. NaN where a node
+        is outside its grid."""
+        if metric == "e":
+            s1, e1 = self.slopes_at_nodes(band, sca, "e1", mode, magnitudes)
+            s2, e2 = self.slopes_at_nodes(band, sca, "e2", mode, magnitudes)
+            value = np.hypot(s1, s2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                error = np.where(value > 0, np.hypot(s1 * e1, s2 * e2) / value, np.hypot(e1, e2))
+            return value, error
+        column = f"{mode}_{metric}"
+        n = self._entry(band, sca)[1]["grid"]
+        m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
+        values, statistical, interpolation = self.columns_at_nodes(band, sca, (column, f"{column}_err", f"{column}_interp"), m)
+        errors = np.hypot(statistical, interpolation)
+        distinct, where = np.unique(m, return_inverse=True)
+        everywhere = self.node_values(band, sca, column, distinct[0] if distinct.size == 1 else distinct)
+        median = np.median(np.abs(everywhere), axis=(0, 1))
+        field_term = field_interpolation(n, band)[metric] * (median if distinct.size == 1 else median[where.reshape(n, n)])
+        return values, np.hypot(errors, field_term)
+
     def _evaluate_nodes(self, key: str, column: str, m: np.ndarray) -> np.ndarray:
         first_flux, first_magnitude = self._references(key)
         n = first_flux.shape[0]
@@ -548,7 +601,7 @@ class FieldGrid:
         knots, coefficients, low, high = self._stacked_splines(key, column)
         extra = (slice(None), slice(None), *([None] * m.ndim))
         inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
-        clipped = np.clip(target, low[extra], high[extra])
+        clipped = np.minimum(np.maximum(target, low[extra]), high[extra])
         return np.where(inside, evaluate_stacked_cubics(knots, coefficients, clipped) * target, np.nan)
 
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -587,7 +640,7 @@ class FieldGrid:
                 built = np.stack([CubicSpline(a, b).c for a, b in zip(x, y, strict=True)], axis=1)
             for k, index in zip(keys, range(len(keys)), strict=True):
                 coefficients_of[k] = built[:, index]
-        out = []
+        out: list[tuple[np.ndarray, ...]] = []
         for c in range(len(columns)):
             size = max(series[(c, j, i)][0].size for j in range(n) for i in range(n))
             order = coefficients_of[(c, 0, 0)].shape[0]
@@ -600,6 +653,11 @@ class FieldGrid:
                     knots[j, i, : f.size] = f
                     coefficients[:, j, i, : f.size - 1] = coefficients_of[(c, j, i)]
                     low[j, i], high[j, i] = f[0], f[-1]
+            same = next(
+                (o for o in out if np.array_equal(o[0], knots) and np.array_equal(o[2], low) and np.array_equal(o[3], high)), None
+            )
+            if same is not None:  # the same knots as a column before: shared, so they are read together
+                knots, low, high = same[0], same[2], same[3]
             out.append((knots, coefficients, low, high))
         return out
 

@@ -298,6 +298,28 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
     return out, (0.0 if abs(offset) < 1e-12 else offset)
 
 
+def roman_effects_at(info: dict, magnitudes, scales) -> list[float]:
+    """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"] ==
+    "roman"``) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
+    at its own answer -- bit for bit :func:`_roman_model_at`'s: each part read at every magnitude in
+    one look-up (``roman_uncertainty.at_magnitudes``), scaled, and combined node by node."""
+    offset = info.get("magnitude_offset", 0.0)
+    shifted = [m + offset for m in magnitudes]
+    columns: dict[str, list[float | None]] = {}
+    kinds: dict[str, str] = {}
+    for part in info["left_out"]:
+        name = part["name"]
+        kinds[name] = part.get("kind", roman_parts.KINDS.get(name, "choice"))
+        if part.get("measured_here"):
+            columns[name] = [None if part["impact"] is None else abs(part["impact"])] * len(shifted)
+        elif "by_magnitude" in part:
+            read = roman_parts.at_magnitudes(part["by_magnitude"], shifted)
+            columns[name] = [None if v is None else v * s for v, s in zip(read, scales, strict=True)]
+        else:
+            columns[name] = [None] * len(shifted)
+    return [roman_parts.combine({name: column[k] for name, column in columns.items()}, kinds) for k in range(len(shifted))]
+
+
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
     """:func:`model_at` for the Roman default's parts: each read at ``magnitude`` (the larger of the
     measured magnitudes around it; shifted by ``magnitude_offset`` to the star of equal charge where

@@ -174,39 +174,65 @@ def range_positions(request) -> list[tuple[float, float]]:
 
 def _demand(solved: str):
     def demand(solution: Solution) -> float:
-        value = getattr(solution, solved)
-        if value is None or not math.isfinite(value):
-            return -math.inf
-        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+        return _demand_of(solved, getattr(solution, solved))
 
     return demand
 
 
-def _node(position, solution: Solution, solved: str) -> dict:
-    value, error = getattr(solution, solved), solution.uncertainty
-    fidelity = solution.fidelity
+def _demand_of(solved: str, value: float | None) -> float:
+    """How demanding an answer is: the smallest precision, the largest tolerance, the faintest star."""
+    if value is None or not math.isfinite(value):
+        return -math.inf
+    return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+
+
+def _node(position, value: float | None, error: float | None, fidelity: str, solved: str) -> dict:
     return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
 
 
-def sca_range(answer, request, tables_set=None) -> Solution:
+def sca_range(answer, request, tables_set=None, nodes=None) -> Solution:
     """The Roman default without a position: the answer at every node of the SCA's field grid, the
     most demanding one returned (it holds everywhere on the SCA: the smallest precision, the largest
     tolerance, the faintest brightest-usable star), the least demanding and every node's value in
-    ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solve.solver.answer`` (passed in)."""
+    ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solve.solver.answer`` (passed in).
+
+    ``nodes(request, positions)``: every node's value and uncertainty at once (``sca_nodes``), or
+    None; then only the most demanding node is answered in full (its value checked against the one
+    found for it), else every node is."""
     positions = range_positions(request)
-    answers = [(p, answer(request.with_changes(scene=replace(request.scene, position=p)), tables_set)) for p in positions]
-    solved = answers[0][1].solved_for
-    demand = _demand(solved)
-    ranked = sorted(answers, key=lambda item: demand(item[1]))
-    (least_at, least), (most_at, most) = ranked[0], ranked[-1]
+
+    def at(p):
+        return request.with_changes(scene=replace(request.scene, position=p))
+
+    found = nodes(request, positions) if nodes is not None else None
+    most = None
+    if found is not None:
+        solved = found.solved_for
+        ranked = sorted(range(len(positions)), key=lambda k: _demand_of(solved, found.values[k]))
+        most = answer(at(positions[ranked[-1]]), tables_set)
+        if not _same_answer(getattr(most, solved), most.uncertainty, found, ranked[-1]):
+            found = None  # never expected: the node's own answer decides, every node is answered
+    if found is not None:
+        least_at, least_value = positions[ranked[0]], found.values[ranked[0]]
+        most_at = positions[ranked[-1]]
+        rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
+        slopes_from = ["field grid"]
+    else:
+        answers = [(p, answer(at(p), tables_set)) for p in positions]
+        solved = answers[0][1].solved_for
+        ranked_answers = sorted(answers, key=lambda item: _demand(solved)(item[1]))
+        (least_at, least), (most_at, most) = ranked_answers[0], ranked_answers[-1]
+        least_value = getattr(least, solved)
+        rows = [_node(p, getattr(a, solved), a.uncertainty, a.fidelity, solved) for p, a in answers]
+        slopes_from = sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers})
     conditions = dict(most.conditions)
     conditions["sca_range"] = {
         "primary": "most demanding: the requirement that holds everywhere on the SCA",
         "solved_for": solved,
         "most_demanding": {"position": list(most_at), solved: json_number(getattr(most, solved))},
-        "least_demanding": {"position": list(least_at), solved: json_number(getattr(least, solved))},
-        "nodes": [_node(p, a, solved) for p, a in answers],
-        "slopes_from": sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers}),
+        "least_demanding": {"position": list(least_at), solved: json_number(least_value)},
+        "nodes": rows,
+        "slopes_from": slopes_from,
     }
     flag = make(
         FlagCode.SCA_RANGE,
@@ -215,9 +241,20 @@ def sca_range(answer, request, tables_set=None) -> Solution:
         x=most_at[0],
         y=most_at[1],
         solved=solved,
-        least=getattr(least, solved),
+        least=least_value,
         lx=least_at[0],
         ly=least_at[1],
         most=getattr(most, solved),
     )
     return replace(most, flags=[flag, *most.flags], conditions=conditions)
+
+
+def _same_answer(value, error, found, k: int) -> bool:
+    """Whether a node's own answer is the one found for it with the others: its value to the last
+    bit, its uncertainty to 1e-12 (the field interpolation's term is read once for all nodes)."""
+    if value != found.values[k] and not (value is not None and math.isnan(value) and math.isnan(found.values[k])):
+        return False
+    other = found.uncertainties[k]
+    if error is None or other is None:
+        return error is other
+    return math.isclose(error, other, rel_tol=1e-12, abs_tol=0.0)

@@ -62,6 +62,8 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
 #: Where the shipped measurement lives (nlpsf/data/).
 FILE = "roman_model_uncertainty.json"
 METRICS = ("size", "e1", "e2", "e")
@@ -166,6 +168,20 @@ def at_magnitude(by_magnitude: list[list[float]], magnitude: float | None) -> fl
         if m0 <= magnitude <= m1:
             return max(v0, v1)
     return max(v for _, v in points)  # not reached
+
+
+def at_magnitudes(by_magnitude: list[list[float]], magnitudes) -> list[float | None]:
+    """:func:`at_magnitude` at many magnitudes (none None) in one look-up, the same values."""
+    points = sorted((m, abs(v)) for m, v in by_magnitude if v is not None)
+    if not points:
+        return [None] * len(magnitudes)
+    at = np.array([m for m, _ in points])
+    values = np.array([v for _, v in points])
+    pairs = np.maximum(values[:-1], values[1:]) if len(points) > 1 else values
+    query = np.asarray(magnitudes, dtype=np.float64)
+    inner = np.minimum(np.maximum(np.searchsorted(at, query, side="left") - 1, 0), max(len(points) - 2, 0))
+    read = np.where(query <= at[0], values[0], np.where(query >= at[-1], values[-1], pairs[inner]))
+    return [float(v) for v in read]
 
 
 # --- measuring (scripts/model_uncertainty_roman.py and the tests) ------------------------------

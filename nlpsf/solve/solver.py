@@ -73,7 +73,7 @@ from nlpsf.slopes.fidelity import choose_fidelity, fidelity_error
 from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
-from . import model_part
+from . import model_part, sca_nodes
 from .magnitude_scan import scan_magnitude
 from .over_field import grid_size, sca_range, worst_over_field
 from .solution import Solution, Uncertainty
@@ -381,7 +381,8 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
-        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set)
+        nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, nodes=nodes)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
@@ -446,6 +447,22 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
         shear=shear_answer,
         model=result.model,
     )
+
+
+def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: bool = True):
+    """Every node's value and uncertainty of the Roman default without a position, at once
+    (``sca_nodes.answer_nodes``), where its field grid covers it; None: answer node by node."""
+    first = request.with_changes(scene=replace(request.scene, position=positions[0]))
+    the_plan = plan(first, tables_set) if simulate else table_plan(first, tables_set)
+    grid = the_plan.grid
+    if grid is None or tables_set is not None or the_plan.scene.background_e >= request.full_well:
+        return None
+    if grid.final_frame_saturation_magnitude(request.band, request.sca, positions[0]) is None:
+        return None  # the limits are then not the grid's own
+    # Each node's own value (its interpolation weights are 0 and 1 there), in the positions' order.
+    saturation = [float(m) for m in grid.saturation_magnitudes(request.band, request.sca).reshape(-1)]
+    systematic = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))[0]
+    return sca_nodes.answer_nodes(request, the_plan, saturation, systematic)
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:

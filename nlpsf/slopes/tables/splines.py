@@ -50,7 +50,7 @@ def hermite_coefficients(flux: np.ndarray, values: np.ndarray, derivatives: np.n
 
 def evaluate_cubic(breaks: np.ndarray, coefficients: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Evaluate a piecewise cubic (scipy's PPoly layout: highest power first) at ``x``."""
-    index = np.clip(np.searchsorted(breaks, x, side="right") - 1, 0, breaks.size - 2)
+    index = np.minimum(np.maximum(np.searchsorted(breaks, x, side="right") - 1, 0), breaks.size - 2)
     d = x - breaks[index]
     c = coefficients[:, index]
     return ((c[0] * d + c[1]) * d + c[2]) * d + c[3]
@@ -64,19 +64,29 @@ def evaluate_stacked_cubics(knots: np.ndarray, coefficients: np.ndarray, x: np.n
     (``_ppoly.pyx`` ``evaluate_poly1``: c_last + c_(last-1) s + c_(last-2) s^2 + ..., in that order,
     s = x - knot), so a node's value is bit for bit its CubicSpline's -- unlike
     :func:`evaluate_cubic`'s Horner form, which the paper tables' readers have always used."""
+    return evaluate_stacked_columns(knots, [coefficients], x)[0]
+
+
+def evaluate_stacked_columns(knots: np.ndarray, coefficients: list[np.ndarray], x: np.ndarray) -> list[np.ndarray]:
+    """:func:`evaluate_stacked_cubics` of several columns that share their knots: the interval of
+    every x found once."""
     n = knots.shape[0]
     flat = x.reshape(n, n, -1)
     last = np.sum(np.isfinite(knots), axis=-1)[..., None] - 2
-    interval = np.clip(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0, last)
-    s = flat - np.take_along_axis(knots, interval, axis=-1)
-    order = coefficients.shape[0]
-    value = np.zeros_like(flat)
-    power = np.ones_like(flat)
-    for k in range(order):
-        value = value + np.take_along_axis(coefficients[order - 1 - k], interval, axis=-1) * power
-        if k < order - 1:
-            power = power * s
-    return value.reshape(x.shape)
+    interval = np.minimum(np.maximum(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0), last)
+    rows, columns = np.arange(n)[:, None, None], np.arange(n)[None, :, None]
+    s = flat - knots[rows, columns, interval]
+    out = []
+    for stacked in coefficients:
+        order = stacked.shape[0]
+        value = np.zeros_like(flat)
+        power = np.ones_like(flat)
+        for k in range(order):
+            value = value + stacked[order - 1 - k][rows, columns, interval] * power
+            if k < order - 1:
+                power = power * s
+        out.append(value.reshape(x.shape))
+    return out
 
 
 def not_a_knot_coefficients(x: np.ndarray, y: np.ndarray) -> np.ndarray:
