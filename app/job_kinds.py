@@ -319,7 +319,8 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
         # The request was filled for its own SCA (the default's sky, read noise): the others get theirs.
         solution = solver.solve_over_field(band, scas, progress=_steps(progress), filled_for=sca, **rest).to_dict()
     else:
-        solution = solver.answer(request).to_dict()
+        # The SCA range's nodes are its steps (the Roman default without a position); else one step.
+        solution = solver.answer(request, progress=_steps(progress)).to_dict()
     if progress:
         progress(1.0, "done")
     return json_safe(solution)

@@ -3,9 +3,9 @@ POST /solve/batch (many solves at table cost: the tables and the Roman default's
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
@@ -29,7 +29,21 @@ router = APIRouter(prefix="/api/v1")
     responses=JOB_ANSWER_RESPONSES,
     summary="Two of (precision, tolerance, magnitude) -> the third, with its uncertainty",
 )
-async def solve(body: models.SolveRequest, services: ServicesDep, caller: CallerDep) -> Response:
+async def solve(
+    body: models.SolveRequest,
+    services: ServicesDep,
+    caller: CallerDep,
+    wait: Annotated[
+        float | None,
+        Query(
+            ge=0,
+            le=600,
+            allow_inf_nan=False,
+            description="for an answer that needs a simulation: time to wait for it before the job to poll is returned "
+            "(202), in s; default the deployment's solve_wait_s (a page that shows progress asks for less)",
+        ),
+    ] = None,
+) -> Response:
     # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
     # The library's typed request checks every field, the ramp and the scene (and whether they combine).
     raw = body.model_dump()
@@ -65,7 +79,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
     # any other simulation (queue, limits, idle priority), validated completely at table cost first,
     # never work inside this HTTP worker.
     job = job_kinds.KINDS[job_kinds.SOLVE_KIND].validate(raw, body.model_fields_set, services.settings)
-    return await job_answer(services, caller, job)
+    return await job_answer(services, caller, job, wait)
 
 
 @router.post(

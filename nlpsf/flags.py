@@ -59,6 +59,7 @@ class FlagCode(StrEnum):
     BELOW_TOLERANCE_EVERYWHERE = "below_tolerance_everywhere"
     SLOPE_CHANGES_SIGN = "slope_changes_sign"
     SLOPE_CONSISTENT_WITH_ZERO = "slope_consistent_with_zero"
+    E_COMPONENT_SMALL = "e_component_small"
     QUADRATIC_NOT_MONOTONIC = "quadratic_not_monotonic"
     OUTSIDE_LINEAR_REGIME = "outside_linear_regime"
     SHEAR_CROSS_TERM = "shear_cross_term"
@@ -271,6 +272,16 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "this metric is insensitive to beta here, so no calibration precision is needed for it",
         ("metric", "magnitude", "slope", "error"),
         "The metric is insensitive to beta here: no precision is needed for it.",
+    ),
+    FlagCode.E_COMPONENT_SMALL: FlagSpec(
+        "the {metric} slope at m={magnitude:.2f} is {why}: c_{metric} = {slope:.3g} ± {error:.2g} against "
+        "|c_e| = {modulus:.3g}; the model's errors (optics, diffusion, jitter) move the two e components "
+        "together, so they move c_{metric} by a large fraction of itself and its relative uncertainty is large. "
+        "For a requirement on the PSF's ellipticity ask for --metric e (the modulus hypot(c_e1, c_e2)), which "
+        "they do not make small",
+        ("metric", "magnitude", "why", "slope", "error", "modulus"),
+        "An ellipticity component whose slope is small against the modulus |c_e| (or consistent with zero): "
+        "its relative uncertainty is large; --metric e gives the modulus.",
     ),
     FlagCode.QUADRATIC_NOT_MONOTONIC: FlagSpec(
         "nonlinearity not monotonic: 2 beta0 Q_peak = {value:.2f} >= 1 at m={magnitude:g}; the quadratic model "

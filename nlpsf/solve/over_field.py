@@ -190,41 +190,22 @@ def _node(position, value: float | None, error: float | None, fidelity: str, sol
     return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
 
 
-def sca_range(answer, request, tables_set=None, nodes=None) -> Solution:
+def sca_range(answer, request, tables_set=None, progress=None, nodes=None) -> Solution:
     """The Roman default without a position: the answer at every node of the SCA's field grid, the
     most demanding one returned (it holds everywhere on the SCA: the smallest precision, the largest
     tolerance, the faintest brightest-usable star), the least demanding and every node's value in
     ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solve.solver.answer`` (passed in).
 
-    ``nodes(request, positions)``: every node's value and uncertainty at once (``sca_nodes``), or
-    None; then only the most demanding node is answered in full (its value checked against the one
-    found for it), else every node is."""
+    ``progress(done, total, message)``, if given, is told as the nodes are answered. ``nodes(request,
+    positions)``: every node's value and uncertainty at once (``sca_nodes``), or None; then only the
+    most demanding node is answered in full (its value checked against the one found for it), else
+    every node is."""
     positions = range_positions(request)
-
-    def at(p):
-        return request.with_changes(scene=replace(request.scene, position=p))
-
     found = nodes(request, positions) if nodes is not None else None
-    most = None
-    if found is not None:
-        solved = found.solved_for
-        ranked = sorted(range(len(positions)), key=lambda k: _demand_of(solved, found.values[k]))
-        most = answer(at(positions[ranked[-1]]), tables_set)
-        if not _same_answer(getattr(most, solved), most.uncertainty, found, ranked[-1]):
-            found = None  # never expected: the node's own answer decides, every node is answered
-    if found is not None:
-        least_at, least_value = positions[ranked[0]], found.values[ranked[0]]
-        most_at = positions[ranked[-1]]
-        rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
-        slopes_from = ["field grid"]
-    else:
-        answers = [(p, answer(at(p), tables_set)) for p in positions]
-        solved = answers[0][1].solved_for
-        ranked_answers = sorted(answers, key=lambda item: _demand(solved)(item[1]))
-        (least_at, least), (most_at, most) = ranked_answers[0], ranked_answers[-1]
-        least_value = getattr(least, solved)
-        rows = [_node(p, getattr(a, solved), a.uncertainty, a.fidelity, solved) for p, a in answers]
-        slopes_from = sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers})
+    ranged = _ranged_at_once(answer, request, tables_set, positions, found, progress) if found is not None else None
+    if ranged is None:
+        ranged = _ranged_node_by_node(answer, request, tables_set, positions, progress)
+    solved, (most_at, most), (least_at, least_value), rows, slopes_from = ranged
     conditions = dict(most.conditions)
     conditions["sca_range"] = {
         "primary": "most demanding: the requirement that holds everywhere on the SCA",
@@ -247,6 +228,45 @@ def sca_range(answer, request, tables_set=None, nodes=None) -> Solution:
         most=getattr(most, solved),
     )
     return replace(most, flags=[flag, *most.flags], conditions=conditions)
+
+
+def _at(request, position):
+    return request.with_changes(scene=replace(request.scene, position=position))
+
+
+def _ranged_at_once(answer, request, tables_set, positions, found, progress):
+    """(solved, (where, answer) of the most demanding node, (where, value) of the least, the nodes'
+    rows, where their slopes came from) from every node's value found at once; None where the most
+    demanding node's own answer is not the one found for it (never expected)."""
+    solved = found.solved_for
+    ranked = sorted(range(len(positions)), key=lambda k: _demand_of(solved, found.values[k]))
+    if progress:
+        progress(
+            len(positions) - 1, len(positions), f"the SCA's {len(positions)} field-grid nodes at once, the most demanding in full"
+        )
+    most = answer(_at(request, positions[ranked[-1]]), tables_set)
+    if not _same_answer(getattr(most, solved), most.uncertainty, found, ranked[-1]):
+        return None
+    rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
+    least = (positions[ranked[0]], found.values[ranked[0]])
+    return solved, (positions[ranked[-1]], most), least, rows, ["field grid"]
+
+
+def _ranged_node_by_node(answer, request, tables_set, positions, progress):
+    """:func:`_ranged_at_once`'s figures from every node answered in full, one after the other."""
+    answers = []
+    for index, p in enumerate(positions):
+        if progress:
+            progress(
+                index, len(positions), f"the SCA's field-grid node {index + 1} of {len(positions)}, pixel ({p[0]:g}, {p[1]:g})"
+            )
+        answers.append((p, answer(_at(request, p), tables_set)))
+    solved = answers[0][1].solved_for
+    ranked = sorted(answers, key=lambda item: _demand(solved)(item[1]))
+    (least_at, least), most = ranked[0], ranked[-1]
+    rows = [_node(p, getattr(a, solved), a.uncertainty, a.fidelity, solved) for p, a in answers]
+    slopes_from = sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers})
+    return solved, most, (least_at, getattr(least, solved)), rows, slopes_from
 
 
 def _same_answer(value, error, found, k: int) -> bool:

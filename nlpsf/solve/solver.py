@@ -83,6 +83,7 @@ from .validity import (
     _magnitude_flags,
     _ramp_magnitude_flags,
     _validity_flags,
+    component_flags,
 )
 
 METRICS = defaults.METRICS
@@ -374,15 +375,17 @@ class _Answer:
     m_nl: float | None = None
 
 
-def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> Solution:
+def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
-    ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows)."""
+    ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
+    total, message)``: told as each node of an SCA range is answered (the Roman default without a
+    position)."""
     start = time.perf_counter()
     if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
         nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)
-        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, nodes=nodes)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
@@ -403,6 +406,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     else:
         result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
+    flags += component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
     flags += slopes.slope_quality_flags()
     if slopes.grid_misses:
         flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))

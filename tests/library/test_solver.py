@@ -112,7 +112,7 @@ def test_magnitudes_brighter_than_saturation_and_fainter_than_30():
     assert faint.tolerance == pytest.approx(inside.tolerance * 10 ** (-0.4 * 4), rel=2e-3)
     with pytest.raises(InputError, match="magnitude") as error:
         paper_solve("Y106", 9, precision=0.01, magnitude=table.magnitudes[0] - 1)
-    assert "too bright" in str(error.value) or "brighter than the tables reach" in str(error.value)
+    assert "too bright" in str(error.value) or "past the tables" in str(error.value)
 
 
 @pytest.mark.parametrize("beta0", [1e-9, 1e-8, 5e-7, 2e-6, 1e-5])

@@ -2,8 +2,9 @@
 slope-provider refactoring (``scripts/stored_answers.py``, the commit named in the file), answered
 again. This guards a refactoring, not the physics (the physics is checked against GalSim, stcal and
 the analytic cases elsewhere): the paper's scene bit for bit, the Roman default within 1e-12
-relative (where evaluating every node at once may change the last bits), the same flags and the
-same refusals."""
+relative (where evaluating every node at once may change the last bits), the same flag codes and
+the same refusals (the field each names). Words are not compared (messages, descriptions: any text
+with a space), so that the catalogue may reword them; identifiers are."""
 
 from __future__ import annotations
 
@@ -30,7 +31,10 @@ def stored() -> dict:
 
 
 def differences(old, new, rtol: float, where: str = "") -> list[str]:
-    """Where ``new`` differs from ``old``: numbers beyond ``rtol`` (0: exactly), anything else unequal."""
+    """Where ``new`` differs from ``old``: numbers beyond ``rtol`` (0: exactly), identifiers and the
+    structure unequal; text in words (a string with a space) is not compared."""
+    if isinstance(old, str) and " " in old and isinstance(new, str):
+        return []
     if isinstance(old, bool) or old is None or isinstance(old, str):
         return [] if old == new else [f"{where}: {old!r} -> {new!r}"]
     if isinstance(old, (int, float)):
@@ -51,13 +55,26 @@ def differences(old, new, rtol: float, where: str = "") -> list[str]:
     return [f"{where}: cannot compare {old!r}"]
 
 
+#: Flag codes added after the answers were stored, by other work than the refactoring this guards
+#: (issue 28: an e component small against |c_e|): left out of the new answers before comparing.
+ADDED_FLAG_CODES = frozenset({"e_component_small"})
+
+
+def without_added_flags(out: dict) -> dict:
+    codes = out.get("flag_codes")
+    if not codes:
+        return out
+    keep = [i for i, code in enumerate(codes) if code not in ADDED_FLAG_CODES]
+    return {**out, "flags": [out["flags"][i] for i in keep], "flag_codes": [codes[i] for i in keep]}
+
+
 def answered(body: dict) -> dict:
     try:
         out = answer(SolveRequest.from_json(body)).to_dict()
     except InputError as error:
         return {"error": {"argument": error.argument, "reason": error.reason}}
     out.pop("elapsed_s")
-    return json.loads(json.dumps(out))  # as stored: tuples as lists
+    return without_added_flags(json.loads(json.dumps(out)))  # as stored: tuples as lists
 
 
 def _is_paper(body: dict) -> bool:
@@ -95,5 +112,5 @@ def test_stored_answers_over_the_field_are_answered_again_alike():
         scas, scene = body.pop("scas"), body.pop("scene", None)
         out = solve_over_field(body.pop("band"), scas=scas, scene=scene, **body).to_dict()
         out.pop("elapsed_s")
-        found = differences(entry["answer"], json.loads(json.dumps(out)), rtol)
+        found = differences(entry["answer"], without_added_flags(json.loads(json.dumps(out))), rtol)
         assert not found, (entry["body"], found[:3])
