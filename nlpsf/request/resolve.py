@@ -8,6 +8,7 @@ bad request meets is the same whichever entry point it came through.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -237,6 +238,13 @@ class SolveRequest:
     def with_changes(self, **changes) -> SolveRequest:
         """Another request, validated again (``dataclasses.replace``)."""
         return replace(self, **changes)
+
+    def at_position(self, position) -> SolveRequest:
+        """This request for the same star at another ``position`` of its SCA (pixels): its scene
+        moved there, nothing else read again (the position is checked by the scene)."""
+        moved = copy.copy(self)
+        object.__setattr__(moved, "scene", replace(self.scene, position=position))
+        return moved
 
     def table_pass(self) -> SolveRequest:
         """This request on the paper's tables (no ramp, scene, other pupil rule or state): the cheap

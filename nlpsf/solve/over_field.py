@@ -231,7 +231,7 @@ def sca_range(answer, request, tables_set=None, progress=None, nodes=None) -> So
 
 
 def _at(request, position):
-    return request.with_changes(scene=replace(request.scene, position=position))
+    return request.at_position(position)
 
 
 def _ranged_at_once(answer, request, tables_set, positions, found, progress):

@@ -456,7 +456,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
 def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: bool = True):
     """Every node's value and uncertainty of the Roman default without a position, at once
     (``sca_nodes.answer_nodes``), where its field grid covers it; None: answer node by node."""
-    first = request.with_changes(scene=replace(request.scene, position=positions[0]))
+    first = request.at_position(positions[0])
     the_plan = plan(first, tables_set) if simulate else table_plan(first, tables_set)
     grid = the_plan.grid
     if grid is None or tables_set is not None or the_plan.scene.background_e >= request.full_well:

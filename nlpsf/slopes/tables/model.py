@@ -169,6 +169,9 @@ class TableSet:
         self._lock = Lock()
 
     def get(self, band: str, sca: int, point: int | None = None) -> SlopeTable:
+        table = self._tables.get((band, sca) + ((point,) if point else ()))  # a request's band and SCA, checked once
+        if table is not None:
+            return table
         key = (roman.check_band(band), roman.check_sca(sca)) + ((int(point),) if point else ())
         table = self._tables.get(key)
         if table is None:
