@@ -298,26 +298,32 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
     return out, (0.0 if abs(offset) < 1e-12 else offset)
 
 
-def roman_effects_at(info: dict, magnitudes, scales) -> list[float]:
+def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
     """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"] ==
     "roman"``) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
-    at its own answer -- bit for bit :func:`_roman_model_at`'s: each part read at every magnitude in
-    one look-up (``roman_uncertainty.at_magnitudes``), scaled, and combined node by node."""
+    at its own answer: each part read at every magnitude in one look-up
+    (``roman_uncertainty.at_magnitudes``), scaled, and combined by ``roman_uncertainty.COMBINATION``
+    with numpy's sums (``combine`` adds with ``math.fsum``: the two agree to the last bits)."""
     offset = info.get("magnitude_offset", 0.0)
     shifted = [m + offset for m in magnitudes]
-    columns: dict[str, list[float | None]] = {}
-    kinds: dict[str, str] = {}
+    count = len(shifted)
+    choices, left_out = np.zeros(count), np.zeros(count)
     for part in info["left_out"]:
         name = part["name"]
-        kinds[name] = part.get("kind", roman_parts.KINDS.get(name, "choice"))
         if part.get("measured_here"):
-            columns[name] = [None if part["impact"] is None else abs(part["impact"])] * len(shifted)
+            read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
         elif "by_magnitude" in part:
-            read = roman_parts.at_magnitudes(part["by_magnitude"], shifted)
-            columns[name] = [None if v is None else v * s for v, s in zip(read, scales, strict=True)]
+            read = np.array([np.nan if v is None else v for v in roman_parts.at_magnitudes(part["by_magnitude"], shifted)])
+            read = np.abs(read * np.asarray(scales, dtype=np.float64))
         else:
-            columns[name] = [None] * len(shifted)
-    return [roman_parts.combine({name: column[k] for name, column in columns.items()}, kinds) for k in range(len(shifted))]
+            continue  # named, not measured: counts zero
+        read = np.where(np.isnan(read), 0.0, read)
+        kind = part.get("kind", roman_parts.KINDS.get(name, "choice"))
+        if kind == "left_out":
+            left_out = left_out + read
+        elif kind == "choice":
+            choices = choices + read * read
+    return np.sqrt(choices) + left_out
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:

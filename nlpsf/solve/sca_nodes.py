@@ -6,11 +6,12 @@ answer of one node. The values and uncertainties come from here, every node at o
 read at each node's own magnitude in one call (``FieldGrid.slopes_at_nodes``), a magnitude solve's
 scan of every node from one evaluation and the crossings found side by side, the model parts read at
 every node's magnitude in one look-up (``model_part.roman_effects_at``) -- with the arithmetic of
-``solver`` and ``magnitude_scan`` repeated number for number, so that each node's value is what
-answering it alone gives, bit for bit, and its uncertainty within the last bit of the field
-interpolation's term. Where a node leaves the common case (a magnitude the grid does not hold, a
-refusal, an answer extrapolated past the scan, a crossing the secant does not bracket),
-:func:`answer_nodes` returns None and the caller answers node by node.
+``solver`` and ``magnitude_scan`` repeated number for number: each node's value is what answering
+it alone gives, bit for bit, and its uncertainty agrees to the last bits (the field interpolation's
+term read once for all nodes, the parts added with numpy's sums). Where a node leaves the common
+case (a magnitude the grid does not hold, a refusal, an answer extrapolated past the scan, a
+crossing the secant does not bracket), :func:`answer_nodes` returns None and the caller answers
+node by node.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from nlpsf.slopes import tables
 
 from . import model_part
 from .magnitude_scan import _H, _TREND_MAG
-from .solution import Uncertainty
 
 
 @dataclass(frozen=True)
@@ -116,7 +116,7 @@ def answer_nodes(request, the_plan, saturation: list[float], systematic: float |
     return _at_magnitude(request, nodes, the_plan.model, saturation, systematic)
 
 
-def _effects(model: dict, nodes: _Nodes, magnitudes: list[float]) -> list[float] | None:
+def _effects(model: dict, nodes: _Nodes, magnitudes: list[float]) -> np.ndarray | None:
     """``model_at``'s relative model part at each node's magnitude (None: a node needs the tables' ratio)."""
     scales = nodes.modulus_over_component(magnitudes) if model["stated_against"] == "modulus" else [1.0] * len(magnitudes)
     if any(s is None for s in scales):
@@ -124,42 +124,39 @@ def _effects(model: dict, nodes: _Nodes, magnitudes: list[float]) -> list[float]
     return model_part.roman_effects_at(model, magnitudes, scales)
 
 
+def _totals(statistical, fidelity, effects) -> list[float]:
+    """``Uncertainty.total`` of every node (its optical-model and pupil parts are 0 for the Roman
+    default: its parts hold the optical model's vintage)."""
+    fidelity = np.zeros_like(statistical) if fidelity is None else fidelity
+    return [math.hypot(s, f, e, 0.0) for s, f, e in zip(statistical.tolist(), fidelity.tolist(), effects.tolist(), strict=True)]
+
+
 def _at_magnitude(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
-    """``solver._answer_at_magnitude`` at every node (one magnitude for all)."""
+    """``solver._answer_at_magnitude`` at every node (one magnitude for all), node by node in arrays."""
     magnitude, beta0 = request.magnitude, request.beta0
     if any(magnitude < m_sat - tables.BRIGHT_MARGIN_MAG for m_sat in saturation) or not nodes.held([magnitude]):
         return None  # refused (too bright) or not held: the node-by-node answer says so
     count = len(saturation)
-    slopes, errors = nodes.at([magnitude] * count)
-    if not all(math.isfinite(v) and math.isfinite(e) for v, e in zip(slopes, errors, strict=True)):
+    slopes, errors = (np.array(v) for v in nodes.at([magnitude] * count))
+    if not (np.isfinite(slopes).all() and np.isfinite(errors).all()):
         return None
     effects = _effects(model, nodes, [magnitude] * count)
     if effects is None:
         return None
     averaging = 1.0 / math.sqrt(request.stars)
-    values, totals = [], []
-    for slope, slope_err, relative in zip(slopes, errors, effects, strict=True):
-        c, c_err = abs(slope) * averaging, slope_err * averaging
-        if request.solved_for == "tolerance":
-            value = c * request.precision * beta0
-            statistical, scale = c_err * request.precision * beta0, value
-        elif c <= max(c_err, 1e-300):
-            values.append(math.inf)
-            totals.append(Uncertainty.none().total)
-            continue
-        else:
-            value = request.target_tolerance / (c * beta0)
-            statistical, scale = value * c_err / c, value
-        parts = Uncertainty(
-            statistical=statistical,
-            fidelity=None if systematic is None else scale * systematic,
-            optical_model=scale * 0.0,  # the Roman default's parts hold the optical model's vintage
-            effects=scale * relative,
-            pupil_scale=scale * 0.0,
-        )
-        values.append(value)
-        totals.append(parts.total)
-    return NodeAnswers(request.solved_for, values, totals)
+    c, c_err = np.abs(slopes) * averaging, errors * averaging
+    if request.solved_for == "tolerance":
+        values = c * request.precision * beta0
+        statistical = c_err * request.precision * beta0
+        zero = np.zeros(count, dtype=bool)
+    else:
+        zero = c <= np.maximum(c_err, 1e-300)  # a slope consistent with zero: no precision needed
+        with np.errstate(divide="ignore", invalid="ignore"):
+            values = np.where(zero, math.inf, request.target_tolerance / (c * beta0))
+            statistical = values * c_err / c
+    fidelity = None if systematic is None else values * systematic
+    totals = _totals(statistical, fidelity, values * effects)
+    return NodeAnswers(request.solved_for, values.tolist(), [None if z else u for z, u in zip(zero, totals, strict=True)])
 
 
 def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
@@ -282,22 +279,14 @@ def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, cros
     effects = _effects(model, nodes, at_root)
     if effects is None:
         return None
-    values, totals = [], []
-    for k in range(count):
-        if binds[k] or not log_derivatives.get(k):
-            values.append(saturation[k] if binds[k] else m_nl[k])
-            totals.append(Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0).total)
-            continue
-        slope, slope_err, derivative = slopes[k], errors[k], abs(log_derivatives[k])
-        if not (math.isfinite(slope) and math.isfinite(slope_err)):
-            return None
-        parts = Uncertainty(
-            statistical=(slope_err / abs(slope)) / derivative,
-            fidelity=None if systematic is None else systematic / derivative,
-            optical_model=0.0 / derivative,
-            effects=effects[k] / derivative,
-            pupil_scale=0.0 / derivative,
-        )
-        values.append(m_nl[k])
-        totals.append(parts.total)
+    derivative = np.array([abs(log_derivatives.get(k) or 0.0) for k in range(count)])
+    answered = np.array([not binds[k] and bool(log_derivatives.get(k)) for k in range(count)])
+    slopes, errors = np.array(slopes), np.array(errors)
+    if not (np.isfinite(slopes[answered]).all() and np.isfinite(errors[answered]).all()):
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        statistical = np.where(answered, (errors / np.abs(slopes)) / derivative, 0.0)
+        fidelity = None if systematic is None else np.where(answered, systematic / derivative, 0.0)
+        totals = _totals(statistical, fidelity, np.where(answered, effects / derivative, 0.0))
+    values = [saturation[k] if binds[k] else m_nl[k] for k in range(count)]
     return NodeAnswers("magnitude", values, totals)
