@@ -3,7 +3,9 @@ before anything is queued), how it runs (in the job process) and how long it is 
 
 - ``simulation``: a fresh simulation on a grid of magnitudes x betas x sigma_betas (POST /simulations);
 - ``solve``: a two-of-three solve that needs simulated slopes (POST /solve);
-- ``impact``: an impact report, every scene effect simulated with and without (POST /impact).
+- ``impact``: an impact report, every scene effect simulated with and without (POST /impact);
+- ``kernel``, ``residual``, ``requirement``: the calibration capability (POST /calibration/*,
+  ``calibration_jobs``).
 
 A job request is a JSON object: a simulation's normalised request, or ``{"kind": K, K: arguments}``
 for the others; :data:`KINDS` maps each kind to its entry. All physics is in the library; this
@@ -54,7 +56,11 @@ class LimitError(InputError):
         self.limit = limit
 
 
-def request_field(argument: str) -> str:
+def request_field(argument: str, request: dict[str, Any] | None = None) -> str:
+    """The request field a library argument names: a simulation's own names (``magnitudes``, ...); the other
+    kinds' requests use the library's names (``request``: the job request, None for a simulation's)."""
+    if request is not None and request.get("kind", SIMULATION_KIND) != SIMULATION_KIND:
+        return argument
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 
@@ -483,6 +489,16 @@ KINDS: dict[str, JobKind] = {
     SOLVE_KIND: JobKind(SOLVE_KIND, _validate_solve, _run_solve, lambda _arguments: None),
     IMPACT_KIND: JobKind(IMPACT_KIND, _validate_impact, _run_impact, lambda _arguments: None),
 }
+
+
+def _calibration_kinds() -> dict[str, JobKind]:
+    """The calibration capability's kinds (kernel, residual, requirement: ``calibration_jobs``)."""
+    from . import calibration_jobs
+
+    return calibration_jobs.kinds()
+
+
+KINDS.update(_calibration_kinds())
 
 
 def _entry(request: dict[str, Any]) -> tuple[JobKind, dict[str, Any]]:

@@ -125,7 +125,7 @@ def run_job(
         end("cancelled", "cancelled while running")
         return
     except InputError as error:
-        field = job_kinds.request_field(error.argument)
+        field = job_kinds.request_field(error.argument, request)
         end("failed", str(error), {"field": field, "message": error.reason})
         return
     except MemoryError:

@@ -19,9 +19,11 @@ import numpy as np
 from nlpsf.sim import experiment
 
 from ..checks import InputError, check_magnitude
-from .kernel import Response, nodes
+from .kernel import EFFECT_UNITS, Response, nodes
 from .response import star_response
 
+#: A progress report: (steps done, steps in all, what is being done).
+Progress = Callable[[int, int, str], None]
 #: Magnitude step of a scan (the magnitude solve refines between its points by bisection).
 SCAN_STEP_MAG = 0.25
 BISECTION_STEPS = 24
@@ -39,6 +41,24 @@ def scene_for(request) -> experiment.Scene:
     return Slopes.for_request(linear, plan(linear)).prepare()
 
 
+#: Below this fraction of the sum of its terms' sizes, a residual's effect is a cancellation to rounding: none.
+CANCELLED = 1e-9
+NO_RESPONSE = (
+    " (its effect cancels: a residual that is the same fraction of the charge everywhere, a gain error, scales the "
+    "image and the sky alike and leaves size and ellipticity unchanged)"
+)
+
+
+def response_to(response, shape: Callable, metric: str) -> tuple[float, float]:
+    """(effect, standard error) of ``shape`` on ``metric``; (0, error) where the effect is a cancellation to
+    rounding (below CANCELLED of the sum of its terms' sizes), as a gain error's is."""
+    value, error = response.integrate(shape)[metric]
+    terms = np.abs(response.weights * np.asarray(shape(response.levels), dtype=np.float64)[:, None]).sum(axis=0)
+    if abs(value) <= CANCELLED * float(terms.max()) / max(response.count, 1):
+        return 0.0, error
+    return value, error
+
+
 @dataclass(frozen=True)
 class Effect:
     """A residual's effect on one star: {metric: (value, standard error)} and what it is for."""
@@ -52,8 +72,10 @@ class Effect:
         return {
             "magnitude": self.magnitude,
             "bias": {k: {"value": v, "uncertainty": e} for k, (v, e) in self.values.items()},
+            "units": dict(EFFECT_UNITS),
             "conditions": self.conditions,
             "flags": [str(f) for f in self.flags],
+            "flag_codes": [str(getattr(f, "code", "")) for f in self.flags],
         }
 
 
@@ -107,8 +129,10 @@ def solve_scale(
     tolerance: float | None = None,
     magnitude: float | None = None,
     faint: float = 26.0,
+    progress: Progress | None = None,
 ) -> ScaleAnswer:
-    """Given two of ``scale``, ``tolerance``, ``magnitude``, the third (see the module)."""
+    """Given two of ``scale``, ``tolerance``, ``magnitude``, the third (see the module). ``progress(done, total,
+    message)`` after each star simulated (a magnitude solve's total is its scan and its bisection)."""
     given = [name for name, v in (("scale", scale), ("tolerance", tolerance), ("magnitude", magnitude)) if v is not None]
     if len(given) != 2:
         raise InputError("scale", f"give exactly two of scale, tolerance, magnitude (got {', '.join(given) or 'none'})")
@@ -117,22 +141,29 @@ def solve_scale(
     if scale is not None and not (math.isfinite(scale) and scale != 0):
         raise InputError("scale", "must be a finite, non-zero number")
 
-    def at(m: float) -> tuple[float, float]:
-        return star_response(scene, m, raw_beta).integrate(shape)[metric]
+    done = [0]
+
+    def at(m: float, total: int = 1) -> tuple[float, float]:
+        value = response_to(star_response(scene, m, raw_beta), shape, metric)
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total, f"star m = {m:.3f} simulated")
+        return value
 
     if magnitude is not None:
         magnitude = check_magnitude(magnitude)
         value, error = at(magnitude)
         if scale is None:
             if value == 0:
-                raise InputError("magnitude", "the metric does not respond to this shape at this magnitude")
+                raise InputError("shape", f"{metric} does not respond to this shape at m = {magnitude:g}{NO_RESPONSE}")
             scale = tolerance / abs(value)
             return ScaleAnswer(metric, shape_name, scale, tolerance, magnitude, value, error, "scale", [])
         return ScaleAnswer(metric, shape_name, scale, abs(scale * value), magnitude, value, error, "tolerance", [])
     # The magnitude: the brightest star whose error stays within the tolerance (scanned, then bisected).
     low = _brightest_usable(scene)
     grid = np.arange(low, faint + 1e-9, SCAN_STEP_MAG)
-    errors = np.array([abs(scale * at(float(m))[0]) for m in grid])
+    total = grid.size + BISECTION_STEPS + 1
+    errors = np.array([abs(scale * at(float(m), total)[0]) for m in grid])
     within = errors <= tolerance
     notes = []
     if within[0]:
@@ -144,12 +175,12 @@ def solve_scale(
         a, b = float(grid[last_bad]), float(grid[last_bad + 1])
         for _ in range(BISECTION_STEPS):
             middle = 0.5 * (a + b)
-            if abs(scale * at(middle)[0]) <= tolerance:
+            if abs(scale * at(middle, total)[0]) <= tolerance:
                 b = middle
             else:
                 a = middle
         m = b
-    value, error = at(m)
+    value, error = at(m, total)
     return ScaleAnswer(metric, shape_name, scale, tolerance, m, value, error, "magnitude", notes)
 
 
@@ -175,6 +206,7 @@ def envelope(
     tolerance: float,
     magnitudes: tuple[float, float],
     step: float = SCAN_STEP_MAG,
+    progress: Progress | None = None,
 ) -> dict:
     """eps(Q): the largest residual of ``shape``'s family allowed at each charge level for every star in
     ``magnitudes`` (brightest, faintest): T / max_m |I(m)| x |shape(Q)|, on the kernel's nodes up to the largest
@@ -182,14 +214,16 @@ def envelope(
     bright, faint = sorted(check_magnitude(v) for v in magnitudes)
     grid = np.arange(bright, faint + 1e-9, step)
     worst, worst_m, top = 0.0, None, 1.0
-    for m in grid:
+    for index, m in enumerate(grid):
+        if progress is not None:
+            progress(index, grid.size, f"star m = {m:.2f} of {bright:.2f}-{faint:.2f}")
         response = star_response(scene, float(m), raw_beta)
-        value = abs(response.integrate(shape)[metric][0])
+        value = abs(response_to(response, shape, metric)[0])
         top = max(top, float(response.levels.max(initial=1.0)))
         if value > worst:
             worst, worst_m = value, float(m)
     if worst == 0:
-        raise InputError("shape", "the metric does not respond to this shape over the magnitude range")
+        raise InputError("shape", f"{metric} does not respond to this shape over the magnitude range{NO_RESPONSE}")
     scale = tolerance / worst
     charge = nodes(top, ratio=1.05)
     epsilon = scale * np.abs(np.asarray(shape(charge), dtype=np.float64))

@@ -18,7 +18,7 @@ from nlpsf.sim.experiment.kernels import _perturbed_fit
 from nlpsf.sim.experiment.measure import _readout_at
 
 from .. import defaults
-from ..checks import SimulationError
+from ..checks import InputError, SimulationError
 from .kernel import Response
 
 
@@ -32,6 +32,12 @@ def star_response(scene: experiment.Scene, magnitude: float, raw_beta: float = d
     fit, reference, stamps, perturbation, _ = _perturbed_fit(scene, scale, 0.0, settings, effect)
     ok = fit.ok & reference.ok
     if not np.any(ok):
+        if flags:  # saturated, unusable pixels: a star too bright for its readout is the request's, not a fault
+            raise InputError(
+                "magnitude",
+                f"m = {magnitude:g}: the moments fail in every realization, the star is too bright for this readout "
+                f"({'; '.join(str(f) for f in flags)})",
+            )
         raise SimulationError(f"the moments failed at m={magnitude:g} in every realization")
     gradient = moments.pixel_response(stamps + perturbation, fit, settings)
     gradient[:, 0] *= (fit.sigma / reference.sigma)[:, None, None]
@@ -86,6 +92,7 @@ def star_response(scene: experiment.Scene, magnitude: float, raw_beta: float = d
         config.oversampling,
         scene.stamps.shape[-1],
         float(raw_beta),
+        None if config.scene.position is None else tuple(float(v) for v in config.scene.position),
     )
 
 

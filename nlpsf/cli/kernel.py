@@ -43,24 +43,17 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(kernel.to_dict())
         return 0
-    import numpy as np
-
-    from nlpsf.sim.ramps.correction import quadratic_residual
-
-    meta = kernel.table().meta
+    meta = kernel.meta()
     where = f"{request.band} SCA {request.sca}, m = {request.magnitude:g}"
     print(f"{where}: response kernel K(Q) on {kernel.charge_e.size} charge nodes")
     print(f"  full well (saturation threshold) {meta['full_well_e']:.6g} e- of signal = {meta['saturation_e']:.6g} e- of charge")
-    check = kernel.integrate(quadratic_residual(1.0))
-    for name in ("size", "e1", "e2", "e"):
-        value, error = check[name]
+    for name, slope in meta["quadratic_slopes"].items():
+        value, error = slope["value"], slope["uncertainty"]
         print(f"  integral K(Q) (-Q^2) dQ, {name:4s} {value:.6g} ± {error:.2g}  (the Delta_beta slope)")
-    density = kernel.density()["size"][0]
-    weight = np.abs(density) * kernel.charge_e**2
-    if weight.sum() > 0:
-        cumulative = np.cumsum(weight) / weight.sum()
-        lo, hi = kernel.charge_e[np.searchsorted(cumulative, 0.05)], kernel.charge_e[np.searchsorted(cumulative, 0.95)]
-        print(f"  90 % of the quadratic residual's size effect comes from charge levels {lo:.4g}-{hi:.4g} e-")
+    low, high = kernel.signal_range("size")
+    if high > 0:
+        share = round(100 * meta["signal_fraction"])
+        print(f"  {share} % of the quadratic residual's size effect comes from charge levels {low:.4g}-{high:.4g} e-")
     if args.output:
         print(f"  written to {args.output}")
     return 0

@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     if args.linearity or args.reference:
         if not (args.linearity and args.reference):
             raise InputError("linearity", "give both --linearity FILE and --reference FILE")
-        out = _files(args, request, scene, response, residuals)
+        out = _files(args, response, residuals)
     else:
         if args.residual and args.polynomial:
             raise InputError("residual", "give one residual: --residual FILE or --polynomial")
@@ -81,57 +81,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _files(args, request, scene, response, residuals) -> dict:
-    import numpy as np
-
-    from ..calibration.kernel import summarise
-
-    position = request.scene.position if request.scene is not None and request.scene.position else (2044.5, 2044.5)
-    window = residuals.star_window(position, scene.stamps.shape[-1], scene.config.oversampling)
+def _files(args, response, residuals) -> dict:
+    # Only the pixels around the star are read from disk (memory-mapped): those its measurement reads, and
+    # the star-free pixels of its stamp, which the sky estimate reads.
+    window = residuals.star_window(response.star_position, response.stamp, response.oversampling)
     applied = residuals.read_linearity(args.linearity, window)
     reference = residuals.read_linearity(args.reference, window)
-    if applied.coeffs.shape[0] != reference.coeffs.shape[0]:
-        n = max(applied.coeffs.shape[0], reference.coeffs.shape[0])
-        applied = residuals.PixelPolynomials(_pad(applied.coeffs, n), applied.row0, applied.col0, applied.source)
-        reference = residuals.PixelPolynomials(_pad(reference.coeffs, n), reference.row0, reference.col0, reference.source)
-    gain = residuals.DEFAULT_GAIN if args.gain is None else args.gain
-    per_pixel, common = residuals.file_residual(response, position, applied, reference, gain)
-    total = _per_realization(response, per_pixel)
-    bias = _per_realization(response, common)
-    out = {
-        "magnitude": response.magnitude,
-        "bias": {k: {"value": v, "uncertainty": e} for k, (v, e) in summarise(bias).items()},
-        "total": {k: {"value": v, "uncertainty": e} for k, (v, e) in summarise(total).items()},
-        "scatter": {
-            name: {"value": float(np.std(total[:, k] - bias[:, k], ddof=1))} for k, name in enumerate(("size", "e1", "e2"))
-        },
-        "conditions": {
-            **response.conditions,
-            "residual": f"linearity {applied.source} less reference {reference.source}, gain {gain:g} e-/DN",
-            "gain_e_per_dn": gain,
-            "gain_source": "given" if args.gain is not None else "romanisim 0.15.0 reference gain (no per-SCA gain is published)",
-            "window_science_pixels": {"rows": [window[0], window[1]], "columns": [window[2], window[3]]},
-        },
-        "flags": [str(f) for f in response.flags],
-    }
-    return out
-
-
-def _pad(coeffs, n):
-    import numpy as np
-
-    out = np.zeros((n, *coeffs.shape[1:]))
-    out[: coeffs.shape[0]] = coeffs
-    return out
-
-
-def _per_realization(response, values):
-    import numpy as np
-
-    out = np.zeros((response.count, 3))
-    for k in range(3):
-        out[:, k] = np.bincount(response.owner, weights=response.weights[:, k] * values, minlength=response.count)
-    return out
+    return residuals.pixel_effect(response, applied, reference, args.gain)
 
 
 def _print_envelope(out: dict) -> None:

@@ -58,6 +58,26 @@ def test_the_quadratic_residual_through_the_kernel_is_the_solvers_slope(point):
         assert integral == pytest.approx(answer.slope, rel=0.01), metric
 
 
+def test_a_gain_error_changes_nothing_and_the_fractional_bins_hold_the_kernel(h158):
+    """A residual that is the same fraction of the charge everywhere (r = s Q, a gain error) scales the image
+    and the sky estimate alike: the moments' size and ellipticity are scale-free, so it changes nothing (the
+    sum over the star's samples cancels to rounding). The kernel's fractional bins hold exactly that sum by
+    parts: they add up to zero, and with r = Q^2 weights they give the quadratic slope."""
+    _, scene = h158
+    response = star_response(scene, 19.0)
+    gain = response.integrate(lambda q: 1e-3 * q)
+    scale = np.abs(response.weights).sum(axis=0).max() * 1e-3 * response.levels.max()
+    for metric in ("size", "e1", "e2"):
+        assert abs(gain[metric][0]) < 1e-12 * scale, metric
+    kernel = response.kernel()
+    bins = kernel.fractional_bins()
+    assert bins["edges_e"].size == bins["size"].size + 1
+    assert np.all(np.diff(np.log10(bins["edges_e"])) == pytest.approx(0.1))
+    for metric in ("size", "e1", "e2"):
+        assert abs(bins[metric].sum()) < 1e-12 * np.abs(bins[metric]).sum(), metric
+        assert np.abs(bins[metric]).max() > 0
+
+
 @pytest.fixture(scope="module")
 def h158():
     settings = tablebuild.TableSettings.roman(realizations=3, stamp=48)
@@ -103,45 +123,113 @@ def _inverse_dn(beta_e: float, gain: float, order: int, shape) -> np.ndarray:
     return c
 
 
-def test_two_files_differing_in_one_coefficient_match_a_read_by_read_simulation(h158, tmp_path):
-    pytest.importorskip("roman_datamodels")
-    import sys
-    from pathlib import Path
+def _oracle():
+    from .test_residual_correction import _metrics, _optimal_weights, stcal_correct
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_residual_correction import _metrics, _optimal_weights, stcal_correct
+    return _metrics, _optimal_weights, stcal_correct
 
+
+def _truth(h158, magnitude, applied, reference, gain, measured=None):
+    """Per realization, (Delta R / R, Delta e1, Delta e2) of ``applied`` against ``reference`` (per-pixel
+    polynomials over the 48 x 48 cut-out, in DN), read by read: each polynomial applied with stcal to every
+    resultant of every pixel, the optimal fit built read by read, the sky removed (a star-free pixel with
+    the mean polynomial of the cut-out's pixels outside ``measured``, the science pixels the moments read),
+    the moments fitted."""
+    _metrics, _optimal_weights, stcal_correct = _oracle()
     config, scene = h158
-    gain, order = 2.0, 12
-    shape = (48, 48)
-    reference = _inverse_dn(5e-7, gain, order, shape)
-    applied = reference.copy()
-    row, col = 16, 21  # one pixel under the star (science pixel row 17, column 22)
-    applied[2, row, col] *= 1.02  # its quadratic coefficient 2 % larger
-    applied[3] *= 0.97  # and every pixel's cubic term 3 % smaller
-    ref_path = _linearity_file(tmp_path / "reference.asdf", reference)
-    lin_path = _linearity_file(tmp_path / "linearity.asdf", applied)
-    magnitude = 18.5
-    response = star_response(scene, magnitude)
-    position = config.scene.position
-    window = residuals.star_window(position, scene.stamps.shape[-1], config.oversampling)
-    per_pixel, _ = residuals.file_residual(
-        response, position, residuals.read_linearity(lin_path, window), residuals.read_linearity(ref_path, window), gain
-    )
-    ours = np.zeros((response.count, 3))
-    for k in range(3):
-        ours[:, k] = np.bincount(response.owner, weights=response.weights[:, k] * per_pixel, minlength=response.count)
-    # Read by read: each file's polynomial (per pixel) applied with stcal to every resultant, fitted, the sky removed.
-    brute = _brute(scene, magnitude, position, applied, reference, gain, stcal_correct, _optimal_weights)
+    brute = _brute(scene, magnitude, config.scene.position, applied, reference, gain, stcal_correct, _optimal_weights, measured)
     reference_fit = moments.fit(
         float(config.electrons(magnitude)) * config.oversampling**2 * scene.stamps, config.moment_settings
     )
-    truth = _metrics(brute[0], reference_fit, config.moment_settings) - _metrics(brute[1], reference_fit, config.moment_settings)
+    settings = config.moment_settings
+    return (_metrics(brute[0], reference_fit, settings) - _metrics(brute[1], reference_fit, settings)).T
+
+
+def _close(ours, truth, rtol=0.01):
     for k in range(3):
-        assert np.allclose(ours[:, k], truth[k], rtol=0.01, atol=1e-3 * np.max(np.abs(truth[k]))), k
+        assert np.allclose(ours[:, k], truth[:, k], rtol=rtol, atol=1e-3 * np.max(np.abs(truth[:, k]))), k
 
 
-def _brute(scene, magnitude, position, applied, reference, gain, stcal_correct, optimal_weights):
+#: Two pairs of files differing in one coefficient at a random pixel near the star (drawn inside the test from
+#: these seeds: the pixel within 2 of the star's, which coefficient -- linear, quadratic or cubic -- and by how
+#: much, 1 to 3 % up or down), and one pair whose cubic differs on every pixel besides.
+FILE_CASES = [("one coefficient", int(rng.integers(2**31))) for _ in range(2)] + [("and every pixel's cubic", 29)]
+
+
+@pytest.mark.parametrize("case, seed", FILE_CASES)
+def test_two_files_differing_in_one_coefficient_match_a_read_by_read_simulation(h158, tmp_path, case, seed):
+    pytest.importorskip("roman_datamodels")
+    _, scene = h158
+    draw = np.random.default_rng(seed)
+    gain, order, magnitude = 2.0, 12, 18.5
+    response = star_response(scene, magnitude)
+    r0, r1, c0, c1 = residuals.measured_window(response)
+    assert (r1 - r0, c1 - c0) == (8, 8)  # the moments' weight reaches 4 pixels from the star's (H158)
+    reference = _inverse_dn(5e-7, gain, order, (48, 48))
+    applied = reference.copy()
+    # near the star: within 2 pixels of its own (the moments' weight is small at the window's edge)
+    x, y = (round(v) for v in response.star_position)
+    row, col = y + int(draw.integers(-2, 3)), x + int(draw.integers(-2, 3))  # science pixels (1-based)
+    k = int(draw.integers(1, 4))
+    factor = 1 + draw.choice([-1, 1]) * draw.uniform(0.01, 0.03)
+    applied[k, row - 1, col - 1] *= factor  # the cut-out's first pixel is science pixel 1
+    if case != "one coefficient":
+        applied[3] *= 0.97
+    lin_path = _linearity_file(tmp_path / "linearity.asdf", applied)
+    ref_path = _linearity_file(tmp_path / "reference.asdf", reference)
+    # As nlpsf residual reads them: the pixels of the star's stamp (the measured ones and, around them, the
+    # star-free pixels the sky estimate reads).
+    window = residuals.star_window(response.star_position, response.stamp, response.oversampling)
+    files = residuals.read_linearity(lin_path, window), residuals.read_linearity(ref_path, window)
+    effect = residuals.pixel_effect(response, *files, gain)
+    assert effect["conditions"]["sky_pixels"] > 0
+    per_pixel, _ = residuals.file_residual(response, *files, gain)
+    ours = response.per_realization(lambda _levels: per_pixel)
+    for j, name in enumerate(("size", "e1", "e2")):
+        assert effect["total"][name]["value"] == pytest.approx(ours[:, j].mean(), rel=1e-12)
+    # the same polynomials given inline (as the service takes them) give the same answer
+    w0, w1, v0, v1 = window
+    inline = residuals.pixel_effect(
+        response,
+        *(
+            residuals.PixelPolynomials.inline(c.astype(np.float32)[:, w0 - 1 : w1, v0 - 1 : v1], w0, v0, name)
+            for c, name in ((applied, "applied"), (reference, "reference"))
+        ),
+        gain,
+    )
+    assert inline["total"] == effect["total"] and inline["bias"] == effect["bias"]
+    truth = _truth(h158, magnitude, applied.astype(np.float32), reference.astype(np.float32), gain, (r0, r1, c0, c1))
+    assert np.max(np.abs(truth)) > 0
+    _close(ours, truth)
+
+
+def test_a_higher_order_polynomial_residual_matches_a_read_by_read_simulation(h158):
+    """A residual r(Q) = a2 Q^2 + ... + a5 Q^5 of random coefficients (each term up to 0.03 % of the charge at
+    3e4 e-, which the star's brightest resultants pass: the linear regime), through the kernel's samples,
+    against the read-by-read simulation that corrects every resultant with the polynomial L + r(L) (the
+    detector's inverse series and the residual, stcal): measured 1.5e-4."""
+    from .test_residual_correction import inverse_series, residual_correction
+
+    _, scene = h158
+    draw = np.random.default_rng(int(rng.integers(2**31)))
+    pivot = 3e4
+    a = np.zeros(6)
+    for k in range(2, 6):
+        a[k] = draw.choice([-1, 1]) * draw.uniform(0.05, 0.3) * 1e-3 * pivot / pivot**k
+    magnitude = 18.5
+    response = star_response(scene, magnitude)
+    ours = response.per_realization(residuals.from_polynomial(a))
+    assert response.levels.max() > pivot  # the star's resultants reach where every term is large
+    shape = (17, 48, 48)
+    applied = np.broadcast_to(residual_correction(5e-7, a)[:, None, None], shape)
+    reference = np.broadcast_to(inverse_series(5e-7)[:, None, None], shape)
+    truth = _truth(h158, magnitude, applied, reference, 1.0, residuals.measured_window(response))
+    _close(ours, truth)
+    # and the summary's mean is the realizations' mean
+    assert response.integrate(residuals.from_polynomial(a))["size"][0] == pytest.approx(ours[:, 0].mean(), rel=1e-12)
+
+
+def _brute(scene, magnitude, position, applied, reference, gain, stcal_correct, optimal_weights, measured):
     from nlpsf.sim import ramps
     from nlpsf.sim import scene as scenes
 
@@ -179,7 +267,9 @@ def _brute(scene, magnitude, position, applied, reference, gain, stcal_correct, 
     images = []
     for coeffs in (applied, reference):
         image = pipeline(charge, coeffs, grid_r, grid_c)
-        mean = coeffs.mean(axis=(1, 2))[:, None, None]
+        star_free = np.ones(coeffs.shape[1:], dtype=bool)
+        star_free[measured[0] - 1 : measured[1], measured[2] - 1 : measured[3]] = False
+        mean = coeffs[:, star_free].mean(axis=1)[:, None, None]
         sky = pipeline(np.full((1, 3 * n, 3 * n), model.background_e), np.broadcast_to(mean, (mean.shape[0], 1, 1)), 0, 0)
         images.append(image - sky[0, 3 * n // 2, 3 * n // 2])
     return images

@@ -77,6 +77,14 @@ def answered(body: dict) -> dict:
     return without_added_flags(json.loads(json.dumps(out)))  # as stored: tuples as lists
 
 
+def refusal_by_field(out: dict) -> dict:
+    """A refusal compared by the field at fault: its English reason may be reworded (the flag
+    catalogue's rule), and a reworded reason is no change of answer."""
+    if "error" in out:
+        return {"error": {"argument": out["error"]["argument"]}}
+    return out
+
+
 def _is_paper(body: dict) -> bool:
     scene = body.get("scene")
     return scene == "paper" or (isinstance(scene, dict) and scene.get("preset") == "paper")
@@ -92,7 +100,7 @@ def test_stored_answers_are_answered_again_alike(kind):
     failures = []
     for entry in entries:
         rtol = 0.0 if _is_paper(entry["body"]) else DEFAULT_RTOL
-        found = differences(entry["answer"], answered(entry["body"]), rtol)
+        found = differences(refusal_by_field(entry["answer"]), refusal_by_field(answered(entry["body"])), rtol)
         if found:
             failures.append(f"{entry['body']}: {found[:3]}")
     assert not failures, f"{len(failures)} of {len(entries)} differ; first: {failures[:3]}"
