@@ -13,7 +13,6 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from nlpsf import defaults, roman
-from nlpsf.request import presets as roman_default
 from nlpsf.request import shear
 from nlpsf.request.resolve import MAX_STARS
 from nlpsf.sim import detector, ramps
@@ -208,9 +207,9 @@ class RampFields(BaseModel):
         description=f"MultiAccum table (no unit): a shipped name ({', '.join(SHIPPED_MA_TABLES)}) or the table itself "
         "(never a file on the server); without an exptime the exposure is the table's last read",
     )
-    ramp_fit: RampFit = Field(
-        "ols",
-        description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting); not given: the scene's (the "
+    ramp_fit: RampFit | None = Field(
+        None,
+        description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting); null: the scene's (the "
         "Roman default: optimal, romancal's likelihood fit, on its HLWAS table unless a ramp or MA table is given; the "
         "paper's: ols)",
     )
@@ -253,11 +252,10 @@ class SolveRequest(RampFields):
     beta0: float = _within(
         defaults.BETA0_RANGE, "NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)", _SOLVE_DEFAULTS["beta0"]
     )
-    exptime: float = _within(
+    exptime: float | None = _within(
         defaults.EXPTIME_RANGE_S,
-        "exposure time in s; not given: the scene's (the Roman default's HLWAS table's last read, 139.149 s; the "
-        "paper's 168.1 s)",
-        roman_default.exptime_s(),
+        "exposure time in s; null: the scene's (the Roman default's HLWAS table's last read, 139.149 s; the "
+        "paper's 168.1 s; an MA table's last read)",
     )
     precision: float | None = _within(
         defaults.PRECISION_RANGE,
@@ -631,11 +629,10 @@ class SimulationRequest(RampFields):
     beta_convention: BetaConvention = Field(
         "paper", description="sign convention (no unit); paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2"
     )
-    exptime: float = _within(
+    exptime: float | None = _within(
         defaults.EXPTIME_RANGE_S,
-        "exposure time in s; not given: the scene's readout's (the Roman default's HLWAS table's last read, "
+        "exposure time in s; null: the scene's readout's (the Roman default's HLWAS table's last read, "
         "139.149 s; the paper's 168.1 s final frame; an MA table's last read)",
-        roman_default.exptime_s(),
     )
     full_well: float = _within(defaults.FULL_WELL_RANGE_E, "full-well depth in e-", defaults.FULL_WELL_E)
     fidelity: SimulationFidelity = Field(

@@ -42,23 +42,14 @@ def add_throughput(parser: argparse.ArgumentParser) -> None:
     )
 
 
-class _StoreGiven(argparse.Action):
-    """Store the value and note that the user gave it (an MA table's exposure is otherwise its own)."""
-
-    def __call__(self, parser, namespace, values, option_string=None) -> None:
-        setattr(namespace, self.dest, values)
-        setattr(namespace, f"{self.dest}_given", True)
-
-
 def add_exposure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--exptime",
         type=float,
-        default=defaults.EXPTIME_S,
-        action=_StoreGiven,
-        help="exposure time [s]; with --ma-table and no --exptime, the table's last read",
+        default=None,
+        help="exposure time [s]; default: the scene's readout's (the Roman default: its HLWAS table's last read, "
+        "139.149 s; the paper's: 168.1 s; with --ma-table, the table's last read)",
     )
-    parser.set_defaults(exptime_given=False)
     parser.add_argument("--full-well", type=float, default=defaults.FULL_WELL_E, help="full-well depth [e-]")
     add_ramp_options(parser)
 
@@ -119,7 +110,7 @@ def ramp_from(args: argparse.Namespace, default_fit: str = "ols"):
         args.ma_table,
         args.ramp_fit or default_fit,
         args.read_noise,
-        args.exptime if args.exptime_given else None,
+        args.exptime,
         sca=sca if isinstance(sca, int) else defaults.SCA,  # the official read noise of this SCA unless given
         **{k: v for k, v in rules.items() if v is not None},
     )
@@ -278,7 +269,7 @@ def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
         ramp, exptime = ramp_from(args, roman_default.RAMP_FIT)
         sca = args.sca if isinstance(args.sca, int) else defaults.SCA
         filled = roman_default.fill(
-            preset, args.band, sca, exptime if ramp is not None or args.exptime_given else None, ramp, None, None
+            preset, args.band, sca, exptime if ramp is not None or args.exptime is not None else None, ramp, None, None
         )
         ramp, exptime = filled.ramp, filled.exptime
         scene = scene_from(argparse.Namespace(**{**settings, "scene": roman_default.scene(None, filled.background_e)}))[0]

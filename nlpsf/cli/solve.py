@@ -162,7 +162,7 @@ def _readout(args: argparse.Namespace, preset: str):
     from nlpsf.request.presets import NAME, RAMP_FIT
 
     ramp, exptime = ramp_from(args, RAMP_FIT if preset == NAME else "ols")
-    return ramp, (exptime if ramp is not None or args.exptime_given else None)
+    return ramp, (exptime if ramp is not None or args.exptime is not None else None)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -218,3 +218,50 @@ def load_scene(name_or_path: str) -> scenes.SceneModel:
 def is_default_scene(model, background_e: float) -> bool:
     """Whether ``model`` is the Roman default's scene (any position) with this background."""
     return model is not None and replace(model, position=None) == scene(None, background_e)
+
+
+def fill_simulation(payload: dict, given: set[str], build_ramp=None) -> dict:
+    """A simulation request (the service's ``POST /simulations`` body, JSON-shaped) with what it
+    leaves unset filled as the CLI's ``simulate`` fills it: without a scene (or with preset "roman")
+    the Roman default -- its scene at the request's position (the SCA centre otherwise), the HLWAS
+    readout with the likelihood fit and its exposure unless a ramp, MA table or exptime is given,
+    the official pupil scale, and its sky over that exposure unless ``scene.background`` is given.
+    ``scene`` "paper" (or "galsim-roman"): the paper's final frame of 168.1 s, the OLS fit and the
+    tables' pupil scale. The filled request names every value, so its hash says which scene was
+    simulated. ``given``: the fields the client sent; ``build_ramp(reads, ma_table, fit, read_noise,
+    exptime, sca)`` -> (ramp, exptime): ``ramps.build`` without files (the service passes its own,
+    which reads a shipped table's name only from the package)."""
+    from nlpsf import defaults
+    from nlpsf.sim import ramps
+
+    if build_ramp is None:
+
+        def build_ramp(reads, ma_table, fit, read_noise, exptime, sca):
+            return ramps.build(reads, ma_table, fit, read_noise, exptime, allow_files=False, sca=sca)
+
+    payload = dict(payload)
+    scene = payload.get("scene")
+    scene = {"preset": scene} if isinstance(scene, str) else dict(scene or {})
+    preset = scene.get("preset") or NAME
+    if "exptime" not in given:
+        payload["exptime"] = None  # the readout's last read (an MA table's), else the paper's 168.1 s
+    if preset != NAME:
+        # The paper's scene named alone is the request without a scene: the same hash as before.
+        alone = all(v is None for k, v in scene.items() if k not in ("preset", "sed_units"))
+        payload["scene"] = None if preset == "paper" and alone else scene
+        payload["pupil_scale"] = payload.get("pupil_scale") or defaults.PUPIL_SCALE
+        payload["ramp_fit"] = payload.get("ramp_fit") or "ols"
+        return payload
+    if payload.get("ramp") is None and payload.get("ma_table") is None:
+        payload["ma_table"] = ramps.load_ma_table(MA_TABLE).name
+    payload["ramp_fit"] = payload.get("ramp_fit") or RAMP_FIT
+    payload["pupil_scale"] = payload.get("pupil_scale") or PUPIL_SCALE
+    if scene.get("background") is None:
+        _, exptime = build_ramp(
+            payload.get("ramp"), payload.get("ma_table"), payload["ramp_fit"], payload.get("read_noise"),
+            payload["exptime"], payload["sca"],
+        )  # fmt: skip
+        band = str(payload["band"]).upper()
+        scene["background"] = backgrounds.background_electrons(BACKGROUND, band, payload["sca"], exptime)
+    payload["scene"] = {**scene, "preset": NAME}
+    return payload
