@@ -41,27 +41,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
     parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
     parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
-    parser.add_argument(
-        "--shear-m",
-        type=float,
-        help="multiplicative shear-bias budget |m| (size metric); with --size-ratio, takes the place of --tolerance",
-    )
-    parser.add_argument(
-        "--shear-c",
-        type=float,
-        help="additive shear-bias budget |c| (e1, e2, e metrics); with --size-ratio, takes the place of --tolerance",
-    )
-    parser.add_argument(
-        "--size-ratio",
-        help="R_gal/R_psf, intrinsic galaxy over PSF, R = det(M)^(1/4): a number, 'ratio:weight,...' or @FILE "
-        "(lines 'ratio [weight]'); alone it reports the shear bias the tolerance implies",
-    )
-    parser.add_argument(
-        "--stars",
-        type=int,
-        default=1,
-        help="scatter mode: the PSF model averages this many stars/dithers on independent pixels (sigma / sqrt(n))",
-    )
+    _add_budget_options(parser)
     parser.add_argument("--fidelity", choices=LEVELS, default=None, help="how the slope is obtained (default table)")
     parser.add_argument(
         "--accuracy",
@@ -108,6 +88,31 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="FILE.csv",
         help="solve every row of a CSV (header: any of " + ", ".join(BATCH_COLUMNS) + "; empty cells take the options' "
         "values); prints one CSV row per input row (or, with --json, a JSON list), each answered or failed on its own",
+    )
+
+
+def _add_budget_options(parser: argparse.ArgumentParser) -> None:
+    """The shear budgets that stand in for the tolerance, and the stars a scatter answer averages."""
+    parser.add_argument(
+        "--shear-m",
+        type=float,
+        help="multiplicative shear-bias budget |m| (size metric); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--shear-c",
+        type=float,
+        help="additive shear-bias budget |c| (e1, e2, e metrics); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--size-ratio",
+        help="R_gal/R_psf, intrinsic galaxy over PSF, R = det(M)^(1/4): a number, 'ratio:weight,...' or @FILE "
+        "(lines 'ratio [weight]'); alone it reports the shear bias the tolerance implies",
+    )
+    parser.add_argument(
+        "--stars",
+        type=int,
+        default=1,
+        help="scatter mode: the PSF model averages this many stars/dithers on independent pixels (sigma / sqrt(n))",
     )
 
 

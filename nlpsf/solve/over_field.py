@@ -71,20 +71,7 @@ def worst_over_field(
     if base is not None and base.position is not None:
         raise InputError("position", "give a position or ask for the worst over the field, not both")
     answers = []
-    if default:
-        # The Roman default: the nodes of each SCA's field grid (read from the shipped grid where it
-        # holds them, else simulated by the solver, which says so); the default's sky per SCA.
-        points = []
-        for sca in chosen:
-            for position in range_positions(_Where(band, sca)):
-                points.append((sca, position))
-    else:
-        # Each corner's own table is found by ``solve`` from the position (``providers.PaperTables``).
-        corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
-        if corners is None and request.get("fidelity") in (None, "table"):
-            # Without field-point tables (or with a scene they do not hold) every point is simulated.
-            request["fidelity"] = "linear"
-        points = [(s, p) for s in chosen for p in field_points(s)]
+    points = _points_over_field(band, chosen, default, base, request)
     for index, (sca, position) in enumerate(points):
         if progress:
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
@@ -119,6 +106,20 @@ def worst_over_field(
         high=max(finite),
     )
     return replace(worst, flags=[flag, *worst.flags], conditions=conditions)
+
+
+def _points_over_field(band: str, chosen: list[int], default: bool, base, request: dict) -> list[tuple[int, tuple]]:
+    """(SCA, position) of every point :func:`worst_over_field` answers: the Roman default's field-grid
+    nodes (read from the shipped grid where it holds them, else simulated by the solver, which says
+    so), another scene's centre and four corners (each corner's own table is found by ``solve`` from
+    the position: ``providers.PaperTables``; without field-point tables, or with a scene they do not
+    hold, every point is simulated: ``request["fidelity"]`` becomes "linear")."""
+    if default:
+        return [(sca, position) for sca in chosen for position in range_positions(_Where(band, sca))]
+    corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
+    if corners is None and request.get("fidelity") in (None, "table"):
+        request["fidelity"] = "linear"
+    return [(s, p) for s in chosen for p in field_points(s)]
 
 
 def own_conditions(scene, request: dict, band: str, filled_for: int, sca: int) -> tuple[object, dict]:
