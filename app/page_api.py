@@ -89,8 +89,12 @@ def slopes(body: models.SolveRequest, at: At = None) -> SafeJSONResponse:
     solver reads it for that request."""
     why = _no_curve(body)
     out = []
+    # Slopes need no tolerance: every band's request asks for its tolerance at precision 1 (whatever
+    # two of three the calculator's form holds), at the answer's magnitude where one is given.
+    asked = {"precision": 1.0, "tolerance": None, "shear_m": None, "shear_c": None, "size_ratio": None}
+    asked["magnitude"] = (at or [body.magnitude or 20.0])[0]
     for band in tables.load_tables().bands:
-        banded = body.model_copy(update={"band": band})
+        banded = body.model_copy(update={"band": band, **asked})
         request = _request(banded)
         curve = requirement_curves.curves(request, at=at or (), step=SLOPES_STEP_MAG, refuse=why).to_dict()
         out.append(

@@ -1340,6 +1340,12 @@ function setStale(reason) {
   state.current = Boolean(state.lastSolution) && !reason;
   box.classList.toggle("stale", stale);
   top.classList.toggle("stale", Boolean(reason));
+  const mark = top.querySelector(".stale-mark");
+  if (reason && state.lastSolution && !mark) {
+    top.insertAdjacentHTML("afterbegin", '<strong class="stale-mark">Out of date (an earlier question\'s): </strong>');
+  } else if (!reason && mark) {
+    mark.remove();
+  }
   let note = box.querySelector(".stale-note");
   if (stale) {
     if (!note) {
@@ -1982,7 +1988,7 @@ async function drawSlopes() {
   document.getElementById("curves-scene-text").textContent = `The slopes of every band are for the ${state.lastRequest ? "answer's" : "calculator's"} ` +
     `question: ${words}.`;
   document.getElementById("slopes-caption").textContent =
-    `${title.split("\n").slice(1).join(". ")}. Lines: each band with its own dash and its name at the faint end, from the brightest ` +
+    `Scene: ${title.split("\n").slice(1).join(". ")}. Lines: each band with its own dash and its name at the faint end, from the brightest ` +
     `magnitude the calculator answers; legend values at m = ${fmt(at)}${state.lastSolution ? " (the answer's magnitude)" : ""}. ` +
     "Points: the paper (Cycle-5 optics, its idealised scene), when shown." + (paper && metric === "e" ? " The paper has no |Δe| data." : "") +
     (missing.length ? ` No curve at table cost for ${missing.join(", ")}: ${plainWords(data.curves.find((c) => c.needs_simulation).needs_simulation)}.` : "");

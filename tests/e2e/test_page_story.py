@@ -143,7 +143,10 @@ def test_an_edit_greys_the_answer_and_pin_and_downloads_wait_for_a_new_one(page)
     note = page.inner_text("[data-testid=stale-note]")
     assert "m = 18.3" in note and "T = 1e-4" in note and "changed" in note
     assert page.is_disabled("#pin-answer") and page.is_disabled("#download-json") and page.is_disabled("#download-ecsv")
-    assert "stale" in page.get_attribute("#top-answer", "class")
+    assert "stale" in page.get_attribute("#top-answer", "class") and "Out of date" in page.inner_text("#top-answer")
+    axe = pytest.importorskip("axe_playwright_python.sync_playwright")
+    results = axe.Axe().run(page)
+    assert results.violations_count == 0, results.generate_report()
     page.fill("#solve-magnitude", "18.3")  # back to the question answered: current again
     page.wait_for_selector("[data-testid=stale-note]", state="detached")
     assert not page.is_disabled("#pin-answer")
