@@ -147,6 +147,81 @@ def conditions() -> list[dict]:
 PRESETS: tuple[str, ...] = (NAME, "paper", "galsim-roman")
 
 
+@dataclass(frozen=True)
+class Policy:
+    """What a preset means for an answer, as data: the solver, the slope providers and the answer's
+    conditions ask these, never the preset's name."""
+
+    name: str
+    #: Answered from the Roman default's shipped field grid where it covers the request.
+    field_grid: bool
+    #: Without a position, the answer is the SCA's range over its field grid's nodes.
+    ranges_over_sca: bool
+    #: The shipped measurements (fidelity errors, model parts) its answers read: "roman" or "paper".
+    measured_as: str
+    #: Its answers keep the paper tables' own saturation limits whatever they simulate (bit for bit).
+    tables_limits: bool
+    #: Its answers quote the Roman default's values (``conditions``).
+    quotes_default: bool
+    #: The ramp fit of a readout the request gives without a fit.
+    ramp_fit: str
+    #: Its scene holds a sky over the exposure (filled where the request changes the scene but not its sky).
+    sky: bool
+    #: The detector state its slopes are taken at unless a request says.
+    linearise_at: str
+
+
+#: Each preset's policy (:data:`PRESETS`).
+POLICIES: dict[str, Policy] = {
+    NAME: Policy(NAME, field_grid=True, ranges_over_sca=True, measured_as="roman", tables_limits=False,
+                 quotes_default=True, ramp_fit=RAMP_FIT, sky=True, linearise_at=LINEARISE_AT),
+    "paper": Policy("paper", field_grid=False, ranges_over_sca=False, measured_as="paper", tables_limits=True,
+                    quotes_default=False, ramp_fit="ols", sky=False, linearise_at="beta0"),
+    "galsim-roman": Policy("galsim-roman", field_grid=False, ranges_over_sca=False, measured_as="paper",
+                           tables_limits=False, quotes_default=False, ramp_fit="ols", sky=False, linearise_at="beta0"),
+}  # fmt: skip
+
+
+def policy(name: str) -> Policy:
+    """The policy of a preset by name (:data:`POLICIES`)."""
+    return POLICIES[check_preset(name)]
+
+
+def preset_of(scene, preset: str | None = None) -> str:
+    """The preset a request builds on: the one named, else the scene's own name where it is a preset,
+    else the Roman default."""
+    if preset is None:
+        name = getattr(scene, "name", None)
+        preset = name if name in PRESETS else NAME
+    return check_preset(preset)
+
+
+def named(text: str | None) -> str | None:
+    """The preset a scene option names (``--scene roman``), None where it names none (a file, or nothing)."""
+    if not isinstance(text, str):
+        return None
+    lowered = text.strip().lower()
+    return lowered if lowered in PRESETS else None
+
+
+#: The preset a scene read from a file builds on: its readout and state are the paper's.
+FILE_PRESET = "paper"
+
+
+def sky_base(preset: str, band: str, sca: int, exptime: float | None = None, ramp=None):
+    """A preset's scene without a position, with its sky over the exposure where it has one
+    (:attr:`Policy.sky`): the base the options a user gives change."""
+    if not policy(preset).sky:
+        return preset_base(preset)
+    filled = fill(preset, band, sca, exptime, ramp, None, None)
+    return replace(preset_base(preset), background_e=float(filled.background_e))
+
+
+def default_fill(band: str, sca: int, exptime: float | None = None, ramp=None) -> Filled:
+    """:func:`fill` of the Roman default (its readout, exposure and sky at ``band`` and ``sca``)."""
+    return fill(NAME, band, sca, exptime, ramp, None, None)
+
+
 def check_preset(name: str) -> str:
     from nlpsf.checks import InputError
 

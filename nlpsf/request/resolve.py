@@ -161,7 +161,7 @@ class SolveRequest:
             )
         elif scene is None and preset == "galsim-roman":
             scene = roman_default.preset_scene(preset)
-        elif preset == "paper" and scene is not None and scene.is_paper:
+        elif preset == "paper" and scene is not None and scene.no_effects:
             scene = None  # the paper's scene is the solver's plain path (today's answers, bit for bit)
         self._set("preset", preset)
         self._set("scene", scene)
@@ -224,6 +224,13 @@ class SolveRequest:
             self._set("tolerance", check_number(self.tolerance, "tolerance", *defaults.TOLERANCE_RANGE))
         if self.magnitude is not None:
             self._set("magnitude", check_magnitude(self.magnitude))
+
+    @property
+    def policy(self):
+        """What the request's preset means for its answer (``presets.Policy``)."""
+        from . import presets
+
+        return presets.POLICIES[self.preset]
 
     @property
     def target_tolerance(self) -> float | None:

@@ -282,7 +282,7 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
     from nlpsf import defaults
     from nlpsf.request import presets as roman_default
 
-    measured = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
+    measured = roman_default.default_fill(request.band, request.sca)
     out = []
     if not math.isclose(request.exptime, measured.exptime, rel_tol=1e-9):
         out.append(f"exposure {request.exptime:g} s (measured at {measured.exptime:g} s)")

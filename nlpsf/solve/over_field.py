@@ -33,7 +33,7 @@ def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: fl
     """Whether ``solve_over_field`` answers such a request from the tables alone (milliseconds, no
     simulation): the paper's scene, the table level, no accuracy to measure, no ramp, and the
     field-point tables installed."""
-    plain = (scene is None or scene.is_paper) and ramp is None and accuracy is None
+    plain = (scene is None or scene.no_effects) and ramp is None and accuracy is None
     return plain and fidelity in (None, "table") and field_tables() is not None
 
 
@@ -62,11 +62,8 @@ def worst_over_field(
     preset = request.get("preset") or (scene if isinstance(scene, str) else None)
     if isinstance(scene, str):
         scene = None
-    if preset is None:
-        name = getattr(scene, "name", None)
-        preset = name if name in roman_default.PRESETS else roman_default.NAME
-    request["preset"] = roman_default.check_preset(preset)
-    default = request["preset"] == roman_default.NAME
+    request["preset"] = preset = roman_default.preset_of(scene, preset)
+    default = roman_default.policy(preset).field_grid
     base = scene if scene is not None else (roman_default.preset_scene(preset) or scenes.SceneModel())
     if base is not None and base.position is not None:
         raise InputError("position", "give a position or ask for the worst over the field, not both")
@@ -116,7 +113,7 @@ def _points_over_field(band: str, chosen: list[int], default: bool, base, reques
     hold, every point is simulated: ``request["fidelity"]`` becomes "linear")."""
     if default:
         return [(sca, position) for sca in chosen for position in range_positions(_Where(band, sca))]
-    corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
+    corners = field_tables() if base.no_effects and request.get("tables_set") is None else None
     if corners is None and request.get("fidelity") in (None, "table"):
         request["fidelity"] = "linear"
     return [(s, p) for s in chosen for p in field_points(s)]
@@ -132,8 +129,8 @@ def own_conditions(scene, request: dict, band: str, filled_for: int, sca: int) -
     from nlpsf.sim import ramps
 
     exptime, ramp = request.get("exptime"), request.get("ramp")
-    there = roman_default.fill(roman_default.NAME, band, filled_for, exptime, ramp, None, None)
-    here = roman_default.fill(roman_default.NAME, band, sca, exptime, ramp, None, None)
+    there = roman_default.default_fill(band, filled_for, exptime, ramp)
+    here = roman_default.default_fill(band, sca, exptime, ramp)
     if scene is not None and math.isclose(scene.background_e, there.background_e, rel_tol=1e-12, abs_tol=0.0):
         scene = replace(scene, background_e=here.background_e)
     if ramp is not None:

@@ -63,7 +63,6 @@ from functools import partial
 from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.flags import Flag, FlagCode, make
-from nlpsf.request import presets as roman_default
 from nlpsf.request import shear
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.sim import ramps
@@ -205,7 +204,7 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simul
         selection = select(request, float(point), tables_set)
         chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
         realizations = selection.realizations
-    elif request.scene is not None and not request.scene.is_paper:
+    elif request.scene is not None and not request.scene.no_effects:
         simulated_scene = request.scene
     tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
     coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
@@ -231,7 +230,7 @@ def _cover(request: SolveRequest, fidelity: str, scene, tableset) -> tuple[provi
     """The first provider that covers the request, and the refusals of those before it: the field
     grid (the Roman default's preset only), the paper tables, the simulator."""
     refusals = []
-    candidates = [providers.FieldGrid()] if request.preset == roman_default.NAME else []
+    candidates = [providers.FieldGrid()] if request.policy.field_grid else []
     for provider in candidates:
         got = provider.covers(request, fidelity)
         if isinstance(got, providers.Coverage):
@@ -256,7 +255,7 @@ def _coverage_notes(request: SolveRequest, coverage: providers.Coverage, refusal
         return []
     last = refusals[-1]
     if last.code == code.SCENE:
-        if request.preset == roman_default.NAME:
+        if request.policy.field_grid:
             return [make(FlagCode.DEFAULT_SIMULATED, why=refusals[0].why)]
         return [make(FlagCode.SCENE_SIMULATED)]
     if last.code == code.PUPIL_SCALE:
@@ -276,7 +275,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
     if request.accuracy is not None:
         why = f"an accuracy target is met by measuring the scene's effects in fresh simulations: {providers.REFUSAL}"
         raise providers.NeedsSimulation(refusal(code.ACCURACY, "accuracy", why))
-    if request.preset != roman_default.NAME and request.ramp is not None:
+    if not request.policy.field_grid and request.ramp is not None:
         # The paper's scene up the ramp maps onto the tables only for some fits and magnitudes.
         why = f"a ramp on the paper's scene is simulated where the tables do not map it exactly: {providers.REFUSAL}"
         raise providers.NeedsSimulation(refusal(code.READOUT, "ramp", why))
@@ -298,7 +297,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
 def _measured_default(request: SolveRequest) -> str:
     """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
     for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
-    return model_part.ROMAN_DEFAULT if request.preset == roman_default.NAME else "paper"
+    return request.policy.measured_as
 
 
 @dataclass(frozen=True)
@@ -317,9 +316,9 @@ def _own_star(request: SolveRequest, the_plan: SolvePlan) -> bool:
     limits whatever it simulates (its answers stay bit for bit)."""
     scene = the_plan.scene
     return (
-        request.preset != "paper"
+        not request.policy.tables_limits
         and scene is not None
-        and not scene.is_paper
+        and not scene.no_effects
         and the_plan.grid is None
         and the_plan.fidelity != "table"
     )
@@ -355,7 +354,7 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         return _Limits(final_frame - shift, final_frame, source)
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    source = None if request.preset == "paper" else "the tables' star (the paper's scene at the tables' position)"
+    source = None if request.policy.tables_limits else "the tables' star (the paper's scene at the tables' position)"
     return _Limits(final_frame - shift, final_frame, source)
 
 
@@ -381,7 +380,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     total, message)``: told as each node of an SCA range is answered (the Roman default without a
     position)."""
     start = time.perf_counter()
-    if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
+    if request.policy.ranges_over_sca and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
         nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 import tomllib
@@ -248,3 +249,22 @@ def test_modules_and_functions_are_small():
                 long_functions.add((name, node.name))
     assert long_functions <= set(LONG_FUNCTIONS), sorted(long_functions - set(LONG_FUNCTIONS))
     assert long_modules <= set(LONG_MODULES), sorted(long_modules - set(LONG_MODULES))
+
+
+#: A request's preset decided by its name: compared, or the Roman default's NAME or ``is_paper`` read.
+PRESET_BY_NAME = re.compile(
+    r"\bpreset\s*[!=]=|[!=]=\s*preset\b|\b(?:roman_default|presets)\.NAME\b|\bis_paper\b|\.preset\s+(?:not\s+)?in\b"
+)
+#: The files that may: the presets themselves, and the request read once (which names them).
+DECIDE_BY_PRESET_NAME = {"nlpsf/request/presets.py", "nlpsf/request/resolve.py"}
+
+
+def test_only_the_request_decides_by_the_presets_name():
+    # Everything else asks the request's policy (``presets.Policy``: field grid, SCA range, the
+    # measurements its answers read, ...), so a preset is data, not a name compared in many files.
+    found = set()
+    for _, path in _sized_files():
+        code = "\n".join(line for line in path.read_text().splitlines() if not line.lstrip().startswith(("#", '"', "'", "`")))
+        if PRESET_BY_NAME.search(code):
+            found.add(path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else str(path))
+    assert found <= DECIDE_BY_PRESET_NAME, sorted(found - DECIDE_BY_PRESET_NAME)

@@ -108,7 +108,8 @@ class SceneModel:
         return {name: effect.is_on(self) for name, effect in REGISTRY.items()}
 
     @property
-    def is_paper(self) -> bool:
+    def no_effects(self) -> bool:
+        """Every effect off: the paper's idealised scene (at any position the ``position`` effect allows)."""
         return not any(self.effects_on().values())
 
     @property
@@ -174,7 +175,7 @@ class SceneModel:
         return out
 
     def describe(self) -> str:
-        if self.is_paper:
+        if self.no_effects:
             return "paper scene (SCA centre, one wavelength, quadratic NL only)"
         parts = []
         if self.position is not None:
