@@ -32,7 +32,7 @@ from nlpsf.request import presets as roman_default
 from nlpsf.roman import photometry
 from nlpsf.sim import cluster, experiment
 
-from . import fidelity, fieldgrid
+from . import fidelity, fieldgrid, gridfile
 from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion
 
 FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
@@ -468,7 +468,7 @@ def merge_field_grid(
     paths: Iterable[Path], destination: Path | str, provenance: dict | None = None, complete_only: bool = False
 ) -> Path:
     """Pack the node tables of a ``build_tables(grid=n)`` run into one field-grid file
-    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads).
+    (``gridfile.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads).
 
     ``complete_only``: leave out every (band, SCA) whose n x n nodes are not all there (a build still
     running or stopped), instead of refusing; ``provenance`` goes into the file's metadata."""
@@ -484,7 +484,7 @@ def merge_field_grid(
         tables = [t for group in groups.values() if len(group) == int(group[0].meta["grid_node"][0]) ** 2 for t in group]
         if not tables:
             raise InputError("tables", "no (band, SCA) has all its grid nodes yet")
-    return fieldgrid.write_grid(tables, destination, provenance=provenance, per_table=_ramp_shifts(tables))
+    return gridfile.write_grid(tables, destination, provenance=provenance, per_table=_ramp_shifts(tables))
 
 
 def _ramp_shifts(tables: list) -> dict[str, dict]:

@@ -104,13 +104,13 @@ def full_scene(request, table) -> FullScene:
 
     linearise_at = getattr(request, "linearise_at", None) or "beta0"
     pupil = request.pupil_scale or str(table.settings["pupil_scale"])
-    default = getattr(request, "preset", None) == roman_default.NAME
+    default = request.policy.quotes_default
     if request.scene is not None:
         # A request filled with the Roman default (``roman_default.fill``) holds the default's scene:
         # it is the Roman default, whose own fidelity measurement applies, at any position.
         own = default and roman_default.is_default_scene(request.scene, request.scene.background_e)
         scene, source = request.scene, "roman default" if own else "request"
-    elif getattr(request, "preset", None) not in (None, roman_default.NAME):
+    elif not request.policy.quotes_default:
         # A preset's scene the request normalises away (``SolveRequest``: "paper" is the plain path).
         scene, source = roman_default.preset_base(request.preset), "request"
     else:
@@ -168,7 +168,7 @@ def level_error(full: FullScene, simulated: scenes.SceneModel | None, band: str,
 def level_for(full: FullScene, simulated, band: str, metric: str, mode: str, budget: float) -> tuple[Level, bool]:
     """The cheapest level whose measured error is within ``budget`` (else the most accurate), and
     whether one meets it. The table level only for the paper's scene (the tables hold nothing else)."""
-    candidates = levels.LEVELS if simulated is None or simulated.is_paper else levels.SIMULATION_LEVELS
+    candidates = levels.LEVELS if simulated is None or simulated.no_effects else levels.SIMULATION_LEVELS
     measured = [level_error(full, simulated, band, metric, mode, name) for name in candidates]
     for level in measured:
         if level.error <= budget:
@@ -301,7 +301,7 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
         left, combined, level, effects = _search(probe, full, band, metric, mode, accuracy, level)
     simulated = probe.without(left) if probe is not None else full.scene
     fidelity_level = level.name
-    if simulated.is_paper:
+    if simulated.no_effects:
         simulated = None if fidelity_level == "table" else simulated
     elif fidelity_level == "table":
         fidelity_level = "linear"
@@ -424,10 +424,9 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
     its measured combined impact, and what was measured on the way. For the Roman default (its
     scene, or one the request modified: preset "roman") the default's own parts are added, as its
     table and grid answers carry them (:func:`_roman_parts`)."""
-    from nlpsf.request import presets as roman_default
 
     alone = {e["name"]: e["impact_alone"] for e in effects}
-    roman = request.preset == roman_default.NAME
+    roman = request.policy.quotes_default
     parts = []
     if left:
         parts.append(

@@ -33,7 +33,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from nlpsf.checks import InputError
-from nlpsf.request import presets as roman_default
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import tables
 from nlpsf.slopes.providers import NeedsSimulation
@@ -371,7 +370,7 @@ def _simulated_request(request: SolveRequest) -> str | None:
 def _positions(request: SolveRequest) -> list:
     """[None] (the request's own position, or none), or the SCA's field-grid nodes for the Roman
     default without a position (the solver's SCA range)."""
-    if request.preset == roman_default.NAME and request.scene is not None and request.scene.position is None:
+    if request.policy.ranges_over_sca and request.scene is not None and request.scene.position is None:
         from .over_field import range_positions
 
         return list(range_positions(request))
@@ -387,11 +386,11 @@ def _node(solver, request: SolveRequest, the_plan) -> _Node:
     # The solver's limits and conditions for this node, from its answer at the faint end (where it
     # always answers): precision 1, so that its tolerance is |c| beta0 and the method error relative.
     reference = request.with_changes(precision=1.0, tolerance=None, magnitude=faint, shear_m=None, shear_c=None, size_ratio=None)
-    if request.ramp is not None and request.preset != roman_default.NAME and slopes.ramp_factor is None:
+    if request.ramp is not None and not request.policy.field_grid and slopes.ramp_factor is None:
         raise _Simulated("the paper's scene up a ramp the tables do not map (not an OLS fit) is simulated at every magnitude")
     # The table solve (a batch's: it refuses rather than simulates); a ramp on the paper's scene is
     # refused there outright, but at the faint end its OLS mapping onto the tables is exact.
-    table_cost = not (request.ramp is not None and request.preset != roman_default.NAME)
+    table_cost = not (request.ramp is not None and not request.policy.field_grid)
     answer = solver.answer(reference, simulate=not table_cost)
     # Past the ramp's bright margin the solver refuses (solve_validity._ramp_magnitude_flags); in a
     # final frame, brighter than the tables reach (region < 0).
@@ -447,7 +446,7 @@ def _limits(request: SolveRequest, nodes: list[_Node]) -> dict:
     source = nodes[0].answer.conditions.get("saturation_from")
     if source:
         out["saturation_from"] = source
-    if request.preset == "paper" and not ramp and request.scene is None:
+    if request.policy.tables_limits and not ramp and request.scene is None:
         try:
             from .relation import nl_invalid_magnitude
 
@@ -487,7 +486,7 @@ def published(request: SolveRequest, tolerance: float | None) -> dict | None:
     from nlpsf.slopes.tables import paper_data
 
     same = (
-        request.preset == "paper" and request.scene is None and request.ramp is None
+        request.policy.tables_limits and request.scene is None and request.ramp is None
         and request.sca == PUBLISHED_CONDITIONS["sca"]
         and math.isclose(request.exptime, PUBLISHED_CONDITIONS["exptime"], rel_tol=1e-9)
         and math.isclose(request.beta0, PUBLISHED_CONDITIONS["beta0"], rel_tol=1e-9)
@@ -517,7 +516,7 @@ def paper_overlay(request: SolveRequest, tolerance: float | None, at: Iterable[f
     """The paper's idealised scene's curves at the request's band, SCA, metric, mode, beta0, full
     well, stars and exposure (its final frame, the shipped tables), for the same tolerance: the
     overlay beside another scene's answer. None where the request is the paper's scene already."""
-    if request.preset == "paper" and request.scene is None and request.ramp is None:
+    if request.policy.tables_limits and request.scene is None and request.ramp is None:
         return None
     paper = SolveRequest(
         request.band, request.sca, request.metric, request.mode, request.beta0, request.exptime, precision=1.0,

@@ -310,7 +310,7 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
     from nlpsf import defaults
     from nlpsf.request import presets as roman_default
 
-    measured = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
+    measured = roman_default.default_fill(request.band, request.sca)
     out = []
     if not math.isclose(request.exptime, measured.exptime, rel_tol=1e-9):
         out.append(f"exposure {request.exptime:g} s (measured at {measured.exptime:g} s)")
@@ -324,6 +324,34 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
         out.append(f"state {request.linearise_at} (measured at {measured.linearise_at})")
     offset = -2.5 * math.log10(request.exptime / measured.exptime)
     return out, (0.0 if abs(offset) < 1e-12 else offset)
+
+
+def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
+    """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"] ==
+    "roman"``) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
+    at its own answer: each part read at every magnitude in one look-up
+    (``roman_uncertainty.at_magnitudes``), scaled, and combined by ``roman_uncertainty.COMBINATION``
+    with numpy's sums (``combine`` adds with ``math.fsum``: the two agree to the last bits)."""
+    offset = info.get("magnitude_offset", 0.0)
+    shifted = [m + offset for m in magnitudes]
+    count = len(shifted)
+    choices, left_out = np.zeros(count), np.zeros(count)
+    for part in info["left_out"]:
+        name = part["name"]
+        if part.get("measured_here"):
+            read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
+        elif "by_magnitude" in part:
+            read = np.array([np.nan if v is None else v for v in roman_parts.at_magnitudes(part["by_magnitude"], shifted)])
+            read = np.abs(read * np.asarray(scales, dtype=np.float64))
+        else:
+            continue  # named, not measured: counts zero
+        read = np.where(np.isnan(read), 0.0, read)
+        kind = part.get("kind", roman_parts.KINDS.get(name, "choice"))
+        if kind == "left_out":
+            left_out = left_out + read
+        elif kind == "choice":
+            choices = choices + read * read
+    return np.sqrt(choices) + left_out
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:

@@ -63,7 +63,6 @@ from functools import partial
 from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.flags import Flag, FlagCode, make
-from nlpsf.request import presets as roman_default
 from nlpsf.request import shear
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.sim import ramps
@@ -73,7 +72,7 @@ from nlpsf.slopes.fidelity import choose_fidelity, fidelity_error
 from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
-from . import model_part
+from . import model_part, sca_nodes
 from .magnitude_scan import scan_magnitude
 from .over_field import grid_size, sca_range, worst_over_field
 from .solution import Solution, Uncertainty
@@ -211,7 +210,7 @@ def plan(
         selection = select(request, float(point), tables_set)
         chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
         realizations = selection.realizations
-    elif request.scene is not None and not request.scene.is_paper:
+    elif request.scene is not None and not request.scene.no_effects:
         simulated_scene = request.scene
     tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
     coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
@@ -246,7 +245,7 @@ def _cover(request: SolveRequest, fidelity: str, scene, tableset) -> tuple[provi
     """The first provider that covers the request, and the refusals of those before it: the field
     grid (the Roman default's preset only), the paper tables, the simulator."""
     refusals = []
-    candidates = [providers.FieldGrid()] if request.preset == roman_default.NAME else []
+    candidates = [providers.FieldGrid()] if request.policy.field_grid else []
     for provider in candidates:
         got = provider.covers(request, fidelity)
         if isinstance(got, providers.Coverage):
@@ -271,7 +270,7 @@ def _coverage_notes(request: SolveRequest, coverage: providers.Coverage, refusal
         return []
     last = refusals[-1]
     if last.code == code.SCENE:
-        if request.preset == roman_default.NAME:
+        if request.policy.field_grid:
             return [make(FlagCode.DEFAULT_SIMULATED, why=refusals[0].why)]
         return [make(FlagCode.SCENE_SIMULATED)]
     if last.code == code.PUPIL_SCALE:
@@ -291,7 +290,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
     if request.accuracy is not None:
         why = f"an accuracy target is met by measuring the scene's effects in fresh simulations: {providers.REFUSAL}"
         raise providers.NeedsSimulation(refusal(code.ACCURACY, "accuracy", why))
-    if request.preset != roman_default.NAME and request.ramp is not None:
+    if not request.policy.field_grid and request.ramp is not None:
         # The paper's scene up the ramp maps onto the tables only for some fits and magnitudes.
         why = f"a ramp on the paper's scene is simulated where the tables do not map it exactly: {providers.REFUSAL}"
         raise providers.NeedsSimulation(refusal(code.READOUT, "ramp", why))
@@ -314,7 +313,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
 def _measured_default(request: SolveRequest) -> str:
     """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
     for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
-    return model_part.ROMAN_DEFAULT if request.preset == roman_default.NAME else "paper"
+    return request.policy.measured_as
 
 
 @dataclass(frozen=True)
@@ -333,9 +332,9 @@ def _own_star(request: SolveRequest, the_plan: SolvePlan) -> bool:
     limits whatever it simulates (its answers stay bit for bit)."""
     scene = the_plan.scene
     return (
-        request.preset != "paper"
+        not request.policy.tables_limits
         and scene is not None
-        and not scene.is_paper
+        and not scene.no_effects
         and the_plan.grid is None
         and the_plan.fidelity != "table"
     )
@@ -371,7 +370,7 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         return _Limits(final_frame - shift, final_frame, source)
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    source = None if request.preset == "paper" else "the tables' star (the paper's scene at the tables' position)"
+    source = None if request.policy.tables_limits else "the tables' star (the paper's scene at the tables' position)"
     return _Limits(final_frame - shift, final_frame, source)
 
 
@@ -399,10 +398,11 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     total, message)``: told as each node of an SCA range is answered (the Roman default without a
     position)."""
     start = time.perf_counter()
-    if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
+    if request.policy.ranges_over_sca and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
-        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress)
+        nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
@@ -478,6 +478,22 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
         conservative=conservative,
         ranges=ranges,
     )
+
+
+def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: bool = True):
+    """Every node's value and uncertainty of the Roman default without a position, at once
+    (``sca_nodes.answer_nodes``), where its field grid covers it; None: answer node by node."""
+    first = request.at_position(positions[0])
+    the_plan = plan(first, tables_set) if simulate else table_plan(first, tables_set)
+    grid = the_plan.grid
+    if grid is None or tables_set is not None or the_plan.scene.background_e >= request.full_well:
+        return None
+    if grid.final_frame_saturation_magnitude(request.band, request.sca, positions[0]) is None:
+        return None  # the limits are then not the grid's own
+    # Each node's own value (its interpolation weights are 0 and 1 there), in the positions' order.
+    saturation = [float(m) for m in grid.saturation_magnitudes(request.band, request.sca).reshape(-1)]
+    systematic = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))[0]
+    return sca_nodes.answer_nodes(request, the_plan, saturation, systematic)
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:
