@@ -341,15 +341,16 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
         if part.get("measured_here"):
             read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
         elif "by_magnitude" in part:
-            read = np.array([np.nan if v is None else v for v in roman_parts.at_magnitudes(part["by_magnitude"], shifted)])
+            read = roman_parts.at_magnitudes(part["by_magnitude"], np.asarray(shifted, dtype=np.float64))
             read = np.abs(read * np.asarray(scales, dtype=np.float64))
         else:
             continue  # named, not measured: counts zero
         read = np.where(np.isnan(read), 0.0, read)
-        kind = part.get("kind", roman_parts.KINDS.get(name, "choice"))
-        if kind == "left_out":
+        # combine()'s rule: the left-out shifts added, every other kind in quadrature.
+        kind = part.get("kind", roman_parts.KINDS.get(name, roman_parts.STANDARD))
+        if kind == roman_parts.LEFT_OUT:
             left_out = left_out + read
-        elif kind == "choice":
+        else:
             choices = choices + read * read
     return np.sqrt(choices) + left_out
 

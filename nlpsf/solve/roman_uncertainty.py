@@ -330,20 +330,6 @@ def at_signed(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: i
     return np.interp(m, [r[0] for r in rows], [r[1] for r in rows])
 
 
-def at_magnitudes(by_magnitude: list[list[float]], magnitudes) -> list[float | None]:
-    """:func:`at_magnitude` at many magnitudes (none None) in one look-up, the same values."""
-    points = sorted((m, abs(v)) for m, v in by_magnitude if v is not None)
-    if not points:
-        return [None] * len(magnitudes)
-    at = np.array([m for m, _ in points])
-    values = np.array([v for _, v in points])
-    pairs = np.maximum(values[:-1], values[1:]) if len(points) > 1 else values
-    query = np.asarray(magnitudes, dtype=np.float64)
-    inner = np.minimum(np.maximum(np.searchsorted(at, query, side="left") - 1, 0), max(len(points) - 2, 0))
-    read = np.where(query <= at[0], values[0], np.where(query >= at[-1], values[-1], pairs[inner]))
-    return [float(v) for v in read]
-
-
 # --- measuring (scripts/model_uncertainty_roman.py and the tests) ------------------------------
 
 

@@ -58,3 +58,22 @@ def test_every_node_at_once_is_the_answer_node_by_node():
                 n[request.solved_for] for n in together["conditions"]["sca_range"]["nodes"]
             ]
     assert at_once >= 30  # the common case is the one answered at once
+
+
+def test_every_nodes_uncertainty_at_once_is_its_own_answers():
+    # The uncertainty of each node read at once (its model parts combined in arrays) against the
+    # node's own answer (the scalar rule, roman_uncertainty.combine): a part dropped or combined by
+    # another rule shows here.
+    checked = 0
+    for request in requests(12, seed=5):
+        positions = over_field.range_positions(request)
+        found = solver._node_answers(request, positions)
+        if found is None:
+            continue
+        for position, value, uncertainty in zip(positions, found.values, found.uncertainties, strict=True):
+            own = solver.answer(request.at_position(position))
+            assert value == pytest.approx(getattr(own, request.solved_for), rel=1e-12, abs=0.0), (request, position)
+            if uncertainty is not None and own.uncertainty is not None:
+                assert uncertainty == pytest.approx(own.uncertainty, rel=1e-12), (request, position)
+                checked += 1
+    assert checked >= 50
