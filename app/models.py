@@ -381,6 +381,16 @@ class SolveResponse(BaseModel):
         "the code of each flag, in the same order (flag_codes[i] is flags[i]'s; the catalogue: GET /api/v1/meta → flag_codes)"
     )
     fidelity: str = desc("the fidelity level used (no unit)")
+    conservative: dict[str, Any] | None = desc(
+        "the answer that holds if the slope is at the top of its uncertainty: the solved quantity (its unit), "
+        "relative_slope_bound (dimensionless) and its coverage (text)",
+        None,
+    )
+    ranges: dict[str, Any] | None = desc(
+        "what varies from star to star (e.g. the SED): each range's ends, the slope's relative change there "
+        "(dimensionless) and the solved quantity there (its unit); not an uncertainty",
+        None,
+    )
     conditions: dict[str, Any] = desc("the conditions of the answer: band, SCA, exposure (s), beta0 (1/e-), settings")
 
 

@@ -295,9 +295,27 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
             f"{e['name']} {_percent(e['impact'], measured or bool(e.get('measured_here')))}" for e in solution.model["left_out"]
         )
         print(f"  left out (in the model uncertainty): {left}")
+    _print_beside(solution)
     for flag in solution.flags:
         print(f"  ! {flag}")
     return 0
+
+
+def _print_beside(solution) -> None:
+    """The conservative answer and the star-to-star ranges, beside the nominal one."""
+    solved = solution.solved_for
+    conservative = solution.conservative
+    if conservative and conservative.get(solved) is not None:
+        print(
+            f"  conservative {solved} {conservative[solved]:.4g} (holds for a slope up to "
+            f"{100 * conservative['relative_slope_bound']:.3g} % steeper: k = {conservative['coverage_factor']:g} on the "
+            "standard parts, the left-out shifts in full)"
+        )
+    for name, entry in (solution.ranges or {}).items():
+        values = entry.get(solved) or []
+        if len(values) == 2 and None not in values:
+            ends = " and ".join(entry["ends"])
+            print(f"  range over stars ({name}: {ends}): {solved} {values[0]:.4g} to {values[1]:.4g}")
 
 
 def _percent(value: float | None, signed: bool = True) -> str:

@@ -188,7 +188,7 @@ def curves(
     if missed:
         gaps = (
             f"the slopes at m = {min(missed):.2f} to {max(missed):.2f} would be simulated (outside what the tables and "
-            "the field grid hold): no value there at table cost"
+            "the field grid hold, or between the saturation limits at a position): no value there at table cost"
         )
     return Curves(
         magnitude=magnitudes,
@@ -256,6 +256,12 @@ def _node_slopes(node: _Node, magnitudes: np.ndarray, missed: list[float]) -> tu
             position = slopes.scene_model.position
             value, error = grid.slope(request.band, request.sca, position, request.metric, request.mode, magnitudes[inside])
             values[inside], errors[inside] = value, np.abs(error)
+            # Between the saturation limits at a position (not a node) the solver simulates afresh
+            # (``validity.between_limits``, issue 28): no value there at table cost.
+            between = _between_limits_mask(grid, request, position, magnitudes) & inside
+            values[between] = errors[between] = np.nan
+            missed.extend(float(m) for m in magnitudes[between])
+            todo &= ~between
         todo &= ~np.isfinite(values)
     for i in np.flatnonzero(todo):  # the plan's slopes refuse to simulate (simulate=False)
         try:
@@ -266,6 +272,20 @@ def _node_slopes(node: _Node, magnitudes: np.ndarray, missed: list[float]) -> tu
         if region >= 0:
             values[i], errors[i] = value, error
     return values, errors
+
+
+def _between_limits_mask(grid, request, position, magnitudes: np.ndarray) -> np.ndarray:
+    """Where ``validity.between_limits`` sends the solver to a fresh simulation, over ``magnitudes``."""
+    from .validity import between_limits
+
+    mask = np.zeros(magnitudes.shape, dtype=bool)
+    if position is None:
+        return mask
+    ramp = grid.saturation_magnitude(request.band, request.sca, position)
+    if between_limits(grid, request.band, request.sca, position, ramp) is None:
+        return mask  # a node, or no final-frame limit stated
+    final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
+    return (magnitudes >= ramp) & (magnitudes < final)
 
 
 #: Where the curve is refined: linear (and log) interpolation between neighbours within this
@@ -312,7 +332,9 @@ def _nodes(request: SolveRequest) -> tuple[list[_Node], str | None]:
     for position in _positions(request):
         node_request = request if position is None else request.with_changes(scene=replace(request.scene, position=position))
         # At table cost: a slope the plan would simulate is refused (providers.NeedsSimulation).
-        the_plan = solver.plan(node_request, simulate=False)
+        # The grid's plan whatever the request's own magnitude; between the saturation limits at a
+        # position the solver simulates afresh, and those magnitudes are left out (_node_slopes).
+        the_plan = solver.plan(node_request, simulate=False, fresh_between_limits=False)
         if the_plan.fidelity != "table":
             notes = "; ".join(str(n) for n in the_plan.notes)
             return [], f"its slopes are simulated ({notes or 'fidelity ' + the_plan.fidelity})"
