@@ -6,7 +6,7 @@ answer of one node. The values and uncertainties come from here, every node at o
 read at each node's own magnitude in one call (``FieldGrid.slopes_at_nodes``), a magnitude solve's
 scan of every node from one evaluation and the crossings found side by side, the model parts read at
 every node's magnitude in one look-up (``model_part.roman_effects_at``) -- with the arithmetic of
-``solver`` and ``magnitude_scan`` repeated number for number: each node's value is what answering
+``quantity`` and ``magnitude_scan`` repeated number for number: each node's value is what answering
 it alone gives, bit for bit, and its uncertainty agrees to the last bits (the field interpolation's
 term read once for all nodes, the parts added with numpy's sums). Where a node leaves the common
 case (a magnitude the grid does not hold, a refusal, an answer extrapolated past the scan, a
