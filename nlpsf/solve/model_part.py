@@ -330,29 +330,26 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
     """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"] ==
     "roman"``) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
     at its own answer: each part read at every magnitude in one look-up
-    (``roman_uncertainty.at_magnitudes``), scaled, and combined by ``roman_uncertainty.COMBINATION``
-    with numpy's sums (``combine`` adds with ``math.fsum``: the two agree to the last bits)."""
+    (``roman_uncertainty.at_magnitudes``), scaled, and combined by ``roman_uncertainty.combine``'s
+    rule with numpy's sums (``combine`` adds with ``math.fsum``: the two agree to the last bits)."""
     offset = info.get("magnitude_offset", 0.0)
-    shifted = [m + offset for m in magnitudes]
-    count = len(shifted)
-    choices, left_out = np.zeros(count), np.zeros(count)
+    shifted = np.array([m + offset for m in magnitudes], dtype=np.float64)
+    count = shifted.size
+    standard, left_out = np.zeros(count), np.zeros(count)
     for part in info["left_out"]:
         name = part["name"]
         if part.get("measured_here"):
             read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
         elif "by_magnitude" in part:
-            read = roman_parts.at_magnitudes(part["by_magnitude"], np.asarray(shifted, dtype=np.float64))
-            read = np.abs(read * np.asarray(scales, dtype=np.float64))
+            read = np.abs(roman_parts.at_magnitudes(part["by_magnitude"], shifted) * np.asarray(scales, dtype=np.float64))
         else:
             continue  # named, not measured: counts zero
         read = np.where(np.isnan(read), 0.0, read)
-        # combine()'s rule: the left-out shifts added, every other kind in quadrature.
-        kind = part.get("kind", roman_parts.KINDS.get(name, roman_parts.STANDARD))
-        if kind == roman_parts.LEFT_OUT:
+        if part.get("kind", roman_parts.KINDS.get(name, roman_parts.STANDARD)) == roman_parts.LEFT_OUT:
             left_out = left_out + read
         else:
-            choices = choices + read * read
-    return np.sqrt(choices) + left_out
+            standard = standard + read * read
+    return np.sqrt(standard) + left_out
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:

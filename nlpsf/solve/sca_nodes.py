@@ -6,7 +6,7 @@ answer of one node. The values and uncertainties come from here, every node at o
 read at each node's own magnitude in one call (``FieldGrid.slopes_at_nodes``), a magnitude solve's
 scan of every node from one evaluation and the crossings found side by side, the model parts read at
 every node's magnitude in one look-up (``model_part.roman_effects_at``) -- with the arithmetic of
-``solver`` and ``magnitude_scan`` repeated number for number: each node's value is what answering
+``quantity`` and ``magnitude_scan`` repeated number for number: each node's value is what answering
 it alone gives, bit for bit, and its uncertainty agrees to the last bits (the field interpolation's
 term read once for all nodes, the parts added with numpy's sums). Where a node leaves the common
 case (a magnitude the grid does not hold, a refusal, an answer extrapolated past the scan, a
@@ -132,7 +132,7 @@ def _totals(statistical, fidelity, effects) -> list[float]:
 
 
 def _at_magnitude(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
-    """``solver._answer_at_magnitude`` at every node (one magnitude for all), node by node in arrays."""
+    """``quantity.answer_at_magnitude`` at every node (one magnitude for all), node by node in arrays."""
     magnitude, beta0 = request.magnitude, request.beta0
     if any(magnitude < m_sat - tables.BRIGHT_MARGIN_MAG for m_sat in saturation) or not nodes.held([magnitude]):
         return None  # refused (too bright) or not held: the node-by-node answer says so
@@ -160,7 +160,7 @@ def _at_magnitude(request, nodes: _Nodes, model: dict, saturation: list[float], 
 
 
 def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
-    """``solver._answer_magnitude`` at every node: ``magnitude_scan.scan_magnitude`` on the field
+    """``quantity.answer_magnitude`` at every node: ``magnitude_scan.scan_magnitude`` on the field
     grid's c(m) of each node, then the binding limit."""
     averaging = 1.0 / math.sqrt(request.stars)
     required = request.target_tolerance / (request.precision * request.beta0 * averaging)
@@ -256,7 +256,7 @@ def _secant_roots(nodes: _Nodes, brackets: dict[int, tuple[float, float]], requi
 
 
 def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, crossed, log_derivatives) -> NodeAnswers | None:
-    """The binding limit and the uncertainty of every node's magnitude answer (``solver._answer_magnitude``)."""
+    """The binding limit and the uncertainty of every node's magnitude answer (``quantity.answer_magnitude``)."""
     count = len(saturation)
     binds = [m is None or m < m_sat for m, m_sat in zip(m_nl, saturation, strict=True)]
     at_root = [nodes.faintest if bound else m for m, bound in zip(m_nl, binds, strict=True)]

@@ -72,15 +72,10 @@ from nlpsf.slopes.fidelity import choose_fidelity, fidelity_error
 from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
-from . import model_part, sca_nodes
-from .magnitude_scan import scan_magnitude
+from . import model_part, quantity, sca_nodes
 from .over_field import grid_size, sca_range, worst_over_field
-from .solution import Solution, Uncertainty
+from .solution import Solution
 from .validity import (
-    _between_limits_flag,
-    _binding,
-    _magnitude_flags,
-    _ramp_magnitude_flags,
     _validity_flags,
     between_limits_note,
     component_flags,
@@ -374,24 +369,6 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
     return _Limits(final_frame - shift, final_frame, source)
 
 
-@dataclass
-class _Answer:
-    """The solved triple, its slope and uncertainty, before the conditions are attached."""
-
-    precision: float | None
-    tolerance: float | None
-    magnitude: float | None
-    slope: float | None
-    slope_error: float | None
-    parts: Uncertainty
-    model: dict | None
-    brightest: float | None = None
-    binding: str | None = None
-    m_nl: float | None = None
-    #: d ln|c| / dm at a magnitude answer (its uncertainty and conservative answer are carried by it).
-    log_derivative: float | None = None
-
-
 def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
     ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
@@ -419,7 +396,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     if systematic_note:
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
-        result = _answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        result = quantity.answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
         between = None if result.binding != "nonlinearity" else between_limits_note(request, the_plan.grid, result.magnitude)
         if between is not None:
             # The grid's NL limit lies between the saturation limits: solved again on fresh simulations
@@ -427,7 +404,20 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
             fresh = fresh_between_limits(partial(answer, tables_set=tables_set), request, simulate, between[0], result.magnitude)
             return replace(fresh, elapsed_s=time.perf_counter() - start)
     else:
-        result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        result = quantity.answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+    return _solution(request, the_plan, slopes, limits, result, flags, start)
+
+
+def _solution(
+    request: SolveRequest,
+    the_plan: SolvePlan,
+    slopes: _Slopes,
+    limits: _Limits,
+    result: quantity.Answer,
+    flags: list,
+    start: float,
+) -> Solution:
+    """The answer's validity flags, conditions and shear budget around the solved quantity: the Solution."""
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
     flags += [f for f in component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
               if f.code not in {getattr(g, "code", None) for g in flags}]  # fmt: skip
@@ -439,7 +429,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     shear_answer = None
     if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
         statistical = result.parts.statistical if request.solved_for == "tolerance" else None
-        shear_answer = _shear_answer(request.metric, request.budget, request.ratio, result.tolerance, statistical)
+        shear_answer = quantity.shear_answer(request.metric, request.budget, request.ratio, result.tolerance, statistical)
         if request.metric != "size":
             flags.append(make(FlagCode.SHEAR_CROSS_TERM))
     if slopes.pupil_scale is not None and the_plan.fidelity != "table":
@@ -505,90 +495,6 @@ def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:
         shift=-slopes.relabel_shift,
         percent=100 * (size_error if request.metric == "size" else e_error),
     )
-
-
-def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:
-    """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation."""
-    averaging = 1.0 / math.sqrt(request.stars)  # scatter: the PSF model averages `stars` independent draws
-    precision, tolerance, beta0 = request.precision, request.target_tolerance, request.beta0
-    field = "tolerance" if request.budget is None else f"shear_{request.budget.kind}"
-    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation, field)
-    flags += scan.flags
-    m_nl, slope, slope_err, log_derivative = scan.magnitude, scan.slope, scan.slope_error, scan.log_derivative
-    magnitude, binding = _binding(m_nl, limits.saturation, flags)
-    if request.ramp is not None and magnitude < limits.final_frame:
-        flags.append(_between_limits_flag(magnitude, limits.saturation, limits.final_frame))
-    if binding == "nonlinearity" and log_derivative:
-        model_info = model_part.model_at(model_info, slopes, m_nl)
-        effects, pupil = (model_info[k] / abs(log_derivative) for k in model_part.MODEL_PARTS)
-        parts = Uncertainty(
-            statistical=(slope_err / abs(slope)) / abs(log_derivative),
-            fidelity=None if systematic is None else systematic / abs(log_derivative),
-            optical_model=model_part.optical_model_relative(slopes, m_nl, model_info=model_info) / abs(log_derivative),
-            effects=effects,
-            pupil_scale=pupil,
-        )
-    else:
-        # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
-        parts = Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0)
-        slope, slope_err, _ = slopes.at(limits.saturation)  # first: the model part reads the slopes there
-        model_info = model_part.model_at(model_info, slopes, limits.saturation)
-        error = abs(slope) * precision * beta0 * averaging
-        flags.append(
-            make(FlagCode.ERROR_AT_SATURATION, metric=request.metric, mode=request.mode, error=error, tolerance=tolerance)
-        )
-    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info, magnitude, binding, m_nl, log_derivative)
-
-
-def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:
-    """Solve for the tolerance or the precision at a given magnitude."""
-    magnitude, beta0 = request.magnitude, request.beta0
-    precision, tolerance = request.precision, request.target_tolerance
-    if request.ramp is not None:
-        flags += _ramp_magnitude_flags(magnitude, limits.saturation, limits.final_frame)  # refuses before simulating
-    slope, slope_err, region = slopes.at(magnitude)
-    if request.ramp is None:
-        flags += _magnitude_flags(slopes, magnitude, region, limits.saturation, beta0)
-    elif region > 0 and slopes.grid is not None:  # fainter than the field grid: its flux law (slope_source)
-        faintest = slopes.grid.magnitude_range(request.band, request.sca)[1]
-        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=faintest))
-    averaging = 1.0 / math.sqrt(request.stars)
-    c, c_err = abs(slope) * averaging, slope_err * averaging
-    model_info = model_part.model_at(model_info, slopes, magnitude) if region >= 0 else None
-    # After model_at: the Roman default's parts hold the optical model's vintage, not counted twice.
-    optical = model_part.optical_model_relative(slopes, magnitude, model_info=model_info) if region >= 0 else None
-    effects, pupil = (None, None) if model_info is None else (model_info[k] for k in model_part.MODEL_PARTS)
-    if request.solved_for == "tolerance":
-        tolerance = c * precision * beta0
-        statistical, scale = c_err * precision * beta0, tolerance
-    elif c <= max(c_err, 1e-300):
-        flags.append(
-            make(FlagCode.SLOPE_CONSISTENT_WITH_ZERO, metric=request.metric, magnitude=magnitude, slope=slope, error=c_err)
-        )
-        return _Answer(math.inf, tolerance, magnitude, slope, slope_err, Uncertainty.none(), model_info)
-    else:
-        precision = tolerance / (c * beta0)
-        statistical, scale = precision * c_err / c, precision
-    parts = Uncertainty(
-        statistical=statistical,
-        fidelity=None if systematic is None else scale * systematic,
-        optical_model=None if optical is None else scale * optical,
-        effects=None if effects is None else scale * effects,
-        pupil_scale=None if effects is None else scale * pupil,
-    )
-    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info)
-
-
-def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncertainty: float | None) -> dict:
-    """The shear budget given, or the bias the tolerance implies for galaxies of this size ratio."""
-    if budget is not None:
-        return {**budget.to_dict(), "given": budget.kind}
-    kind = shear.BUDGET_FOR_METRIC[metric]
-    factor = (2.0 if kind == "m" else 1.0 / shear.RESPONSIVITY) / ratio.effective**2
-    implied = shear.Budget(kind, tolerance * factor, ratio, tolerance).to_dict()
-    implied["given"] = "tolerance"
-    implied["uncertainty"] = None if tolerance_uncertainty is None else tolerance_uncertainty * factor
-    return implied
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request) -> Solution:
