@@ -120,7 +120,7 @@ def test_a_stopped_job_is_ended_and_the_queue_moves_on(make_client):
         assert ended["status"] == "failed" and ended["error"]["limit"] == "job_stall_s", ended
         print(f"stopped job ended after {took:.1f} s (job_stall_s {settings.job_stall_s:g})")
         assert took < settings.job_stall_s + 3.0
-        done = wait_for(lambda: (j := client.get(f"/api/v1/simulations/{small['id']}").json())["status"] == "done" and j, 120)
+        done = wait_for(lambda: (j := client.get(f"/api/v1/simulations/{small['id']}").json())["status"] == "done" and j, 300)
         assert done["result"]["results"]
 
 
