@@ -60,6 +60,7 @@ a part's reading must follow its measuring exactly.
 
 from __future__ import annotations
 
+import bisect
 import json
 import math
 from dataclasses import dataclass, replace
@@ -261,8 +262,18 @@ def at_magnitude(by_magnitude: list[list[float]], magnitude: float | None) -> fl
     if magnitude is None:
         points = [abs(r[1]) for r in by_magnitude if r[1] is not None]
         return max(points) if points else None
-    value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
-    return None if not np.isfinite(value) else float(value)
+    if not math.isfinite(magnitude):
+        value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
+        return None if not np.isfinite(value) else float(value)
+    # One magnitude: at_magnitudes' look-up in plain Python (the same rows, the same two neighbours).
+    rows = sorted((r[0], abs(r[1])) for r in by_magnitude if r[1] is not None)
+    if not rows:
+        return None
+    knots = [r[0] for r in rows]
+    upper = min(bisect.bisect_left(knots, magnitude), len(knots) - 1)
+    lower = max(bisect.bisect_right(knots, magnitude) - 1, 0)
+    pair = (float(rows[lower][1]), float(rows[upper][1]))
+    return None if not all(math.isfinite(v) for v in pair) else max(pair)
 
 
 def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int = 1) -> np.ndarray:
@@ -273,8 +284,8 @@ def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, colum
         return np.full(m.shape, np.nan)
     knots = np.array([r[0] for r in rows])
     values = np.array([r[1] for r in rows])
-    upper = np.clip(np.searchsorted(knots, m, side="left"), 0, len(knots) - 1)
-    lower = np.clip(np.searchsorted(knots, m, side="right") - 1, 0, len(knots) - 1)
+    upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
+    lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
     return np.maximum(values[lower], values[upper])
 
 
