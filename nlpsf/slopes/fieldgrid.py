@@ -403,10 +403,15 @@ class FieldGrid:
         column = f"{mode}_{metric}"
         n = self._entry(band, sca)[1]["grid"]
         m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
-        values, statistical, interpolation = self.columns_at_nodes(band, sca, (column, f"{column}_err", f"{column}_interp"), m)
-        errors = np.hypot(statistical, interpolation)
+        names = (column, f"{column}_err", f"{column}_interp")
         distinct, where = np.unique(m, return_inverse=True)
-        everywhere = self.node_values(band, sca, column, distinct[0] if distinct.size == 1 else distinct)
+        if distinct.size == 1:  # one magnitude: every node's values there, memoised (the same numbers)
+            values, statistical, interpolation = self.columns_node_values(band, sca, names, distinct[0])
+            everywhere = values
+        else:
+            values, statistical, interpolation = self.columns_at_nodes(band, sca, names, m)
+            everywhere = self.node_values(band, sca, column, distinct)
+        errors = np.hypot(statistical, interpolation)
         median = node_median(np.abs(everywhere))
         field_term = field_interpolation(n, band)[metric] * (median if distinct.size == 1 else median[where.reshape(n, n)])
         return values, np.hypot(errors, field_term)
