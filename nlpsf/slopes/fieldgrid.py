@@ -286,8 +286,13 @@ class FieldGrid:
     def saturation_magnitudes(self, band: str, sca: int) -> np.ndarray:
         """(n, n) [j (y), i (x)]: each node's saturation magnitude, the brightest star whose brightest
         pixel keeps the resultants a slope needs (the ramp's limit; the grid starts 1.5 mag brighter)."""
-        _, entry = self._entry(band, sca)
-        return np.array(entry["saturation_magnitude"], dtype=np.float64)
+        key, entry = self._entry(band, sca)
+        cached = self._splines.get((key, "saturation_magnitude"))
+        if cached is None:
+            cached = np.array(entry["saturation_magnitude"], dtype=np.float64)
+            cached.flags.writeable = False
+            self._splines[(key, "saturation_magnitude")] = cached
+        return cached
 
     def saturation_magnitude(self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange") -> float:
         """The saturation magnitude at ``position`` (pixels), interpolated across the nodes."""
