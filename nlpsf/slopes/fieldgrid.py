@@ -446,12 +446,13 @@ class FieldGrid:
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every node's cubic of ``column`` as padded arrays (knots (n, n, L), +inf past a node's last;
         coefficients (4, n, n, L - 1), zero past its last interval: ``splines.evaluate_stacked_cubics``' layout)
-        and each node's flux range (n, n). Built with numpy for the column and its two error columns
-        at once (``splines.not_a_knot_coefficients``: scipy's not-a-knot CubicSpline, bit for bit)."""
+        and each node's flux range (n, n). Built with numpy for every column of the (band, SCA) at
+        once, as its first answer asks for one (``splines.not_a_knot_coefficients``: scipy's not-a-knot
+        CubicSpline, bit for bit; each row's arithmetic is its own, so the columns built together are
+        built alike, and one pass costs about what a column's own did)."""
         cached = self._splines.get((key, column, "stacked"))
         if cached is None:
-            base = column.removesuffix("_err").removesuffix("_interp")
-            family = [c for c in (base, f"{base}_err", f"{base}_interp") if c in self.meta["columns"]] or [column]
+            family = list(self.meta["columns"]) if column in self.meta["columns"] else [column]
             for name, stacked in zip(family, self._build_stacked(key, family), strict=True):
                 self._splines[(key, name, "stacked")] = stacked
             cached = self._splines[(key, column, "stacked")]
