@@ -379,17 +379,7 @@ class FieldGrid:
         for j in range(n):
             for i in range(n):  # each node's own scalar power, as a single magnitude is read
                 target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m[j, i] - first_magnitude[j, i]))
-        stacked = [self._stacked_splines(key, column) for column in columns]
-        out: list[np.ndarray | None] = [None] * len(stacked)
-        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):  # columns sharing their knots together
-            chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
-            knots, _, low, high = stacked[chosen[0]]
-            inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
-            clipped = np.minimum(np.maximum(target, low), high)  # np.clip, without its dtype checks
-            read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
-            for c, values in zip(chosen, read, strict=True):
-                out[c] = np.where(inside, values * target, np.nan)
-        return out
+        return self._read(key, columns, target, (slice(None), slice(None)))
 
     def slopes_at_nodes(self, band: str, sca: int, metric: str, mode: str, magnitudes) -> tuple[np.ndarray, np.ndarray]:
         """(slope, standard error), each (n, n): node k's at its own magnitude ``magnitudes[k]`` as
@@ -430,14 +420,18 @@ class FieldGrid:
         for j in range(n):
             for i in range(n):
                 target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m - first_magnitude[j, i]))
+        return self._read(key, columns, target, (slice(None), slice(None), *([None] * m.ndim)))
+
+    def _read(self, key: str, columns, target: np.ndarray, extra: tuple) -> list[np.ndarray]:
+        """Every column's values at the nodes' fluxes ``target`` (n, n, ...; ``extra`` spreads a node's
+        flux range over the rest), NaN outside a node's range; the columns sharing knots read together."""
         stacked = [self._stacked_splines(key, column) for column in columns]
-        extra = (slice(None), slice(None), *([None] * m.ndim))
         out: list[np.ndarray | None] = [None] * len(stacked)
-        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):  # columns sharing their knots together
+        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):
             chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
             knots, _, low, high = stacked[chosen[0]]
             inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
-            clipped = np.minimum(np.maximum(target, low[extra]), high[extra])
+            clipped = np.minimum(np.maximum(target, low[extra]), high[extra])  # np.clip, without its dtype checks
             read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
             for c, values in zip(chosen, read, strict=True):
                 out[c] = np.where(inside, values * target, np.nan)

@@ -259,21 +259,16 @@ def entry(band: str, sca: int, mode: str, metric: str) -> tuple[dict, str]:
 def at_magnitude(by_magnitude: list[list[float]], magnitude: float | None) -> float | None:
     """A part's |value| at ``magnitude`` from its measured [[m, value, ...], ...]: the larger of
     the two measured magnitudes around it (the nearest end outside them); None: the worst of all."""
+    rows = sorted((r[0], abs(r[1])) for r in by_magnitude if r[1] is not None)
     if magnitude is None:
-        points = [abs(r[1]) for r in by_magnitude if r[1] is not None]
-        return max(points) if points else None
-    if not math.isfinite(magnitude):
+        return max((value for _, value in rows), default=None)
+    if not rows or not math.isfinite(magnitude):
         value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
         return None if not np.isfinite(value) else float(value)
-    # One magnitude: at_magnitudes' look-up in plain Python (the same rows, the same two neighbours).
-    rows = sorted((r[0], abs(r[1])) for r in by_magnitude if r[1] is not None)
-    if not rows:
-        return None
-    knots = [r[0] for r in rows]
-    upper = min(bisect.bisect_left(knots, magnitude), len(knots) - 1)
-    lower = max(bisect.bisect_right(knots, magnitude) - 1, 0)
+    knots = [r[0] for r in rows]  # at_magnitudes' look-up in plain Python: the same two neighbours
+    upper, lower = min(bisect.bisect_left(knots, magnitude), len(rows) - 1), max(bisect.bisect_right(knots, magnitude) - 1, 0)
     pair = (float(rows[lower][1]), float(rows[upper][1]))
-    return None if not all(math.isfinite(v) for v in pair) else max(pair)
+    return max(pair) if all(math.isfinite(v) for v in pair) else None
 
 
 def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int = 1) -> np.ndarray:
