@@ -57,9 +57,10 @@ async def solve(
         # Whatever the tables or the Roman default's field grid answer is answered here, whatever the
         # scene: the cost of the answer decides, not its name. The batch's own check and answer
         # (``batch.answer_from_tables``: the plan read first, a simulation refused before it starts),
-        # off the event loop (a range over the SCA reads nine nodes: tens of milliseconds), not a job.
+        # on the event loop like a table solve (a range over the SCA reads its nodes at once: about a
+        # millisecond; a thread hop cost the service half its default throughput), not a job.
         try:
-            answer = await run_in_threadpool(batch.answer_from_tables, request)
+            answer = batch.answer_from_tables(request)
         except batch.NeedsSimulation:
             pass  # it needs a fresh simulation: a job, below
         else:

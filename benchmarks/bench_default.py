@@ -11,7 +11,10 @@ kind's figure is its fastest round (the machine is shared: the others' load only
 and the rounds spread it over the three alike). Then a 1,000-row batch of default requests
 (``batch.answer_from_tables``, as ``POST /solve/batch`` answers each row) and the page's limits
 (``curves.limits``, read from the slope source: no bisection of solves) at 20 conditions.
-Times are CPU (``time.process_time``); ratios are of one run.
+Times are CPU (``time.process_time``); ratios are of one run. A Roman-default magnitude solve whose
+answer lies between the saturation limits at its position is solved again on fresh simulations
+(issue 28: the grid misses there; seconds, not microseconds): those answers are counted and the
+answers read from the grid are also reported alone.
 
 Targets (issue 25): the default with and without a position at most 2x the paper-table answer; the
 1,000-row default batch under 2 s of CPU.
@@ -53,19 +56,23 @@ def bodies(requests: list[dict], kind: str) -> list[dict]:
     return out
 
 
-def cpu_per_answer(items: list[dict]) -> tuple[list[float], int]:
-    """CPU seconds of each answer (an InputError answered counts: it is the answer), and how many raised."""
+def cpu_per_answer(items: list[dict]) -> tuple[list[float], int, list[bool]]:
+    """CPU seconds of each answer (an InputError answered counts: it is the answer), how many raised,
+    and which answers were simulated rather than read (a Roman-default magnitude between the
+    saturation limits is solved again on fresh simulations: ``validity.fresh_between_limits``)."""
     from nlpsf import InputError, SolveRequest, answer
 
-    times, refused = [], 0
+    times, refused, simulated = [], 0, []
     for body in items:
         start = time.process_time()
         try:
-            answer(SolveRequest.from_json(body))
+            solution = answer(SolveRequest.from_json(body))
+            simulated.append(solution.fidelity != "table")
         except InputError:
             refused += 1
+            simulated.append(False)
         times.append(time.process_time() - start)
-    return times, refused
+    return times, refused, simulated
 
 
 def batch_cpu(rows: int = 1000) -> tuple[float, int]:
@@ -128,22 +135,29 @@ def main(rounds: int = 5) -> None:
     warm = base_requests(seed=99)
     for kind in KINDS:
         cpu_per_answer(bodies(warm, kind))
-    timed: dict[str, list[tuple[list[float], int]]] = {kind: [] for kind in KINDS}
+    timed: dict[str, list[tuple[list[float], int, list[bool]]]] = {kind: [] for kind in KINDS}
     for step in range(rounds):
         for kind in KINDS:
             timed[kind].append(cpu_per_answer(bodies(moved(requests, step), kind)))
     results = {kind: min(runs, key=lambda run: statistics.fmean(run[0])) for kind, runs in timed.items()}
     print(f"CPU per answer, {len(requests)} random requests, one process, one BLAS thread, fastest of {rounds} rounds (ms):")
     paper = statistics.fmean(results["paper"][0])
-    for kind, (times, refused) in results.items():
+    for kind, (times, refused, simulated) in results.items():
         mean = statistics.fmean(times)
+        read = [s for s, fresh in zip(times, simulated, strict=True) if not fresh]
         print(
             f"  {kind:<24} mean {1e3 * mean:7.3f}  median {1e3 * statistics.median(times):7.3f}  "
-            f"max {1e3 * max(times):7.2f}   {mean / paper:6.2f}x the paper's   ({refused} refused)"
+            f"max {1e3 * max(times):8.2f}   {mean / paper:6.2f}x the paper's   ({refused} refused, {sum(simulated)} simulated; "
+            f"the {len(read)} read: mean {1e3 * statistics.fmean(read):.3f}, {statistics.fmean(read) / paper:.2f}x)"
         )
     for kind in KINDS[1:]:
-        ratio = statistics.fmean(results[kind][0]) / paper
-        print(f"RATIO {kind} / paper = {ratio:.2f}x ({'meets' if ratio <= TARGET_RATIO else 'MISSES'} <= {TARGET_RATIO:g}x)")
+        times, _, simulated = results[kind]
+        ratio = statistics.fmean(times) / paper
+        read = statistics.fmean([s for s, fresh in zip(times, simulated, strict=True) if not fresh]) / paper
+        verdict = "meets" if ratio <= TARGET_RATIO else "MISSES"
+        print(
+            f"RATIO {kind} / paper = {ratio:.2f}x ({verdict} <= {TARGET_RATIO:g}x); the answers read, not simulated: {read:.2f}x"
+        )
     seconds, failed = batch_cpu()
     verdict = "meets" if seconds < TARGET_BATCH_S else "MISSES"
     print(f"1,000-row default batch: {seconds:.2f} s CPU ({failed} rows refused; {verdict} < {TARGET_BATCH_S:g} s)")

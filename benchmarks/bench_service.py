@@ -18,8 +18,11 @@ asyncio client on raw keep-alive sockets in its own process (slower per request,
 are a lower bound on the server's). Both are closed-loop generators: each connection sends its next
 request when the previous answer arrives, so the latencies include queueing in the server.
 
+``--only-throughput`` measures only the Roman default's mix against the paper tables' solves, idle,
+alternating on one server (issue 25's target: the default >= 0.8x the paper's req/s in the same run).
+
 Usage: python benchmarks/bench_service.py [--workers N] [--connections 8] [--duration 10]
-       [--generator wrk|python] [--job-realizations 2000] [--process-models]
+       [--generator wrk|python] [--job-realizations 2000] [--process-models] [--only-throughput]
 """
 
 from __future__ import annotations
@@ -369,6 +372,49 @@ def report_process_models(args, models: dict[str, list[dict]]) -> None:
             print(f"  {name}: {args.connections} keep-alive connections per worker, 6 bursts: {runs[-1]['spread']}")
 
 
+#: The Roman default's mix against the paper tables' throughput, idle, in the same run (issue 25).
+TARGET_DEFAULT_RATIO = 0.8
+
+
+def throughput(args, directory: Path, env: dict) -> list[tuple[dict, dict]]:
+    """(paper, default) idle measurements on one server, alternating for ``args.rounds`` rounds (the
+    machine's other load falls on both alike): the paper tables' solves (:data:`BODIES`) and the
+    Roman default's mix (:func:`default_bodies`: half without a position, half at one)."""
+    port = free_port()
+    server = start_server(directory / "jobs.sqlite3", port, env=env, log=directory / "server.log")
+    base = f"http://127.0.0.1:{port}/api/v1"
+    roman = default_bodies()
+    try:
+        for body in [*BODIES, *roman[: 2 * len(BODIES)]]:  # every request a valid solve answered at once
+            response = httpx.post(f"{base}/solve", json=body, timeout=30)
+            assert response.status_code == 200, (body, response.text)
+        measure(args.generator, f"{base}/solve", args.connections, 3.0)  # warm-up
+        measure(args.generator, f"{base}/solve", args.connections, 3.0, roman)
+        rounds = []
+        for _ in range(args.rounds):
+            paper = measure(args.generator, f"{base}/solve", args.connections, args.duration)
+            rounds.append((paper, measure(args.generator, f"{base}/solve", args.connections, args.duration, roman)))
+    finally:
+        stop(server)
+    return rounds
+
+
+def report_throughput(rounds: list[tuple[dict, dict]]) -> int:
+    print(f"{'phase':<44} {'req/s':>9} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} {'max ms':>8} {'requests':>9} {'errors':>7}")
+    for k, (paper, default) in enumerate(rounds):
+        print(row(f"round {k + 1}: paper-table solves, idle", paper))
+        print(row(f"round {k + 1}: default mix, idle", default))
+    ratios = sorted(default["rps"] / paper["rps"] for paper, default in rounds)
+    ratio = ratios[len(ratios) // 2]
+    verdict = "meets" if ratio >= TARGET_DEFAULT_RATIO else "MISSES"
+    print(
+        f"RATIO default mix / paper-table throughput, idle: {ratio:.2f}x (median of rounds: "
+        f"{', '.join(f'{r:.2f}' for r in ratios)}; {verdict} >= {TARGET_DEFAULT_RATIO:g}x)"
+    )
+    errors = sum(p["errors"] + d["errors"] for p, d in rounds)
+    return 0 if ratio >= TARGET_DEFAULT_RATIO and errors == 0 else 1
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=min(os.cpu_count() or 1, 8), help="HTTP workers (default: one per core)")
@@ -380,6 +426,9 @@ def main() -> int:
     parser.add_argument("--process-models", action="store_true", help="also compare uvicorn --workers, idle")
     parser.add_argument("--only-process-models", action="store_true", help="only that comparison")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the comparison (default 3)")
+    parser.add_argument(
+        "--only-throughput", action="store_true", help="only the default mix against the paper's, idle, in --rounds rounds"
+    )
     args = parser.parse_args()
 
     directory = Path(tempfile.mkdtemp(prefix="nlpsf-bench-"))
@@ -389,6 +438,11 @@ def main() -> int:
     print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
     print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
     results: dict[str, dict] = {}
+    if args.only_throughput:
+        try:
+            return report_throughput(throughput(args, directory, env))
+        finally:
+            shutil.rmtree(directory, ignore_errors=True)
     if args.only_process_models:
         try:
             report_process_models(args, process_models(args, directory, env))

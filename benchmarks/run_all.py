@@ -85,6 +85,12 @@ BENCHMARKS = (
         ("benchmarks/bench_service.py",),
         r"req/s|p99|target",
     ),
+    Benchmark(
+        "service_throughput",
+        "The Roman default's mix against the paper tables' solves on the service, idle, alternating",
+        ("benchmarks/bench_service.py", "--only-throughput", "--duration", "5"),
+        r"RATIO",
+    ),
 )
 
 

@@ -90,9 +90,9 @@ def _build(args) -> int:
         from nlpsf.slopes import fieldgrid
 
         fieldgrid.check_grid(args.grid)
-    make = tablebuild.TableSettings.roman if args.scene == "roman" else tablebuild.TableSettings
     chosen = {"pupil_scale": args.pupil_scale} if args.pupil_scale else {}
-    settings = make(
+    settings = tablebuild.TableSettings.of_scene(
+        args.scene,
         realizations=args.realizations,
         faint_limit=args.faint_limit,
         magnitude_step=args.step,

@@ -82,21 +82,23 @@ def measured() -> dict:
     return json.loads(path.read_text())
 
 
-#: ``measured()`` keys: the paper scene's measurement is the file's top level (as it always was);
-#: the Roman default's sits under ``"roman"`` with the same structure (``tradeoff(default="roman")``).
-DEFAULT_SCENES = ("paper", "roman")
+#: Where ``measured()`` holds each default scene's measurement: the paper scene's is the file's top
+#: level (None; as it always was), the Roman default's sits under ``"roman"`` with the same structure
+#: (``tradeoff(default="roman")``).
+STORED_UNDER = {"paper": None, "roman": "roman"}
+DEFAULT_SCENES = tuple(STORED_UNDER)
 
 
 def measured_for(default: str = "paper") -> dict:
     """The tradeoff measurement for a default scene: "paper" (the top level) or "roman"."""
-    if default not in DEFAULT_SCENES:
+    if default not in STORED_UNDER:
         raise InputError("default", f"must be one of {', '.join(DEFAULT_SCENES)}, got {default!r}")
-    data = measured()
-    if default == "paper":
+    data, under = measured(), STORED_UNDER[default]
+    if under is None:
         return data
-    if "roman" not in data:
-        raise SimulationError("no fidelity errors are shipped for the Roman default; run `nlpsf tradeoff --scene roman --write`")
-    return data["roman"]
+    if under not in data:
+        raise SimulationError(f"no fidelity errors are shipped for {default!r}; run `nlpsf tradeoff --scene {default} --write`")
+    return data[under]
 
 
 def level_error(band: str, metric: str, mode: str, level: str, default: str = "paper") -> float:
@@ -131,13 +133,12 @@ def write_measured(result: dict, default: str = "paper") -> Path:
     """Store a tradeoff measurement where ``measured`` reads it: the paper scene's as the file's top
     level (keeping a stored Roman one), the Roman default's under ``"roman"`` (keeping the rest)."""
     path = _fidelity_path()
-    if default == "roman":
-        data = json.loads(path.read_text()) if path.exists() else {}
-        data["roman"] = result
-    else:
-        data = dict(result)
-        if path.exists() and "roman" in (old := json.loads(path.read_text())):
-            data["roman"] = old["roman"]
+    old = json.loads(path.read_text()) if path.exists() else {}
+    under = STORED_UNDER[default]
+    if under is not None:
+        data = {**old, under: result}
+    else:  # the top level, keeping every section stored under a name
+        data = dict(result) | {name: old[name] for name in STORED_UNDER.values() if name is not None and name in old}
     path.write_text(json.dumps(data, indent=1) + "\n")
     measured.cache_clear()
     return path

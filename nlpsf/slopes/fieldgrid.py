@@ -38,7 +38,7 @@ from nlpsf import roman
 from nlpsf.checks import InputError, check_integer
 
 from . import gridfile
-from .tables.splines import evaluate_stacked_columns, evaluate_stacked_cubics, not_a_knot_coefficients
+from .tables.splines import evaluate_stacked_columns, not_a_knot_coefficients
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -120,6 +120,15 @@ def contract(w: np.ndarray, values: np.ndarray) -> np.ndarray:
     """sum over the nodes of ``w[j, i] values[j, i, ...]``: ``np.tensordot(w, values, axes=([0, 1],
     [0, 1]))``'s own product (one BLAS call on the same reshaped arrays), without its overhead."""
     return np.dot(w.reshape(1, -1), values.reshape(w.size, -1)).reshape(values.shape[2:])
+
+
+def node_median(values: np.ndarray) -> np.ndarray:
+    """``np.median(values, axis=(0, 1))`` to the last bit (the middle one of the sorted nodes, or the
+    mean of the middle two; NaN where a node is NaN), without its overhead."""
+    flat = np.sort(values.reshape(values.shape[0] * values.shape[1], *values.shape[2:]), axis=0)
+    half = flat.shape[0] // 2
+    middle = flat[half] if flat.shape[0] % 2 else (flat[half - 1] + flat[half]) / 2
+    return np.where(np.isnan(flat[-1]), np.nan, middle)[()]
 
 
 # --- the field interpolation's error -----------------------------------------------------------
@@ -267,14 +276,23 @@ class FieldGrid:
     def magnitude_range(self, band: str, sca: int) -> tuple[float, float]:
         """(brightest, faintest) magnitude at which every node of (band, SCA) has a value [AB]."""
         key, _ = self._entry(band, sca)
-        mags = self.arrays[f"{key}/magnitude"]
-        return float(np.nanmax(np.nanmin(mags, axis=-1))), float(np.nanmin(np.nanmax(mags, axis=-1)))
+        cached = self._splines.get((key, "magnitude_range"))
+        if cached is None:
+            mags = self.arrays[f"{key}/magnitude"]
+            cached = float(np.nanmax(np.nanmin(mags, axis=-1))), float(np.nanmin(np.nanmax(mags, axis=-1)))
+            self._splines[(key, "magnitude_range")] = cached
+        return cached
 
     def saturation_magnitudes(self, band: str, sca: int) -> np.ndarray:
         """(n, n) [j (y), i (x)]: each node's saturation magnitude, the brightest star whose brightest
         pixel keeps the resultants a slope needs (the ramp's limit; the grid starts 1.5 mag brighter)."""
-        _, entry = self._entry(band, sca)
-        return np.array(entry["saturation_magnitude"], dtype=np.float64)
+        key, entry = self._entry(band, sca)
+        cached = self._splines.get((key, "saturation_magnitude"))
+        if cached is None:
+            cached = np.array(entry["saturation_magnitude"], dtype=np.float64)
+            cached.flags.writeable = False
+            self._splines[(key, "saturation_magnitude")] = cached
+        return cached
 
     def saturation_magnitude(self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange") -> float:
         """The saturation magnitude at ``position`` (pixels), interpolated across the nodes."""
@@ -314,25 +332,36 @@ class FieldGrid:
         cubic spline of column / flux in flux along each node's magnitude grid, as ``nlpsf.slopes.tables``
         reads a table; NaN outside a node's grid (no extrapolation across the field). Read-only and
         memoised: an answer over the SCA asks every node's value once per node it answers at."""
+        return self.columns_node_values(band, sca, (column,), magnitude)[0]
+
+    def columns_node_values(self, band: str, sca: int, columns, magnitude) -> list[np.ndarray]:
+        """:meth:`node_values` of several columns (a slope and its errors: each node's flux at the
+        magnitude found once, the columns that share their knots read together; the same numbers)."""
         key, _ = self._entry(band, sca)
-        if column not in self.meta["columns"]:
-            raise InputError("column", f"no column {column!r} in this field grid")
+        for column in columns:
+            if column not in self.meta["columns"]:
+                raise InputError("column", f"no column {column!r} in this field grid")
         m = np.asarray(magnitude, dtype=np.float64)
-        memo_key = (key, column, m.shape, m.tobytes())
+        memo_keys = [(key, column, m.shape, m.tobytes()) for column in columns]
         with self._node_values_lock:  # the service answers from threads
-            cached = self._node_values.get(memo_key)
-            if cached is not None:
-                self._node_values.move_to_end(memo_key)
-                return cached
-        out = self._evaluate_nodes(key, column, m)
-        out.flags.writeable = False
+            found = [self._node_values.get(memo_key) for memo_key in memo_keys]
+            for memo_key, cached in zip(memo_keys, found, strict=True):
+                if cached is not None:
+                    self._node_values.move_to_end(memo_key)
+        missing = [k for k, cached in enumerate(found) if cached is None]
+        if not missing:
+            return found
+        computed = self._evaluate_nodes(key, [columns[k] for k in missing], m)
         with self._node_values_lock:
-            if memo_key not in self._node_values:
-                self._node_values[memo_key] = out
-                self._node_values_bytes[0] += out.nbytes
+            for k, out in zip(missing, computed, strict=True):
+                out.flags.writeable = False
+                found[k] = out
+                if memo_keys[k] not in self._node_values:
+                    self._node_values[memo_keys[k]] = out
+                    self._node_values_bytes[0] += out.nbytes
             while self._node_values_bytes[0] > _NODE_VALUES_KEPT_BYTES and len(self._node_values) > 1:
                 self._node_values_bytes[0] -= self._node_values.popitem(last=False)[1].nbytes
-        return out
+        return found
 
     def values_at_nodes(self, band: str, sca: int, column: str, magnitudes) -> np.ndarray:
         """(n, n) each node's ``column`` at its own magnitude ``magnitudes[j, i]`` (any shape of n x n
@@ -350,17 +379,7 @@ class FieldGrid:
         for j in range(n):
             for i in range(n):  # each node's own scalar power, as a single magnitude is read
                 target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m[j, i] - first_magnitude[j, i]))
-        stacked = [self._stacked_splines(key, column) for column in columns]
-        out: list[np.ndarray | None] = [None] * len(stacked)
-        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):  # columns sharing their knots together
-            chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
-            knots, _, low, high = stacked[chosen[0]]
-            inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
-            clipped = np.minimum(np.maximum(target, low), high)  # np.clip, without its dtype checks
-            read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
-            for c, values in zip(chosen, read, strict=True):
-                out[c] = np.where(inside, values * target, np.nan)
-        return out
+        return self._read(key, columns, target, (slice(None), slice(None)))
 
     def slopes_at_nodes(self, band: str, sca: int, metric: str, mode: str, magnitudes) -> tuple[np.ndarray, np.ndarray]:
         """(slope, standard error), each (n, n): node k's at its own magnitude ``magnitudes[k]`` as
@@ -379,15 +398,20 @@ class FieldGrid:
         column = f"{mode}_{metric}"
         n = self._entry(band, sca)[1]["grid"]
         m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
-        values, statistical, interpolation = self.columns_at_nodes(band, sca, (column, f"{column}_err", f"{column}_interp"), m)
-        errors = np.hypot(statistical, interpolation)
+        names = (column, f"{column}_err", f"{column}_interp")
         distinct, where = np.unique(m, return_inverse=True)
-        everywhere = self.node_values(band, sca, column, distinct[0] if distinct.size == 1 else distinct)
-        median = np.median(np.abs(everywhere), axis=(0, 1))
+        if distinct.size == 1:  # one magnitude: every node's values there, memoised (the same numbers)
+            values, statistical, interpolation = self.columns_node_values(band, sca, names, distinct[0])
+            everywhere = values
+        else:
+            values, statistical, interpolation = self.columns_at_nodes(band, sca, names, m)
+            everywhere = self.node_values(band, sca, column, distinct)
+        errors = np.hypot(statistical, interpolation)
+        median = node_median(np.abs(everywhere))
         field_term = field_interpolation(n, band)[metric] * (median if distinct.size == 1 else median[where.reshape(n, n)])
         return values, np.hypot(errors, field_term)
 
-    def _evaluate_nodes(self, key: str, column: str, m: np.ndarray) -> np.ndarray:
+    def _evaluate_nodes(self, key: str, columns: list[str], m: np.ndarray) -> list[np.ndarray]:
         first_flux, first_magnitude = self._references(key)
         n = first_flux.shape[0]
         # Each node's flux at m, from its own brightest row, one node at a time (numpy's scalar and
@@ -396,21 +420,33 @@ class FieldGrid:
         for j in range(n):
             for i in range(n):
                 target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m - first_magnitude[j, i]))
-        knots, coefficients, low, high = self._stacked_splines(key, column)
-        extra = (slice(None), slice(None), *([None] * m.ndim))
-        inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
-        clipped = np.minimum(np.maximum(target, low[extra]), high[extra])
-        return np.where(inside, evaluate_stacked_cubics(knots, coefficients, clipped) * target, np.nan)
+        return self._read(key, columns, target, (slice(None), slice(None), *([None] * m.ndim)))
+
+    def _read(self, key: str, columns, target: np.ndarray, extra: tuple) -> list[np.ndarray]:
+        """Every column's values at the nodes' fluxes ``target`` (n, n, ...; ``extra`` spreads a node's
+        flux range over the rest), NaN outside a node's range; the columns sharing knots read together."""
+        stacked = [self._stacked_splines(key, column) for column in columns]
+        out: list[np.ndarray | None] = [None] * len(stacked)
+        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):
+            chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
+            knots, _, low, high = stacked[chosen[0]]
+            inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
+            clipped = np.minimum(np.maximum(target, low[extra]), high[extra])  # np.clip, without its dtype checks
+            read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
+            for c, values in zip(chosen, read, strict=True):
+                out[c] = np.where(inside, values * target, np.nan)
+        return out
 
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every node's cubic of ``column`` as padded arrays (knots (n, n, L), +inf past a node's last;
         coefficients (4, n, n, L - 1), zero past its last interval: ``splines.evaluate_stacked_cubics``' layout)
-        and each node's flux range (n, n). Built with numpy for the column and its two error columns
-        at once (``splines.not_a_knot_coefficients``: scipy's not-a-knot CubicSpline, bit for bit)."""
+        and each node's flux range (n, n). Built with numpy for every column of the (band, SCA) at
+        once, as its first answer asks for one (``splines.not_a_knot_coefficients``: scipy's not-a-knot
+        CubicSpline, bit for bit; each row's arithmetic is its own, so the columns built together are
+        built alike, and one pass costs about what a column's own did)."""
         cached = self._splines.get((key, column, "stacked"))
         if cached is None:
-            base = column.removesuffix("_err").removesuffix("_interp")
-            family = [c for c in (base, f"{base}_err", f"{base}_interp") if c in self.meta["columns"]] or [column]
+            family = list(self.meta["columns"]) if column in self.meta["columns"] else [column]
             for name, stacked in zip(family, self._build_stacked(key, family), strict=True):
                 self._splines[(key, name, "stacked")] = stacked
             cached = self._splines[(key, column, "stacked")]
@@ -511,12 +547,13 @@ class FieldGrid:
         column = self._column(metric, mode)
         n = self._entry(band, sca)[1]["grid"]
         w = weights(n, position, scheme)
-        values = self.node_values(band, sca, column, magnitude)
-        statistical = self.node_values(band, sca, f"{column}_err", magnitude)
-        errors = np.hypot(statistical, self.node_values(band, sca, f"{column}_interp", magnitude))
+        values, statistical, interpolation = self.columns_node_values(
+            band, sca, (column, f"{column}_err", f"{column}_interp"), magnitude
+        )
+        errors = np.hypot(statistical, interpolation)
         value = contract(w, values)
         error = contract(np.abs(w), errors)
-        field_term = field_interpolation(n, band)[metric] * np.median(np.abs(values), axis=(0, 1))
+        field_term = field_interpolation(n, band)[metric] * node_median(np.abs(values))
         return value, np.hypot(error, field_term)
 
     def value(self, band: str, sca: int, position, metric: str, mode: str, magnitude, scheme: str = "lagrange") -> np.ndarray:

@@ -100,6 +100,11 @@ class TableSettings:
             raise InputError("between_step", f"must lie in [0.01, {self.magnitude_step:g}] mag, got {self.between_step!r}")
 
     @classmethod
+    def of_scene(cls, scene: str, **changes) -> TableSettings:
+        """The settings of the tables of ``scene`` ("paper" or "roman", ``nlpsf tables --scene``)."""
+        return cls.roman(**changes) if scene == "roman" else cls(**changes)
+
+    @classmethod
     def roman(cls, **changes) -> TableSettings:
         """Settings for the candidate Roman default scene (official pupil scale and the HLWAS
         exposure unless given)."""

@@ -60,6 +60,7 @@ a part's reading must follow its measuring exactly.
 
 from __future__ import annotations
 
+import bisect
 import json
 import math
 from dataclasses import dataclass, replace
@@ -258,11 +259,16 @@ def entry(band: str, sca: int, mode: str, metric: str) -> tuple[dict, str]:
 def at_magnitude(by_magnitude: list[list[float]], magnitude: float | None) -> float | None:
     """A part's |value| at ``magnitude`` from its measured [[m, value, ...], ...]: the larger of
     the two measured magnitudes around it (the nearest end outside them); None: the worst of all."""
+    rows = sorted((r[0], abs(r[1])) for r in by_magnitude if r[1] is not None)
     if magnitude is None:
-        points = [abs(r[1]) for r in by_magnitude if r[1] is not None]
-        return max(points) if points else None
-    value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
-    return None if not np.isfinite(value) else float(value)
+        return max((value for _, value in rows), default=None)
+    if not rows or not math.isfinite(magnitude):
+        value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
+        return None if not np.isfinite(value) else float(value)
+    knots = [r[0] for r in rows]  # at_magnitudes' look-up in plain Python: the same two neighbours
+    upper, lower = min(bisect.bisect_left(knots, magnitude), len(rows) - 1), max(bisect.bisect_right(knots, magnitude) - 1, 0)
+    pair = (float(rows[lower][1]), float(rows[upper][1]))
+    return max(pair) if all(math.isfinite(v) for v in pair) else None
 
 
 def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int = 1) -> np.ndarray:
@@ -273,8 +279,8 @@ def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, colum
         return np.full(m.shape, np.nan)
     knots = np.array([r[0] for r in rows])
     values = np.array([r[1] for r in rows])
-    upper = np.clip(np.searchsorted(knots, m, side="left"), 0, len(knots) - 1)
-    lower = np.clip(np.searchsorted(knots, m, side="right") - 1, 0, len(knots) - 1)
+    upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
+    lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
     return np.maximum(values[lower], values[upper])
 
 

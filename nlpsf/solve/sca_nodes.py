@@ -200,8 +200,7 @@ def _scan_values(nodes: _Nodes, magnitudes: np.ndarray) -> np.ndarray:
     a node: the node's own, its weights being 0 and 1 there)."""
     grid, band, sca = nodes.grid, nodes.band, nodes.sca
     if nodes.metric == "e":
-        e1 = grid.node_values(band, sca, f"{nodes.mode}_e1", magnitudes)
-        e2 = grid.node_values(band, sca, f"{nodes.mode}_e2", magnitudes)
+        e1, e2 = grid.columns_node_values(band, sca, (f"{nodes.mode}_e1", f"{nodes.mode}_e2"), magnitudes)
         values = np.hypot(e1, e2)
     else:
         values = grid.node_values(band, sca, f"{nodes.mode}_{nodes.metric}", magnitudes)

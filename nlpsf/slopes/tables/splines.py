@@ -74,19 +74,24 @@ def evaluate_stacked_columns(knots: np.ndarray, coefficients: list[np.ndarray], 
     flat = x.reshape(n, n, -1)
     last = np.sum(np.isfinite(knots), axis=-1)[..., None] - 2
     interval = np.minimum(np.maximum(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0), last)
-    rows, columns = np.arange(n)[:, None, None], np.arange(n)[None, :, None]
-    s = flat - knots[rows, columns, interval]
-    out = []
-    for stacked in coefficients:
-        order = stacked.shape[0]
-        value = np.zeros_like(flat)
-        power = np.ones_like(flat)
-        for k in range(order):
-            value = value + stacked[order - 1 - k][rows, columns, interval] * power
-            if k < order - 1:
-                power = power * s
-        out.append(value.reshape(x.shape))
-    return out
+    node = np.arange(n * n).reshape(n, n, 1)  # each x's node, then its interval there, as flat indices
+    s = flat - np.take(knots, node * knots.shape[-1] + interval)
+    if len({c.shape for c in coefficients}) > 1:
+        return [out for c in coefficients for out in evaluate_stacked_columns(knots, [c], x)]
+    # Every column at once, the same sum element by element: (order, [columns,] n, n, x's).
+    order, size = coefficients[0].shape[0], coefficients[0].shape[-1]
+    at = node * size + interval
+    if len(coefficients) == 1:
+        read = np.take(coefficients[0].reshape(order, -1), at, axis=1)
+    else:
+        read = np.take(np.stack(coefficients, axis=1).reshape(order, len(coefficients), -1), at, axis=2)
+    value = np.zeros(read.shape[1:])
+    power = np.ones_like(flat)
+    for k in range(order):
+        value = value + read[order - 1 - k] * power
+        if k < order - 1:
+            power = power * s
+    return [value.reshape(x.shape)] if len(coefficients) == 1 else [v.reshape(x.shape) for v in value]
 
 
 def not_a_knot_coefficients(x: np.ndarray, y: np.ndarray) -> np.ndarray:
