@@ -15,7 +15,7 @@ cost, asks the two table providers only and turns the refusal into :class:`Needs
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from enum import StrEnum
 
 from nlpsf import roman
@@ -169,7 +169,7 @@ class PaperTables:
     def tables_for(self, scene, sca: int) -> tables.TableSet:
         """The tables a request reads (for its slopes, its saturation, its photometry): those at the
         scene's position where the store holds the paper's scene there, else the SCA centre's."""
-        if scene is not None and scene.position is not None and replace(scene, position=None).no_effects:
+        if scene is not None and _paper_but_position(scene):
             held = self.at(scene.position, sca)
             if held is not None:
                 return held
@@ -199,6 +199,12 @@ class Simulator:
         return Coverage(self.name, "linear" if fidelity == "table" else fidelity, tables=tableset)
 
 
+def _paper_but_position(scene) -> bool:
+    """Whether ``scene`` is the paper's at a position: no effect on but the position (each effect
+    reads its own fields: ``replace(scene, position=None).no_effects``, without building that scene)."""
+    return scene.position is not None and not any(on for name, on in scene.effects_on().items() if name != "position")
+
+
 def _same_position(a, b) -> bool:
     return all(abs(x - y) < 1e-6 for x, y in zip(a, b, strict=True))
 
@@ -206,7 +212,7 @@ def _same_position(a, b) -> bool:
 def _holds(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
     """Whether the tables hold the scene: it differs from the paper's by its position alone, and the
     table of (band, SCA) was built at that position (a field-point table, or the centre's)."""
-    if scene.position is None or not replace(scene, position=None).no_effects:
+    if not _paper_but_position(scene):
         return False
     return _same_position(tableset.get(band, sca).position_pixels, scene.position)
 

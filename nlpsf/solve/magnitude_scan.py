@@ -76,9 +76,13 @@ class _Grid:
     factor: float = 1.0
 
 
-def scan_magnitude(slopes, delta_beta: float, tolerance: float, m_sat: float, field: str = "tolerance") -> MagnitudeScan:
+def scan_magnitude(
+    slopes, delta_beta: float, tolerance: float, m_sat: float, field: str = "tolerance", crossing: tuple | None = None
+) -> MagnitudeScan:
     """Magnitude where |c(m)| delta_beta = tolerance; see the module docstring. ``field``: the
-    request field that sets the tolerance, named where no star meets it (:class:`ToleranceUnreachable`)."""
+    request field that sets the tolerance, named where no star meets it (:class:`ToleranceUnreachable`).
+    ``crossing``: (root, d ln|c| / dm or None) of this scan's crossing where it was found already
+    (``sca_nodes``: the same secant on every node of an SCA at once, bit for bit): not sought again."""
     flags: list[Flag] = []
     required = tolerance / delta_beta
     if getattr(slopes, "grid", None) is not None:
@@ -110,9 +114,9 @@ def scan_magnitude(slopes, delta_beta: float, tolerance: float, m_sat: float, fi
         return MagnitudeScan(None, None, None, None, flags)
     k = int(np.argmax(above))  # first magnitude (from the faint side) where the tolerance is exceeded
     bright, faint = float(grid.magnitudes[k]), float(grid.magnitudes[k - 1])
-    m_nl = _crossing(slopes, grid, required, bright, faint)
+    m_nl = _crossing(slopes, grid, required, bright, faint) if crossing is None else crossing[0]
     slope, slope_err, _ = slopes.at(m_nl)
-    log_derivative = _log_derivative(slopes, grid, m_nl)
+    log_derivative = _log_derivative(slopes, grid, m_nl) if crossing is None or crossing[1] is None else crossing[1]
     if any(np.diff(np.sign(grid.values[np.isfinite(grid.values)])) != 0):
         flags.append(make(FlagCode.SLOPE_CHANGES_SIGN, metric=slopes.metric, where=grid.sign_where))
     return MagnitudeScan(m_nl, slope, slope_err, log_derivative, flags)

@@ -35,12 +35,13 @@ class Answer:
     log_derivative: float | None = None
 
 
-def answer_magnitude(request, slopes, limits, model_info: dict, systematic, flags: list) -> Answer:
-    """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation."""
+def answer_magnitude(request, slopes, limits, model_info: dict, systematic, flags: list, crossing=None) -> Answer:
+    """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation.
+    ``crossing``: the scan's crossing where it is known already (``magnitude_scan.scan_magnitude``)."""
     averaging = 1.0 / math.sqrt(request.stars)  # scatter: the PSF model averages `stars` independent draws
     precision, tolerance, beta0 = request.precision, request.target_tolerance, request.beta0
     field = "tolerance" if request.budget is None else f"shear_{request.budget.kind}"
-    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation, field)
+    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation, field, crossing)
     flags += scan.flags
     m_nl, slope, slope_err, log_derivative = scan.magnitude, scan.slope, scan.slope_error, scan.log_derivative
     magnitude, binding = _binding(m_nl, limits.saturation, flags)

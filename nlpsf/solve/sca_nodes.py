@@ -17,7 +17,7 @@ node by node.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -34,6 +34,9 @@ class NodeAnswers:
     solved_for: str
     values: list[float | None]
     uncertainties: list[float | None]
+    #: Node k's crossing of a magnitude solve's scan, where it crossed inside it: (root, d ln|c| / dm,
+    #: None where saturation binds there), as ``magnitude_scan.scan_magnitude`` finds them at the node.
+    crossings: dict[int, tuple[float, float | None]] = field(default_factory=dict)
 
 
 class _Nodes:
@@ -288,4 +291,5 @@ def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, cros
         fidelity = None if systematic is None else np.where(answered, systematic / derivative, 0.0)
         totals = _totals(statistical, fidelity, np.where(answered, effects / derivative, 0.0))
     values = [saturation[k] if binds[k] else m_nl[k] for k in range(count)]
-    return NodeAnswers("magnitude", values, totals)
+    crossings = {k: (m_nl[k], None if binds[k] else log_derivatives[k]) for k in crossed}
+    return NodeAnswers("magnitude", values, totals, crossings)

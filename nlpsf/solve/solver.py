@@ -369,11 +369,14 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
     return _Limits(final_frame - shift, final_frame, source)
 
 
-def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None) -> Solution:
+def answer(
+    request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None, crossing=None
+) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
     ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
     total, message)``: told as each node of an SCA range is answered (the Roman default without a
-    position)."""
+    position). ``crossing``: a magnitude solve's crossing at this node, found with the SCA's other
+    nodes (``sca_nodes``; ``magnitude_scan.scan_magnitude``), not sought again."""
     start = time.perf_counter()
     if request.policy.ranges_over_sca and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
@@ -396,7 +399,7 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     if systematic_note:
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
-        result = quantity.answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        result = quantity.answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags, crossing)
         between = None if result.binding != "nonlinearity" else between_limits_note(request, the_plan.grid, result.magnitude)
         if between is not None:
             # The grid's NL limit lies between the saturation limits: solved again on fresh simulations

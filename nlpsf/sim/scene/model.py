@@ -6,7 +6,7 @@ first-order limits of its detector models.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
 
 import numpy as np
@@ -170,7 +170,9 @@ class SceneModel:
 
     # --- description -------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        out = asdict(self)
+        # Every field is a number, a string, None or a tuple of numbers (``__post_init__`` makes them
+        # so): ``dataclasses.asdict``'s dict without its deep copy of each (most of what an answer's conditions cost).
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["effects_on"] = self.effects_on()
         return out
 
