@@ -17,6 +17,7 @@ import multiprocessing
 import os
 import threading
 import time
+from collections.abc import Iterator
 from multiprocessing.process import BaseProcess
 
 from .settings import Settings
@@ -39,6 +40,27 @@ _PRUNE_S = 60.0
 _WORKER_MODULE = f"{__package__}.worker"
 _context = multiprocessing.get_context("forkserver")
 _context.set_forkserver_preload([_WORKER_MODULE])
+
+
+@contextlib.contextmanager
+def safe_path() -> Iterator[None]:
+    """Processes started inside do not put the working directory on ``sys.path`` (PYTHONSAFEPATH).
+
+    The forkserver is a fresh interpreter started with ``python -c``, which puts the working
+    directory first on its path, and Python before 3.13 ignores the parent's path it is handed:
+    started from a clone's root, ``import nlpsf`` there would find the source folder ``./nlpsf``
+    instead of the installed package (which holds ``nlpsf.web``, and is what the service runs), and
+    every job would fail. Set while a process is started, so the forkserver (started with the first
+    job, and again if it dies) never looks there."""
+    before = os.environ.get("PYTHONSAFEPATH")
+    os.environ["PYTHONSAFEPATH"] = "1"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PYTHONSAFEPATH", None)
+        else:
+            os.environ["PYTHONSAFEPATH"] = before
 
 
 class Dispatcher:
@@ -182,7 +204,8 @@ class Dispatcher:
                 name=f"nlpsf-job-{job['id'][:8]}",
                 daemon=True,
             )
-            process.start()
+            with safe_path():
+                process.start()
             self.processes[job["id"]] = process
             now = time.monotonic()
             self.watch[job["id"]] = {

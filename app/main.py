@@ -25,7 +25,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from nlpsf import __version__, batch, defaults, solver, tables
 from nlpsf.request import SolveRequest
 
-from . import api, errors, models, page_api, simulations
+from . import api, budget, errors, models, page_api, simulations, tables_api
 from .jobs import Dispatcher, Notifier
 from .security import ApiKey, ApiMethods, BodyLimit, SecurityHeaders
 from .settings import Settings
@@ -48,6 +48,25 @@ def _answer_one_default_solve() -> None:
         batch.answer_from_tables(SolveRequest.from_json(first))
     except Exception:
         log.exception("the warm-up default solve failed; default answers will fail the same way")
+
+
+#: GET routes whose answer is a pure function of their query (and the settings), costly enough to
+#: budget (milliseconds to tens of them): kept per request and admitted against the client's share.
+CACHED_ROUTES = frozenset(
+    "/api/v1/" + path
+    for path in (
+        "meta",
+        "fits",
+        "paper",
+        "curves/slope",
+        "curves/beta",
+        "curves/sigma_beta",
+        "page/requirement",
+        "page/limits",
+        "page/slopes",
+        "page/presets",
+    )
+)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -92,6 +111,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.settings = settings
+    share, burst, total = settings.inline_cpu_share, settings.inline_cpu_burst_s, settings.inline_cpu_total_share
+    app.state.budget = budget.InlineBudget(share, burst, total, settings.inline_cache_mb * 1024**2)
+    app.state.documents = tables_api.Documents(settings.documents_cache_mb * 1024**2)
     errors.install(app)
     app.include_router(api.router)
     app.include_router(simulations.router)
@@ -105,7 +127,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if directory.is_dir():
         app.mount("/", StaticFiles(directory=directory, html=True), name="page")
     _problem_schema(app)
-    # The 6.5 MB tables (and the page's scripts) compressed for clients that accept gzip.
+    # Their cost measured where it is spent (the endpoint's thread), their answers kept by request.
+    budget.meter_routes(app, CACHED_ROUTES)
+    app.add_middleware(budget.InlineWork, budget=app.state.budget, routes=CACHED_ROUTES)
+    # Answers (and the page's scripts) compressed for clients that accept gzip (the tables come compressed).
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=6)
     # Outermost last: every response, refusals included, gets the security headers.
     if settings.api_keys:
