@@ -24,12 +24,14 @@ curves -- are kept (:class:`AnswerCache`, bounded): a repeated request costs a d
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import contextvars
 import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -38,12 +40,20 @@ from nlpsf.checks import InputError
 
 from .errors import Throttled
 
-#: Units of inline work: a field-grid node read and answered; a table solve; a page or curve answer.
+#: Units of inline work: a field-grid node read and answered; a table solve; a KiB of a request body
+#: parsed and checked against its schema; (a route's path) one answer of a page or curve route.
 NODE = "node"
 TABLE = "table"
+BODY_KIB = "body_kib"
+#: A batch row read into its typed request.
+ROW = "row"
+#: What one request costs the event loop (receiving it, routing, answering), whatever it asks.
+REQUEST = "request"
+#: Requests over which the loop's cost per request is measured.
+LOOP_WINDOW = 200
 #: What a unit costs before this process has measured one (CPU s): deliberately high, so the first
 #: requests are admitted on a cautious estimate; every measurement moves it toward the truth.
-PRIOR_S = {NODE: 0.005, TABLE: 0.001}
+PRIOR_S = {NODE: 0.005, TABLE: 0.001, BODY_KIB: 0.0005, REQUEST: 0.002, ROW: 0.0005}
 PRIOR_ROUTE_S = 0.05
 #: Weight of each new measurement in a unit's running cost (an exponential average).
 LEARNING_RATE = 0.2
@@ -91,6 +101,7 @@ class CostModel:
 
     def __init__(self) -> None:
         self._per_unit: dict[str, float] = {}
+        self._lock = threading.Lock()
 
     def per_unit(self, kind: str) -> float:
         return self._per_unit.get(kind, PRIOR_S.get(kind, PRIOR_ROUTE_S))
@@ -101,8 +112,14 @@ class CostModel:
     def observe(self, kind: str, units: float, used_s: float) -> None:
         if units > 0 and used_s >= 0:
             measured = used_s / units
-            known = self._per_unit.get(kind)
-            self._per_unit[kind] = measured if known is None else known + LEARNING_RATE * (measured - known)
+            with self._lock:
+                known = self._per_unit.get(kind)
+                self._per_unit[kind] = measured if known is None else known + LEARNING_RATE * (measured - known)
+
+
+#: The process's cost model (one per process: what a unit costs depends on the code and the machine,
+#: not on which application object serves it).
+COSTS = CostModel()
 
 
 class AnswerCache:
@@ -151,8 +168,9 @@ class InlineBudget:
     def __init__(self, share: float, burst_s: float, total_share: float, cache_bytes: int = 32 * 1024**2):
         self.clients = Buckets(share, burst_s)
         self.total = Buckets(total_share, 2 * burst_s)
-        self.costs = CostModel()
+        self.costs = COSTS
         self.answers = AnswerCache(cache_bytes)
+        self.turns = Turns()
         self._lock = threading.Lock()
 
     @property
@@ -169,23 +187,16 @@ class InlineBudget:
                 f"{self.clients.burst:g} CPU-s (the setting inline_cpu_burst_s); split it into smaller requests",
             )
 
-    def admit(self, meter: Meter, estimate_s: float) -> None:
+    def admit(self, meter: Meter, estimate_s: float, always: bool = False) -> None:
         """Reserve ``estimate_s`` for ``meter``'s client, or raise :class:`Throttled` (an estimate
-        under :data:`FREE_S` is reserved without a check)."""
+        under :data:`FREE_S` is reserved without a check, unless ``always``)."""
         now = time.monotonic()
         with self._lock:
             mine = self.clients.balance(meter.client, now)
             everyone = self.total.balance("", now)
-            if estimate_s >= FREE_S:
-                need = min(estimate_s, self.clients.burst)
-                if mine < need:
-                    wait = self.clients.wait_s(meter.client, need, now)
-                    raise Throttled(
-                        f"your share of the service's inline CPU is used (the setting inline_cpu_share, "
-                        f"{self.clients.rate:g} CPU-s per s per HTTP worker); retry after {math.ceil(wait)} s",
-                        "inline_cpu_share",
-                        wait,
-                    )
+            if always or estimate_s >= FREE_S:
+                if mine < min(estimate_s, self.clients.burst):
+                    raise self._refusal(meter.client, estimate_s, now)
                 if everyone < min(estimate_s, self.total.burst):
                     wait = self.total.wait_s("", min(estimate_s, self.total.burst), now)
                     raise Throttled(
@@ -197,6 +208,24 @@ class InlineBudget:
             self.clients.set(meter.client, mine - estimate_s, now)
             self.total.set("", everyone - estimate_s, now)
         meter.reserved_s += estimate_s
+
+    def in_debt(self, client: str) -> bool:
+        """Whether ``client`` has used more than its share has refilled (its balance is below zero)."""
+        with self._lock:
+            return self.clients.balance(client, time.monotonic()) < 0.0
+
+    def refusal(self, client: str, estimate_s: float) -> Throttled:
+        with self._lock:
+            return self._refusal(client, estimate_s, time.monotonic())
+
+    def _refusal(self, client: str, estimate_s: float, now: float) -> Throttled:
+        wait = self.clients.wait_s(client, min(estimate_s, self.clients.burst), now)
+        return Throttled(
+            f"your share of the service's inline CPU is used (the setting inline_cpu_share, "
+            f"{self.clients.rate:g} CPU-s per s per HTTP worker); retry after {math.ceil(wait)} s",
+            "inline_cpu_share",
+            wait,
+        )
 
     def settle(self, meter: Meter) -> None:
         """Charge what ``meter`` used in place of what was reserved for it."""
@@ -225,11 +254,12 @@ def active() -> Work | None:
     return ACTIVE.get()
 
 
-def admit(kind: str, units: float) -> None:
-    """Reserve the estimated cost of ``units`` of ``kind`` for the request in progress (a no-op outside one)."""
+def admit(kind: str, units: float, always: bool = False) -> None:
+    """Reserve the estimated cost of ``units`` of ``kind`` for the request in progress (a no-op outside
+    one); ``always``: check the client's balance however small the estimate."""
     work = ACTIVE.get()
     if work is not None:
-        work.budget.admit(work.meter, work.budget.costs.estimate(kind, units))
+        work.budget.admit(work.meter, work.budget.costs.estimate(kind, units), always)
 
 
 def estimate(kind: str, units: float) -> float:
@@ -237,41 +267,145 @@ def estimate(kind: str, units: float) -> float:
     return work.budget.costs.estimate(kind, units) if work is not None else 0.0
 
 
+_thread = threading.local()
+
+
 @contextmanager
 def metered(kind: str, units: float) -> Iterator[None]:
-    """Measure the CPU time of the work inside (this thread's), charge it to the request in progress
-    and teach the cost model what a unit of ``kind`` costs."""
+    """Measure the CPU time of the work inside (this thread's), teach the cost model what a unit of
+    ``kind`` costs and charge it to the request in progress (unless an enclosing measurement in this
+    thread, the endpoint's own, charges it already)."""
+    outer = getattr(_thread, "metering", False)
+    _thread.metering = True
     start = time.thread_time()
     try:
         yield
     finally:
         used = time.thread_time() - start
+        _thread.metering = outer
         work = ACTIVE.get()
         if work is not None:
-            work.meter.used_s += used
-            work.budget.costs.observe(kind, units, used)
+            if not outer:
+                work.meter.used_s += used
+            if kind:
+                work.budget.costs.observe(kind, units, used)
 
 
-def metered_call(function: Callable[..., Any], kind: str, units: float = 1.0) -> Callable[..., Any]:
-    """``function`` run inside :func:`metered` (for a route's endpoint)."""
-    import functools
-    import inspect
+@contextmanager
+def uncharged() -> Iterator[None]:
+    """Work inside is charged to no client (done once for everyone: the whole tables' documents)."""
+    start = time.thread_time()
+    try:
+        yield
+    finally:
+        work = ACTIVE.get()
+        if work is not None and getattr(_thread, "metering", False):
+            work.meter.used_s -= time.thread_time() - start
 
-    if inspect.iscoroutinefunction(function):
 
-        @functools.wraps(function)
-        async def run_async(*args: Any, **kwargs: Any) -> Any:
-            with metered(kind, units):
-                return await function(*args, **kwargs)
-
-        return run_async
-
-    @functools.wraps(function)
+def _metered_sync(function: Callable[..., Any]) -> Callable[..., Any]:
     def run(*args: Any, **kwargs: Any) -> Any:
-        with metered(kind, units):
+        with metered("", 0.0):
             return function(*args, **kwargs)
 
     return run
+
+
+def install_metering() -> None:
+    """Measure every synchronous endpoint where it runs: FastAPI runs one in a worker thread through
+    ``fastapi.routing.run_in_threadpool`` (every version this service supports); wrapped here, that
+    thread's CPU time is charged to the request in progress. Idempotent; outside a request it only
+    measures."""
+    import fastapi.routing
+
+    original = fastapi.routing.run_in_threadpool
+    if getattr(original, "nlpsf_metered", False):
+        return
+
+    async def run_in_threadpool(function: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+        return await original(_metered_sync(function), *args, **kwargs)
+
+    run_in_threadpool.nlpsf_metered = True  # type: ignore[attr-defined]
+    fastapi.routing.run_in_threadpool = run_in_threadpool  # type: ignore[assignment]
+
+
+# --- turns: one costly computation at a time per worker, one waiting per client -------------------
+
+
+#: How long a request waits for its turn to compute before it is refused (429), s.
+TURN_WAIT_S = 30.0
+
+
+class Turns:
+    """Costly inline work (an answer from the field grid, a page curve, a batch, a large body's
+    parsing, a document's build) runs one at a time per HTTP worker, in a worker thread: the event
+    loop then shares the interpreter lock with one thread, not with as many as there are requests.
+    Each client waits in its own line first, so the shared line holds at most one request per
+    client and turns go round the clients, not to whoever sent the most. For the event loop only."""
+
+    def __init__(self) -> None:
+        self._shared: asyncio.Semaphore | None = None
+        self._lines: dict[str, tuple[asyncio.Semaphore, list[int]]] = {}
+
+    @contextlib.asynccontextmanager
+    async def turn(self, client: str) -> AsyncIterator[None]:
+        if self._shared is None:
+            self._shared = asyncio.Semaphore(1)
+        line, users = self._lines.setdefault(client, (asyncio.Semaphore(1), [0]))
+        users[0] += 1
+        try:
+            async with asyncio.timeout(TURN_WAIT_S):
+                await line.acquire()
+                try:
+                    await self._shared.acquire()
+                except BaseException:
+                    line.release()
+                    raise
+        except TimeoutError:
+            users[0] -= 1
+            if users[0] == 0:
+                self._lines.pop(client, None)
+            raise Throttled(
+                f"this worker's inline work has been busy for {TURN_WAIT_S:g} s; retry shortly", "inline_turn_wait_s", 1.0
+            ) from None
+        try:
+            yield
+        finally:
+            self._shared.release()
+            line.release()
+            users[0] -= 1
+            if users[0] == 0:
+                self._lines.pop(client, None)
+
+
+def turn() -> contextlib.AbstractAsyncContextManager[None]:
+    """The request in progress's turn to compute (no wait outside a request)."""
+    work = ACTIVE.get()
+    if work is None:
+        return contextlib.nullcontext()
+    return work.budget.turns.turn(work.meter.client)
+
+
+@contextmanager
+def turn_in_thread() -> Iterator[None]:
+    """:func:`turn` from a worker thread that anyio started (a synchronous endpoint): waits on the
+    event loop for the turn; elsewhere (a direct call, a test) no wait."""
+    import anyio.from_thread
+
+    work = ACTIVE.get()
+    if work is None:
+        yield
+        return
+    manager = work.budget.turns.turn(work.meter.client)
+    try:
+        anyio.from_thread.run(manager.__aenter__)
+    except RuntimeError:  # not in a thread of the event loop's
+        yield
+        return
+    try:
+        yield
+    finally:
+        anyio.from_thread.run(manager.__aexit__, None, None, None)
 
 
 # --- the middleware: whose request it is, and the page's pure GET answers -------------------------
@@ -296,16 +430,20 @@ def canonical_query(query_string: bytes) -> tuple[tuple[str, str], ...]:
     return tuple(sorted(pairs, key=lambda pair: pair[0]))
 
 
-class InlineWork:
-    """ASGI middleware around the API's routes: every request gets its :class:`Meter` (whose it is,
-    what its inline work reserved and used; settled when it is answered), and the GET routes in
-    ``routes`` -- pure functions of their query (the page's curves, /fits, /meta) -- are answered
-    from :class:`AnswerCache` when asked again and admitted against the client's share when not."""
+class ClientMeter:
+    """ASGI middleware around every API request, outside the body's reading: the request gets its
+    :class:`Meter` (whose it is, what its inline work reserved and used; settled when it is
+    answered), is charged what a request costs this worker's event loop (:data:`REQUEST`, measured:
+    the loop thread's CPU over the requests it served), and -- when its client is in debt and it
+    brings a body larger than ``small_body`` bytes -- is refused (429, the connection closed) before
+    a byte of that body is read. A client in debt keeps its small requests (a table solve) and
+    everything its share covers."""
 
-    def __init__(self, app: Any, budget: InlineBudget, routes: frozenset[str]):
+    def __init__(self, app: Any, budget: InlineBudget, small_body: int = 1024):
         self.app = app
         self.budget = budget
-        self.routes = routes
+        self.small_body = small_body
+        self._window = (time.thread_time(), 0)  # the loop thread's CPU, requests since then
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
         if scope["type"] != "http" or not scope.get("path", "").startswith("/api/"):
@@ -314,33 +452,85 @@ class InlineWork:
         work = Work(self.budget, Meter(client_key(scope)))
         token = ACTIVE.set(work)
         try:
-            if scope["method"] == "GET" and scope["path"] in self.routes:
-                await self._cached(scope, receive, send, work)
-            else:
-                await self.app(scope, receive, send)
+            if _declared_length(scope) > self.small_body and self.budget.in_debt(work.meter.client):
+                refused = self.budget.refusal(work.meter.client, self.budget.costs.per_unit(REQUEST))
+                await refuse(send, refused, [(b"connection", b"close")])
+                return
+            await self.app(scope, receive, send)
         finally:
+            work.meter.used_s += self.budget.costs.per_unit(REQUEST)
             self.budget.settle(work.meter)
             ACTIVE.reset(token)
+            self._learn()
 
-    async def _cached(self, scope: Any, receive: Any, send: Any, work: Work) -> None:
-        from .errors import send_problem
+    def _learn(self) -> None:
+        """Every :data:`LOOP_WINDOW` requests, what one cost the loop thread on average (its CPU
+        time, this request's included, minus nothing: the loop does little else)."""
+        cpu, served = self._window
+        served += 1
+        if served >= LOOP_WINDOW:
+            now = time.thread_time()
+            self.budget.costs.observe(REQUEST, served, now - cpu)
+            self._window = (now, 0)
+        else:
+            self._window = (cpu, served)
 
+
+def _declared_length(scope: Any) -> int:
+    """The body size a request declares (a chunked body: as large as the limit allows)."""
+    for name, value in scope.get("headers", []):
+        if name == b"content-length":
+            try:
+                return int(value)
+            except ValueError:
+                return 0
+        if name == b"transfer-encoding":
+            return 1 << 30
+    return 0
+
+
+class CachedAnswers:
+    """ASGI middleware for the GET routes in ``routes`` -- pure functions of their query (the page's
+    curves, /fits, /meta): answered from :class:`AnswerCache` when asked again, admitted against the
+    client's share when not, their cost (one unit of their path) learned as measured. Inside the
+    compression, so what it keeps is the route's own answer."""
+
+    def __init__(self, app: Any, budget: InlineBudget, routes: frozenset[str]):
+        self.app = app
+        self.budget = budget
+        self.routes = routes
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        work = ACTIVE.get()
+        if scope["type"] != "http" or scope["method"] != "GET" or scope.get("path") not in self.routes or work is None:
+            await self.app(scope, receive, send)
+            return
         path = scope["path"]
         key = ("GET", path, canonical_query(scope.get("query_string", b"")))
-        if (hit := self.budget.answers.get(key)) is not None:
-            headers, body = hit
-            # A fresh list: the middleware outside (gzip, the security headers) edits it in place.
-            await send({"type": "http.response.start", "status": 200, "headers": list(headers)})
-            await send({"type": "http.response.body", "body": body})
+        if await self._kept(key, send):
             return
         try:
             self.budget.admit(work.meter, self.budget.costs.estimate(path, 1.0))
+            async with self.budget.turns.turn(work.meter.client):
+                if not await self._kept(key, send):  # answered while this request waited its turn?
+                    await self._answer(scope, receive, send, work, key)
         except Throttled as refused:
-            await send_problem(send, 429, refused.message, refused.limit, [(b"retry-after", refused.retry_after().encode())],
-                               refused.body())  # fmt: skip
-            return
+            await refuse(send, refused)
+
+    async def _kept(self, key: Any, send: Any) -> bool:
+        if (hit := self.budget.answers.get(key)) is None:
+            return False
+        headers, body = hit
+        # A fresh list: the middleware outside (gzip, the security headers) edits it in place.
+        await send({"type": "http.response.start", "status": 200, "headers": list(headers)})
+        await send({"type": "http.response.body", "body": body})
+        return True
+
+    async def _answer(self, scope: Any, receive: Any, send: Any, work: Work, key: Any) -> None:
+        path = scope["path"]
         start: dict[str, Any] = {}
         chunks: list[bytes] = []
+        used_before = work.meter.used_s
 
         async def keep(message: Any) -> None:
             if message["type"] == "http.response.start":
@@ -353,15 +543,16 @@ class InlineWork:
             await send(message)
 
         await self.app(scope, receive, keep)
+        self.budget.costs.observe(path, 1.0, work.meter.used_s - used_before)
 
 
-def meter_routes(app: Any, paths: frozenset[str]) -> None:
-    """Run the (synchronous) endpoints of ``paths`` inside :func:`metered`, each answer one unit of
-    its own kind (its path), so that their cost is measured in the thread that computes it."""
-    import inspect
+async def refuse(send: Any, refused: Throttled, headers: list | None = None) -> None:
+    """A 429 for a client past its share, after a pause (``Throttled.pause_s``): a client that
+    retries at once, as an abusive one does, then sends a few requests a second, not hundreds."""
+    import asyncio
 
-    from fastapi.routing import APIRoute
+    from .errors import send_problem
 
-    for route in app.router.routes:
-        if isinstance(route, APIRoute) and route.path in paths and not inspect.iscoroutinefunction(route.endpoint):
-            route.dependant.call = metered_call(route.dependant.call, route.path)
+    await asyncio.sleep(refused.pause_s())
+    headers = [(b"retry-after", refused.retry_after().encode()), *(headers or [])]
+    await send_problem(send, 429, refused.message, refused.limit, headers, refused.body())

@@ -107,10 +107,18 @@ class Throttled(Exception):
         self.limit = limit
         self.retry_after_s = retry_after_s
 
+    #: Pause before a 429 is sent (s): the client's wait, at least MIN_PAUSE_S, at most MAX_PAUSE_S.
+    MIN_PAUSE_S = 0.5
+    MAX_PAUSE_S = 1.0
+
     def retry_after(self) -> str:
         import math
 
         return str(max(1, math.ceil(self.retry_after_s)))
+
+    def pause_s(self) -> float:
+        """How long the refusal waits before it is sent: the client's wait, from half a second to one."""
+        return min(max(self.retry_after_s, self.MIN_PAUSE_S), self.MAX_PAUSE_S)
 
     def body(self) -> dict:
         return problem_body(429, self.message, None, self.limit, kind=PROBLEM_TYPES["throttled"])
@@ -251,6 +259,9 @@ async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONRes
 
 
 async def _throttled(request: Request, exc: Throttled) -> JSONResponse:
+    import asyncio
+
+    await asyncio.sleep(exc.pause_s())  # see budget.refuse
     return ProblemResponse(exc.body(), status_code=429, headers={"Retry-After": exc.retry_after()})
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 from starlette.concurrency import run_in_threadpool
 
-from .errors import send_problem, short
+from .errors import Throttled, send_problem, short
 from .headers import SECURITY_HEADERS
 
 Scope = MutableMapping[str, Any]
@@ -59,19 +59,27 @@ BODILESS = ("GET", "HEAD", "OPTIONS", "DELETE")
 #: A UTF-8 byte-order mark: JSON (RFC 8259 section 8.1) and CSV parsers may ignore one; this
 #: service drops it from the front of every body, so a spreadsheet's "UTF-8 with BOM" CSV reads.
 UTF8_BOM = b"\xef\xbb\xbf"
-#: Bodies up to this size are checked for repeated keys on the event loop (well under a millisecond);
-#: larger ones in a worker thread, so the loop stays free whatever a body holds.
-INLINE_PARSE_BYTES = 4096
+#: Bodies up to this size are checked on the event loop (well under a millisecond, whatever they
+#: hold); larger ones in a worker thread, so the loop stays free whatever a body holds.
+INLINE_PARSE_BYTES = 1024
 
 
-def duplicate_keys(body: bytes) -> str | None:
-    """The first key that appears twice in one JSON object of ``body``, or None (also for a body
-    that is not JSON: the application says what is wrong with it). Linear in the body: json's own
-    parser hands each object's pairs to the hook once, and the hook looks each key up in a set."""
+#: Most keys one JSON object of a request may have (the widest request model has a few dozen fields).
+MAX_OBJECT_KEYS = 256
+
+
+def _parse(body: bytes) -> tuple[Any, str | None, int] | None:
+    """(the value, the first key given twice in one of its objects or None, the most keys of any of
+    its objects), or None for a body that is not JSON. Linear in the body: json's own parser hands
+    each object's pairs to the hook once, and the hook looks a key up in a set only when the object
+    came out smaller than its pairs (a key was repeated)."""
     found: list[str] = []
+    widest = 0
 
     def pairs(items: list[tuple[str, Any]]) -> dict:
+        nonlocal widest
         result = dict(items)
+        widest = max(widest, len(items))
         if len(result) != len(items) and not found:
             seen: set[str] = set()
             for key, _ in items:
@@ -82,10 +90,17 @@ def duplicate_keys(body: bytes) -> str | None:
         return result
 
     try:
-        json.loads(body, object_pairs_hook=pairs)
+        value = json.loads(body, object_pairs_hook=pairs)
     except (ValueError, RecursionError):
         return None
-    return found[0] if found else None
+    return value, (found[0] if found else None), widest
+
+
+def duplicate_keys(body: bytes) -> str | None:
+    """The first key that appears twice in one JSON object of ``body``, or None (also for a body
+    that is not JSON: the application says what is wrong with it)."""
+    found = _parse(body)
+    return found[1] if found is not None else None
 
 
 def _is_json(scope: Scope) -> bool:
@@ -108,8 +123,8 @@ def _encoding(scope: Scope) -> bytes | None:
 class BodyLimit:
     """Refuse a body over ``max_bytes`` with 413, before the application reads or parses any of it;
     a body that takes longer than ``timeout_s`` to arrive with 408 (the connection is closed); a body
-    on a GET, HEAD, OPTIONS or DELETE with 400; a compressed body (``Content-Encoding``) with 415; a
-    JSON object with a key given twice with 422. A UTF-8 byte-order mark at the body's start is dropped.
+    on a GET, HEAD, OPTIONS or DELETE with 400; a compressed body (``Content-Encoding``) with 415. A
+    UTF-8 byte-order mark at the body's start is dropped. The application gets the body in one piece.
 
     A declared Content-Length over the limit is refused at once; a chunked body is read up to the
     limit (small by default) and refused as soon as it passes it."""
@@ -170,16 +185,6 @@ class BodyLimit:
             if not event.get("more_body", False):
                 break
         body = b"".join(chunks).removeprefix(UTF8_BOM)
-        if _is_json(scope) and body:
-            # Large bodies off the event loop: the loop only waits (a 64 KiB body of 8,000 keys is a
-            # few milliseconds of parsing; several at once must not stall the other requests).
-            if len(body) <= INLINE_PARSE_BYTES:
-                repeated = duplicate_keys(body)
-            else:
-                repeated = await run_in_threadpool(duplicate_keys, body)
-            if repeated is not None:
-                await send_problem(send, 422, f"the JSON body gives the key {short(repeated)!r} twice; give each key once")
-                return
         replayed = False
 
         async def replay() -> Message:
@@ -190,6 +195,89 @@ class BodyLimit:
             return await receive()
 
         await self.app(scope, replay, send)
+
+
+class JsonBodies:
+    """A JSON body is parsed and checked before the application sees it: a key given twice in one
+    object is refused (422), and so is an object of more than :data:`MAX_OBJECT_KEYS` keys (no
+    request has one: their schemas' objects are small). A body larger than
+    :data:`INLINE_PARSE_BYTES` is parsed -- and, for the routes in ``schemas``, validated against its
+    request model, an invalid one answered 422 from there -- in a worker thread, not on the event loop,
+    its cost estimated (``budget.BODY_KIB``) and admitted against the client's share first (a client
+    past it gets a 429 before a byte is parsed) and charged as measured: 8,000 strings where numbers
+    belong cost pydantic 150 ms of errors, which must not stop every other request on this worker.
+
+    Inside ``budget.InlineWork`` (the request's meter) and after ``BodyLimit`` (the whole body)."""
+
+    def __init__(self, app: ASGIApp, schemas: dict[str, Any]):
+        from pydantic import TypeAdapter
+
+        self.app = app
+        self.adapters = {path: TypeAdapter(model) for path, model in schemas.items()}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] in BODILESS or not _is_json(scope):
+            await self.app(scope, receive, send)
+            return
+        from . import budget
+
+        event = await receive()
+        body = event.get("body", b"")
+        if body:
+            if len(body) <= INLINE_PARSE_BYTES:
+                problem = self._check(body, None)
+            else:
+                kib = len(body) / 1024
+                adapter = self.adapters.get(scope.get("path", ""))
+                try:
+                    budget.admit(budget.BODY_KIB, kib, always=True)
+                    async with budget.turn():
+                        problem = await run_in_threadpool(self._check_metered, body, adapter, kib)
+                except Throttled as refused:
+                    await budget.refuse(send, refused)
+                    return
+            if problem is not None:
+                await send_problem(send, 422, problem["detail"], body=problem)
+                return
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return event
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    def _check_metered(self, body: bytes, adapter: Any, kib: float) -> dict | None:
+        from . import budget
+
+        with budget.metered(budget.BODY_KIB, kib):
+            return self._check(body, adapter)
+
+    @staticmethod
+    def _check(body: bytes, adapter: Any) -> dict | None:
+        """The problem with ``body`` (a 422's problem object), or None: it goes to the application."""
+        from pydantic import ValidationError
+
+        from .errors import problem_body, validation_problem_body
+
+        found = _parse(body)
+        if found is None:
+            return None  # not JSON: the application says what is wrong with it
+        value, repeated, widest = found
+        if repeated is not None:
+            return problem_body(422, f"the JSON body gives the key {short(repeated)!r} twice; give each key once")
+        if widest > MAX_OBJECT_KEYS:
+            return problem_body(422, f"a JSON object in the body has {widest:,} keys; no request field takes more than "
+                                     f"{MAX_OBJECT_KEYS}")  # fmt: skip
+        if adapter is not None:
+            try:
+                adapter.validate_python(value)
+            except ValidationError as invalid:
+                return validation_problem_body(invalid.errors(include_url=False, include_input=False), ("body",))
+        return None
 
 
 def client_of(key: str) -> str:

@@ -9,13 +9,15 @@ HEAD answers from the kept document's headers, or without a body length before i
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import csv
 import gzip
 import io
 import math
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +28,7 @@ from nlpsf import __version__, tables
 from nlpsf.serialise import json_safe
 
 from . import budget, models
-from .errors import SafeJSONResponse
+from .errors import SafeJSONResponse, Throttled
 from .health_api import public_table_meta
 from .params import ERRORS, OptionalBand, OptionalSca
 
@@ -34,6 +36,17 @@ router = APIRouter(prefix="/api/v1")
 
 #: Slices a document is sent in: the worker waits for the client to take one before it writes the next.
 CHUNK_BYTES = 64 * 1024
+#: Documents one client may be sent at once by one HTTP worker; a further request waits its turn
+#: (up to SEND_WAIT_S, then 429): twenty readers from one address take two readers' bandwidth.
+SENDS_PER_CLIENT = 2
+#: How long a request waits for its client's turn to be sent a document, s.
+SEND_WAIT_S = 10.0
+#: A client that takes no slice of a document for this long is cut off (its connection closed), s.
+SEND_STALL_S = 30.0
+#: Bytes per second one client is sent documents at, at most, per HTTP worker (each of its
+#: SENDS_PER_CLIENT documents at its part): the whole tables' gzip (1.9 MB) in a quarter of a
+#: second, while a loopback reader that re-reads them for ever costs the worker little.
+SEND_RATE_BYTES = 16 * 1024**2
 #: gzip level of the kept documents (built once per process).
 GZIP_LEVEL = 6
 #: Units of the cost model: building one document (its cost grows with the selection; measured).
@@ -103,11 +116,12 @@ class Documents:
             if (kept := self.peek(key)) is not None:
                 return kept
             if whole:
-                document = build()  # once per process, for everyone: charged to no one
+                with budget.turn_in_thread(), budget.uncharged():
+                    document = build()  # once per process, for everyone: charged to no one
             else:
                 kind = f"{DOCUMENT}:{key[0]}"
                 budget.admit(kind, 1.0)
-                with budget.metered(kind, 1.0):
+                with budget.turn_in_thread(), budget.metered(kind, 1.0):
                     document = build()
             with self._lock:
                 if whole:
@@ -126,8 +140,43 @@ def document(media_type: str, text: str | bytes, headers: dict[str, str] | None 
     return Document(media_type, body, gzip.compress(body, GZIP_LEVEL, mtime=0), dict(headers or {}))
 
 
+class _Turns:
+    """How many documents each client is being sent now (one HTTP worker; the event loop's only)."""
+
+    def __init__(self) -> None:
+        self.sending: dict[str, tuple[asyncio.Semaphore, list[int]]] = {}
+
+    @contextlib.asynccontextmanager
+    async def turn(self, client: str) -> AsyncIterator[None]:
+        semaphore, users = self.sending.setdefault(client, (asyncio.Semaphore(SENDS_PER_CLIENT), [0]))
+        users[0] += 1
+        try:
+            try:
+                await asyncio.wait_for(semaphore.acquire(), SEND_WAIT_S)
+            except TimeoutError:
+                raise Throttled(
+                    f"you are being sent {SENDS_PER_CLIENT} documents already; retry when one has arrived",
+                    "documents_per_client",
+                    1.0,
+                ) from None
+            try:
+                yield
+            finally:
+                semaphore.release()
+        finally:
+            users[0] -= 1
+            if users[0] == 0:
+                self.sending.pop(client, None)  # idle: forget the client
+
+
+TURNS = _Turns()
+
+
 class DocumentResponse(Response):
-    """A :class:`Document` as the client takes it (gzip if it accepts it), in slices; no body for HEAD."""
+    """A :class:`Document` as the client takes it (gzip if it accepts it), in slices; no body for
+    HEAD. At most :data:`SENDS_PER_CLIENT` at once per client, at :data:`SEND_RATE_BYTES` in all;
+    between slices the event loop serves others (a loopback client takes megabytes without ever
+    making the worker wait); a client that stops taking slices for :data:`SEND_STALL_S` is cut off."""
 
     def __init__(self, kept: Document, request: Request, etag: str):
         self.kept = kept
@@ -145,16 +194,27 @@ class DocumentResponse(Response):
         headers.append((b"content-length", str(len(body)).encode()))
         if self.compressed:
             headers.append((b"content-encoding", b"gzip"))
-        await send({"type": "http.response.start", "status": 200, "headers": headers})
-        if self.head:
+        if self.head or not body:
+            await send({"type": "http.response.start", "status": 200, "headers": headers})
             await send({"type": "http.response.body", "body": b""})
             return
-        view = memoryview(body)
-        for start in range(0, len(body), CHUNK_BYTES):
-            end = start + CHUNK_BYTES
-            await send({"type": "http.response.body", "body": bytes(view[start:end]), "more_body": end < len(body)})
-        if not body:
-            await send({"type": "http.response.body", "body": b""})
+        loop = asyncio.get_running_loop()
+        try:
+            async with TURNS.turn(budget.client_key(scope)), asyncio.timeout(SEND_STALL_S) as deadline:
+                await send({"type": "http.response.start", "status": 200, "headers": headers})
+                view = memoryview(body)
+                began = loop.time()
+                for start in range(0, len(body), CHUNK_BYTES):
+                    end = start + CHUNK_BYTES
+                    piece = {"type": "http.response.body", "body": bytes(view[start:end]), "more_body": end < len(body)}
+                    deadline.reschedule(loop.time() + SEND_STALL_S)
+                    await send(piece)
+                    # Paced (and the loop serves others between slices).
+                    await asyncio.sleep(max(0.0, began + min(end, len(body)) * SENDS_PER_CLIENT / SEND_RATE_BYTES - loop.time()))
+        except Throttled as refused:
+            await budget.refuse(send, refused)
+        except TimeoutError:
+            return  # the client stopped reading: the response ends unfinished and its connection is closed
 
 
 def _answer(request: Request, kind: str, band: str | None, sca: int | None, build: Callable[[], Document]) -> Response:

@@ -13,7 +13,7 @@ runs for ``--phase-s`` seconds from another loopback address (``--attacker-addre
 - ``slow-tables``: 200 connections that ask for ``/api/v1/tables`` and never read the answer;
 - ``dupkeys``: 8 connections sending 60 KB JSON bodies of 8,000 one-to-three-character keys with the
   last one repeated, back to back;
-- ``batch``: 4 connections sending 1,000-row ``/solve/batch`` bodies of distinct default rows.
+- ``batch``: 4 connections sending 600-row ``/solve/batch`` bodies of distinct default rows (under 64 KiB).
 
 The attackers ignore ``Retry-After``: a 429 is answered and the next request goes at once.
 Reported per phase: the victim's p50/p99/max and its p99 over the baselines' (the target: within 4x
@@ -98,7 +98,7 @@ def dupkey_body() -> bytes:
 
 
 def batch_body(draw: random.Random) -> bytes:
-    rows = [json.loads(default_body(draw)) for _ in range(1000)]
+    rows = [json.loads(default_body(draw)) for _ in range(600)]
     return json.dumps({"requests": rows}).encode()
 
 
@@ -197,6 +197,8 @@ def main() -> int:
     parser.add_argument("--phase-s", type=float, default=20.0, help="seconds per attack and per baseline (default 20)")
     parser.add_argument("--phases", default="default,tables,slow-tables,dupkeys,batch", help=f"of {', '.join(PHASES)}")
     parser.add_argument("--attacker-address", default="127.0.0.2", help="the attacker's source address (default 127.0.0.2)")
+    parser.add_argument("--env", action="append", default=[], help="NLPSF_X=value for the server (repeatable)")
+    parser.add_argument("--samples", help="write the victim's samples and the phases' windows to this JSON file")
     args = parser.parse_args()
     phases = [p for p in args.phases.split(",") if p]
     assert all(p in PHASES for p in phases), phases
@@ -204,7 +206,7 @@ def main() -> int:
     directory = Path(tempfile.mkdtemp(prefix="nlpsf-abuse-"))
     port = free_port()
     log = directory / "server.log"
-    env = {"NLPSF_WORKERS": str(args.workers)}
+    env = {"NLPSF_WORKERS": str(args.workers), **dict(item.split("=", 1) for item in args.env)}
     server = start_server(directory / "jobs.sqlite3", port, env=env, log=log)
     context = multiprocessing.get_context("spawn")
     samples: list[tuple[float, float, int]] = []
@@ -245,6 +247,8 @@ def main() -> int:
             server.wait(30)
         except subprocess.TimeoutExpired:
             server.kill()
+    if args.samples:
+        Path(args.samples).write_text(json.dumps({"samples": samples, "windows": [w[:4] for w in windows]}))
     text = log.read_text(errors="replace")
     kills = len(re.findall(r"silent for .* killing it", text))
     restarts = len(re.findall(r"exited \(", text))
@@ -256,7 +260,8 @@ def main() -> int:
     base = [lat for name, s, e, _, _ in windows if name == "baseline" for lat, _ in victim_in(s, e)]
     base_p99 = _quantile(base, 0.99) * 1000
     print(f"nlpsf under abuse: {os.cpu_count()} cores (load average {os.getloadavg()[0]:.1f} at the end), "
-          f"nlpsf serve --workers {args.workers}, attacker from {args.attacker_address}, {args.phase_s:g} s a phase")  # fmt: skip
+          f"nlpsf serve --workers {args.workers}, attacker from {args.attacker_address}, {args.phase_s:g} s a phase"
+          + (f", {' '.join(args.env)}" if args.env else ""))  # fmt: skip
     print(f"victim: a paper-scene POST /solve every {VICTIM_INTERVAL_S} s on a new connection from 127.0.0.1")
     print()
     print(f"{'phase':<12} {'victim n':>8} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'p99/base':>9} {'failed':>7}  "

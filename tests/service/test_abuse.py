@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import math
 
 import pytest
 from nlpsf.web import budget, security
@@ -173,48 +174,65 @@ def test_head_does_not_build_a_document(client):
 # --- inline work budgeted per client ------------------------------------------------------------------
 
 
-@pytest.fixture
-def tight(make_client):
-    """A service whose clients may spend 0.05 CPU-s at once and 0.001 CPU-s per second after."""
-    with make_client(inline_cpu_share=0.001, inline_cpu_burst_s=0.05, inline_cpu_total_share=0.001) as client:
-        yield client
+def _defaults(count: int, start: int = 0) -> list[dict]:
+    """Distinct Roman-default solves without a position (each reads every node of the SCA)."""
+    return [{"band": "H158", "magnitude": round(19.0 + 0.0001 * k, 4), "tolerance": 1e-4} for k in range(start, start + count)]
 
 
-def _distinct_default(k: int) -> dict:
-    return {"band": "H158", "magnitude": 19.0 + 0.01 * k, "tolerance": 1e-4}
+def _node_cost(client) -> float:
+    """What a field-grid node costs this process (CPU s), measured: the budget's own cost model."""
+    client.post("/api/v1/solve/batch", json={"requests": _defaults(20, start=90_000)})
+    return budget.COSTS.per_unit(budget.NODE)
 
 
-def test_a_client_past_its_share_of_inline_cpu_gets_429_with_retry_after(tight):
-    statuses = []
-    for k in range(40):
-        response = tight.post("/api/v1/solve", json=_distinct_default(k))
-        statuses.append(response.status_code)
-        if response.status_code == 429:
-            break
-    assert statuses[0] == 200 and statuses[-1] == 429, statuses
-    problem = response.json()
-    assert problem["limit"] in ("inline_cpu_share", "inline_cpu_total_share")
-    assert problem["type"] == "/problems/inline-cpu-used" and int(response.headers["Retry-After"]) >= 1
-    # An answer already given is a look-up: a repeated request is answered, at no cost.
-    assert tight.post("/api/v1/solve", json=_distinct_default(0)).status_code == 200
-    # A table solve costs (almost) nothing and is never refused: a neighbour's cheap answers go on.
-    assert tight.post("/api/v1/solve", json=PAPER).status_code == 200
-    # The page's curves are budgeted the same way (their first answer costs).
-    page = [tight.get("/api/v1/page/requirement", params={"tolerance": 1e-4 * (1 + k / 10)}).status_code for k in range(3)]
-    assert 429 in page
+def test_a_client_past_its_share_of_inline_cpu_gets_429_with_retry_after(client, make_client):
+    # Batches sized from the measured cost (the budget follows the code's speed): each estimated at
+    # ten times what is never refused, the burst two and a half of them, refilled at a trickle.
+    node = _node_cost(client)
+    rows = max(1, min(400, math.ceil(10 * budget.FREE_S / (9 * node))))
+    estimate = rows * 9 * node
+    keys = ["client-a-key-0123456789", "client-b-key-0123456789"]
+    with make_client(api_keys=",".join(keys), inline_cpu_share=1e-6, inline_cpu_total_share=1e-6,
+                     inline_cpu_burst_s=2.5 * estimate) as tight:  # fmt: skip
+        a, b = ({"X-API-Key": key} for key in keys)
+        statuses = []
+        for k in range(10):
+            response = tight.post("/api/v1/solve/batch", json={"requests": _defaults(rows, start=1000 * k)}, headers=a)
+            statuses.append(response.status_code)
+            if response.status_code == 429:
+                break
+        assert statuses[0] == 200 and statuses[-1] == 429, statuses
+        problem = response.json()
+        assert problem["limit"] == "inline_cpu_share" and problem["type"] == "/problems/inline-cpu-used"
+        assert int(response.headers["Retry-After"]) >= 1
+        # An answer already given is a look-up, and a table solve costs (almost) nothing: neither is refused.
+        assert tight.post("/api/v1/solve", json=_defaults(1)[0], headers=a).status_code == 200
+        assert tight.post("/api/v1/solve", json=PAPER, headers=a).status_code == 200
+        # Another client has its own share (all clients together have another, which A has not used up).
+        assert tight.post("/api/v1/solve/batch", json={"requests": _defaults(rows, start=50_000)}, headers=b).status_code == 200
 
 
-def test_a_batch_is_budgeted_by_its_rows_cost_not_its_row_count(tight, make_client):
-    # Distinct default rows without a position: every node of the SCA each.
-    rows = [_distinct_default(k) for k in range(60)]
-    refused = tight.post("/api/v1/solve/batch", json={"requests": rows})
-    assert refused.status_code == 422 and refused.json()["limit"] == "inline_cpu_burst_s"
-    csv_text = "band,tolerance,magnitude\n" + "".join(f"H158,1e-4,{19 + 0.01 * k:.2f}\n" for k in range(60))
-    csv_refused = tight.post("/api/v1/page/batch", content=csv_text, headers={"Content-Type": "text/csv"})
-    assert csv_refused.status_code == 422 and csv_refused.json()["limit"] == "inline_cpu_burst_s"
-    # The same number of paper-table rows is cheap, and so are repeated rows: answered.
-    assert tight.post("/api/v1/solve/batch", json={"requests": [PAPER] * 60}).status_code == 200
-    assert tight.post("/api/v1/solve/batch", json={"requests": [rows[0]] * 60}).status_code == 200
+def test_a_batch_is_budgeted_by_its_rows_cost_not_its_row_count(client, make_client):
+    node = _node_cost(client)
+    with make_client(inline_cpu_burst_s=max(0.01, 9 * node * 50)) as tight:
+        # A thousand distinct default rows: every node of the SCA each, far more than one client's budget.
+        refused = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1000)})
+        assert refused.status_code == 422 and refused.json()["limit"] == "inline_cpu_burst_s"
+        csv_text = "band,tolerance,magnitude\n" + "".join(f"H158,1e-4,{19 + 0.0001 * k:.4f}\n" for k in range(1000))
+        csv_refused = tight.post("/api/v1/page/batch", content=csv_text, headers={"Content-Type": "text/csv"})
+        assert csv_refused.status_code == 422 and csv_refused.json()["limit"] == "inline_cpu_burst_s"
+    with make_client(inline_cpu_burst_s=max(0.01, 9 * node * 50)) as tight:
+        # As many rows, all the same: one answer's cost.
+        assert tight.post("/api/v1/solve/batch", json={"requests": _defaults(1) * 1000}).status_code == 200
+
+
+def test_a_costly_page_answer_is_budgeted_and_a_repeated_one_kept(make_client):
+    with make_client(inline_cpu_share=1e-6, inline_cpu_total_share=1e-6, inline_cpu_burst_s=0.01) as tight:
+        asked = [{"tolerance": 1e-4 * (1 + k / 10)} for k in range(4)]
+        statuses = [tight.get("/api/v1/page/requirement", params=params).status_code for params in asked]
+        assert statuses[0] == 200 and statuses[-1] == 429, statuses
+        # The first answer is kept: asked again, it costs nothing and is answered.
+        assert tight.get("/api/v1/page/requirement", params={"tolerance": 1e-4}).status_code == 200
 
 
 def test_cached_answers_are_the_answers(client):
