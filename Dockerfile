@@ -28,7 +28,7 @@ COPY nlpsf ./nlpsf
 COPY app ./app
 COPY static ./static
 COPY docs ./docs
-RUN pip install --no-cache-dir . && rm -rf /srv/nlpsf/* && python -c "import nlpsf.tables as t; t.load_tables().load_all()"
+RUN pip install --no-cache-dir . && rm -rf /srv/nlpsf/* && python -c "from nlpsf.slopes import tables as t; t.load_tables().load_all()"
 
 # A system user without a login; written directly because minimal Debian bases lack useradd.
 RUN echo "nlpsf:x:10001:10001:nlpsf service:/srv/nlpsf:/usr/sbin/nologin" >> /etc/passwd \

@@ -5,6 +5,7 @@
 - ``impact_api``: /impact;
 - ``tables_api``: /tables, /tables.ecsv, /tables.csv, /fits, /paper;
 - ``curves_api``: /curves/slope, /curves/beta, /curves/sigma_beta;
+- ``calibration_api``: /calibration/kernel, /calibration/residual, /calibration/requirement (jobs);
 - ``simulations``: /simulations (jobs), mounted by the app itself.
 
 Shared query parameters and error responses are in ``params``; what handlers need from the running
@@ -15,13 +16,13 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from . import curves_api, health_api, impact_api, solve_api, tables_api
+from . import calibration_api, curves_api, health_api, impact_api, solve_api, tables_api
 from .errors import input_error_response
 from .health_api import public_table_meta
 from .params import ERRORS
 
 router = APIRouter()
-for _resource in (health_api, solve_api, impact_api, tables_api, curves_api):
+for _resource in (health_api, solve_api, impact_api, tables_api, curves_api, calibration_api):
     router.include_router(_resource.router)
 
 __all__ = ["ERRORS", "input_error_response", "public_table_meta", "router"]

@@ -6,8 +6,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
 
-from nlpsf import defaults, detector, fidelity, solver, tables
+from nlpsf import defaults
 from nlpsf.serialise import json_safe
+from nlpsf.sim import detector
+from nlpsf.slopes import fidelity, tables
+from nlpsf.solve import solver
 
 from . import models
 from .errors import SafeJSONResponse

@@ -164,7 +164,7 @@ def input_error_body(error: InputError, field: str | None = None, location: str 
 
 
 def needs_simulation_body(error: InputError) -> dict:
-    """A batch entry that needs a simulation (``nlpsf.batch.NeedsSimulation``): a 422 of its own
+    """A batch entry that needs a simulation (``nlpsf.solve.batch.NeedsSimulation``): a 422 of its own
     type, naming the field that takes it off the tables and where it is answered (``send_to``)."""
     body = input_error_body(error)
     message = short(f"{body['detail']}; send it to POST {SOLVE_ENDPOINT} (a job)", 5 * ECHO_CHARS)

@@ -8,9 +8,13 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from nlpsf import __version__, defaults, detector, fidelity, flags, roman, roman_default, solver, tables
-from nlpsf import scene as scenes
+from nlpsf import __version__, defaults, flags, roman
+from nlpsf.request import presets as roman_default
 from nlpsf.serialise import json_safe
+from nlpsf.sim import detector
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import fidelity, tables
+from nlpsf.solve import solver
 
 from . import liveness, models
 from .deps import ServicesDep, SettingsDep
@@ -61,7 +65,7 @@ def _ma_table_summary(name: str) -> dict:
 
 
 def scene_effects() -> list[dict[str, Any]]:
-    """The scene-effect registry (``nlpsf.scene.REGISTRY``) as JSON, in the order the effects act."""
+    """The scene-effect registry (``nlpsf.sim.scene.REGISTRY``) as JSON, in the order the effects act."""
     return [
         {
             "name": e.name,
@@ -106,7 +110,7 @@ def meta(settings: SettingsDep) -> SafeJSONResponse:
             "defaults": {
                 "solve": {k: f.default for k, f in solve_defaults.items() if not f.is_required()},
                 "simulation": models.SimulationRequest().model_dump(),
-                # What a solve leaves unset is filled per scene (nlpsf.roman_default.fill): its exposure.
+                # What a solve leaves unset is filled per scene (nlpsf.request.presets.fill): its exposure.
                 "scene_exptime": {"roman": roman_default.exptime_s(), "paper": defaults.EXPTIME_S},
             },
             "limits": {

@@ -3,7 +3,9 @@ before anything is queued), how it runs (in the job process) and how long it is 
 
 - ``simulation``: a fresh simulation on a grid of magnitudes x betas x sigma_betas (POST /simulations);
 - ``solve``: a two-of-three solve that needs simulated slopes (POST /solve);
-- ``impact``: an impact report, every scene effect simulated with and without (POST /impact).
+- ``impact``: an impact report, every scene effect simulated with and without (POST /impact);
+- ``kernel``, ``residual``, ``requirement``: the calibration capability (POST /calibration/*,
+  ``calibration_jobs``).
 
 A job request is a JSON object: a simulation's normalised request, or ``{"kind": K, K: arguments}``
 for the others; :data:`KINDS` maps each kind to its entry. All physics is in the library; this
@@ -19,11 +21,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from nlpsf import __version__, detector, experiment, fidelity, roman
-from nlpsf import scene as scenes
+from nlpsf import __version__, roman
 from nlpsf.checks import InputError
-from nlpsf.request import RAMP_REQUEST_FIELDS, SolveRequest
+from nlpsf.request.resolve import RAMP_REQUEST_FIELDS, SolveRequest
 from nlpsf.serialise import json_safe
+from nlpsf.sim import detector, experiment
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import fidelity
 
 from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
@@ -52,13 +56,17 @@ class LimitError(InputError):
         self.limit = limit
 
 
-def request_field(argument: str) -> str:
+def request_field(argument: str, request: dict[str, Any] | None = None) -> str:
+    """The request field a library argument names: a simulation's own names (``magnitudes``, ...); the other
+    kinds' requests use the library's names (``request``: the job request, None for a simulation's)."""
+    if request is not None and request.get("kind", SIMULATION_KIND) != SIMULATION_KIND:
+        return argument
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 
 def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
     """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``."""
-    from nlpsf import roman_default
+    from nlpsf.request import presets as roman_default
 
     data = dict(fields or {})
     named = data.pop("preset", None)
@@ -296,7 +304,7 @@ def _steps(progress: Progress | None):
 
 
 def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
-    from nlpsf import impact
+    from nlpsf.solve import impact
 
     arguments = dict(arguments)
     scene = build_scene(arguments.pop("scene"))
@@ -304,7 +312,7 @@ def _run_impact(arguments: dict[str, Any], progress: Progress | None) -> dict[st
 
 
 def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str, Any]:
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     if progress:
         progress(0.0, "simulating the slopes this solve needs")
@@ -317,7 +325,8 @@ def _run_solve(arguments: dict[str, Any], progress: Progress | None) -> dict[str
         # The request was filled for its own SCA (the default's sky, read noise): the others get theirs.
         solution = solver.solve_over_field(band, scas, progress=_steps(progress), filled_for=sca, **rest).to_dict()
     else:
-        solution = solver.answer(request).to_dict()
+        # The SCA range's nodes are its steps (the Roman default without a position); else one step.
+        solution = solver.answer(request, progress=_steps(progress)).to_dict()
     if progress:
         progress(1.0, "done")
     return json_safe(solution)
@@ -382,13 +391,16 @@ def _result_row(result) -> dict[str, Any]:
 
 def simulation_scene_defaults(payload: dict[str, Any], given: set[str]) -> dict[str, Any]:
     """What a simulation leaves unset, filled as the CLI's ``simulate`` fills it (one owner:
-    ``nlpsf.roman_default``): without a scene (or with preset "roman") the Roman default -- its
+    ``nlpsf.request.presets``): without a scene (or with preset "roman") the Roman default -- its
     scene at the request's position (the SCA centre otherwise), the HLWAS readout with the
     likelihood fit and its exposure unless a ramp, MA table or exptime is given, the official pupil
     scale, and its sky over that exposure unless ``scene.background`` is given. ``scene`` "paper"
     (or "galsim-roman"): the paper's final frame of 168.1 s and the tables' pupil scale, as before.
     The normalised request names every value, so its hash says which scene was simulated."""
-    from nlpsf import backgrounds, defaults, ramps, roman_default
+    from nlpsf import defaults
+    from nlpsf.request import presets as roman_default
+    from nlpsf.roman import backgrounds
+    from nlpsf.sim import ramps
 
     from .models import build_ramp
 
@@ -431,7 +443,7 @@ def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> d
     """A solve that needs simulated slopes: everything checked at table cost (the library's request,
     the table solve of the same question, the fidelity choice), then the job's arguments: the
     request's JSON fields, which the job process reads into the same typed request."""
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     body = solve_body(fields, given)
     request = solve_request(body)
@@ -442,7 +454,7 @@ def _validate_solve(fields: dict[str, Any], given: set[str], settings: Any) -> d
 
 def _validate_impact(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
     from nlpsf import defaults
-    from nlpsf import impact as impact_module
+    from nlpsf.solve import impact as impact_module
 
     limits = settings.limits
     arguments = dict(fields)
@@ -477,6 +489,16 @@ KINDS: dict[str, JobKind] = {
     SOLVE_KIND: JobKind(SOLVE_KIND, _validate_solve, _run_solve, lambda _arguments: None),
     IMPACT_KIND: JobKind(IMPACT_KIND, _validate_impact, _run_impact, lambda _arguments: None),
 }
+
+
+def _calibration_kinds() -> dict[str, JobKind]:
+    """The calibration capability's kinds (kernel, residual, requirement: ``calibration_jobs``)."""
+    from . import calibration_jobs
+
+    return calibration_jobs.kinds()
+
+
+KINDS.update(_calibration_kinds())
 
 
 def _entry(request: dict[str, Any]) -> tuple[JobKind, dict[str, Any]]:

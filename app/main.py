@@ -24,8 +24,10 @@ from fastapi.staticfiles import StaticFiles
 from starlette.middleware.gzip import GZipMiddleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from nlpsf import __version__, batch, defaults, solver, tables
-from nlpsf.request import SolveRequest
+from nlpsf import __version__, defaults
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.slopes import providers, tables
+from nlpsf.solve import batch
 
 from . import api, budget, errors, models, page_api, simulations, tables_api
 from .jobs import Dispatcher, Notifier
@@ -92,7 +94,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # Tables first, once, before any connection is accepted (uvicorn listens after the lifespan).
         app.state.tables = tables.load_tables()
         # The field-point tables (--over-field) too, so the first such request is as fast as the rest.
-        field = solver.field_tables()
+        field = providers.field_tables()
         if field is not None:
             field.load_all()
         # One default answer (the Roman default at its field grid's nodes, its readout, sky and model

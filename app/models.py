@@ -12,9 +12,14 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from nlpsf import defaults, detector, fidelity, ramps, roman, roman_default, shear, solver
-from nlpsf import scene as scenes
-from nlpsf.request import MAX_STARS
+from nlpsf import defaults, roman
+from nlpsf.request import presets as roman_default
+from nlpsf.request import shear
+from nlpsf.request.resolve import MAX_STARS
+from nlpsf.sim import detector, ramps
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import fidelity
+from nlpsf.solve import solver
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
@@ -62,7 +67,7 @@ ShippedMATable = Annotated[
     BeforeValidator(lambda value: value.strip().lower() if isinstance(value, str) and len(value) <= 64 else value),
 ]
 #: ``blackbody:TEFF`` with TEFF in the library's range (1000 K to 1e6 K), ``flat``, or a vendored
-#: spectrum by name (``nlpsf.seds.NAMED``: ``k0v``).
+#: spectrum by name (``nlpsf.roman.seds.NAMED``: ``k0v``).
 SED_PATTERN = r"^(flat|k0v|blackbody:([1-9][0-9]{3,5}(\.[0-9]{0,6})?|1000000(\.0{0,6})?))$"
 
 _SOLVE_DEFAULTS = {
@@ -71,7 +76,7 @@ _SOLVE_DEFAULTS = {
     if parameter.default is not inspect.Parameter.empty
 }
 
-#: R_gal / R_psf, and a [ratio, weight] pair of a size-ratio distribution (ranges: ``nlpsf.shear``).
+#: R_gal / R_psf, and a [ratio, weight] pair of a size-ratio distribution (ranges: ``nlpsf.request.shear``).
 _Ratio = Annotated[float, Field(ge=shear.SIZE_RATIO_RANGE[0], le=shear.SIZE_RATIO_RANGE[1])]
 
 
@@ -110,13 +115,13 @@ def _preset_object(value: Any) -> Any:
 
 
 class SceneRequest(BaseModel):
-    """Scene effects beyond the paper's idealised scene (``nlpsf.scene``); every field off unless given."""
+    """Scene effects beyond the paper's idealised scene (``nlpsf.sim.scene``); every field off unless given."""
 
     model_config = ConfigDict(**_STRICT, json_schema_extra={"examples": [{"preset": "roman"}, {"jitter": 0.014, "ipc": "roman"}]})
 
     preset: ScenePreset | None = Field(
         None,
-        description="(no unit) the base the other fields change: roman (the Roman default, nlpsf.roman_default; the "
+        description="(no unit) the base the other fields change: roman (the Roman default, nlpsf.request.presets; the "
         "default), paper (the paper's idealised scene), galsim-roman (jitter 0.014 arcsec, charge diffusion 0.1 px, "
         "GalSim's IPC kernel, flat f_nu SED)",
     )
@@ -193,7 +198,7 @@ class MATableSpec(BaseModel):
 
 
 class RampFields(BaseModel):
-    """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
+    """Up the ramp instead of the paper's single final frame (see nlpsf.sim.ramps)."""
 
     ramp: _Int((1, defaults.MAX_RAMP_READS)) | None = _within(
         (1, defaults.MAX_RAMP_READS), "N uniformly spaced reads over the exposure, one per resultant (count)", in_type=True
@@ -280,13 +285,19 @@ class SolveRequest(RampFields):
     scene: ScenePreset | SceneRequest | None = Field(
         None,
         description="what the star goes through: a preset's name or its fields (units per field); default the Roman "
-        "default (nlpsf.roman_default: its scene at the position, the HLWAS readout, official pupil scale, linearised at "
+        "default (nlpsf.request.presets: its scene at the position, the HLWAS readout, official pupil scale, linearised at "
         "corrected; without a position, the most demanding of the SCA's field-grid nodes); 'paper': the paper's "
         "idealised scene and the shipped tables",
     )
     linearise_at: Literal["beta0", "corrected"] | None = Field(
         None,
         description="(no unit) the detector state the slope is taken at: null for the scene's (roman: corrected; paper: beta0)",
+    )
+    residual_nl: Literal["per_resultant_correction", "per_read_beta"] | None = Field(
+        None,
+        description="(no unit) how a calibration error acts in the corrected state: null for the default "
+        "(per_resultant_correction: the linearity correction on every resultant of the measured signal, as romancal "
+        "applies it); per_read_beta: the earlier model, a residual beta on every read before IPC",
     )
     over_field: Literal["sca", "focal_plane"] | None = Field(
         None,
@@ -456,7 +467,7 @@ class FlagCatalogueEntry(BaseModel):
 
 class SceneEffectEntry(BaseModel):
     name: str = _f("the effect (no unit), as the impact report names it")
-    fields: list[str] = _f("the library's scene fields that set it (nlpsf.scene.SceneModel; no unit)")
+    fields: list[str] = _f("the library's scene fields that set it (nlpsf.sim.scene.SceneModel; no unit)")
     nominal: dict[str, Any] = _f("the Roman value tried when a scene leaves it off, in the fields' units (null: none)")
     source: str = _f("where the nominal value comes from (text)")
     kind: Literal["optical", "detector"] = _f("optical: acts on the PSF before the pixels; detector: in the pixels")
@@ -483,7 +494,7 @@ class Meta(BaseModel):
     defaults: dict[str, Any] = _f("request defaults, in the units of the request fields")
     limits: dict[str, Any] = _f("service limits (counts, s, MB, bytes as named)")
     flag_codes: list[FlagCatalogueEntry] = _f("every flag code an answer or a simulation result may carry (nlpsf.flags)")
-    scene_effects: list[SceneEffectEntry] = _f("the scene effects, in the order they act (nlpsf.scene.REGISTRY)")
+    scene_effects: list[SceneEffectEntry] = _f("the scene effects, in the order they act (nlpsf.sim.scene.REGISTRY)")
 
 
 class TableJSON(BaseModel):
@@ -658,7 +669,7 @@ class SimulationRequest(RampFields):
     scene: Annotated[SceneRequest | None, BeforeValidator(_preset_object)] = Field(
         None,
         description="what the star goes through: a preset's name or its fields (units per field); default the Roman "
-        "default, as the CLI's simulate (nlpsf.roman_default: its scene at the position, its sky, the HLWAS readout "
+        "default, as the CLI's simulate (nlpsf.request.presets: its scene at the position, its sky, the HLWAS readout "
         "with the likelihood fit and its exposure unless a ramp, MA table or exptime is given, official pupil scale); "
         "'paper': the paper's idealised scene on its 168.1 s final frame",
     )

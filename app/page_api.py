@@ -1,9 +1,11 @@
 """What the page needs from the server beyond the resource endpoints: the calculator's plots, the
 limits a refusal quotes, requirement presets with their sources, a CSV batch, and the user guide.
 
-The page draws; every number it draws comes from here or from the resource endpoints. The curves are
-the solver's own answers on a magnitude grid (``solver.solve`` at each point, 60 µs each), so the
-relation T = |c(m)| p β₀ (× 1/√n for a scatter average) has one owner, the library.
+The page draws; every number it draws comes from here or from the resource endpoints. The plots'
+endpoints take POST /solve's body, so what they draw is that request's scene, position and readout;
+the curves are the library's (``nlpsf.solve.curves``: the solver's own slope source and
+relation at each magnitude), so the relation T = |c(m)| p β₀ (× 1/√n for a scatter average) has one
+owner, the library, and the answer's point lies on its curve.
 """
 
 from __future__ import annotations
@@ -20,11 +22,13 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Query
 from fastapi.responses import PlainTextResponse, Response
 
-from nlpsf import defaults, relation, tables
-from nlpsf import solver as solver_module
 from nlpsf.checks import InputError
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.slopes import tables
+from nlpsf.solve import curves as requirement_curves
+from nlpsf.solve import relation
 
-from . import models, params, solve_api
+from . import job_kinds, models, solve_api
 from .errors import SafeJSONResponse, json_safe
 
 # The page's own endpoints: outside the versioned public schema (/openapi.json), which they would
@@ -32,196 +36,89 @@ from .errors import SafeJSONResponse, json_safe
 router = APIRouter(prefix="/api/v1/page", tags=["page"], include_in_schema=False)
 
 Positive = Annotated[float, Query(allow_inf_nan=False, gt=0)]
-Tolerance = Annotated[float, Query(allow_inf_nan=False, gt=0, description="the chosen tolerance T (dimensionless)")]
 At = Annotated[
-    float | None, Query(allow_inf_nan=False, description="a magnitude (AB mag) added to the grid: the answer's, for the legend")
+    list[float] | None,
+    Query(max_length=8, description="magnitudes (AB mag) added to the grid exactly: the answer's, for its point and the legend"),
 ]
-Stars = Annotated[int, Query(ge=1, le=1_000_000, description="stars averaged (count; scatter mode)")]
-RampFactor = Annotated[
-    float | None,
-    Query(allow_inf_nan=False, gt=0, le=10, description="the answer's ramp factor beta_eff / beta0 (conditions.ramp)"),
-]
-ExactFrom = Annotated[
-    float | None, Query(allow_inf_nan=False, description="the answer's ramp_table_exact_from_magnitude (AB mag)")
+Overlay = Annotated[
+    bool, Query(description="also the paper's idealised scene's curves (and its published points where they apply)")
 ]
 
-#: Tolerances drawn around the chosen one (multiples of T).
-TOLERANCE_FACTORS = (0.1, 1 / 3, 1.0, 3.0, 10.0)
+
+def _request(body: models.SolveRequest) -> SolveRequest:
+    """The library's typed request for a solve body: the one POST /solve builds (job_kinds.solve_request)."""
+    return job_kinds.solve_request(job_kinds.solve_body(body.model_dump(), body.model_fields_set))
 
 
-def _args(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: float, full_well: float) -> dict[str, Any]:
-    # The plots are the shipped tables' curves: the paper's scene (the calculator's answer, POST
-    # /solve, is the Roman default's unless the page asks for the paper's).
-    common = {"band": band, "sca": sca, "metric": metric, "mode": mode, "exptime": exptime, "beta0": beta0}
-    return {**common, "full_well": full_well, "scene": "paper"}
-
-
-def _grid(curve: dict[str, Any], at: float | None) -> list[float]:
-    grid = list(curve["magnitude"])
-    lo, hi = (grid[0], grid[-1]) if grid else (None, None)
-    if at is not None and lo is not None and lo <= at <= hi and all(abs(m - at) > 1e-9 for m in grid):
-        grid = sorted([*grid, at])
-    return grid
-
-
-def _safe_solve(**arguments: Any) -> dict[str, Any] | None:
-    try:
-        return solver_module.solve(**arguments).to_dict()
-    except InputError:
-        return None
-
-
-def _fidelity_relative(points: list[dict[str, Any] | None]) -> float | None:
-    # At precision 1 the solved tolerance is |c| beta0 and its fidelity part the level's relative error times it.
-    for p in points:
-        if p and p.get("uncertainty_fidelity") is not None and p.get("tolerance"):
-            return abs(p["uncertainty_fidelity"] / p["tolerance"])
+def _no_curve(body: models.SolveRequest) -> str | None:
+    if body.over_field is not None:
+        return "an answer over the field is the worst of its points; each point has its own curve (solve at a position)"
     return None
 
 
-def limits(band: str, sca: int, metric: str, mode: str, exptime: float, beta0: float, full_well: float) -> dict[str, Any]:
-    """Saturation, the non-monotonic limit and the brightest magnitude the solver answers for."""
-    curve = tables.curve(band, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well)
-    saturation = curve["saturation_magnitude"]
-    common = _args(band, sca, metric, mode, exptime, beta0, full_well)
-
-    def answered(m: float) -> bool:
-        return _safe_solve(**common, precision=1.0, magnitude=m) is not None
-
-    # Bisection on the solver's own acceptance: fainter is always answered, so the boundary is one number.
-    bright, faint = saturation - 15.0, curve["magnitude"][-1] if curve["magnitude"] else saturation + 10
-    if answered(bright):
-        brightest = bright
-    else:
-        for _ in range(40):
-            middle = 0.5 * (bright + faint)
-            bright, faint = (bright, middle) if answered(middle) else (middle, faint)
-        brightest = faint
-    return {
-        "saturation_magnitude": saturation,
-        "nonmonotonic_magnitude": relation.nl_invalid_magnitude(band, sca, beta0, exptime),
-        "brightest_answered_magnitude": brightest,
-        "rules": {
-            "saturation_magnitude": "brighter than this the brightest pixel passes the full well in a single final frame",
-            "nonmonotonic_magnitude": "brighter than this 2 beta0 Q_peak >= 1: S = Q - beta Q^2 no longer rises with Q",
-            "brightest_answered_magnitude": "the brightest magnitude the calculator answers for at these conditions "
-            "(within 0.01 mag)",
-        },
-    }
+@router.post("/limits", summary="The limits of a solve request: saturation for its readout, the brightest magnitude answered")
+def limits_endpoint(body: models.SolveRequest) -> SafeJSONResponse:
+    # The request's own scene, position and readout (the solver's rules, nlpsf.solve.curves).
+    return SafeJSONResponse(json_safe(requirement_curves.limits(_request(body))))
 
 
-@router.get("/limits", summary="Saturation, the non-monotonic limit and the brightest magnitude answered (AB mag)")
-def limits_endpoint(
-    band: params.Band = "H158",
-    sca: params.Sca = 18,
-    metric: params.MetricQuery = "size",
-    mode: params.ModeQuery = "bias",
-    exptime: params.Exptime = defaults.EXPTIME_S,
-    beta0: params.Beta0 = defaults.BETA0,
-    full_well: params.FullWell = defaults.FULL_WELL_E,
-) -> SafeJSONResponse:
-    return SafeJSONResponse(json_safe(limits(band.upper(), sca, metric, mode, exptime, beta0, full_well)))
-
-
-@router.get("/requirement", summary="The calculator's two plots: p(m) around T, the slope c(m), limits")
-def requirement(
-    tolerance: Tolerance,
-    band: params.Band = "H158",
-    sca: params.Sca = 18,
-    metric: params.MetricQuery = "size",
-    mode: params.ModeQuery = "bias",
-    exptime: params.Exptime = defaults.EXPTIME_S,
-    beta0: params.Beta0 = defaults.BETA0,
-    full_well: params.FullWell = defaults.FULL_WELL_E,
-    stars: Stars = 1,
-    at: At = None,
-    ramp_factor: RampFactor = None,
-    exact_from: ExactFrom = None,
-) -> SafeJSONResponse:
-    band = band.upper()
-    common = _args(band, sca, metric, mode, exptime, beta0, full_well)
-    curve = tables.curve(band, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well)
-    bounds = limits(band, sca, metric, mode, exptime, beta0, full_well)
-    saturation = bounds["saturation_magnitude"]
-    grid = _grid(curve, at)
-    usable = [m for m in grid if m >= saturation]  # curves stop at saturation
-    requirement_curves = []
-    for factor in TOLERANCE_FACTORS:
-        t = tolerance * factor
-        points = [_safe_solve(**common, tolerance=t, magnitude=m, stars=stars) for m in usable]
-        requirement_curves.append(
-            {
-                "tolerance": t,
-                "factor": factor,
-                "magnitude": usable,
-                "precision": [p["precision"] if p else None for p in points],
-                "statistical": [p["uncertainty_statistical"] if p else None for p in points],
-                "fidelity": [p["uncertainty_fidelity"] if p else None for p in points],
-            }
-        )
-    slopes = [_safe_solve(**common, precision=1.0, magnitude=m, stars=stars) for m in usable]
-    slope = {
-        "magnitude": usable,
-        "slope": [abs(s["slope"]) if s and s["slope"] is not None else None for s in slopes],
-        "signed": any(s and s["slope"] is not None and s["slope"] < 0 for s in slopes),
-        "statistical": [s["slope_uncertainty"] if s else None for s in slopes],
-        "fidelity_relative_uncertainty": _fidelity_relative(slopes),
-    }
-    ramp = None
-    if ramp_factor is not None:
-        # OLS up the ramp: the final frame at beta_eff = factor β₀ wherever no pixel drops a resultant
-        # (the solver's mapping), slope × factor.
-        mapped = tables.curve(band, sca, metric, mode, exptime=exptime, beta0=beta0 * ramp_factor, full_well=full_well)
-        keep = [i for i, m in enumerate(mapped["magnitude"]) if exact_from is None or m >= exact_from]
-        ramp = {
-            "factor": ramp_factor,
-            "magnitude": [mapped["magnitude"][i] for i in keep],
-            "slope": [abs(mapped["slope"][i] * ramp_factor) for i in keep],
-            "statistical": [mapped["uncertainty"][i] * ramp_factor for i in keep],
-        }
+@router.post("/requirement", summary="The calculator's two plots for a solve request: p(m) around its T, c(m), limits")
+def requirement(body: models.SolveRequest, at: At = None, overlay: Overlay = False) -> SafeJSONResponse:
+    """The body is POST /solve's: the curves are that request's (its scene, position and readout),
+    each value the solver's own at its magnitude (nlpsf.solve.curves)."""
+    request = _request(body)
+    why = _no_curve(body)
+    curves = requirement_curves.curves(request, at=at or (), refuse=why)
+    paper = requirement_curves.paper_overlay(request, curves.tolerance, at=at or ()) if overlay else None
+    published = requirement_curves.published(request, curves.tolerance)
     return SafeJSONResponse(
         json_safe(
             {
-                "source": "the solver at each magnitude of the shipped tables' grid (table fidelity, final-frame slopes)",
-                "relation": "T = |c(m)| p beta0 (scatter: divided by sqrt(stars))",
-                "conditions": curve["conditions"],
-                "requirement": requirement_curves,
-                "slope": slope,
-                "ramp": ramp,
-                "limits": bounds,
+                "source": "the solver's own slopes and relation at each magnitude (nlpsf.solve.curves)",
+                "curves": curves.to_dict(),
+                "paper": None if paper is None else paper.to_dict(),
+                "published": published,
             }
         )
     )
 
 
-@router.get("/slopes", summary="Slope vs magnitude for every band, stopping at saturation, with a chosen magnitude")
-def slopes(
-    metric: params.MetricQuery = "size",
-    mode: params.ModeQuery = "bias",
-    sca: params.Sca = 18,
-    exptime: params.Exptime = defaults.EXPTIME_S,
-    beta0: params.Beta0 = defaults.BETA0,
-    full_well: params.FullWell = defaults.FULL_WELL_E,
-    at: At = None,
-) -> SafeJSONResponse:
+@router.post("/slopes", summary="Slope vs magnitude for every band, for a solve request's scene, position and readout")
+def slopes(body: models.SolveRequest, at: At = None) -> SafeJSONResponse:
+    """The body is POST /solve's (its band is replaced by each band in turn): each band's c(m) as the
+    solver reads it for that request."""
+    why = _no_curve(body)
     out = []
+    # Slopes need no tolerance: every band's request asks for its tolerance at precision 1 (whatever
+    # two of three the calculator's form holds), at the answer's magnitude where one is given.
+    asked = {"precision": 1.0, "tolerance": None, "shear_m": None, "shear_c": None, "size_ratio": None}
+    asked["magnitude"] = (at or [body.magnitude or 20.0])[0]
     for band in tables.load_tables().bands:
-        curve = tables.curve(band, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well)
-        common = _args(band, sca, metric, mode, exptime, beta0, full_well)
-        usable = [m for m in _grid(curve, at) if m >= curve["saturation_magnitude"]]
-        points = [_safe_solve(**common, precision=1.0, magnitude=m) for m in usable]
+        banded = body.model_copy(update={"band": band, **asked})
+        request = _request(banded)
+        curve = requirement_curves.curves(request, at=at or (), step=SLOPES_STEP_MAG, refuse=why).to_dict()
         out.append(
             {
                 "band": band,
-                "magnitude": usable,
-                "slope": [abs(p["slope"]) if p and p["slope"] is not None else None for p in points],
-                "statistical": [p["slope_uncertainty"] if p else None for p in points],
-                "fidelity_relative_uncertainty": _fidelity_relative(points),
-                "saturation_magnitude": curve["saturation_magnitude"],
+                "magnitude": curve["magnitude"],
+                "slope": curve["slope_abs"],
+                "statistical": curve["slope_statistical"],
+                "fidelity_relative_uncertainty": curve["method_relative"],
+                "signed": curve["signed"],
+                "saturation_magnitude": curve["limits"].get("saturation_magnitude"),
+                "final_frame_saturation_magnitude": curve["limits"].get("final_frame_saturation_magnitude"),
+                "where": curve["where"],
+                "gaps": curve["gaps"],
+                "needs_simulation": curve["needs_simulation"],
                 "conditions": curve["conditions"],
             }
         )
-    return SafeJSONResponse(json_safe({"source": "the solver on the shipped tables' grid; absolute values", "curves": out}))
+    source = "the solver's own slopes for the request, per band; absolute values"
+    return SafeJSONResponse(json_safe({"source": source, "curves": out}))
+
+
+#: The slopes plot's magnitude spacing (eight bands at once; the calculator's plots use the library's 0.1 mag).
+SLOPES_STEP_MAG = 0.25
 
 
 @router.get("/impact-terms", summary="What a change of the slope does to the precision an answer requires")
@@ -229,7 +126,7 @@ def impact_terms(
     precision: Positive,
     impact: Annotated[list[float], Query(max_length=50, description="slope with ÷ without − 1 for each effect")],
 ) -> SafeJSONResponse:
-    # The relation is the library's (nlpsf.relation); a vanishing slope asks no precision (null).
+    # The relation is the library's (nlpsf.solve.relation); a vanishing slope asks no precision (null).
     asked = [relation.precision_with_impact(precision, x) for x in impact]
     return SafeJSONResponse(
         {
@@ -291,7 +188,7 @@ PRESETS: list[dict[str, Any]] = [
 
 def scene_presets() -> dict[str, Any]:
     """The scene form's fields for each library scene preset, and the name the library gives the scene."""
-    from nlpsf import roman_default
+    from nlpsf.request import presets as roman_default
 
     out = {}
     for name in roman_default.PRESETS:
@@ -420,6 +317,67 @@ def batch(
             headers={"Content-Disposition": 'attachment; filename="nlpsf-batch-answers.csv"'},
         )
     return SafeJSONResponse({**answered, "requests": rows})
+
+
+# ---- the full tables as the page downloads them: units, provenance, what each column is ---------------
+
+#: What each column of the shipped tables is, with its unit (a slope column's companions: ``_err``, ``_interp``).
+TABLE_COLUMNS: dict[str, str] = {
+    "band": "Roman band (no unit)",
+    "sca": "detector, SCA number (no unit)",
+    "field_point": "field point of the SCA (0 centre, 1-4 corners; no unit), field-point tables only",
+    "magnitude": "star magnitude, AB mag in the band, at the tables' exposure",
+    "flux_electrons": "the star's electrons over the tables' exposure [e-]",
+    "peak_electrons": "the star's brightest pixel before the NL [e- per native pixel: the fine pixel's charge x oversampling^2]",
+    "saturated": "peak_electrons above the full well (true/false)",
+    "failed_realizations": "centroid realizations whose moments failed (count)",
+}
+_SLOPE_WORDS = {
+    "bias": "bias slope d(metric)/d beta at beta0 [e-: the dimensionless metric per unit beta in 1/e-]",
+    "scatter": "scatter slope sigma(metric)/sigma_beta [e-: per unit sigma_beta in 1/e-]",
+}
+_METRIC_WORDS = {"size": "size dR/R", "e1": "ellipticity e1", "e2": "ellipticity e2"}
+_COMPANIONS = {
+    "_err": "1-sigma statistical error of {} over the centroid realizations [same unit]",
+    "_interp": "estimated error of reading {} between the tabulated magnitudes [same unit]: each point left out and "
+    "interpolated back from the others with the cubic spline of slope / flux in flux the tables are read with, the "
+    "difference divided by 16 (a cubic spline's error falls as the spacing^4; nlpsf.tablebuild.interpolation_error_estimate)",
+}
+
+
+def _table_column_words(name: str) -> str:
+    if name in TABLE_COLUMNS:
+        return TABLE_COLUMNS[name]
+    for suffix, words in _COMPANIONS.items():
+        if name.endswith(suffix):
+            return words.format(name[: -len(suffix)])
+    mode, _, metric = name.partition("_")
+    return f"{_METRIC_WORDS.get(metric, metric)} {_SLOPE_WORDS.get(mode, mode)}"
+
+
+@router.get("/tables.csv", summary="The shipped slope tables as CSV, with units, provenance and what each column is")
+def tables_csv() -> Response:
+    shipped = tables.load_tables()
+    rows = tables.table_rows()
+    columns = list(rows[0])
+    meta = shipped.meta
+    settings = meta.get("settings", {})
+    out = io.StringIO()
+    out.write("# nlpsf slope tables: the paper's idealised scene (detector centre, one wavelength, quadratic NL, final frame)\n")
+    out.write(
+        f"# provenance: file {meta.get('source')}, fingerprint {meta.get('fingerprint')}, code {meta.get('code_version')}; "
+        f"optical data: {meta.get('data_version')}; method: {meta.get('method')}\n"
+    )
+    conditions = ", ".join(f"{k} {v}" for k, v in settings.items())
+    out.write(f"# conditions: {conditions} (exptime_s in s, beta0 in 1/e-, full_well_e in e-)\n")
+    out.write("# columns:\n")
+    for name in columns:
+        out.write(f"#   {name}: {_table_column_words(name)}\n")
+    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows({k: "" if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()} for row in rows)
+    headers = {"Content-Disposition": 'attachment; filename="nlpsf-tables-all.csv"'}
+    return PlainTextResponse(out.getvalue(), media_type="text/csv", headers=headers)
 
 
 # ---- the user guide --------------------------------------------------------------------------------

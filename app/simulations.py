@@ -59,11 +59,13 @@ def queue_full_response(full: QueueFull) -> Response:
     return problem(429, f"{what}: {full}", limit=full.setting, headers={"Retry-After": "10"})
 
 
-async def job_answer(services: Services, caller: Caller, job_request: dict[str, Any]) -> Response:
-    """Submit a job and answer with its result when it finishes within ``solve_wait_s`` (200), with
-    its input error (422), its failure (500) or its cancellation (503), or with the job to poll (202)."""
+async def job_answer(services: Services, caller: Caller, job_request: dict[str, Any], wait: float | None = None) -> Response:
+    """Submit a job and answer with its result when it finishes within ``wait`` seconds (None: the
+    deployment's ``solve_wait_s``) (200), with its input error (422), its failure (500) or its
+    cancellation (503), or with the job to poll (202)."""
+    wait = services.settings.solve_wait_s if wait is None else wait
     try:
-        job, status = await submit_job(services, caller, job_request, services.settings.solve_wait_s)
+        job, status = await submit_job(services, caller, job_request, wait)
     except QueueFull as full:
         return queue_full_response(full)
     if job.get("status") == "done" and job.get("result") is not None:

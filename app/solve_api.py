@@ -13,15 +13,16 @@ from __future__ import annotations
 import functools
 import json
 import logging
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from fastapi.responses import Response
 from starlette.concurrency import run_in_threadpool
 
-from nlpsf import batch, defaults, solver
+from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
+from nlpsf.solve import batch, over_field, solver
 
 from . import budget, job_kinds, models
 from .deps import CallerDep, ServicesDep
@@ -45,10 +46,10 @@ def answer_key(fields: dict[str, Any], given: set[str]) -> str:
 def units_of(request) -> tuple[str, float]:
     """(kind, units) of inline work answering ``request`` costs: field-grid nodes for the Roman
     default (every node of the SCA without a position), one table solve otherwise."""
-    from nlpsf import roman_default
-    from nlpsf.over_field import range_positions
+    from nlpsf.request import presets
+    from nlpsf.solve.over_field import range_positions
 
-    if request.preset == roman_default.NAME:
+    if request.preset == presets.NAME:
         if request.scene is None or request.scene.position is None:
             return budget.NODE, float(len(range_positions(request)))
         return budget.NODE, 1.0
@@ -77,7 +78,21 @@ def _kept(key: str) -> dict[str, Any] | None:
     responses=JOB_ANSWER_RESPONSES,
     summary="Two of (precision, tolerance, magnitude) -> the third, with its uncertainty",
 )
-async def solve(body: models.SolveRequest, services: ServicesDep, caller: CallerDep) -> Response:
+async def solve(
+    body: models.SolveRequest,
+    services: ServicesDep,
+    caller: CallerDep,
+    wait: Annotated[
+        float | None,
+        Query(
+            ge=0,
+            le=600,
+            allow_inf_nan=False,
+            description="for an answer that needs a simulation: time to wait for it before the job to poll is returned "
+            "(202), in s; default the deployment's solve_wait_s (a page that shows progress asks for less)",
+        ),
+    ] = None,
+) -> Response:
     # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
     # The library's typed request checks every field, the ramp and the scene (and whether they combine).
     raw = body.model_dump()
@@ -109,7 +124,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
             pass  # it needs a fresh simulation: a job, below
         else:
             return SafeJSONResponse(kept)
-    over_field_tables = solver.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
+    over_field_tables = over_field.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
     if tables_pupil and body.over_field is not None and over_field_tables:
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
         # tens of milliseconds, so off the event loop but not a job.
@@ -131,7 +146,7 @@ async def solve(body: models.SolveRequest, services: ServicesDep, caller: Caller
     # any other simulation (queue, limits, idle priority), validated completely at table cost first,
     # never work inside this HTTP worker.
     job = job_kinds.KINDS[job_kinds.SOLVE_KIND].validate(raw, body.model_fields_set, services.settings)
-    return await job_answer(services, caller, job)
+    return await job_answer(services, caller, job, wait)
 
 
 @router.post(
@@ -171,11 +186,11 @@ def _sent_units(row: Any) -> tuple[str, float]:
     """:func:`units_of` a batch row as sent, before it is read: the paper's scene (or another preset,
     refused in its entry) a table solve; the Roman default one node at a position, every node of its
     SCA without one."""
-    from nlpsf import roman_default
+    from nlpsf.request import presets
 
     scene = row.get("scene") if isinstance(row, dict) else None
     preset = scene if isinstance(scene, str) else scene.get("preset") if isinstance(scene, dict) else None
-    if preset not in (None, roman_default.NAME):
+    if preset not in (None, presets.NAME):
         return budget.TABLE, 1.0
     if isinstance(scene, dict) and scene.get("position") is not None:
         return budget.NODE, 1.0
@@ -187,7 +202,7 @@ def _range_nodes(band: str, sca: str) -> float:
     """How many nodes the SCA range of (band, SCA) reads (as sent: a bad one gets the 3 x 3 grid's)."""
     from types import SimpleNamespace
 
-    from nlpsf.over_field import RANGE_GRID, range_positions
+    from nlpsf.solve.over_field import RANGE_GRID, range_positions
 
     try:
         return float(len(range_positions(SimpleNamespace(band=band, sca=int(float(sca))))))
@@ -218,7 +233,7 @@ def _read_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
 
 def _answer_one(entry: dict[str, Any]) -> dict[str, Any]:
     """One batch entry: answered by the library where the tables or the Roman default's field grid
-    hold it (``nlpsf.batch.answer_from_tables``: the very ``solver.answer`` a single solve runs),
+    hold it (``nlpsf.solve.batch.answer_from_tables``: the very ``solver.answer`` a single solve runs),
     refused on its own otherwise."""
     from nlpsf.checks import SimulationError
 

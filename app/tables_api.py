@@ -24,8 +24,9 @@ from typing import Any
 from fastapi import APIRouter, Request
 from fastapi.responses import Response
 
-from nlpsf import __version__, tables
+from nlpsf import __version__
 from nlpsf.serialise import json_safe
+from nlpsf.slopes import tables
 
 from . import budget, models
 from .errors import SafeJSONResponse, Throttled

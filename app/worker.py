@@ -17,9 +17,10 @@ import time
 import traceback
 from typing import Any
 
-# Imported here so the forkserver has numpy, scipy and the simulator loaded before it forks.
-from nlpsf import experiment  # noqa: F401
 from nlpsf.checks import InputError
+
+# Imported here so the forkserver has numpy, scipy and the simulator loaded before it forks.
+from nlpsf.sim import experiment  # noqa: F401
 
 from . import job_kinds
 from .store import Store, StoreUnavailable
@@ -124,7 +125,7 @@ def run_job(
         end("cancelled", "cancelled while running")
         return
     except InputError as error:
-        field = job_kinds.request_field(error.argument)
+        field = job_kinds.request_field(error.argument, request)
         end("failed", str(error), {"field": field, "message": error.reason})
         return
     except MemoryError:

@@ -1,4 +1,4 @@
-"""Speed of an ``--accuracy 0.01`` solve of the Roman default scene (``nlpsf.accuracy``).
+"""Speed of an ``--accuracy 0.01`` solve of the Roman default scene (``nlpsf.solve.accuracy``).
 
 Varied requests -- random band, SCA, field position (neither centre nor corner), metric and
 magnitude, half of them solving for the tolerance at a given magnitude, half for the magnitude --
@@ -44,8 +44,8 @@ def requests(count: int, seed: int) -> list[dict]:
 
 
 def build(case: dict, accuracy: float | None):
-    from nlpsf import roman_default
-    from nlpsf.request import SolveRequest
+    from nlpsf.request import presets as roman_default
+    from nlpsf.request.resolve import SolveRequest
 
     readout = roman_default.readout(case["band"], case["sca"])
     scene = roman_default.scene(case["position"], readout.background_e)
@@ -71,7 +71,8 @@ def main() -> None:
     parser.add_argument("--search", default="auto", choices=("auto", "always", "never"))
     args = parser.parse_args()
 
-    from nlpsf import accuracy, solver, tables
+    from nlpsf.slopes import tables
+    from nlpsf.solve import accuracy, solver
 
     tables.load_tables()
     solver.answer(build(requests(1, 999)[0], None)[2])  # interpolants built once, as a service has them

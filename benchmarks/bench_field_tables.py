@@ -27,7 +27,7 @@ NODES = ((3, 0, 0), (3, 1, 1), (3, 2, 2))
 
 CHILD = r"""
 import json, sys, time
-from nlpsf import tablebuild
+from nlpsf.slopes import tablebuild
 sample, nodes = json.loads(sys.argv[1]), [tuple(n) for n in json.loads(sys.argv[2])]
 roman = tablebuild.TableSettings.roman
 tablebuild.compute_table("H158", 1, roman(realizations=2, faint_limit=15.0), node=(3, 1, 0))  # warm-up

@@ -45,7 +45,9 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="also write the numbers to this file")
     args = parser.parse_args()
 
-    from nlpsf import defaults, experiment, ramps, solver
+    from nlpsf import defaults
+    from nlpsf.sim import experiment, ramps
+    from nlpsf.solve import solver
 
     exptime = defaults.EXPTIME_S
     table = ramps.load_ma_table("romanisim-110")

@@ -4,7 +4,7 @@ Work per configuration: a fresh request -- optics computed (the cache cleared), 
 reference moments, and the slopes at one magnitude (``experiment.slopes``: bias and scatter) --
 on H158 SCA 18, m = 18.3, beta0 = 5e-7, R centroid realizations, for both methods (Monte Carlo,
 the paper's finite differences, and the linear response). Each effect is switched on alone at its
-``nlpsf.scene.NOMINAL`` value (brighter-fatter at a = 1e-7), then the Roman preset and everything
+``nlpsf.sim.scene.NOMINAL`` value (brighter-fatter at a = 1e-7), then the Roman preset and everything
 at once. Each configuration is timed ``--repeat`` times and the fastest kept (on a shared machine
 the minimum is the least disturbed); ratios are to the plain scene timed in the same run.
 
@@ -19,8 +19,8 @@ import os
 import time
 from dataclasses import replace
 
-from nlpsf import experiment, optics
-from nlpsf import scene as scenes
+from nlpsf.sim import experiment, optics
+from nlpsf.sim import scene as scenes
 
 
 def configurations() -> dict[str, scenes.SceneModel]:

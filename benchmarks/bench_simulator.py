@@ -56,7 +56,7 @@ def run_nlpsf(realizations: int, method: str = "monte_carlo") -> dict:
 
 
 def _run_nlpsf(realizations: int, method: str) -> dict:
-    from nlpsf import experiment, moments, optics, render
+    from nlpsf.sim import experiment, moments, optics, render
 
     optics.effective_psf.cache_clear()
     timings = {"optics": 0.0, "rendering": 0.0, "reference_moments": 0.0, "perturbed_moments": 0.0}
@@ -85,7 +85,7 @@ def _run_nlpsf(realizations: int, method: str) -> dict:
 
 
 def run_galsim(realizations: int, redraw: bool) -> dict:
-    from nlpsf import experiment, reference, render
+    from nlpsf.sim import experiment, reference, render
 
     timings = {"setup": 0.0, "draw": 0.0, "measure": 0.0}
     cells = {}

@@ -16,7 +16,8 @@ import numpy as np
 
 
 def time_solves(count: int = 5000) -> dict:
-    from nlpsf import solver, tables
+    from nlpsf.slopes import tables
+    from nlpsf.solve import solver
 
     tables.load_tables()
     rng = np.random.default_rng(0)
@@ -49,7 +50,7 @@ def time_solves(count: int = 5000) -> dict:
 
 def galsim_slope_seconds(realizations: int) -> float:
     """The same H158 SCA 18 m=19 size slope from the GalSim pipeline, as the paper computed it."""
-    from nlpsf import experiment, reference, render
+    from nlpsf.sim import experiment, reference, render
 
     config = experiment.SimulationConfig(realizations=realizations)
     offsets = render.draw_offsets(np.random.default_rng(1), realizations, 3)
@@ -64,10 +65,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--galsim-realizations", type=int, default=100)
     args = parser.parse_args()
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     start = time.perf_counter()
-    from nlpsf import tables
+    from nlpsf.slopes import tables
 
     tables.load_tables.cache_clear()
     tables.load_tables()
@@ -83,7 +84,7 @@ def main() -> None:
     print(f"  all solves: median {1e6 * median:.1f} us, p99 {1e6 * np.percentile(everything, 99):.1f} us")
 
     for level in ("linear", "monte_carlo", "polychromatic"):
-        from nlpsf import optics
+        from nlpsf.sim import optics
 
         optics.effective_psf.cache_clear()
         start = time.perf_counter()

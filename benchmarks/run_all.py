@@ -50,6 +50,12 @@ BENCHMARKS = (
         r"[Rr]atio|median|×|x\b",
     ),
     Benchmark(
+        "default",
+        "The Roman default's answers against the paper tables': CPU per answer, a batch, the page's limits",
+        ("benchmarks/bench_default.py",),
+        r"RATIO|batch|limits",
+    ),
+    Benchmark(
         "scene",
         "Cost of each scene effect relative to the plain simulation",
         ("benchmarks/bench_scene.py",),

@@ -56,7 +56,7 @@ SIGMA_BETA_FRACTION = 0.1
 TABLE_MAGNITUDE_STEP = 0.25
 TABLE_FAINT_LIMIT = 28.0
 
-# --- up-the-ramp exposures (nlpsf.ramps) ---------------------------------------------------------
+# --- up-the-ramp exposures (nlpsf.sim.ramps) ---------------------------------------------------------
 
 #: WFI frame time [s]: one read of the full array (romanisim ``parameters.read_time``).
 ROMAN_FRAME_TIME_S = 3.04

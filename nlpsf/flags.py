@@ -25,7 +25,7 @@ from enum import StrEnum
 class FlagCode(StrEnum):
     """Stable codes of result flags (the value is what JSON carries)."""
 
-    # Simulations (nlpsf.experiment)
+    # Simulations (nlpsf.sim.experiment)
     SATURATED = "saturated"
     NL_NOT_MONOTONIC = "nl_not_monotonic"
     NEGATIVE_BETA = "negative_beta"
@@ -38,7 +38,7 @@ class FlagCode(StrEnum):
     NO_CHANGE = "no_change"
     BELOW_MONTE_CARLO_RESOLUTION = "below_monte_carlo_resolution"
     JUMPY_FINITE_DIFFERENCE = "jumpy_finite_difference"
-    # Solutions (nlpsf.solver, nlpsf.fidelity, nlpsf.shear)
+    # Solutions (nlpsf.solve.solver, nlpsf.slopes.fidelity, nlpsf.request.shear)
     FIDELITY_CHOSEN = "fidelity_chosen"
     FIDELITY_NONE_MEETS = "fidelity_none_meets"
     FIDELITY_ERROR_UNKNOWN = "fidelity_error_unknown"
@@ -59,11 +59,12 @@ class FlagCode(StrEnum):
     BELOW_TOLERANCE_EVERYWHERE = "below_tolerance_everywhere"
     SLOPE_CHANGES_SIGN = "slope_changes_sign"
     SLOPE_CONSISTENT_WITH_ZERO = "slope_consistent_with_zero"
+    E_COMPONENT_SMALL = "e_component_small"
     QUADRATIC_NOT_MONOTONIC = "quadratic_not_monotonic"
     OUTSIDE_LINEAR_REGIME = "outside_linear_regime"
     SHEAR_CROSS_TERM = "shear_cross_term"
     WORST_OVER_FIELD = "worst_over_field"
-    # The Roman default (nlpsf.roman_default)
+    # The Roman default (nlpsf.request.presets)
     DEFAULT_FROM_GRID = "default_from_grid"
     DEFAULT_SIMULATED = "default_simulated"
     LINEARISED_SIMULATED = "linearised_simulated"
@@ -271,6 +272,16 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "this metric is insensitive to beta here, so no calibration precision is needed for it",
         ("metric", "magnitude", "slope", "error"),
         "The metric is insensitive to beta here: no precision is needed for it.",
+    ),
+    FlagCode.E_COMPONENT_SMALL: FlagSpec(
+        "the {metric} slope at m={magnitude:.2f} is {why}: c_{metric} = {slope:.3g} ± {error:.2g} against "
+        "|c_e| = {modulus:.3g}; the model's errors (optics, diffusion, jitter) move the two e components "
+        "together, so they move c_{metric} by a large fraction of itself and its relative uncertainty is large. "
+        "For a requirement on the PSF's ellipticity ask for --metric e (the modulus hypot(c_e1, c_e2)), which "
+        "they do not make small",
+        ("metric", "magnitude", "why", "slope", "error", "modulus"),
+        "An ellipticity component whose slope is small against the modulus |c_e| (or consistent with zero): "
+        "its relative uncertainty is large; --metric e gives the modulus.",
     ),
     FlagCode.QUADRATIC_NOT_MONOTONIC: FlagSpec(
         "nonlinearity not monotonic: 2 beta0 Q_peak = {value:.2f} >= 1 at m={magnitude:g}; the quadratic model "

@@ -126,11 +126,13 @@ class Service:
             self.process.wait(timeout=30)
 
 
-def run(example: Example, environment: dict, service: Service) -> tuple[bool, str]:
+def run(example: Example, environment: dict, service: Service, cwd: Path = ROOT) -> tuple[bool, str]:
+    """Run one example in ``cwd`` (the repository root unless a test gives a folder of its own, for examples
+    that write files) and compare what it prints with what the document shows."""
     command = example.command
     if "localhost:8000" in command:
         command = command.replace("localhost:8000", service.address())
-    done = subprocess.run(["bash", "-c", command], cwd=ROOT, env=environment, capture_output=True, text=True, check=False)
+    done = subprocess.run(["bash", "-c", command], cwd=cwd, env=environment, capture_output=True, text=True, check=False)
     printed = done.stdout.rstrip("\n").splitlines()
     if done.returncode != 0:
         return False, f"exit status {done.returncode}\n{done.stderr.strip()[-2000:]}"

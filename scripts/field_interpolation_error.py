@@ -29,8 +29,9 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from nlpsf import experiment, fieldgrid, tablebuild
-from nlpsf.tables import COLUMN_METRICS
+from nlpsf.sim import experiment
+from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes.tables import COLUMN_METRICS
 
 NEAR_ZERO_FRACTION = 0.1
 METRIC_NAMES = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}

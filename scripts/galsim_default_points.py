@@ -3,7 +3,7 @@
 At N seeded random points (band, SCA, a position neither the SCA centre nor a corner, a magnitude
 between the answer's saturation limit + 0.4 and 21.5, a metric), the slope d metric / d beta that
 ``nlpsf solve`` answers with the Roman default is compared with an independent GalSim computation of
-the same scene (``nlpsf.reference.GalSimRomanDefault``: GalSim's optics at the position with the
+the same scene (``nlpsf.sim.reference.GalSimRomanDefault``: GalSim's optics at the position with the
 official pupil scale, the answer's star (the Pickles K0V as a tabulated ``galsim.SED``, or a blackbody)
 through the SCA's official bandpass, jitter and diffusion, IPC after the NL, the background (removed
 as a local sky estimate removes it), the C2A_IMG_HLWAS ramp read by read with romancal's saturation
@@ -84,7 +84,7 @@ def slope_of(answer: dict) -> tuple[float, float, float]:
 
 
 def peer_slope(point, magnitude, conditions, waves, pupil_oversampling, realizations=None):
-    from nlpsf import reference
+    from nlpsf.sim import reference
 
     ramp_c = conditions["ramp"]
     ramp = reference.PeerRamp(

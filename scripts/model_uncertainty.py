@@ -5,9 +5,9 @@
 
 A table answer is exact for the paper's idealised scene (SCA centre, one wavelength, quadratic NL,
 no other detector or pointing effect). For every band, at SCA 1, 9 and 18, at m = saturation + 0.5 and
-m = 21, in both modes, ``nlpsf.impact.model_point`` measures (linear response, the same centroids
+m = 21, in both modes, ``nlpsf.solve.impact.model_point`` measures (linear response, the same centroids
 with and without) what each effect of the Roman scene changes in the slopes when it is switched on
-at its nominal value (``nlpsf.scene.NOMINAL``: the worst corner of the SCA against its centre, a
+at its nominal value (``nlpsf.sim.scene.NOMINAL``: the worst corner of the SCA against its centre, a
 flat-f_nu SED, jitter 0.014", charge diffusion 0.1 px, GalSim's IPC kernel after the NL, b3/b4 NL
 residuals, a 100 e- background; brighter-fatter has no default and is not measured), and the
 pupil-mask scale rule (galsim, used, against header).
@@ -37,8 +37,10 @@ import sys
 import time
 from pathlib import Path
 
-from nlpsf import __version__, defaults, impact, roman, tables
-from nlpsf import scene as scenes
+from nlpsf import __version__, defaults, roman
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import tables
+from nlpsf.solve import impact
 
 OUTPUT = Path(__file__).resolve().parent.parent / "nlpsf" / "data" / "scene_model_uncertainty.json"
 #: SCA 18 (the paper's), SCA 1 (small e slopes at its centre) and SCA 9 (between).
@@ -140,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
                 "measured_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
                 "elapsed_s": round(elapsed, 1),
                 "script": "scripts/model_uncertainty.py",
-                "method": "linear response at beta0 (nlpsf.impact.model_point)",
+                "method": "linear response at beta0 (nlpsf.solve.impact.model_point)",
                 "realizations": REALIZATIONS,
                 "seed": SEED,
                 "beta0": defaults.BETA0,

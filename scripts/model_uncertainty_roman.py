@@ -6,7 +6,7 @@
     python scripts/model_uncertainty_roman.py --report        # docs/validation.md's tables from the shipped file
 
 For every band at SCA 1, 9 and 18 (the SCA centre), m = 18.5, 20 and 22, both modes, the parts of
-``nlpsf.roman_uncertainty`` (optical-model vintage, SED spread, jitter, charge diffusion,
+``nlpsf.solve.roman_uncertainty`` (optical-model vintage, SED spread, jitter, charge diffusion,
 pupil-scale rule, brighter-fatter, NL beyond the quadratic) are measured inside the full default
 scene (``tablebuild.TableSettings.roman``, HLWAS optimal ramp, slopes at the "corrected" state)
 with the linear response and the same 50 centroid draws for every variant. The optical model's
@@ -31,8 +31,10 @@ import sys
 import time
 from pathlib import Path
 
-from nlpsf import __version__, psfstats, roman, roman_default
-from nlpsf import roman_uncertainty as ru
+from nlpsf import __version__, roman
+from nlpsf.request import presets as roman_default
+from nlpsf.roman import psfstats
+from nlpsf.solve import roman_uncertainty as ru
 
 OUTPUT = Path(__file__).resolve().parent.parent / "nlpsf" / "data" / ru.FILE
 SCAS = (1, 9, 18)
@@ -215,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.write:
         payload = {
             "description": (
-                "The Roman default's model uncertainty by part (nlpsf.roman_uncertainty): each part's signed relative "
+                "The Roman default's model uncertainty by part (nlpsf.solve.roman_uncertainty): each part's signed relative "
                 "change of the NL slope inside the full default scene, per band, mode, metric, SCA and magnitude "
                 "(by_magnitude rows: [m, change, statistical error, end index]); value: its worst over the magnitudes; "
                 "combined_by_magnitude: the combination rule; worst: the worst over the measured SCAs. size and e: "
@@ -229,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
                 "measured_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
                 "elapsed_s": round(elapsed, 1),
                 "script": "scripts/model_uncertainty_roman.py",
-                "scene": "the Roman default (nlpsf.roman_default, TableSettings.roman().config), SCA centre",
+                "scene": "the Roman default (nlpsf.request.presets, TableSettings.roman().config), SCA centre",
                 "default_values": roman_default.conditions(),
                 "method": "linear response, slopes at the corrected state, the same centroid draws for every variant",
                 "realizations": REALIZATIONS,

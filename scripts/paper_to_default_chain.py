@@ -15,8 +15,9 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from nlpsf import roman_default, solve
-from nlpsf import scene as scenes
+from nlpsf import solve
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import scene as scenes
 
 POSITION = (1.0, 4088.0)
 

@@ -13,7 +13,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from nlpsf import experiment, roman
+from nlpsf import roman
+from nlpsf.sim import experiment
 
 POINTS = (("H158", 18, 18.3), ("F184", 1, 18.3), ("Y106", 7, 18.3), ("H158", 18, 21.0))
 METRICS = ("dR_over_R", "de1", "de2")

@@ -36,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nlpsf import __version__, defaults, fieldgrid, tablebuild
+from nlpsf import __version__, defaults
+from nlpsf.slopes import fieldgrid, tablebuild
 
 
 def _commit(build: Path) -> str:
@@ -94,7 +95,7 @@ def main() -> None:
         "node_tables_found": len(paths),
         "method": "linear response at the corrected state (1e-2 beta0; a ramp's saturation flags at the raw beta0), "
         "mean over 100 centroid draws shared by every node",
-        "scene": "the Roman default (nlpsf.roman_default) at each node's position",
+        "scene": "the Roman default (nlpsf.request.presets) at each node's position",
     }
     if args.into is None:
         out = tablebuild.merge_field_grid(paths, args.to, provenance=provenance, complete_only=True)

@@ -26,7 +26,8 @@ import time
 
 import numpy as np
 
-from nlpsf import experiment, fieldgrid, tablebuild
+from nlpsf.sim import experiment
+from nlpsf.slopes import fieldgrid, tablebuild
 
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 NEAR_ZERO_FRACTION = 0.1

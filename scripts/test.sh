@@ -4,7 +4,7 @@
 #   ./scripts/test.sh [pytest arguments...]
 #
 # Installs (if missing) Debian's Chromium for the browser tests, makes .venv with the project and
-# its test, reference (GalSim), dask and pipeline (stcal) extras, checks ruff, then runs pytest on every test:
+# its test, reference (GalSim), dask, pipeline (stcal) and roman (roman_datamodels, asdf) extras, checks ruff, then runs pytest on every test:
 # library, GalSim cross-checks, service, schemathesis, headless-browser end-to-end and the
 # container build (which sets up podman itself through ../shared/tools/container).
 set -euo pipefail
@@ -20,7 +20,7 @@ fi
 
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[test,reference,dask,pipeline]"
+.venv/bin/python -m pip install -q -e ".[test,reference,dask,pipeline,roman]"
 
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .

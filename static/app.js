@@ -31,7 +31,7 @@ const FIELD_NAMES = {
   scene: "scene", csv: "CSV", over_field: "over the field", throughput: "throughput",
 };
 // The page's words for each scene effect, by the registry's name (GET /api/v1/meta → scene_effects,
-// nlpsf.scene.REGISTRY, is the list of effects and their facts); an effect without words here shows
+// nlpsf.sim.scene.REGISTRY, is the list of effects and their facts); an effect without words here shows
 // under its registry name.
 const EFFECT_WORDS = {
   position: ["position on the detector", "the optics change across a detector: the PSF at a corner differs from the centre the tables hold"],
@@ -152,7 +152,7 @@ const connection = {
 };
 
 async function api(path, options = {}) {
-  const { followJob: follow = false, raw = false, onJob = null, ...fetchOptions } = options;
+  const { followJob: follow = false, raw = false, onJob = null, onProgress = null, ...fetchOptions } = options;
   let response;
   try {
     response = await fetch(`${API}${path}`, {
@@ -178,7 +178,7 @@ async function api(path, options = {}) {
     // A solve or impact report that needs a simulation became a job: follow it to its answer.
     const location = response.headers.get("Location") || `${API}/simulations/${body.id}`;
     if (onJob) onJob(location);
-    return waitForJob(location);
+    return waitForJob(location, onProgress);
   }
   return body;
 }
@@ -189,7 +189,7 @@ function unreachable() {
 
 // Follows a job to its end; a lost connection waits for the server and asks again (the job's record
 // in the server's store says how it really ended, even across a restart).
-async function waitForJob(location) {
+async function waitForJob(location, onProgress = null) {
   for (;;) {
     await new Promise((resolve) => setTimeout(resolve, 500));
     let response;
@@ -203,12 +203,32 @@ async function waitForJob(location) {
     if (!response.ok || !job) {
       throw new ApiError((job && job.detail) || `the server answered ${response.status}`, null, response.status, []);
     }
+    if (onProgress) onProgress(job);
     if (job.status === "done") return job.result;
     if (["failed", "cancelled", "interrupted"].includes(job.status)) {
       const error = job.error || {};
       throw new ApiError(jobEnding(job), error.field || null, 500, [], { jobStatus: job.status });
     }
   }
+}
+
+// "40 % · about 12 s left": the fraction the server reports and the time its own clock says is left.
+// `since` (ms, this page's clock): when the page asked; else the server's own start and last update.
+function progressText(job, since = null) {
+  const fraction = Math.max(0, Math.min(1, job.progress || 0));
+  const parts = [`${Math.round(100 * fraction)} % done`];
+  if (job.status === "queued") return `queued${job.queue_position ? ` (${job.queue_position} ahead)` : ""}`;
+  const elapsed = since !== null ? (Date.now() - since) / 1000 : job.started_at && job.updated_at ? job.updated_at - job.started_at : null;
+  const seconds = (t) => (t < 90 ? `${Math.round(t)} s` : `${Math.round(t / 60)} min`);
+  if (since !== null && elapsed !== null) parts.push(`${seconds(elapsed)} so far`);
+  if (elapsed !== null && fraction > 0.02 && fraction < 1) {
+    const left = (elapsed * (1 - fraction)) / fraction;
+    parts.push(left < 1 ? "under a second left" : `about ${seconds(left)} left`);
+  } else if (fraction < 1) {
+    parts.push("time left: known after the first step");
+  }
+  if (job.message) parts.push(job.message);
+  return parts.join(" · ");
 }
 
 function jobEnding(job) {
@@ -243,6 +263,11 @@ function withUncertainty(value, error, unit = "") {
   const place = Math.floor(Math.log10(error)) - 1; // the uncertainty's second digit
   const a = Math.abs(value);
   if (a >= 1e-3 && a < 1e5 && place >= -8) {
+    if (place > 0) {
+      // 30255 ± 220 is 30260 ± 220: no digit finer than the uncertainty's second.
+      const step = 10 ** place;
+      return `${Math.round(value / step) * step}${u} ± ${Math.round(error / step) * step}${u}`;
+    }
     const decimals = Math.max(0, -place);
     return `${value.toFixed(decimals)}${u} ± ${error.toFixed(decimals)}${u}`;
   }
@@ -286,7 +311,8 @@ function axisFormatter(logScale) {
     }));
     return splits.map((v) => {
       if (v === null || !Number.isFinite(v)) return "";
-      if (!exponentForm || v === 0) return v.toFixed(Math.min(decimals, 4));
+      if (v === 0) return "0";
+      if (!exponentForm) return v.toFixed(Math.min(decimals, 4));
       const exponent = Math.floor(Math.log10(Math.abs(v)) + 1e-9);
       const mantissa = Number((v / 10 ** exponent).toPrecision(3));
       return mantissa === 1 ? pow10(exponent) : `${mantissa}×${pow10(exponent)}`;
@@ -347,7 +373,11 @@ function plainWords(text) {
     .replace(/Input should be a valid integer(, unable to parse string as an integer)?/g, "must be a whole number")
     .replace(/Input should be a valid list/g, "must be a list of numbers")
     .replace(/Input should be/g, "must be")
-    .replace(/Extra inputs are not permitted/g, "is not a field the server knows");
+    .replace(/Extra inputs are not permitted/g, "is not a field the server knows")
+    .replace(/\bQ_peak\b/g, "Q (the brightest pixel's charge)")
+    .replace(/\bbeta0 x Q\b/g, "β₀ × Q")
+    // "≥ 0.000000000000001" as a power of ten.
+    .replace(/\b0\.0{4,}\d+/g, (t) => fmt(Number(t)));
   for (const [key, name] of Object.entries(FIELD_NAMES)) {
     if (key.includes("_") || ["sca", "beta0", "exptime", "stars", "betas", "ipc", "bfe", "sed"].includes(key)) {
       out = out.replace(new RegExp(`\\b(scene\\.)?${key}\\b`, "g"), name);
@@ -429,6 +459,11 @@ function pointSeries(label, color, size = 8) {
   return { label, stroke: color, fill: color, width: 0, paths: () => null, points: { show: true, size, fill: color } };
 }
 
+// Published values: open circles, so that they read apart from the answer's filled point.
+function openPointSeries(label, color, size = 8) {
+  return { label, stroke: color, fill: "#fff", width: 0, paths: () => null, points: { show: true, size, width: 1.5, stroke: color, fill: "#fff" } };
+}
+
 // Draw (or redraw) plot `name`. `columns` = [{label, x, y, err, fid, series, tag}], joined on x;
 // err: 1σ statistical uncertainty per point, fid: relative method uncertainty (both drawn as a band);
 // tag: the direct label written at the curve's end. `markers` = [{x, label, color}]: dashed vertical
@@ -469,13 +504,17 @@ function drawPlot(name, opts) {
   const defaultIdx = xs.reduce((best, x, i) => (Math.abs(x - target) < Math.abs(xs[best] - target) ? i : best), 0);
   const edges = [...markers.map((m) => m.x), ...shades.map((s) => s.to)].filter(Number.isFinite);
   const rangeWith = edges.length;
+  // A lone point (an answer without a curve) gets a few magnitudes either side, not uPlot's 0 to 40.
+  const lone = !logX && xs.length === 1 ? { range: () => [xs[0] - 3, xs[0] + 3] } : null;
   const options = {
     width: Math.max(280, el.clientWidth || 800),
     height: 320,
+    // Room on the right for the last x tick label (the PNG export is this canvas).
+    padding: [12, 28, 0, 0],
     scales: {
       x: { time: false, distr: logX ? 3 : 1,
-        ...(rangeWith && !logX ? { range: (u, lo, hi) => [Math.min(lo, ...edges.map((x) => x - 0.5)), hi + 0.9] }
-          : (!logX ? { range: (u, lo, hi) => [lo, hi + (hi - lo) * 0.12] } : {})) },
+        ...(lone || (rangeWith && !logX ? { range: (u, lo, hi) => [Math.min(lo, ...edges.map((x) => x - 0.5)), hi + 0.9] }
+          : (!logX ? { range: (u, lo, hi) => [lo, hi + (hi - lo) * 0.12] } : {}))) },
       y: { distr: logY ? 3 : 1 },
     },
     hooks: {
@@ -535,7 +574,7 @@ function describeValue(c, v, j) {
   if (stat == null && fid == null) return fmt(v);
   const parts = [];
   if (stat != null) parts.push(`± ${fmt(stat, 2)} stat`);
-  if (fid != null) parts.push(`± ${fmt(fid, 2)} fidelity`);
+  if (fid != null) parts.push(`± ${fmt(fid, 2)} method`);
   return `${fmt(v)} ${parts.join(" ")}`;
 }
 
@@ -548,13 +587,15 @@ function drawDirectLabels(u, columns) {
     if (!c.tag) return;
     const si = k + 1;
     const ys = u.data[si];
-    let i = ys.length - 1;
-    while (i >= 0 && ys[i] == null) i--;
-    if (i < 0) return;
+    // At the curve's faint end, or (tagAt "start") its bright end, where curves a factor apart are apart.
+    let i = c.tagAt === "start" ? 0 : ys.length - 1;
+    const step = c.tagAt === "start" ? 1 : -1;
+    while (i >= 0 && i < ys.length && ys[i] == null) i += step;
+    if (i < 0 || i >= ys.length) return;
     const x = u.valToPos(u.data[0][i], "x", true);
     const y = u.valToPos(ys[i], "y", true);
     if (!Number.isFinite(x) || !Number.isFinite(y)) return;
-    labels.push({ x, y, text: c.tag, color: c.series.stroke || "#333" });
+    labels.push({ x, y, text: c.tag, color: c.series.stroke || "#333", start: c.tagAt === "start" });
   });
   labels.sort((a, b) => a.y - b.y);
   const gap = 13 * ratio;
@@ -575,7 +616,7 @@ function drawDirectLabels(u, columns) {
   for (const l of labels) {
     const width = ctx.measureText(l.text).width;
     const right = u.bbox.left + u.bbox.width;
-    const x = Math.min(l.x + 4 * ratio, right - width - 2 * ratio);
+    const x = l.start ? Math.max(u.bbox.left + 2 * ratio, l.x - width - 6 * ratio) : Math.min(l.x + 4 * ratio, right - width - 2 * ratio);
     ctx.fillStyle = "rgba(255,255,255,0.8)";
     ctx.fillRect(x - 1, l.y - 6 * ratio, width + 2, 12 * ratio);
     ctx.fillStyle = darker(l.color);
@@ -708,7 +749,7 @@ function drawKey(name, markers, shades) {
 }
 
 // "no answer" over a plot that keeps its axes and curves.
-function setNoAnswer(name, reason) {
+function setNoAnswer(name, reason, prefix = "no answer: ") {
   const el = document.getElementById(`plot-${name}`);
   el.querySelectorAll(".no-answer").forEach((n) => n.remove());
   el.dataset.answer = reason ? "none" : el.dataset.answer;
@@ -716,7 +757,7 @@ function setNoAnswer(name, reason) {
   const note = document.createElement("div");
   note.className = "no-answer";
   note.dataset.testid = "no-answer";
-  note.textContent = `no answer: ${reason}`;
+  note.textContent = `${prefix}${reason}`;
   el.appendChild(note);
 }
 
@@ -781,11 +822,22 @@ function renderTable(name) {
 function exportCsv(name) {
   const plot = state.exports[name];
   if (!plot) return;
-  const lines = [`# ${plot.title.replace(/\n/g, " ")}`, `series,${plot.xLabel},${plot.yLabel},uncertainty`];
+  // Downloads hold fractions: a percent axis is written as a fraction, and says so.
+  const percentAxis = /\[%\]/.test(plot.yLabel);
+  const scale = percentAxis ? 0.01 : 1;
+  const yLabel = percentAxis ? plot.yLabel.replace("[%]", "[fraction]") : plot.yLabel;
+  const quote = (t) => `"${String(t).replace(/"/g, "'")}"`;
+  const meta = state.meta ? `# nlpsf ${state.meta.code_version}; optical data: ${state.meta.data_version}` : "# nlpsf";
+  const lines = [`# ${plot.title.replace(/\n/g, " · ")}`, meta, `# link: ${location.href}`,
+    `# columns: series; x = ${plot.xLabel}; y = ${yLabel}; uncertainty = the 1-sigma statistical part of y, same unit` +
+    (percentAxis ? " (the page shows y in percent)" : ""),
+    `series,${quote(plot.xLabel)},${quote(yLabel)},uncertainty`];
   for (const c of plot.columns) {
-    c.x.forEach((x, i) => lines.push(`"${c.label.replace(/"/g, "'")}",${x},${c.y[i]},${c.err && c.err[i] != null ? c.err[i] : ""}`));
+    c.x.forEach((x, i) => lines.push(`${quote(c.label)},${x},${c.y[i] === null ? "" : c.y[i] * scale},` +
+      `${c.err && c.err[i] != null ? c.err[i] * scale : ""}`));
   }
-  for (const m of plot.markers || []) lines.push(`"${m.label.replace(/"/g, "'")}",${m.x},,`);
+  for (const m of plot.markers || []) lines.push(`${quote(m.label)},${m.x},,`);
+  for (const sh of plot.shades || []) lines.push(`${quote(sh.label)},${sh.to},,`);
   downloadText(`${plotFileName(name)}.csv`, lines.join("\n") + "\n", "text/csv");
 }
 
@@ -811,7 +863,6 @@ function exportPng(name) {
   const scale = Math.max(1, source.width / u.width);
   const font = 14 * scale;
   const row = 20 * scale;
-  const titleLines = plot.title.split("\n");
   const entries = [
     ...plot.columns.map((c) => ({ label: c.label, color: c.series.stroke || "#000", dash: c.series.dash, point: !c.series.width })),
     ...(plot.markers || []).map((m) => ({ label: `${m.label}: m = ${fmt(m.x)}`, color: m.color, dash: [6, 4] })),
@@ -820,10 +871,16 @@ function exportPng(name) {
   const canvas = document.createElement("canvas");
   const ctx = canvas.getContext("2d");
   ctx.font = `${font}px sans-serif`;
-  const width = Math.max(...entries.map((e) => ctx.measureText(e.label).width)) + 48 * scale;
+  // Title lines wrapped at the image's width: nothing is cut.
+  const titleLines = plot.title.split("\n").flatMap((line) => wrapText(ctx, line, source.width - 16 * scale));
+  const width = Math.min(source.width - 16 * scale, Math.max(...entries.map((e) => ctx.measureText(e.label).width)) + 48 * scale);
   const perRow = Math.max(1, Math.floor((source.width - 16 * scale) / width));
+  // Each key entry's label wrapped to its column: nothing is cut at the image's edge.
+  entries.forEach((e) => { e.lines = wrapText(ctx, e.label, width - 44 * scale); });
+  const rows = [];
+  for (let i = 0; i < entries.length; i += perRow) rows.push(Math.max(...entries.slice(i, i + perRow).map((e) => e.lines.length)));
   const top = row * titleLines.length + 10 * scale;
-  const bottom = row * Math.ceil(entries.length / perRow) + 12 * scale;
+  const bottom = row * rows.reduce((a, n) => a + n, 0) + 12 * scale;
   canvas.width = source.width;
   canvas.height = source.height + top + bottom;
   ctx.fillStyle = "#fff";
@@ -833,8 +890,9 @@ function exportPng(name) {
   titleLines.forEach((line, i) => ctx.fillText(line, 8 * scale, row * (i + 1)));
   ctx.drawImage(source, 0, top);
   entries.forEach((e, i) => {
+    const r = Math.floor(i / perRow);
     const x = 8 * scale + (i % perRow) * width;
-    const y = top + source.height + row * (Math.floor(i / perRow) + 1);
+    const y = top + source.height + row * (rows.slice(0, r).reduce((a, n) => a + n, 0) + 1);
     ctx.save();
     if (e.fill) {
       ctx.fillStyle = e.fill;
@@ -855,7 +913,7 @@ function exportPng(name) {
     }
     ctx.restore();
     ctx.fillStyle = "#1d2330";
-    ctx.fillText(e.label, x + 36 * scale, y);
+    e.lines.forEach((line, k) => ctx.fillText(line, x + 36 * scale, y + k * row));
   });
   // Synchronously (not canvas.toBlob): the download must start within the click, or the browser
   // counts it as an automatic download and may block it.
@@ -863,6 +921,23 @@ function exportPng(name) {
   const buffer = new Uint8Array(bytes.length);
   for (let i = 0; i < bytes.length; i++) buffer[i] = bytes.charCodeAt(i);
   downloadBlob(`${plotFileName(name)}.png`, new Blob([buffer], { type: "image/png" }));
+}
+
+// A line of text broken at spaces into lines no wider than `width` on `ctx`.
+function wrapText(ctx, text, width) {
+  const lines = [];
+  let line = "";
+  for (const word of String(text).split(" ")) {
+    const next = line ? `${line} ${word}` : word;
+    if (line && ctx.measureText(next).width > width) {
+      lines.push(line);
+      line = word;
+    } else {
+      line = next;
+    }
+  }
+  if (line) lines.push(line);
+  return lines;
 }
 
 function download(filename, url) {
@@ -932,10 +1007,11 @@ function query(params) {
 // ---- state in the URL -------------------------------------------------------------------------
 
 const URL_FIELDS = {
-  "solve-form": ["band", "sca", "metric", "mode", "scene", "beta0", "exptime", "full_well", "fidelity", "ma_table", "ramp", "ramp_fit",
-    "stars", "shear_m", "shear_c", "size_ratio", "precision", "tolerance", "magnitude"],
-  "scene-form": ["preset", "position", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background"],
+  "solve-form": ["band", "sca", "metric", "mode", "scene", "position", "beta0", "exptime", "full_well", "fidelity", "ma_table", "ramp",
+    "ramp_fit", "stars", "shear_m", "shear_c", "size_ratio", "precision", "tolerance", "magnitude"],
+  "scene-form": ["preset", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background"],
 };
+const CHECKBOXES = ["beta-log", "sigma-log", "paper-overlay", "scene-use", "calc-paper"];
 const URL_CONTROLS = ["slopes-metric", "slopes-mode", "beta-band", "beta-metric", "beta-magnitude", "sigma-band", "sigma-metric",
   "sigma-magnitude", "req-preset"];
 
@@ -959,7 +1035,7 @@ function stateToUrl() {
     const el = document.getElementById(id);
     if (el && el.value !== "") q.set(id, el.value);
   }
-  for (const id of ["beta-log", "sigma-log", "paper-overlay", "scene-use"]) {
+  for (const id of CHECKBOXES) {
     if (document.getElementById(id).checked) q.set(id, "1");
   }
   history.replaceState(null, "", `${location.pathname}?${q.toString()}`);
@@ -991,7 +1067,9 @@ function stateFromUrl() {
     const el = document.getElementById(id);
     if (el && q.has(id)) el.value = q.get(id);
   }
-  for (const id of ["beta-log", "sigma-log", "paper-overlay", "scene-use"]) document.getElementById(id).checked = q.get(id) === "1";
+  for (const id of CHECKBOXES) document.getElementById(id).checked = q.get(id) === "1";
+  // Links from before the position moved to the calculator.
+  if (!q.has("position") && q.has("scene.position")) solveForm.elements.position.value = q.get("scene.position");
   exposurePlaceholder();
   showPresetSource();
   return true;
@@ -1015,19 +1093,30 @@ async function copyLink() {
 
 function fillReadout(group) {
   const select = document.getElementById(`${group}-readout`);
-  const options = [["final", "the scene's (Roman: HLWAS; paper: final frame)"], ["uniform", "uniform ramp, N reads"],
+  const options = [["final", "the scene's readout"], ["uniform", "uniform ramp, N reads"],
     ...(state.meta.ma_tables || []).map((t) => [`table:${t.name}`,
       `MA table ${t.name} (${t.resultants} resultants, ${fmt(t.last_read_s)} s)`])];
   select.innerHTML = options.map(([v, l]) => `<option value="${escapeHtml(v)}">${escapeHtml(l)}</option>`).join("");
-  fillSelect(document.getElementById(`${group}-ramp_fit`), state.meta.ramp_fits || ["ols"], "ols",
-    (f) => (f === "ols" ? "ordinary least squares" : "optimal (read + Poisson noise weights)"));
+  // "": the scene's own fit (the Roman default's likelihood fit; the paper's ordinary least squares).
+  fillSelect(document.getElementById(`${group}-ramp_fit`), ["", ...(state.meta.ramp_fits || ["ols"])], "",
+    (f) => (f === "" ? "the scene's fit" : f === "ols" ? "ordinary least squares" : "optimal (read + Poisson noise weights)"));
   select.addEventListener("change", () => readoutChanged(group));
 }
 
 function readoutChanged(group, setExposure = true) {
   const choice = document.getElementById(`${group}-readout`).value;
-  document.getElementById(`${group}-ramp`).disabled = choice !== "uniform";
-  document.getElementById(`${group}-ramp_fit`).disabled = choice === "final";
+  const reads = document.getElementById(`${group}-ramp`);
+  const fit = document.getElementById(`${group}-ramp_fit`);
+  reads.disabled = choice !== "uniform";
+  fit.disabled = choice === "final";
+  // A greyed field shows what the answer uses, never a value it does not.
+  if (choice === "uniform") {
+    if (reads.value.trim() === "") reads.value = "8";
+  } else {
+    reads.value = "";
+    reads.placeholder = readsPlaceholder(group, choice);
+  }
+  if (choice === "final") fit.value = "";
   if (!setExposure) return;
   // An MA table's exposure is its last read; leaving a table restores the exposure the API fills in.
   const exposure = document.getElementById(`${group}-exptime`);
@@ -1035,6 +1124,18 @@ function readoutChanged(group, setExposure = true) {
   const table = (state.meta.ma_tables || []).find((t) => `table:${t.name}` === choice);
   if (table) exposure.value = String(table.last_read_s);
   else if (durations.includes(exposure.value.trim())) exposure.value = "";
+}
+
+// What the readout reads when the reads box is greyed: the scene's readout, or the chosen MA table's.
+function readsPlaceholder(group, choice) {
+  const tables = (state.meta && state.meta.ma_tables) || [];
+  const table = tables.find((t) => `table:${t.name}` === choice);
+  if (table) return `${table.reads} reads`;
+  const scene = group === "solve" ? document.getElementById("solve-scene").value : "";
+  if (scene === "paper") return "final frame";
+  const roman = (state.meta && state.meta.defaults.scene_exptime.roman) || null;
+  const own = tables.find((t) => roman !== null && Math.abs(t.last_read_s - roman) < 1e-6);
+  return own ? `${own.reads} reads` : "the scene's";
 }
 
 // The exposure box left empty sends no exptime: the API fills the scene's (GET /meta's
@@ -1045,14 +1146,16 @@ function exposurePlaceholder() {
   const exposures = (state.meta && state.meta.defaults.scene_exptime) || {};
   const name = scene === "paper" ? "paper" : "Roman default";
   const input = document.getElementById("solve-exptime");
-  input.placeholder = exposures[scene] !== undefined ? `${fmt(exposures[scene], 6)} (${name})` : "the scene's";
+  input.placeholder = exposures[scene] !== undefined ? `${fmt(exposures[scene], 6)} (${name === "paper" ? "paper" : "Roman"})` : "the scene's";
+  readoutChanged("solve", false);
 }
 
 function readoutFields(group) {
   const choice = document.getElementById(`${group}-readout`).value;
   const fit = document.getElementById(`${group}-ramp_fit`).value;
-  if (choice === "uniform") return { ramp: numberOrText(document.getElementById(`${group}-ramp`).value), ramp_fit: fit };
-  if (choice.startsWith("table:")) return { ma_table: choice.slice(6), ramp_fit: fit };
+  const fitField = fit ? { ramp_fit: fit } : {};  // none: the scene's fit
+  if (choice === "uniform") return { ramp: numberOrText(document.getElementById(`${group}-ramp`).value), ...fitField };
+  if (choice.startsWith("table:")) return { ma_table: choice.slice(6), ...fitField };
   return {};
 }
 
@@ -1089,6 +1192,8 @@ function applyPreset(preset) {
   }
   if (form.elements.solve_for.value === "tolerance") form.elements.solve_for.value = "precision";
   updateUnknown();
+  // A preset is a question: it is answered at once (the old answer greys meanwhile, the budget's T follows).
+  solve(null);
 }
 
 function showPresetSource() {
@@ -1162,13 +1267,9 @@ function readNumbers(form, names, optional = []) {
   return [values, errors];
 }
 
-async function solve(event) {
-  if (event) event.preventDefault();
+// The question the form asks, as POST /solve's body, with every field the page can check itself.
+function questionBody() {
   const form = document.getElementById("solve-form");
-  const errorBox = document.getElementById("solve-error");
-  const resultBox = document.getElementById("solve-result");
-  clearError(errorBox, form);
-  for (const name of ["precision", "tolerance", "magnitude"]) setFieldMessage(name, "");
   const unknown = form.elements.solve_for.value;
   const budget = shearGiven();
   const givens = ["precision", "tolerance", "magnitude"].filter((n) => n !== unknown && !(n === "tolerance" && budget));
@@ -1180,10 +1281,6 @@ async function solve(event) {
   for (const e of errors) {
     if (givens.includes(e.field) && e.msg === "enter a value") e.msg = "enter a value (give two of precision, tolerance, magnitude)";
   }
-  if (errors.length) {
-    failAnswer(new ApiError(`${fieldName(errors[0].field)}: ${errors[0].msg}`, errors[0].field, 0, errors), errors[0].msg);
-    return;
-  }
   const body = {
     band: form.elements.band.value,
     sca: numberOrText(form.elements.sca.value),
@@ -1193,36 +1290,209 @@ async function solve(event) {
     ...numbers,
     ...readoutFields("solve"),
   };
-  // No scene: the Roman default (the API's); "paper": the paper's idealised scene and tables.
-  if (form.elements.scene.value) body.scene = form.elements.scene.value;
+  const scene = calculatorScene();
+  if (scene !== null) body.scene = scene;
+  return { body, errors, unknown };
+}
+
+// The calculator's scene: a preset's name, the Scene section's fields, and the position (X,Y in pixels).
+// None of them: the Roman default over the whole SCA (the API's default).
+function calculatorScene() {
+  const form = document.getElementById("solve-form");
+  const choice = form.elements.scene.value;
+  const text = form.elements.position.value.trim();
+  const position = text ? listOf(text) : null;
+  if (choice === "custom") {
+    const scene = sceneBody() || {};
+    if (position) scene.position = position;
+    return scene;
+  }
+  if (!position) return choice || null;
+  return { ...(choice ? { preset: choice } : {}), position };
+}
+
+// A question in words (for the note on an answer that is out of date).
+function questionText(body) {
+  if (!body) return "an earlier question";
+  const given = [];
+  if (body.precision !== undefined) given.push(`p = ${fmt(100 * body.precision, 4)} %`);
+  if (body.tolerance !== undefined) given.push(`T = ${fmt(body.tolerance)}`);
+  if (body.shear_m !== undefined) given.push(`|m| = ${fmt(body.shear_m)}`);
+  if (body.shear_c !== undefined) given.push(`|c| = ${fmt(body.shear_c)}`);
+  if (body.magnitude !== undefined) given.push(`m = ${fmt(body.magnitude)}`);
+  const scene = body.scene;
+  const named = { paper: "the paper's scene", "galsim-roman": "GalSim's Roman constants" };
+  let where = typeof scene === "string" ? named[scene] || scene
+    : scene ? `${named[scene.preset] || (scene.preset ? scene.preset : "the Roman default")}${Object.keys(scene).some((k) => !["preset", "position"].includes(k)) ? " with changes" : ""}`
+      : "the Roman default";
+  where += scene && scene.position ? ` at (${scene.position.join(", ")})` : (!scene || scene === "roman" || (scene && !scene.preset)) ? " over the whole SCA" : "";
+  const extra = [body.exptime !== undefined ? `${fmt(body.exptime)} s` : null, body.beta0 !== 5e-7 ? `β₀ = ${fmt(body.beta0)}` : null]
+    .filter(Boolean);
+  return `${body.band} SCA ${body.sca}, ${METRIC_LABEL[body.metric] || body.metric} ${body.mode}, ${given.join(", ")}, ${where}` +
+    (extra.length ? `, ${extra.join(", ")}` : "");
+}
+
+// The answer on screen either answers the question asked (current) or is greyed with what it answered.
+function setStale(reason) {
+  const box = document.getElementById("solve-result");
+  const top = document.getElementById("top-answer");
+  const stale = Boolean(reason) && Boolean(state.lastSolution);
+  state.current = Boolean(state.lastSolution) && !reason;
+  box.classList.toggle("stale", stale);
+  top.classList.toggle("stale", Boolean(reason));
+  const mark = top.querySelector(".stale-mark");
+  if (reason && state.lastSolution && !mark) {
+    top.insertAdjacentHTML("afterbegin", '<strong class="stale-mark">Out of date (an earlier question\'s): </strong>');
+  } else if (!reason && mark) {
+    mark.remove();
+  }
+  let note = box.querySelector(".stale-note");
+  if (stale) {
+    if (!note) {
+      note = document.createElement("p");
+      note.className = "stale-note";
+      note.dataset.testid = "stale-note";
+      box.prepend(note);
+    }
+    note.textContent = `Out of date — this is the answer to: ${questionText(state.lastRequest)}. ${reason}`;
+    box.setAttribute("aria-busy", state.solving ? "true" : "false");
+  } else if (note) {
+    note.remove();
+    box.removeAttribute("aria-busy");
+  }
+  for (const figure of document.querySelectorAll("#calculator figure.plot")) figure.classList.toggle("stale", Boolean(reason));
+  // Pin and the downloads act only on an answer to the question asked.
+  for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = !state.current;
+}
+
+// An edit of the form after an answer: the answer no longer answers what the form says.
+function formEdited() {
+  if (!state.lastSolution || state.solving) return;
+  const { body } = questionBody();
+  if (JSON.stringify(body) !== JSON.stringify(state.lastRequest)) {
+    setStale("The inputs have changed since: Solve to answer them.");
+  } else if (!state.failed) {
+    setStale(null);
+  }
+}
+
+function showSolveProgress(job) {
+  const row = document.getElementById("solve-progress-row");
+  if (!job) {
+    row.hidden = true;
+    return;
+  }
+  row.hidden = false;
+  document.getElementById("solve-progress").value = job.progress || 0;
+  document.getElementById("solve-progress-text").textContent = `Simulating the answer: ${progressText(job, state.solveStarted || null)}`;
+}
+
+async function solve(event) {
+  if (event) event.preventDefault();
+  const form = document.getElementById("solve-form");
+  const errorBox = document.getElementById("solve-error");
+  clearError(errorBox, form);
+  for (const name of ["precision", "tolerance", "magnitude"]) setFieldMessage(name, "");
+  const { body, errors } = questionBody();
+  // The URL records the question as it is asked: a reload while it is answered asks it again.
+  stateToUrl();
+  if (errors.length) {
+    failAnswer(new ApiError(`${fieldName(errors[0].field)}: ${errors[0].msg}`, errors[0].field, 0, errors), errors[0].msg);
+    return;
+  }
   const button = document.getElementById("solve-button");
   button.disabled = true;
   button.textContent = "Solving…";
-  // Until the new answer comes, the old one is greyed: it answers another question.
-  resultBox.classList.add("stale");
-  resultBox.setAttribute("aria-busy", "true");
+  state.asked = body;
+  state.solving = true;
+  // Until the new answer comes, the old one is greyed and says what it answered.
+  setStale(`Waiting for the answer to: ${questionText(body)}.`);
   // A Roman default answer can be a job that takes seconds: an answer to an older question that
   // arrives after a newer one was asked is dropped, never shown over it.
   const asked = (state.solveSeq = (state.solveSeq || 0) + 1);
+  state.solveStarted = Date.now();
+  const cancel = document.getElementById("solve-cancel");
   try {
-    const s = await api("/solve", { method: "POST", body: JSON.stringify(body), followJob: true,
-      onJob: () => { button.textContent = "Simulating…"; } });
+    // wait=1: an answer that needs a simulation comes back as its job after a second, so its progress shows.
+    const s = await api("/solve?wait=1", { method: "POST", body: JSON.stringify(body), followJob: true,
+      onJob: (location) => {
+        button.textContent = "Simulating…";
+        cancel.onclick = () => fetch(location, { method: "DELETE" }).catch(() => {});
+        showSolveProgress({ status: "queued", progress: 0 });
+      },
+      onProgress: (job) => { if (asked === state.solveSeq) showSolveProgress(job); } });
     if (asked !== state.solveSeq) return;
+    state.solving = false;
+    state.failed = false;
     state.lastRequest = body;
     showAnswer(s);
-    stateToUrl();
-    await Promise.all([drawRequirementPlot(s), drawCalculatorPlot(s)]);
-    // The slopes' legend reads at the answer's magnitude: redraw only when that moved.
-    if (state.slopesAt !== s.magnitude) drawSlopes().catch(() => {});
+    setStale(null);
+    await drawAnswerPlots(body, s);
+    // The slopes' legend reads at the answer's magnitude, for the answer's scene.
+    drawSlopes().catch(() => {});
   } catch (error) {
     if (asked !== state.solveSeq) return;
+    state.solving = false;
     if (error.unreachable) connection.lost("solve", () => solve(null));
     await failAnswer(error, null, body);
   } finally {
-    if (asked !== state.solveSeq) return;
-    button.disabled = false;
-    button.textContent = "Solve";
+    if (asked === state.solveSeq) {
+      state.solving = false;
+      button.disabled = false;
+      button.textContent = "Solve";
+      showSolveProgress(null);
+    }
   }
+}
+
+// A number in a library sentence to the digits it supports (a background of 76.6709 e- is 76.7 e-).
+function roundNumbers(text) {
+  return String(text).replace(/\d+\.\d{3,}/g, (t) => String(Number(Number(t).toPrecision(3))));
+}
+
+// The precision range over the SCA's positions in percent (the library's flag words it as fractions).
+function scaRangeText(s) {
+  const range = s.conditions && s.conditions.sca_range;
+  if (!range) return null;
+  const most = range.most_demanding;
+  const least = range.least_demanding;
+  const solved = range.solved_for;
+  const value = (v) => (v === null || v === undefined ? "n/a" : solved === "precision" ? (v >= 1 ? "no constraint" : percent(v, s.uncertainty).split(" ± ")[0])
+    : solved === "magnitude" ? `m = ${fmt(v, 4)}` : fmt(v, 4));
+  return `no position given: the answer holds everywhere on SCA ${s.sca}, the most demanding of its ${range.nodes.length} ` +
+    `field-grid positions, pixel (${most.position.join(", ")}): ${value(most[solved])}; the least demanding, pixel ` +
+    `(${least.position.join(", ")}): ${value(least[solved])}. Give a position for the answer at one star.`;
+}
+
+function isExtrapolated(s) {
+  return (s.flag_codes || []).includes("extrapolated_answer");
+}
+
+// c(m) with its whole uncertainty: the statistical part and the method's (relative, from the library).
+function slopeText(s, methodRelative) {
+  if (s.slope === null || s.slope === undefined) return "slope c(m): n/a";
+  const stat = s.slope_uncertainty || 0;
+  const method = methodRelative !== null && methodRelative !== undefined ? Math.abs(s.slope) * methodRelative : null;
+  const total = method !== null ? Math.hypot(stat, method) : stat;
+  const parts = [`statistical ± ${fmt(stat, 2)}`];
+  if (method !== null) parts.push(`method ± ${fmt(method, 2)}`);
+  return `slope c(m) = ${withUncertainty(s.slope, total, "e⁻")} (${parts.join(", ")}${method === null ? "; method part with the curve" : ""})`;
+}
+
+function methodRelativeOf(s) {
+  // p ∝ 1/|c| and T ∝ |c|: the method part of the answer relative to it is the slope's.
+  if (s.uncertainty_fidelity === null || s.uncertainty_fidelity === undefined) return null;
+  if (s.solved_for === "precision" && s.precision > 0 && Number.isFinite(s.precision)) return s.uncertainty_fidelity / s.precision;
+  if (s.solved_for === "tolerance" && s.tolerance > 0) return s.uncertainty_fidelity / s.tolerance;
+  return state.curves && state.curves.curves ? state.curves.curves.method_relative : null;
+}
+
+function saturationText(s) {
+  const ramp = s.conditions.ramp;
+  const range = s.conditions.sca_range ? " at the answer's position" : "";
+  if (!ramp) return `saturation: stars brighter than m = ${fmt(s.saturation_magnitude, 4)} pass the full well in the final frame${range}`;
+  return `saturation for this readout: m = ${fmt(s.saturation_magnitude, 4)}${range} (${limitResultantText(ramp)}); ` +
+    `the final frame's limit m = ${fmt(s.final_frame_saturation_magnitude, 4)} is where the brightest pixel's last resultants start to saturate (they are dropped from the fit)`;
 }
 
 function showAnswer(s) {
@@ -1241,26 +1511,25 @@ function showAnswer(s) {
     tol.value = fmt(s.shear.tolerance, 3);
     tol.dataset.shown = "budget";
   }
+  const noConstraint = unknown === "precision" && s.precision >= 1;
   const uncertaintyParts = [["statistical", s.uncertainty_statistical], ["method", s.uncertainty_fidelity],
     ["optical model", s.uncertainty_optical_model], ["effects not modelled", s.uncertainty_model]]
     .filter(([, v]) => v !== null && v !== undefined);
   const scale = unknown === "precision" ? 100 : 1;
   const unit = unknown === "precision" ? " %" : unknown === "magnitude" ? " mag" : "";
-  const noConstraint = unknown === "precision" && s.precision >= 1;
+  const flags = (s.flags || []).map((f, k) => ((s.flag_codes || [])[k] === "sca_range" && scaRangeText(s)) || roundNumbers(f));
   resultBox.innerHTML = `
     <div class="answer" data-testid="solve-answer">${escapeHtml(answerHeadline(s))}</div>
     <p class="sentence" data-testid="answer-sentence">${escapeHtml(answerSentence(s))}</p>
-    ${s.binding_limit ? `<div class="binding" data-testid="binding-limit">brightest usable star m = ${fmt(s.brightest_usable_magnitude)}:
-      ${s.binding_limit === "saturation" ? "saturation binds (the brightest pixel reaches the full well before the NL error reaches T)"
-        : "the nonlinearity binds (its error reaches T before the star saturates)"}</div>` : ""}
+    ${s.binding_limit ? `<div class="binding" data-testid="binding-limit">${escapeHtml(bindingText(s))}</div>` : ""}
     ${uncertaintyParts.length && !noConstraint ? `<div class="muted">uncertainty parts (1σ): ${uncertaintyParts.map(([k, v]) =>
       `${k} ${fmt(v * scale, 2)}${unit}`).join(" · ")}</div>` : ""}
-    <div>slope c(m) = ${escapeHtml(withUncertainty(s.slope, s.slope_uncertainty))} e⁻ · saturation at m = ${fmt(s.saturation_magnitude, 4)}${s.conditions.ramp
-        ? ` (${escapeHtml(limitResultantText(s.conditions.ramp))}; a single final frame: m = ${fmt(s.final_frame_saturation_magnitude, 4)})` : ""}</div>
+    <div data-testid="slope-line">${escapeHtml(slopeText(s, methodRelativeOf(s)))}</div>
+    <div data-testid="saturation-line">${escapeHtml(saturationText(s))}</div>
     ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
     <div class="muted">applies to ${escapeHtml(s.applies_to)}</div>
     ${s.conditions.ramp ? `<div class="muted">slopes from ${escapeHtml(s.conditions.ramp_slopes_from)}</div>` : ""}
-    ${s.flags && s.flags.length ? flagsList(s.flags, s.flag_codes) : ""}
+    ${flags.length ? flagsList(flags, s.flag_codes) : ""}
     <p class="scene-line" data-testid="scene-line">Scene: ${escapeHtml(sceneName(s))}
       ${sceneName(s) === PAPER_SCENE ? "" : '<button type="button" id="use-paper-scene">Use the paper\'s scene</button>'}</p>
     <p class="conditions">${escapeHtml(conditionsText({ ...s.conditions, band: s.band, sca: s.sca, exptime_s: s.exptime, beta0: s.beta0, fidelity: s.fidelity }))}
@@ -1268,12 +1537,20 @@ function showAnswer(s) {
   resultBox.hidden = false;
   // The answer in one sentence at the top, so the first view says what it answers and for which scene.
   document.getElementById("top-answer").innerHTML = `<a href="#calc-title">Answer</a>: ${escapeHtml(answerSentence(s))}`;
-  resultBox.classList.remove("stale");
-  resultBox.removeAttribute("aria-busy");
   state.lastSolution = s;
   const paperButton = document.getElementById("use-paper-scene");
   if (paperButton) paperButton.addEventListener("click", usePaperScene);
-  for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = false;
+}
+
+function bindingText(s) {
+  const m = fmt(s.brightest_usable_magnitude, 4);
+  if (isExtrapolated(s)) {
+    return `no star the slopes reach meets T at this precision except by extrapolation: the NL error reaches T only at m = ${m}, ` +
+      "fainter than the slopes are computed, by their flux law (see the note below); not a star the slopes hold";
+  }
+  return `brightest usable star m = ${m}: ${s.binding_limit === "saturation"
+    ? "saturation binds (the brightest pixel reaches the full well before the NL error reaches T)"
+    : "the nonlinearity binds (its error reaches T before the star saturates)"}`;
 }
 
 // "(2.31 ± 0.30) × 10⁻⁵" keeps its power of ten in the box: "2.31e-5".
@@ -1290,7 +1567,10 @@ function answerHeadline(s) {
     if (s.precision >= 1) return "precision p: no constraint (p ≥ 100 %)";
     return `precision p = ${percent(s.precision, s.uncertainty)}`;
   }
-  if (s.solved_for === "magnitude") return `magnitude m = ${magnitudeText(s.magnitude, s.uncertainty)}`;
+  if (s.solved_for === "magnitude") {
+    const m = `magnitude m = ${magnitudeText(s.magnitude, s.uncertainty)}`;
+    return isExtrapolated(s) ? `${m}, extrapolated beyond the faintest magnitude the slopes reach` : m;
+  }
   return `tolerance T (${METRIC_LABEL[s.metric]}) = ${withUncertainty(s.tolerance, s.uncertainty)}`;
 }
 
@@ -1298,9 +1578,24 @@ function sceneName(s) {
   const c = s.conditions || {};
   const named = c.scene_description || (typeof c.scene === "string" ? c.scene : c.scene && c.scene.description);
   if (!named || /^paper scene/.test(named)) return PAPER_SCENE;
+  let text = roundNumbers(named);
+  if (c.sca_range) {
+    // Without a position the answer holds over the SCA: the node it reports is not the user's choice.
+    text = text.replace(/,?\s*position [\d.]+\s*,\s*[\d.]+/, "").replace(/^(\w[\w-]*):\s*,?\s*/, "$1: anywhere on the SCA, ");
+  }
   // The library names the default's scene "roman: position …, SED …": the page says it in words.
-  if (/^roman:\s*/.test(named)) return `the Roman default scene (${named.replace(/^roman:\s*/, "")})`;
-  return named;
+  if (/^roman:\s*/.test(text)) return `the Roman default scene (${text.replace(/^roman:\s*/, "")})`;
+  return text;
+}
+
+// A short name of the answer's scene for the comparison table (the full one in its title).
+function sceneShort(s) {
+  const c = s.conditions || {};
+  const name = sceneName(s);
+  const base = name === PAPER_SCENE ? "the paper's" : /^the Roman default/.test(name) ? "Roman default" : (c.scene_name || "custom");
+  const changed = c.roman_default_changed ? " (changed)" : "";
+  const position = c.sca_range ? "whole SCA" : (name.match(/position ([\d.]+\s*,\s*[\d.]+)/) || [])[1];
+  return `${base}${changed}${position ? `, ${position}` : ""}`;
 }
 
 // One sentence a requirement writer can paste: what must hold, for what, under which conditions.
@@ -1313,7 +1608,7 @@ function answerSentence(s) {
   if (s.solved_for === "precision") {
     if (s.precision >= 1) {
       return `No constraint: ${what} stays within ${fmt(s.tolerance)} with ${stars} of m = ${fmt(s.magnitude)} ${where} ` +
-        `even if ${beta} is off by its whole value (p would be ${fmt(100 * s.precision, 3)} %).`;
+        `even if ${beta} is off by its whole value (p ≥ 100 %).`;
     }
     const [value, error] = percent(s.precision, s.uncertainty).split(" ± ");
     return `${s.mode === "bias" ? "β must be known to" : `${beta} must stay below`} ${value}${error ? ` (± ${error})` : ""} ` +
@@ -1322,6 +1617,11 @@ function answerSentence(s) {
   if (s.solved_for === "tolerance") {
     return `With ${beta} ${known} ${fmt(100 * s.precision, 3)} %, ${stars} of m = ${fmt(s.magnitude)} ${where} keep ` +
       `${what} within ${withUncertainty(s.tolerance, s.uncertainty)}.`;
+  }
+  if (isExtrapolated(s)) {
+    return `With ${beta} ${known} ${fmt(100 * s.precision, 3)} % and ${what} ≤ ${fmt(s.tolerance)}, every ${s.band} star the ` +
+      `slopes reach ${where} exceeds the tolerance; by the slopes' flux law a star would meet it only at m = ${fmt(s.magnitude, 4)} ` +
+      "(an extrapolation, not a star the slopes hold).";
   }
   return `With ${beta} ${known} ${fmt(100 * s.precision, 3)} % and ${what} ≤ ${fmt(s.tolerance)}, ${stars} ${where} ` +
     `can be used as bright as m = ${magnitudeText(s.magnitude, s.uncertainty)}${s.binding_limit ? ` (${s.binding_limit} sets the limit)` : ""}; ` +
@@ -1338,8 +1638,9 @@ function shearText(shear) {
   return `shear budget |${kind}| = ${fmt(shear[kind])} with a galaxy-to-PSF size ratio of ${ratio} → PSF tolerance T = ${fmt(shear.tolerance)}`;
 }
 
-// A refusal or a failure leaves no answer behind: the solved box is emptied and says why next to
-// itself, the result is greyed, and the plots keep their axes and curves and say "no answer".
+// A refusal or a failure gives no answer to the question asked: the solved box is emptied and says
+// why next to itself, an earlier answer stays greyed with what it answered (pin and downloads off),
+// and the plots draw the refused question's curves where it has them, with no point and "no answer".
 async function failAnswer(error, shortReason = null, body = null) {
   const form = document.getElementById("solve-form");
   const errorBox = document.getElementById("solve-error");
@@ -1349,16 +1650,11 @@ async function failAnswer(error, shortReason = null, body = null) {
   solved.value = "";
   solved.placeholder = "no answer";
   solved.classList.add("failed");
-  state.lastSolution = null;
-  for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = true;
-  resultBox.hidden = true;
-  resultBox.classList.remove("stale");
-  resultBox.removeAttribute("aria-busy");
-  document.getElementById("top-answer").textContent = "No answer: see the calculator below.";
+  state.failed = true;
   let plain = plainWords(error.message);
   const field = error.field ? String(error.field).replace(/^scene\./, "") : null;
   let short = null;
-  if (field === "magnitude" && /too bright|brighter than the tables/.test(error.message) && body) {
+  if (field === "magnitude" && /too bright|brighter than the tables|outside the tables|bright margin|saturates the brightest/.test(error.message) && body) {
     [plain, short] = await tooBright(body, error.message);
   } else if (error.unreachable) {
     plain = `${error.message}; retrying (see the note at the top of the page)`;
@@ -1368,31 +1664,60 @@ async function failAnswer(error, shortReason = null, body = null) {
   const reason = shortReason || short || (error.unreachable ? "the server cannot be reached" : plain);
   if (field && ["precision", "tolerance", "magnitude"].includes(field)) setFieldMessage(field, plain);
   if (field !== unknown) setFieldMessage(unknown, field && field !== unknown ? `no answer: see ${fieldName(field)}` : `no answer: ${reason}`);
+  if (state.lastSolution) {
+    resultBox.hidden = false;
+    setStale(`The question asked (${body ? questionText(body) : "the form's"}) has no answer: ${reason}`);
+  } else {
+    resultBox.hidden = true;
+    setStale(null);
+    for (const id of ["pin-answer", "download-json", "download-ecsv"]) document.getElementById(id).disabled = true;
+  }
+  document.getElementById("top-answer").textContent = state.lastSolution
+    ? "No answer to the question asked: see the calculator below (the answer shown there, greyed, is for an earlier question)."
+    : "No answer: see the calculator below.";
+  // The refused question's own curves where it has them (a star too bright for them still has them);
+  // no point, and a legend that reads nothing until hovered.
+  let drawn = false;
+  if (body && !error.unreachable && error.status === 422) {
+    try {
+      await drawAnswerPlots(body, null);
+      drawn = true;
+    } catch (_) {
+      drawn = false;
+    }
+  }
   for (const name of ["req", "calc"]) {
     const plot = state.exports[name];
     const el = document.getElementById(`plot-${name}`);
     delete el.dataset.point;
-    // The curves stay; the answer's point and the legend's values at its magnitude go.
-    if (plot) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer), cursorAt: null, noAnswer: true });
-    else el.innerHTML = "";
+    if (!drawn) {
+      if (plot && error.unreachable) drawPlot(name, { ...plot, columns: plot.columns.filter((c) => !c.answer), cursorAt: null, noAnswer: true });
+      else {
+        // The refused question has no curves (e.g. a tolerance no star meets): none are left from another.
+        if (state.plots[name]) state.plots[name].destroy();
+        delete state.plots[name];
+        delete state.exports[name];
+        el.innerHTML = "";
+        document.getElementById(`key-${name}`).innerHTML = "";
+      }
+    }
     setNoAnswer(name, reason);
   }
+  // Curves drawn for the refused question are its own: not greyed.
+  if (drawn) for (const figure of document.querySelectorAll("#calculator figure.plot")) figure.classList.remove("stale");
   document.getElementById("req-readout").textContent = "";
 }
 
-// The brightest magnitude the calculator answers for at these conditions (the paper's scene), from the server.
+// The brightest magnitude the calculator answers for at the question's own conditions, from the server.
 async function tooBright(body, original) {
-  // /page/limits bisects the paper's tables: its number holds for the paper's scene only, so another
-  // scene's refusal keeps the server's own words.
-  if (body.scene !== "paper") return [plainWords(original), null];
   try {
-    const limits = await api(`/page/limits?${query({ band: body.band, sca: body.sca, metric: body.metric, mode: body.mode,
-      exptime: body.exptime, beta0: body.beta0, full_well: body.full_well })}`);
+    const limits = await api("/page/limits", { method: "POST", body: JSON.stringify(body) });
+    if (limits.brightest_answered_magnitude === undefined) return [plainWords(original), null];
     const m = body.magnitude;
     const brightest = limits.brightest_answered_magnitude.toFixed(2);
-    return [`m = ${fmt(m)} is too bright: the brightest star answered at these conditions is m = ${brightest}` +
-      ` (stars saturate brighter than m = ${limits.saturation_magnitude.toFixed(2)}; brighter than m = ` +
-      `${limits.nonmonotonic_magnitude.toFixed(2)} the quadratic NL model no longer rises with charge).`,
+    const readout = limits.readout === "ramp" ? "up the ramp, in the resultant a slope needs" : "in the final frame";
+    return [`m = ${fmt(m)} is too bright: the brightest star answered at these conditions is m = ${brightest} (stars brighter ` +
+      `than m = ${limits.saturation_magnitude.toFixed(2)} saturate ${readout}). Why: ${plainWords(original.replace(/^magnitude: /, ""))}.`,
     `m = ${fmt(m)} is too bright (brightest answered: m = ${brightest})`];
   } catch (_) {
     return [plainWords(original), null];
@@ -1411,62 +1736,144 @@ function usePaperScene() {
 
 // ---- the calculator's plots, from api/v1/page/requirement -----------------------------------------
 
-async function requirementData(solution) {
-  const ramp = solution.conditions.ramp;
-  return api(`/page/requirement?${query({ band: solution.band, sca: solution.sca, metric: solution.metric, mode: solution.mode,
-    exptime: solution.exptime, beta0: solution.beta0, full_well: solution.full_well, tolerance: solution.tolerance,
-    stars: solution.stars || 1, at: solution.magnitude, ramp_factor: ramp ? ramp.quadratic_beta_factor : null,
-    exact_from: ramp ? solution.conditions.ramp_table_exact_from_magnitude : null })}`);
+// The question's own curves (its scene, position, readout), each value the solver's; the answer's
+// magnitude added to the grid so that its point is on them.
+async function requirementData(body, solution) {
+  const at = solution && Number.isFinite(solution.magnitude) ? [solution.magnitude] : [];
+  const overlay = document.getElementById("calc-paper").checked;
+  const data = await api(`/page/requirement?${query({ at, overlay: overlay ? "true" : null })}`, { method: "POST", body: JSON.stringify(body) });
+  state.curves = data;
+  return data;
 }
 
+async function drawAnswerPlots(body, solution) {
+  const data = await requirementData(body, solution);
+  drawRequirementPlot(data, solution);
+  drawCalculatorPlot(data, solution);
+  if (solution && methodRelativeOf(solution) === null) {
+    const line = document.querySelector("[data-testid=slope-line]");
+    if (line) line.textContent = slopeText(solution, data.curves.method_relative);
+  }
+}
+
+// One saturation story: the limit that binds for this readout (shaded), the final frame's (a line, up
+// the ramp), and, for the paper's quadratic on its tables' star, where it stops rising (hatched).
 function limitShades(limits, from) {
-  return [
-    { from, to: limits.saturation_magnitude, label: `saturated stars (m < ${limits.saturation_magnitude.toFixed(2)})`, color: "rgba(120,120,120,0.18)" },
-    { from, to: limits.nonmonotonic_magnitude, label: `quadratic NL model invalid: 2β₀Q_peak ≥ 1 (m < ${limits.nonmonotonic_magnitude.toFixed(2)})`,
-      color: "rgba(164,22,26,0.08)", hatch: "rgba(164,22,26,0.35)" },
-  ];
+  if (!limits || limits.saturation_magnitude === undefined) return [];
+  const sat = limits.saturation_magnitude;
+  const [low, high] = limits.saturation_range || [sat, sat];
+  const where = high - low > 0.005 ? ` somewhere on the SCA (${low.toFixed(2)}–${high.toFixed(2)} over its positions)` : "";
+  const readout = limits.readout === "ramp" ? "up the ramp (the resultant a slope needs)" : "in the final frame";
+  const shades = [{ from, to: sat, label: `saturated ${readout}${where}: m < ${sat.toFixed(2)}; answers there are flagged`, color: "rgba(120,120,120,0.18)" }];
+  if (limits.nonmonotonic_magnitude !== undefined && limits.nonmonotonic_magnitude > from) {
+    shades.push({ from, to: limits.nonmonotonic_magnitude, label: `quadratic NL model invalid: 2β₀Q_peak ≥ 1 (m < ${limits.nonmonotonic_magnitude.toFixed(2)})`,
+      color: "rgba(164,22,26,0.08)", hatch: "rgba(164,22,26,0.35)" });
+  }
+  return shades;
 }
 
-async function drawRequirementPlot(solution) {
-  const data = await requirementData(solution);
-  const color = BAND_COLORS[solution.band] || "#333";
-  const bias = solution.mode === "bias";
+function limitMarkers(limits) {
+  if (!limits || limits.readout !== "ramp" || limits.final_frame_saturation_magnitude === null || limits.final_frame_saturation_magnitude === undefined) return [];
+  const [low, high] = limits.final_frame_saturation_range || [0, 0];
+  const where = high - low > 0.005 ? ` (${low.toFixed(2)}–${high.toFixed(2)} over the SCA)` : "";
+  return [{ x: limits.final_frame_saturation_magnitude, color: "#555",
+    label: `final frame's limit${where}: brighter, the brightest pixel's last resultants saturate and are dropped from the fit` }];
+}
+
+// The curves' scene, position and readout in words (captions, titles).
+function curveWords(data) {
+  const c = data.curves.conditions || {};
+  const scene = c.scene_description ? sceneName({ conditions: { scene_description: c.scene_description } }) : PAPER_SCENE;
+  const readout = c.ramp ? `up the ramp: ${c.ramp.description}` : "a single final frame";
+  return `${scene}; ${data.curves.where.words}; ${readout}`;
+}
+
+function captionNotes(data, overlayShown) {
+  const c = data.curves;
+  const notes = [];
+  if (c.needs_simulation) notes.push(`No curve: ${plainWords(c.needs_simulation)}. The point is the answer.`);
+  else notes.push(`The curves are the answer's own scene and readout — ${curveWords(data)} — each value the solver's own answer at that magnitude, so the answer's point lies on its curve.`);
+  if (c.gaps) notes.push(`Gaps: ${plainWords(c.gaps)}.`);
+  if (c.extrapolated_from !== null && c.extrapolated_from !== undefined) notes.push(`Fainter than m = ${fmt(c.extrapolated_from)} the slopes follow their flux law (extrapolated).`);
+  if (overlayShown && data.paper) notes.push("Grey, dashed: the paper's idealised scene (the shipped tables, a single final frame) at the same band, detector, exposure, β₀ and full well.");
+  if (overlayShown && data.published) notes.push("Open circles: the paper's published values (Plazas et al. 2016, Cycle-5 optics).");
+  return notes.join(" ");
+}
+
+function pct(v) {
+  // p in percent for the plot; above 100 % (or inf) there is no constraint: not drawn.
+  if (v === null || v === undefined || v === "inf") return null;
+  return v < 1 ? 100 * v : null;
+}
+
+function drawRequirementPlot(data, solution) {
+  const c = data.curves;
+  const conditions = c.conditions || {};
+  const band = conditions.band || (solution && solution.band);
+  const metric = conditions.metric || (solution && solution.metric);
+  const mode = conditions.mode || (solution && solution.mode);
+  const color = BAND_COLORS[band] || "#333";
+  const bias = mode === "bias";
   const dashes = { 0.1: [2, 3], 0.3333333333333333: [8, 4], 3: [12, 3, 2, 3], 10: [4, 4] };
-  const columns = data.requirement.map((r) => {
+  const columns = c.requirement.map((r) => {
     const chosen = r.factor === 1;
     const label = `T = ${fmt(r.tolerance, 3)}${chosen ? " (chosen)" : ""}`;
-    const y = r.precision.map((p) => (p == null ? null : 100 * p));
-    const err = r.statistical.map((e) => (e == null ? null : 100 * e));
-    const fid = r.precision.map((p, i) => (p && r.fidelity[i] != null ? r.fidelity[i] / p : null)).find((v) => v != null) ?? null;
-    return { label, tag: `T = ${fmt(r.tolerance, 2)}`, x: r.magnitude, y, err, fid, band: chosen,
+    const y = r.precision.map(pct);
+    const err = r.statistical.map((e, i) => (e == null || y[i] == null ? null : 100 * e));
+    // Only the chosen T carries its uncertainty band (the others would be a thicket of whiskers).
+    return { label, tag: `T = ${fmt(r.tolerance, 2)}`, tagAt: "start", x: c.magnitude, y, err: chosen ? err : null,
+      fid: chosen ? c.method_relative : null, band: chosen ? true : undefined,
       series: { ...lineSeries(label, chosen ? color : shade(color, r.factor), chosen ? undefined : dashes[r.factor] || [4, 4], chosen ? 3 : 1.4) } };
-  });
-  const from = Math.min(...data.slope.magnitude) - 6;
-  const shades = limitShades(data.limits, from);
-  const noConstraint = solution.precision >= 1;
-  if (!noConstraint) {
-    columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, p = ${fmt(100 * solution.precision, 3)} %`, answer: true, band: false,
-      x: [solution.magnitude], y: [100 * solution.precision], series: pointSeries("answer", "#c00000", 12) });
+  }).filter((col) => col.label && col.x.length);
+  const overlay = document.getElementById("calc-paper").checked;
+  if (overlay && data.paper && data.paper.requirement) {
+    const r = data.paper.requirement.find((x) => x.factor === 1);
+    if (r) {
+      const label = `the paper's idealised scene, T = ${fmt(r.tolerance, 3)}`;
+      columns.push({ label, tag: "paper's scene", tagAt: "start", x: data.paper.magnitude, y: r.precision.map(pct), band: false,
+        series: lineSeries(label, "#595959", [7, 4], 1.6) });
+    }
   }
-  const averaging = solution.mode === "scatter" && solution.stars > 1 ? ` (averaged over ${solution.stars} stars)` : "";
+  if (overlay && data.published && data.published.precision) {
+    const label = "Plazas et al. 2016, published (Cycle-5 optics)";
+    columns.push({ label, x: data.published.magnitude, y: data.published.precision.map(pct), band: false,
+      series: openPointSeries(label, "#1d2330", 9) });
+  }
+  const magnitudes = c.magnitude.filter((m) => m !== null);
+  const from = (magnitudes.length ? Math.min(...magnitudes) : (solution ? solution.magnitude : 15)) - 0.5;
+  const shades = limitShades(c.limits, from);
+  const noConstraint = solution && solution.precision >= 1;
+  if (solution && !noConstraint) {
+    const label = solution.binding_limit === "saturation"
+      ? `answer: saturation binds at m = ${fmt(solution.magnitude)} (p = ${fmt(100 * solution.precision, 3)} %: the NL error there is below T)`
+      : `answer: m = ${fmt(solution.magnitude)}, p = ${fmt(100 * solution.precision, 3)} %`;
+    columns.push({ label, answer: true, band: false, x: [solution.magnitude], y: [100 * solution.precision], series: pointSeries("answer", "#c00000", 12) });
+  }
+  const stars = conditions.stars || (solution && solution.stars) || 1;
+  const averaging = mode === "scatter" && stars > 1 ? ` (averaged over ${stars} stars)` : "";
+  document.getElementById("req-scene-note").textContent = captionNotes(data, overlay);
   drawPlot("req", {
-    title: `Required ${bias ? "Δβ/β₀" : "σβ/β₀"} vs magnitude for ${METRIC_LABEL[solution.metric]} tolerances around T = ${fmt(solution.tolerance)}` +
-      `${averaging}${solution.conditions.ramp ? " (final-frame slopes)" : ""}\n${conditionsText(data.conditions)}`,
+    title: `Required ${bias ? "Δβ/β₀" : "σβ/β₀"} vs magnitude for ${METRIC_LABEL[metric]} tolerances around T = ${fmt(c.tolerance)}${averaging}\n` +
+      `${curveWords(data)}\n${conditionsText({ ...conditions, exptime_s: conditions.exptime, full_well_e: conditions.full_well })}`,
     xLabel: "magnitude (AB)",
     yLabel: `precision p = ${bias ? "Δβ/β₀" : "σβ/β₀"} [%]`,
     logY: true,
     columns,
     shades,
-    cursorAt: solution.magnitude,
+    markers: limitMarkers(c.limits),
+    cursorAt: solution ? solution.magnitude : null,
+    noAnswer: !solution,
   });
   const el = document.getElementById("plot-req");
-  el.dataset.point = `${solution.magnitude},${solution.precision}`;
-  el.dataset.answer = noConstraint ? "no-constraint" : "shown";
-  if (noConstraint) setNoAnswer("req", "no constraint: p ≥ 100 % at the answer");
+  if (solution) el.dataset.point = `${solution.magnitude},${solution.precision}`;
+  el.dataset.answer = !solution ? "none" : noConstraint ? "no-constraint" : "shown";
+  setNoAnswer("req", solution && noConstraint ? "no constraint: p ≥ 100 % at the answer" : null);
+  if (c.needs_simulation && solution) setNoAnswer("req", "no curve at table cost for this question (see below): the point is the answer", "");
   const u = state.plots.req;
-  if (!u) return;
   const readout = document.getElementById("req-readout");
-  const chosen = state.exports.req.columns.find((c) => c.label.endsWith("(chosen)"));
+  readout.textContent = "";
+  if (!u || !solution) return;
+  const chosen = state.exports.req.columns.find((col) => col.label.endsWith("(chosen)"));
   const show = (i) => {
     if (i == null) i = u.defaultIdx;
     const m = u.data[0][i];
@@ -1476,9 +1883,9 @@ async function drawRequirementPlot(solution) {
     const p = chosen.y[j];
     const stat = chosen.err[j];
     const fidelity = chosen.fid != null ? p * chosen.fid : null;
-    const where = m < data.limits.saturation_magnitude ? " — saturated" : "";
-    readout.textContent = `m = ${fmt(m, 4)}: p ≤ ${fmt(p, 3)} % (± ${fmt(stat, 2)} % stat` +
-      `${fidelity != null ? `, ± ${fmt(fidelity, 2)} % fidelity` : ""}) keeps ${METRIC_LABEL[solution.metric]} within T = ${fmt(solution.tolerance, 3)}${where}`;
+    const where = m < c.limits.saturation_magnitude ? " — saturated for this readout" : "";
+    readout.textContent = `m = ${fmt(m, 4)}: p ≤ ${withUncertainty(p, fidelity != null ? Math.hypot(stat || 0, fidelity) : stat, "%")} ` +
+      `(statistical ± ${fmt(stat, 2)} %${fidelity != null ? `, method ± ${fmt(fidelity, 2)} %` : ""}) keeps ${METRIC_LABEL[metric]} within T = ${fmt(c.tolerance, 3)}${where}`;
     readout.dataset.magnitude = String(m);
     readout.dataset.precision = String(p / 100);
   };
@@ -1494,38 +1901,51 @@ function shade(hex, factor) {
   return `rgb(${channel(16)},${channel(8)},${channel(0)})`;
 }
 
-async function drawCalculatorPlot(solution) {
-  const data = await requirementData(solution);
-  const ramp = solution.conditions.ramp;
-  const curve = data.slope;
-  const label = `${solution.band} ${solution.mode === "bias" ? "bias" : "scatter"} slope${ramp ? ", final frame" : ""}${curve.signed ? " (|c|)" : ""}`;
+function drawCalculatorPlot(data, solution) {
+  const c = data.curves;
+  const conditions = c.conditions || {};
+  const band = conditions.band || (solution && solution.band);
+  const metric = conditions.metric || (solution && solution.metric);
+  const mode = conditions.mode || (solution && solution.mode);
+  const label = `${band} ${mode === "bias" ? "bias" : "scatter"} slope${c.signed ? " (|c|)" : ""}`;
   const columns = [
-    { label, tag: solution.band, x: curve.magnitude, y: curve.slope, err: curve.statistical, fid: curve.fidelity_relative_uncertainty,
-      series: lineSeries(label, BAND_COLORS[solution.band] || "#333", BAND_DASH[solution.band]) },
+    { label, tag: band, x: c.magnitude, y: c.slope_abs, err: c.slope_statistical, fid: c.method_relative,
+      series: lineSeries(label, BAND_COLORS[band] || "#333", BAND_DASH[band]) },
   ];
-  const markers = [{ x: solution.final_frame_saturation_magnitude ?? solution.saturation_magnitude,
-    label: "saturation, final frame", color: "#555" }];
-  if (ramp) {
-    markers.push({ x: solution.saturation_magnitude, label: `saturation, ramp (${limitResultantText(ramp)})`, color: "#c00000", dash: [2, 3] });
-    if (data.ramp) {
-      const rampLabel = `ramp ${ramp.ma_table} (tables at β_eff = ${fmt(data.ramp.factor)} β₀)`;
-      columns.push({ label: rampLabel, tag: "ramp", x: data.ramp.magnitude, y: data.ramp.slope, err: data.ramp.statistical,
-        series: lineSeries(rampLabel, "#c00000", [6, 3]) });
-    }
+  const overlay = document.getElementById("calc-paper").checked;
+  if (overlay && data.paper) {
+    const paperLabel = "the paper's idealised scene (tables, final frame)";
+    columns.push({ label: paperLabel, tag: "paper's scene", x: data.paper.magnitude, y: data.paper.slope_abs, band: false,
+      series: lineSeries(paperLabel, "#595959", [7, 4], 1.6) });
   }
-  columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, c = ${fmt(solution.slope)}`, x: [solution.magnitude],
-    y: [Math.abs(solution.slope)], answer: true, band: false, series: pointSeries("answer", "#c00000", 12) });
+  if (overlay && data.published) {
+    const pubLabel = "Plazas et al. 2016, published (Cycle-5 optics)";
+    columns.push({ label: pubLabel, x: data.published.magnitude, y: data.published.slope.map(Math.abs), band: false,
+      series: openPointSeries(pubLabel, "#1d2330", 9) });
+  }
+  if (solution && solution.slope !== null && solution.slope !== undefined) {
+    columns.push({ label: `answer: m = ${fmt(solution.magnitude)}, c = ${fmt(solution.slope)}`, x: [solution.magnitude],
+      y: [Math.abs(solution.slope)], answer: true, band: false, series: pointSeries("answer", "#c00000", 12) });
+  }
+  const magnitudes = c.magnitude.filter((m) => m !== null);
+  const from = (magnitudes.length ? Math.min(...magnitudes) : (solution ? solution.magnitude : 15)) - 0.5;
+  document.getElementById("calc-scene-note").textContent = captionNotes(data, overlay);
   drawPlot("calc", {
-    markers,
-    cursorAt: solution.magnitude,
-    title: `${label} vs magnitude; answer marked${ramp ? `; up the ramp: ${ramp.description}` : ""}\n${conditionsText(data.conditions)}`,
+    markers: limitMarkers(c.limits),
+    shades: limitShades(c.limits, from),
+    cursorAt: solution ? solution.magnitude : null,
+    noAnswer: !solution,
+    title: `${label} vs magnitude${solution ? "; answer marked" : ""}\n${curveWords(data)}\n` +
+      `${conditionsText({ ...conditions, exptime_s: conditions.exptime, full_well_e: conditions.full_well })}`,
     xLabel: "magnitude (AB)",
-    yLabel: `${solution.mode === "bias" ? "d" : "σ"}(${METRIC_LABEL[solution.metric]})/${solution.mode === "bias" ? "dβ" : "σβ"} [e⁻]`,
+    yLabel: `${mode === "bias" ? "d" : "σ"}(${METRIC_LABEL[metric]})/${mode === "bias" ? "dβ" : "σβ"} [e⁻]`,
     logY: true,
     columns,
   });
-  document.getElementById("plot-calc").dataset.point = `${solution.magnitude},${solution.slope}`;
-  document.getElementById("plot-calc").dataset.answer = "shown";
+  const el = document.getElementById("plot-calc");
+  if (solution) el.dataset.point = `${solution.magnitude},${solution.slope}`;
+  el.dataset.answer = solution ? "shown" : "none";
+  setNoAnswer("calc", c.needs_simulation && solution ? "no curve at table cost for this question (see below): the point is the answer" : null, "");
 }
 
 // ---- curves -----------------------------------------------------------------------------------
@@ -1534,13 +1954,15 @@ function paperOn() {
   return document.getElementById("paper-overlay").checked && state.paper;
 }
 
+// Every band's slope for the calculator's question (the answer's, once there is one).
 async function drawSlopes() {
-  const c = sharedConditions();
   const metric = document.getElementById("slopes-metric").value;
   const mode = document.getElementById("slopes-mode").value;
-  const at = state.lastSolution ? state.lastSolution.magnitude : 18.3;
+  const at = state.lastSolution && state.current !== false ? state.lastSolution.magnitude : 18.3;
+  const question = state.lastRequest || questionBody().body;
+  const body = { ...question, metric, mode, ...(mode === "bias" ? { stars: 1 } : {}) };
   state.slopesAt = at;
-  const data = await api(`/page/slopes?${query({ metric, mode, ...c, at })}`);
+  const data = await api(`/page/slopes?${query({ at })}`, { method: "POST", body: JSON.stringify(body) });
   const columns = data.curves.map((curve) => ({
     label: curve.band,
     tag: curve.band,
@@ -1559,12 +1981,17 @@ async function drawSlopes() {
     }
   }
   const first = data.curves[0];
-  const title = `${mode} slope of ${METRIC_LABEL[metric]} vs magnitude (absolute values), each band from its saturation limit\n` +
-    conditionsText({ ...first.conditions, band: "all bands" });
+  const words = curveWords({ curves: { conditions: first.conditions, where: first.where } });
+  const missing = data.curves.filter((c) => c.needs_simulation).map((c) => c.band);
+  const title = `${mode} slope of ${METRIC_LABEL[metric]} vs magnitude (absolute values), every band\n${words}\n` +
+    conditionsText({ ...first.conditions, band: "all bands", exptime_s: first.conditions.exptime, full_well_e: first.conditions.full_well });
+  document.getElementById("curves-scene-text").textContent = `The slopes of every band are for the ${state.lastRequest ? "answer's" : "calculator's"} ` +
+    `question: ${words}.`;
   document.getElementById("slopes-caption").textContent =
-    `${title.split("\n")[1]}. Lines: this tool's tables, each band with its own dash and its name at the faint end, ` +
-    `starting at its saturation limit; legend values at m = ${fmt(at)}${state.lastSolution ? " (the answer's magnitude)" : ""}. ` +
-    "Points: the paper (Cycle-5 optics), when shown." + (paper && metric === "e" ? " The paper has no |Δe| data." : "");
+    `Scene: ${title.split("\n").slice(1).join(". ")}. Lines: each band with its own dash and its name at the faint end, from the brightest ` +
+    `magnitude the calculator answers; legend values at m = ${fmt(at)}${state.lastSolution ? " (the answer's magnitude)" : ""}. ` +
+    "Points: the paper (Cycle-5 optics, its idealised scene), when shown." + (paper && metric === "e" ? " The paper has no |Δe| data." : "") +
+    (missing.length ? ` No curve at table cost for ${missing.join(", ")}: ${plainWords(data.curves.find((c) => c.needs_simulation).needs_simulation)}.` : "");
   drawPlot("slopes", {
     title,
     xLabel: "magnitude (AB)",
@@ -1636,8 +2063,8 @@ async function drawBeta() {
   if (log) {
     for (const column of columns) column.y = column.y.map((v) => (v === null ? null : Math.abs(v)));
   }
-  const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
-  document.getElementById("beta-caption").textContent = `Tables, to first order in β. ${conditionsText(data.conditions)}. ` +
+  const title = `${METRIC_LABEL[metric]} vs β at m = ${fmt(data.magnitude)}: the paper's idealised scene (shipped tables, first order)\n${conditionsText(data.conditions)}`;
+  document.getElementById("beta-caption").textContent = `The paper's idealised scene: its tables, to first order in β. ${conditionsText(data.conditions)}. ` +
     `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty: statistical ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}` +
     `${data.fidelity_relative_uncertainty != null ? `, method ${fmt(data.fidelity_relative_uncertainty, 2)}` : ""}). ` +
     "A fresh simulation with several β gives the full, nonlinear response." + flagsText(data.flags);
@@ -1657,8 +2084,8 @@ async function drawSigma() {
     series: lineSeries(label, BAND_COLORS[band] || "#333", BAND_DASH[band]) }];
   const fresh = simulationPoints("sigma", band, metric, Number(magnitude));
   columns.push(...fresh);
-  const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}\n${conditionsText(data.conditions)}`;
-  document.getElementById("sigma-caption").textContent = `Tables, to first order in σβ. ${conditionsText(data.conditions)}. ` +
+  const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}: the paper's idealised scene (shipped tables, first order)\n${conditionsText(data.conditions)}`;
+  document.getElementById("sigma-caption").textContent = `The paper's idealised scene: its tables, to first order in σβ. ${conditionsText(data.conditions)}. ` +
     `Scatter slope = ${fmt(data.slope)} per unit σβ. A fresh simulation with σβ values gives Monte Carlo points.` +
     flagsText(data.flags) + freshNote(fresh, band, Number(magnitude), metric);
   drawPlot("sigma", { title, xLabel: "σβ [1/e⁻]", yLabel: `σ(${METRIC_LABEL[metric]})`, columns, logX: log, logY: log });
@@ -1700,11 +2127,23 @@ async function runSimulation(event) {
     const scene = sceneBody();
     if (scene) body.scene = scene;
   }
+  const wavelengths = form.elements.n_wavelengths.value.trim();
+  if (wavelengths) body.scene = { ...(body.scene || { preset: "roman" }), n_wavelengths: numberOrText(wavelengths) };
   setProgress(0, "submitting");
   try {
     const job = await api("/simulations", { method: "POST", body: JSON.stringify(body) });
     followJob(job);
   } catch (error) {
+    const limit = state.meta && state.meta.limits && state.meta.limits.max_wavelengths;
+    if (!wavelengths && limit && error.status === 422 && /max_wavelengths/.test(error.message)) {
+      // The star's colour asks for more wavelengths than this server allows: run at the limit, and say so.
+      const asked = (error.message.match(/asks for (\d+) wavelengths/) || [])[1];
+      form.elements.n_wavelengths.value = String(limit);
+      document.getElementById("hint-sim-wavelengths").textContent = `${body.band}'s star colour asks for ${asked || "more"} wavelengths ` +
+        `for 0.1 % of the slopes; this server allows ${limit}, so the simulation runs with ${limit} (a coarser wavelength sampling; ` +
+        "clear the field to ask for the automatic choice again).";
+      return runSimulation(new Event("submit"));
+    }
     setProgress(0, error.unreachable ? "not started: the server cannot be reached" : "not started");
     showError(errorBox, form, error);
   }
@@ -1738,7 +2177,7 @@ function followJob(job) {
     }
   };
   const step = (current) => {
-    setProgress(current.progress, current.cached ? "answered from stored results" : current.message);
+    setProgress(current.progress, current.cached ? "answered from stored results" : progressText(current).replace(/^\d+ % done · /, ""));
     const sim = document.getElementById("sim-progress-text");
     sim.dataset.status = current.status;
     if (["queued", "running"].includes(current.status)) {
@@ -1816,7 +2255,9 @@ function sceneBody() {
   const given = (name) => text(name) !== "" && text(name).toLowerCase() !== "none" && text(name).toLowerCase() !== "off";
   // The base is always named: a scene without one is the Roman default's to the API.
   scene.preset = f.preset.value || "paper";
-  if (given("position")) scene.position = listOf(text("position"));
+  // The position is the calculator's (one field for the answer, the impact and fresh simulations).
+  const position = document.getElementById("solve-position").value.trim();
+  if (position) scene.position = listOf(position);
   if (given("sed")) scene.sed = text("sed");
   for (const name of ["jitter", "charge_diffusion", "bfe", "background"]) {
     if (given(name)) scene[name] = numberOrText(text(name));
@@ -1930,15 +2371,23 @@ function fillExplanations() {
 
 // ---- comparison table --------------------------------------------------------------------------
 
+// The answer first (it must never scroll away), the scene in a few words (the whole of it in the cell's title).
 const COMPARE_COLUMNS = [
-  ["band", (s) => s.band], ["detector", (s) => s.sca], ["PSF quantity", (s) => METRIC_LABEL[s.metric]],
-  ["kind", (s) => s.mode], ["scene", (s) => sceneName(s)], ["budget", (s) => (s.shear ? shearText(s.shear) : `T = ${fmt(s.tolerance)}`)],
-  ["solved for", (s) => s.solved_for], ["answer", (s) => answerHeadline(s)], ["method", (s) => fidelityName(s.fidelity)],
-  ["exposure [s]", (s) => fmt(s.exptime)], ["β₀ [1/e⁻]", (s) => fmt(s.beta0)],
+  ["answer", (s) => answerHeadline(s).replace(/^(precision|tolerance|magnitude) /, "")], ["band", (s) => s.band], ["detector", (s) => s.sca], ["PSF quantity", (s) => METRIC_LABEL[s.metric]],
+  ["kind", (s) => s.mode], ["given", (s) => givenText(s)], ["scene", (s) => sceneShort(s), (s) => sceneName(s)],
+  ["method", (s) => fidelityName(s.fidelity)], ["exposure [s]", (s) => fmt(s.exptime)], ["β₀ [1/e⁻]", (s) => fmt(s.beta0)],
 ];
 
+function givenText(s) {
+  const given = [];
+  if (s.solved_for !== "precision") given.push(`p = ${fmt(100 * s.precision, 4)} %`);
+  if (s.solved_for !== "tolerance") given.push(s.shear && s.shear.given !== "tolerance" ? shearText(s.shear) : `T = ${fmt(s.tolerance)}`);
+  if (s.solved_for !== "magnitude") given.push(`m = ${fmt(s.magnitude)}`);
+  return given.join(", ");
+}
+
 function pinAnswer() {
-  if (!state.lastSolution) return;
+  if (!state.lastSolution || !state.current) return;
   state.pinned.push(state.lastSolution);
   renderComparison();
 }
@@ -1968,8 +2417,8 @@ function renderComparison() {
   section.hidden = state.pinned.length === 0;
   const table = document.getElementById("compare-table");
   table.tHead.innerHTML = `<tr><th scope="col">#</th>${COMPARE_COLUMNS.map(([h]) => `<th scope="col">${escapeHtml(h)}</th>`).join("")}<th scope="col"><span class="visually-hidden">remove</span></th></tr>`;
-  table.tBodies[0].innerHTML = state.pinned.map((s, i) => `<tr><th scope="row">${i + 1}</th>${COMPARE_COLUMNS.map(([, f]) =>
-    `<td>${escapeHtml(f(s))}</td>`).join("")}<td><button type="button" data-unpin="${i}" aria-label="remove row ${i + 1}">✕</button></td></tr>`).join("");
+  table.tBodies[0].innerHTML = state.pinned.map((s, i) => `<tr><th scope="row">${i + 1}</th>${COMPARE_COLUMNS.map(([h, f, title]) =>
+    `<td data-column="${escapeHtml(h)}"${title ? ` title="${escapeHtml(title(s))}"` : ""}>${escapeHtml(f(s))}</td>`).join("")}<td><button type="button" data-unpin="${i}" aria-label="remove row ${i + 1}">✕</button></td></tr>`).join("");
   table.querySelectorAll("[data-unpin]").forEach((b) => b.addEventListener("click", () => {
     state.pinned.splice(Number(b.dataset.unpin), 1);
     renderComparison();
@@ -1986,7 +2435,8 @@ function comparisonCsv() {
   const fields = ["band", "sca", "metric", "mode", "solved_for", "precision", "tolerance", "magnitude", "uncertainty",
     "uncertainty_statistical", "uncertainty_fidelity", "uncertainty_optical_model", "uncertainty_model", "fidelity", "exptime",
     "beta0", "full_well", "stars", "saturation_magnitude"];
-  const lines = ["# nlpsf comparison: precision is a fraction of beta0, tolerance dimensionless, magnitudes AB, exposure s, beta0 1/e-",
+  const lines = [`# nlpsf comparison; ${state.meta ? `code ${state.meta.code_version}; optical data: ${state.meta.data_version}` : ""}`,
+    "# units: precision and its uncertainties are fractions of beta0 (the page shows them in %); tolerance dimensionless; magnitudes AB mag; exposure s; beta0 1/e-; full_well e-",
     [...fields, "shear_budget", "scene", "sentence"].join(",")];
   for (const s of state.pinned) {
     lines.push([...fields.map((f) => csvCell(s[f])), csvCell(s.shear ? shearText(s.shear) : ""), csvCell(sceneName(s)), csvCell(answerSentence(s))].join(","));
@@ -2002,7 +2452,7 @@ function answerFileName(s, extension) {
 
 function downloadJson() {
   const s = state.lastSolution;
-  if (!s) return;
+  if (!s || !state.current) return;
   const text = JSON.stringify({ request: state.lastRequest, answer: s, sentence: answerSentence(s), link: location.href }, null, 2);
   downloadText(answerFileName(s, "json"), text + "\n", "application/json");
 }
@@ -2048,7 +2498,7 @@ function answerEcsv(s) {
 
 function downloadEcsv() {
   const s = state.lastSolution;
-  if (!s) return;
+  if (!s || !state.current) return;
   downloadText(answerFileName(s, "ecsv"), answerEcsv(s), "text/plain");
 }
 
@@ -2134,6 +2584,19 @@ async function init() {
   fillExplanations();
 
   document.getElementById("solve-form").addEventListener("submit", solve);
+  // An edit after an answer greys it: it answers the question before the edit.
+  for (const type of ["input", "change"]) document.getElementById("solve-form").addEventListener(type, () => formEdited());
+  document.getElementById("scene-form").addEventListener("change", () => {
+    if (document.getElementById("solve-scene").value === "custom") formEdited();
+  });
+  document.getElementById("calc-paper").addEventListener("change", () => {
+    stateToUrl();
+    if (state.lastRequest && state.current) drawAnswerPlots(state.lastRequest, state.lastSolution).catch(() => {});
+  });
+  document.getElementById("hint-position").textContent = "Position empty: the answer holds everywhere on the SCA (its most demanding field-grid position).";
+  const limit = meta.limits && meta.limits.max_wavelengths;
+  document.getElementById("hint-sim-wavelengths").textContent = `Wavelengths for the star's colour: empty, chosen for 0.1 % of the slopes` +
+    `${limit ? `, at most ${limit} (this server's limit)` : ""}.`;
   document.querySelectorAll('input[name="solve_for"]').forEach((r) => r.addEventListener("change", updateUnknown));
   for (const name of ["shear_m", "shear_c"]) document.getElementById(`solve-${name}`).addEventListener("input", updateUnknown);
   document.getElementById("solve-precision").addEventListener("input", precisionHint);

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import experiment
+from nlpsf.sim import experiment
 
 HAVE_GALSIM = importlib.util.find_spec("galsim") is not None
 requires_galsim = pytest.mark.skipif(not HAVE_GALSIM, reason="GalSim not installed (pip install nlpsf[reference])")

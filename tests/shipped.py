@@ -1,5 +1,5 @@
 """The shipped slope table read directly: astropy's ECSV reader and scipy's CubicSpline, sharing no
-code with ``nlpsf.tables`` (its companion file, its spline coefficients, its look-ups). Tests check
+code with ``nlpsf.slopes.tables`` (its companion file, its spline coefficients, its look-ups). Tests check
 the solver's answers against these numbers, not against the table object the solver itself reads.
 
 Only the relations the tables are defined by are used here: slopes are scipy's not-a-knot cubic

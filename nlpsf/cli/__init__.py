@@ -29,6 +29,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tables": ("nlpsf.cli.tables", "slope tables: build, show, power-law fits"),
     "tradeoff": ("nlpsf.cli.tradeoff", "measure each fidelity level's error and time against the most exact one"),
     "impact": ("nlpsf.cli.impact", "what each scene effect (position, SED, jitter, IPC, ...) changes in the slopes"),
+    "kernel": ("nlpsf.cli.kernel", "the response kernel K(Q): how a star's PSF metrics respond to a calibration residual"),
+    "residual": ("nlpsf.cli.residual", "a calibration residual's effect on a star's PSF; the scale a residual shape may have"),
     "serve": ("nlpsf.cli.serve", "start the web service: REST API under /api/v1, docs at /docs, the page at /"),
 }
 

@@ -30,7 +30,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..impact import impact, markdown
+    from nlpsf.solve.impact import impact, markdown
 
     model, b2 = scene_from(args)
     report = impact(

@@ -64,7 +64,7 @@ def add_exposure(parser: argparse.ArgumentParser) -> None:
 
 
 def add_ramp_options(parser: argparse.ArgumentParser) -> None:
-    """Up the ramp instead of the paper's single final frame (see nlpsf.ramps)."""
+    """Up the ramp instead of the paper's single final frame (see nlpsf.sim.ramps)."""
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
         "--ramp", type=int, default=None, metavar="N", help="N uniformly spaced reads over the exposure, one per resultant"
@@ -90,7 +90,7 @@ def add_ramp_options(parser: argparse.ArgumentParser) -> None:
         metavar="E",
         help="read noise per read [e-] for --ramp-fit optimal (default: the SCA's official value, its median CDS noise / sqrt 2)",
     )
-    from ..ramps import SATURATION_RULES, SINGLE_RESULTANT_RULES
+    from nlpsf.sim.ramps import SATURATION_RULES, SINGLE_RESULTANT_RULES
 
     # None: the ramp's own default (ramps.build: romancal's rules), so the default has one owner.
     parser.add_argument(
@@ -110,7 +110,7 @@ def add_ramp_options(parser: argparse.ArgumentParser) -> None:
 
 def ramp_from(args: argparse.Namespace, default_fit: str = "ols"):
     """(ramps.Ramp or None, exposure time [s]) for these options (``default_fit`` unless --ramp-fit)."""
-    from ..ramps import build
+    from nlpsf.sim.ramps import build
 
     sca = getattr(args, "sca", None)
     rules = {"saturation": args.ramp_saturation, "single_resultant": args.single_resultant}
@@ -174,7 +174,7 @@ def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = Tru
 
 
 def add_scene_options(parser: argparse.ArgumentParser) -> None:
-    """The scene effects (``nlpsf.scene``): all off unless asked for; a preset or file first, then overrides."""
+    """The scene effects (``nlpsf.sim.scene``): all off unless asked for; a preset or file first, then overrides."""
     group = parser.add_argument_group("scene", "effects beyond the paper's scene (all off by default)")
     group.add_argument(
         "--scene",
@@ -203,7 +203,8 @@ def add_scene_options(parser: argparse.ArgumentParser) -> None:
 
 def scene_from(args: argparse.Namespace):
     """(scene, b2): the scene these options describe, and b2 when --nl-coefficients gave it."""
-    from .. import scene as scenes
+    from nlpsf.sim import scene as scenes
+
     from ..checks import InputError
 
     b2 = None
@@ -217,7 +218,7 @@ def scene_from(args: argparse.Namespace):
             higher = tuple(-c for c in higher)  # the scene holds the paper's convention
     base = getattr(args, "scene", None)
     if isinstance(base, str):
-        from .. import roman_default
+        from nlpsf.request import presets as roman_default
 
         base = roman_default.load_scene(base)  # a preset's scene (the default's "roman" included) or a file
     model = scenes.from_options(
@@ -252,7 +253,7 @@ def beta_from_coefficients(given: float | None, b2: float | None, default: float
 def simulation_preset(args: argparse.Namespace) -> str:
     """The preset a simulating command builds on: the Roman default unless ``--scene`` names
     another preset or a file (a file's scene on the paper's readout, as before)."""
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
 
     given = getattr(args, "scene", None)
     if given is None or given.strip().lower() == roman_default.NAME:
@@ -264,12 +265,12 @@ def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
     """The simulator's configuration for these options (validated by the library).
 
     ``roman_default_applies`` (``simulate``, ``slopes``): without ``--scene`` (or with ``--scene
-    roman``) the star is the Roman default's (``nlpsf.roman_default``: its scene at ``--position``
+    roman``) the star is the Roman default's (``nlpsf.request.presets``: its scene at ``--position``
     or the SCA centre, its sky, the HLWAS readout and exposure unless ``--ramp`` / ``--ma-table`` /
     ``--exptime`` are given, the official pupil scale unless ``--pupil-scale``); the scene options
     change only what they name. Otherwise (and with ``--scene paper``) the paper's, as before."""
-    from .. import roman_default
-    from ..experiment import SimulationConfig
+    from nlpsf.request import presets as roman_default
+    from nlpsf.sim.experiment import SimulationConfig
 
     preset = simulation_preset(args) if roman_default_applies else "paper"
     settings = dict(vars(args))
@@ -300,7 +301,7 @@ def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
 def with_default_conditions(payloads: list[dict], args: argparse.Namespace) -> list[dict]:
     """Results of the Roman default (``simulate``, ``slopes``) with its values and their sources in
     their conditions, as a solve quotes them; other presets' results as they are."""
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
 
     if simulation_preset(args) != roman_default.NAME:
         return payloads

@@ -39,7 +39,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import experiment
+    from nlpsf.sim import experiment
 
     config = config_from(args, roman_default_applies=True)
     magnitudes = args.magnitude or [defaults.MAGNITUDE]

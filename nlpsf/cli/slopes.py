@@ -37,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"per-pixel beta scatter of the Monte Carlo scatter slope [1/e-] (default {defaults.SIGMA_BETA_FRACTION:g} |beta0|)",
     )
-    from ..experiment.config import LINEARISE_STATES
+    from nlpsf.sim.experiment.config import LINEARISE_STATES
 
     parser.add_argument(
         "--linearise-at",
@@ -45,19 +45,30 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="where the slope is taken (default corrected for the Roman default, beta0 for --scene paper): "
         "beta0 (the uncorrected detector, the paper's) or corrected (after the pipeline's "
-        "linearity correction: a residual NL of 1%% of beta0, saturation flagged at the raw beta0)",
+        "linearity correction, saturation flagged at the raw beta0; --residual-nl says how the error acts there)",
+    )
+    from nlpsf.sim.experiment.correction import RESIDUAL_MODELS
+
+    parser.add_argument(
+        "--residual-nl",
+        choices=RESIDUAL_MODELS,
+        default=None,
+        help="how a calibration error acts in the corrected state: per_resultant_correction (the default: the "
+        "linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as romancal's linearity "
+        "step applies it) or per_read_beta (the earlier model: a residual beta on every read before IPC)",
     )
 
 
 def _state(args: argparse.Namespace) -> str:
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
+
     from .options import simulation_preset
 
     return roman_default.LINEARISE_AT if simulation_preset(args) == roman_default.NAME else "beta0"
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import experiment
+    from nlpsf.sim import experiment
 
     config = config_from(args, roman_default_applies=True)
     args.beta0 = beta_from_coefficients(args.beta0, scene_from(args)[1], defaults.BETA0)
@@ -69,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         sigma_beta=args.sigma_beta,
         beta_convention=args.beta_convention,
         linearise_at=args.linearise_at or _state(args),
+        residual_nl=args.residual_nl,
         progress=progress_printer(not args.quiet and not args.json),
     )
     if args.json:

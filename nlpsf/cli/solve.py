@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from nlpsf.slopes.fidelity import LEVELS
+
 from .. import defaults
-from ..fidelity import LEVELS
 from . import progress_printer
 from .options import add_exposure, add_scene_options, print_json, ramp_from, scene_from, with_error
 
@@ -81,7 +82,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help=f"pupil mask scale rule of fresh simulations: default the tables' own ({defaults.PUPIL_SCALE}); "
         "another one simulates (fidelity linear); see nlpsf/data/SOURCES.md",
     )
-    from ..experiment.config import LINEARISE_STATES
+    from nlpsf.sim.experiment.config import LINEARISE_STATES
 
     parser.add_argument(
         "--linearise-at",
@@ -89,6 +90,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="the detector state the slope is taken at: corrected (after the pipeline's linearity correction; the "
         "Roman default's) or beta0 (the uncorrected detector; the paper's, --scene paper's default)",
+    )
+    from nlpsf.sim.experiment.correction import RESIDUAL_MODELS
+
+    parser.add_argument(
+        "--residual-nl",
+        choices=RESIDUAL_MODELS,
+        default=None,
+        help="how a calibration error acts in the corrected state: per_resultant_correction (the default: the "
+        "linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as romancal's linearity "
+        "step applies it) or per_read_beta (the earlier model: a residual beta on every read before IPC)",
     )
     add_scene_options(parser)
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
@@ -141,21 +152,22 @@ ANSWER_COLUMNS = (
 _REQUEST_OPTIONS = (
     "band", "sca", "metric", "mode", "beta0", "precision", "tolerance", "magnitude", "full_well", "fidelity",
     "accuracy", "throughput", "shear_m", "shear_c", "size_ratio", "stars", "pupil_scale", "linearise_at",
+    "residual_nl",
 )  # fmt: skip
 
 
 def _readout(args: argparse.Namespace, preset: str):
     """(ramp, exptime) of the options: None, None where the preset's own readout applies (the Roman
     default's HLWAS ramp and exposure; the paper's 168.1 s final frame)."""
-    from ..roman_default import NAME, RAMP_FIT
+    from nlpsf.request.presets import NAME, RAMP_FIT
 
     ramp, exptime = ramp_from(args, RAMP_FIT if preset == NAME else "ols")
     return ramp, (exptime if ramp is not None or args.exptime_given else None)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..request import SolveRequest
-    from ..solver import answer, solve_over_field
+    from nlpsf.request.resolve import SolveRequest
+    from nlpsf.solve.solver import answer, solve_over_field
 
     if args.batch:
         return run_batch(args)
@@ -173,6 +185,7 @@ def run(args: argparse.Namespace) -> int:
             filled_for=_FILLED_FOR if args.sca == "all" else args.sca,  # the SCA _default_with_changes filled
             preset=preset,
             linearise_at=args.linearise_at,
+            residual_nl=args.residual_nl,
             progress=progress_printer(not args.json),
             metric=args.metric,
             mode=args.mode,
@@ -221,7 +234,12 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
     if solution.conditions.get("scene_name") == "roman":
         changed = " (changed by the options given)" if solution.conditions.get("roman_default_changed") else ""
         scene = solution.conditions.get("scene_description", "").removeprefix("roman: ")  # its name is said already
-        print(f"  scene      the Roman default{changed}: {scene}; linearised at {solution.conditions['linearise_at']}")
+        from nlpsf.request.presets import RESIDUAL_NL
+
+        state = solution.conditions["linearise_at"]
+        residual = solution.conditions.get("residual_nl")
+        state += f" (residual model {residual})" if residual and residual != RESIDUAL_NL else ""
+        print(f"  scene      the Roman default{changed}: {scene}; linearised at {state}")
     units = {"precision": "(fraction of beta0)", "tolerance": _tolerance_unit(solution.metric), "magnitude": "AB"}
     for name in ("precision", "tolerance", "magnitude"):
         value = payload[name]
@@ -287,7 +305,7 @@ def _scene(args: argparse.Namespace):
     """(scene, preset): the scene options on their base -- the Roman default unless ``--scene``
     names another preset or a file -- or (None, preset) when no effect was changed (the preset's
     own scene: the Roman default's at the star's position, or the paper's)."""
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
 
     preset = roman_default.NAME
     if args.scene is not None and args.scene.strip().lower() in roman_default.PRESETS:
@@ -310,7 +328,7 @@ _FILLED_FOR = 18
 
 
 def _default_with_changes(args: argparse.Namespace):
-    from .. import roman_default
+    from nlpsf.request import presets as roman_default
 
     sca = args.sca if isinstance(args.sca, int) else _FILLED_FOR
     ramp, exptime = _readout(args, roman_default.NAME)
@@ -387,9 +405,10 @@ def run_batch(args: argparse.Namespace) -> int:
     import csv
     import sys
 
+    from nlpsf.request.resolve import SolveRequest
+    from nlpsf.solve.solver import answer
+
     from ..checks import InputError, SimulationError
-    from ..request import SolveRequest
-    from ..solver import answer
 
     scene, preset = _scene(args)
     ramp, exptime = _readout(args, preset)
@@ -408,7 +427,7 @@ def run_batch(args: argparse.Namespace) -> int:
                 row_ramp = _readout(argparse.Namespace(**{**vars(args), "sca": arguments["sca"]}), preset)[0]
             request = SolveRequest.from_mapping(
                 {**arguments, "ramp": row_ramp, "pupil_scale": args.pupil_scale, "scene": scene, "preset": preset,
-                 "linearise_at": args.linearise_at}
+                 "linearise_at": args.linearise_at, "residual_nl": args.residual_nl}
             )  # fmt: skip
             solution = answer(request)
             answers.append({"index": index, "ok": True, "solution": solution.to_dict()})

@@ -44,7 +44,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import sweep
+    from nlpsf.sim import sweep
 
     bands = args.band or [defaults.BAND]
     scas = args.sca or [defaults.SCA]

@@ -29,7 +29,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--scene",
         choices=("paper", "roman"),
         default="paper",
-        help="paper: the shipped tables' idealised scene; roman: the candidate Roman default (nlpsf.fieldgrid: "
+        help="paper: the shipped tables' idealised scene; roman: the candidate Roman default (nlpsf.slopes.fieldgrid: "
         "preset roman at the position, roman-typical background, HLWAS ramp with the likelihood fit, official pupil scale)",
     )
     build.add_argument(
@@ -37,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="tables at the N x N field-grid nodes of each SCA (N = 3, 5, 7, 9; nlpsf.fieldgrid); "
+        help="tables at the N x N field-grid nodes of each SCA (N = 3, 5, 7, 9; nlpsf.slopes.fieldgrid); "
         "--merge-to then writes one float32 .npz field-grid file",
     )
     build.add_argument("--band", action="append", help="only these bands (repeat); default all")
@@ -81,12 +81,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _build(args) -> int:
-    from .. import tablebuild
+    from nlpsf.slopes import tablebuild
+
     from ..checks import check_integer
 
     check_integer(args.workers, "workers", 1, 256)
     if args.grid is not None:
-        from .. import fieldgrid
+        from nlpsf.slopes import fieldgrid
 
         fieldgrid.check_grid(args.grid)
     make = tablebuild.TableSettings.roman if args.scene == "roman" else tablebuild.TableSettings
@@ -123,7 +124,7 @@ def _build(args) -> int:
 
 
 def _show(args) -> int:
-    from .. import tables
+    from nlpsf.slopes import tables
 
     rows = tables.table_rows(args.band, args.sca)
     if args.format == "json":
@@ -150,7 +151,7 @@ def _show(args) -> int:
 
 
 def _fits(args) -> int:
-    from .. import tables
+    from nlpsf.slopes import tables
 
     if args.markdown:
         print(tables.table2_markdown(sca=args.sca))

@@ -21,7 +21,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import fidelity, tradeoff
+    from nlpsf.slopes import fidelity, tradeoff
 
     result = tradeoff.tradeoff(progress=progress_printer(not args.quiet and not args.json), default=args.scene)
     if args.write:

@@ -37,9 +37,10 @@ def answer_point_is_drawn(page) -> bool:
     return page.evaluate(
         """() => {
             const u = state.plots.calc;
-            const marker = u.data[2].findIndex((v) => v != null);
+            const series = state.exports.calc.columns.findIndex((c) => c.answer) + 1;
+            const marker = u.data[series].findIndex((v) => v != null);
             const x = u.valToPos(u.data[0][marker], "x", true);
-            const y = u.valToPos(u.data[2][marker], "y", true);
+            const y = u.valToPos(u.data[series][marker], "y", true);
             const [r, g, b] = u.ctx.getImageData(Math.round(x), Math.round(y), 1, 1).data;
             return r > 150 && g < 80 && b < 80;
         }"""
@@ -52,8 +53,14 @@ def solve_for(page, unknown: str, given: dict[str, str]) -> str:
         page.fill(f"#solve-{name}", value)
     # A solve still in flight (a default answer can be a job) finishes first: its answer is not this one.
     page.wait_for_function("() => !document.getElementById('solve-button').disabled", timeout=240_000)
-    page.evaluate("() => { state.lastSolution = undefined; }")
-    with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
+    # The plots of this answer, not the previous one's: their point marks are set when they are drawn.
+    page.evaluate(
+        """() => {
+            state.lastSolution = undefined;
+            for (const p of ['req', 'calc']) delete document.getElementById(`plot-${p}`).dataset.point;
+        }"""
+    )
+    with page.expect_response(lambda r: r.url.split("?")[0].endswith("/api/v1/solve")) as response:
         page.click("#solve-button")
     # 200: answered at once; 202: simulated as a job (the Roman default's answers off the tables),
     # which the page follows to its answer.

@@ -13,7 +13,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from nlpsf import solver, tables
+from nlpsf.slopes import tables
+from nlpsf.solve import solver
 
 from ..servers import ROOT, free_port, wait_for
 

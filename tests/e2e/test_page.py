@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import solver
 from nlpsf.checks import InputError
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS, solve_for
 
@@ -112,7 +112,7 @@ def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, se
     page.select_option("#solve-scene", "paper")  # the brightest answered is the paper's tables' (page/limits)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     page.fill("#solve-magnitude", "5")
-    with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
+    with page.expect_response(lambda r: r.url.split("?")[0].endswith("/api/v1/solve")) as response:
         page.click("#solve-button")
     assert response.value.status == 422
     page.wait_for_function("() => document.getElementById('msg-magnitude').textContent.includes('brightest')")
@@ -125,7 +125,9 @@ def test_a_refusal_empties_the_answer_and_names_the_brightest_magnitude(page, se
     assert "Q_peak" not in page.inner_text("#solve-error") and "beta0" not in page.inner_text("#solve-error")
     assert page.input_value("#solve-precision") == "" and page.get_attribute("#solve-precision", "placeholder") == "no answer"
     assert page.get_attribute("#solve-magnitude", "aria-invalid") == "true"
-    assert page.is_hidden("#solve-result")
+    # The earlier answer (m = 18.3) stays greyed and says what it answered.
+    assert "m = 18.3" in page.inner_text("[data-testid=stale-note]")
+    page.wait_for_function("() => ['req', 'calc'].every((p) => document.getElementById(`plot-${p}`).dataset.answer === 'none')")
     for plot in ("req", "calc"):
         assert page.get_attribute(f"#plot-{plot}", "data-answer") == "none"
         assert "no answer" in page.inner_text(f"#plot-{plot} .no-answer")
@@ -153,7 +155,7 @@ def test_a_shear_budget_shows_the_tolerance_it_sets_greyed(page, server):
     assert page.is_disabled("#solve-tolerance")
     assert "derived" in page.get_attribute("#solve-tolerance", "class")
     solution = solve_for(page, "precision", {"magnitude": "18.3"})
-    # Shear relation (nlpsf.shear): dR/R = |m| rho^2 / 2.
+    # Shear relation (nlpsf.request.shear): dR/R = |m| rho^2 / 2.
     assert solution["shear"]["tolerance"] == pytest.approx(3.2e-4 * 1.5**2 / 2, rel=1e-9)
     assert float(page.input_value("#solve-tolerance")) == pytest.approx(3.6e-4, rel=1e-3)
     page.select_option("#req-preset", "euclid-e")
@@ -209,7 +211,7 @@ def test_comparison_table_and_every_download(page, server, tmp_path):
     assert table.meta["conditions"]["exptime_s"] == pytest.approx(library_exptime, rel=1e-12)
     assert table.meta["solved_for"] == "precision"
     names["tables"], text = download(page, "#tables-csv")
-    assert text.startswith("band,")
+    assert text.startswith("# nlpsf slope tables") and "bias_size_interp:" in text and "\nband," in text
     assert names["json"].endswith(".json") and names["ecsv"].endswith(".ecsv")
     DOWNLOADS.update(names)
     assert first["band"] == "H158"
@@ -241,12 +243,16 @@ def test_plots_are_readable(page, server):
     # Powers of ten on the log axes.
     ticks = page.evaluate("() => state.plots.req.axes[1].values(state.plots.req, [0.001, 0.01, 0.1, 1], 1, 1, 1)")
     assert ticks == ["10⁻³", "10⁻²", "10⁻¹", "10⁰"]
-    # Curves stop at saturation (the library's saturation magnitude for each band).
+    # Curves start where the calculator starts answering (the library's refusal just brighter).
     for band, start in page.evaluate("() => state.exports.slopes.columns.map((c) => [c.label, Math.min(...c.x)])"):
         if "(paper)" in band:
             continue
-        assert start >= solver.solve(band, tolerance=1e-4, magnitude=22).saturation_magnitude - 1e-9
-    assert min(page.evaluate("() => state.exports.req.columns[2].x")) >= solution["saturation_magnitude"] - 1e-9
+        solver.solve(band, tolerance=1e-4, magnitude=start)
+        with pytest.raises(InputError):
+            solver.solve(band, tolerance=1e-4, magnitude=start - 0.26)  # the slopes plot's 0.25 mag grid
+    # The answer's point lies on its curve: the chosen curve at its magnitude is its precision.
+    chosen = page.evaluate("() => state.exports.req.columns.find((c) => c.label.endsWith('(chosen)'))")
+    assert chosen["y"][chosen["x"].index(18.3)] / 100 == pytest.approx(solution["precision"], rel=1e-9)
     # Bands told apart without colour: eight dash patterns, and each curve named at its end.
     dashes = page.evaluate("() => state.exports.slopes.columns.map((c) => JSON.stringify(c.series.dash || []))")
     assert len(set(dashes)) == len(dashes) == 8
@@ -264,14 +270,14 @@ def test_plots_are_readable(page, server):
     assert after > before
     # The saturation and NL-validity ranges are named in the key, not drawn over the answer.
     key = page.inner_text("#key-req")
-    assert "saturated stars" in key and "quadratic NL model invalid" in key
+    assert "saturated up the ramp" in key and "final frame's limit" in key
 
 
 def test_impact_in_requirement_terms(page, server):
     reset(page, server)
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "19"})
-    from nlpsf import roman_default
-    from nlpsf import scene as scenes
+    from nlpsf.request import presets as roman_default
+    from nlpsf.sim import scene as scenes
 
     page.select_option("#scene-preset", "roman")  # the Roman default's values, as the library holds them
     assert float(page.input_value("#scene-jitter")) == roman_default.JITTER_ARCSEC
@@ -333,8 +339,10 @@ def test_default_view_names_its_scene(page, server):
     if named is None or named.startswith("paper scene"):
         assert "the paper's scene" in line
     else:
-        # The library's description, after its preset's name (the page names the Roman default in words).
-        assert named.split(": ", 1)[-1] in line and page.locator("#use-paper-scene").count() == 1
+        # The library's description, after its preset's name (the page names the Roman default in words);
+        # without a position the answer holds over the SCA, so the node it reports is not named as the star's.
+        assert "anywhere on the SCA" in line and "position" not in line and page.locator("#use-paper-scene").count() == 1
+        assert named.split("SED ", 1)[-1].split(",")[0] in line
 
 
 def test_the_page_on_a_phone(page, server):

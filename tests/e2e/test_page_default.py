@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import pytest
 
-from nlpsf import roman_default, solver
+from nlpsf.request import presets as roman_default
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS
 
@@ -22,7 +23,7 @@ def solve_sent(page) -> tuple[dict, dict]:
     page.check("#solve-for-precision")
     for name, value in QUESTION.items():
         page.fill(f"#solve-{name}", value)
-    with page.expect_request(lambda r: r.url.endswith("/api/v1/solve")) as request:
+    with page.expect_request(lambda r: r.url.split("?")[0].endswith("/api/v1/solve")) as request:
         page.click("#solve-button")
     page.wait_for_function("() => state.lastSolution !== undefined", timeout=240_000)
     return request.value.post_data_json, page.evaluate("() => state.lastSolution")
@@ -32,14 +33,20 @@ def test_the_scene_choice_is_sent_shown_and_shared(page, server):
     # The first view: the Roman default, its exposure named from the API, the box left empty.
     assert page.input_value("#solve-scene") == "" and page.input_value("#solve-exptime") == ""
     assert f"{roman_default.exptime_s():.6g}" in page.get_attribute("#solve-exptime", "placeholder")
-    assert "paper's idealised scene" in page.inner_text("[data-testid=curves-scene-note]")
+    # The slopes of every band are the calculator's question's: the Roman default, over the SCA.
+    note = page.inner_text("[data-testid=curves-scene-note]")
+    assert "Roman default" in note and "anywhere on the SCA" in note
     sent, answer = solve_sent(page)
     assert "scene" not in sent and "exptime" not in sent
     truth = solver.solve("H158", tolerance=1e-4, magnitude=18.3)
     assert answer["precision"] == pytest.approx(truth.precision, rel=1e-9)
     assert answer["exptime"] == pytest.approx(roman_default.exptime_s(), rel=1e-12)
     line = page.inner_text("[data-testid=scene-line]")
-    assert "Roman default" in line and truth.to_dict()["conditions"]["scene_description"].split(": ", 1)[1] in line
+    # The library's description without the node it reports (no position was given: the answer holds
+    # anywhere on the SCA), its numbers to the digits they support.
+    described = truth.to_dict()["conditions"]["scene_description"]
+    assert "Roman default" in line and "anywhere on the SCA" in line and "position" not in line
+    assert described.split("SED ", 1)[1].split(", background")[0] in line
     page.screenshot(path=str(ARTIFACTS / "e2e-default-answer.png"), full_page=False)
     # "Use the paper's scene" chooses it and answers again: the paper's numbers over its 168.1 s.
     page.evaluate("() => { state.lastSolution = undefined; }")

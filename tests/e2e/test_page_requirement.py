@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from nlpsf import solver
+from nlpsf.solve import solver
 
 from .browser import ARTIFACTS, answer_point_is_drawn, solve_for
 
@@ -22,8 +22,10 @@ def test_requirement_plot_hover_reads_the_requirement(page):
     page.wait_for_function("() => document.getElementById('plot-req').dataset.answer === 'shown'")
     labels = page.evaluate("() => state.exports.req.columns.map((c) => c.label)")
     assert sum(label.startswith("T = ") for label in labels) == 5 and "T = 1e-4 (chosen)" in labels
-    shades = page.evaluate("() => state.exports.req.shades.map((s) => s.label)")
-    assert any("saturated" in s for s in shades) and any("quadratic NL model invalid" in s for s in shades)
+    # One saturation story: the answer's own limit (the paper's final frame here), named as such.
+    shades = page.evaluate("() => state.exports.req.shades.map((s) => [s.label, s.to])")
+    saturation = page.evaluate("() => state.lastSolution.saturation_magnitude")
+    assert shades[0][1] == pytest.approx(saturation, abs=1e-12) and "saturated in the final frame" in shades[0][0]
     # Before any hover the legend shows numbers, not dashes.
     legend = page.inner_text("#plot-req .u-legend")
     assert "–" not in legend and any(ch.isdigit() for ch in legend)
@@ -46,9 +48,9 @@ def test_requirement_plot_hover_reads_the_requirement(page):
     expected = solver.solve("H158", tolerance=1e-4, magnitude=magnitude, preset="paper").precision
     assert precision == pytest.approx(expected, rel=1e-6)
     text = readout.inner_text()
-    assert "stat" in text and "fidelity" in text and "T = 1e-4" in text
+    assert "statistical" in text and "method" in text and "T = 1e-4" in text
     legend = page.inner_text("#plot-req .u-legend")
-    assert "stat" in legend and "fidelity" in legend, "hover gives both uncertainties"
+    assert "stat" in legend and "method" in legend, "hover gives both uncertainties"
     page.locator("#calculator").screenshot(path=str(ARTIFACTS / "e2e-requirement.png"))
     with page.expect_download() as png:
         page.click("button[data-png=req]")
@@ -68,15 +70,19 @@ def test_magnitude_answer_names_the_binding_limit(page):
 def test_a_failed_solve_clears_the_marker(page):
     solve_for(page, "precision", {"tolerance": "1e-4", "magnitude": "18.3"})
     assert answer_point_is_drawn(page)
-    page.fill("#solve-magnitude", "12")  # valid text, refused by the server: brighter than the tables reach
-    with page.expect_response(lambda r: r.url.endswith("/api/v1/solve")) as response:
+    page.fill("#solve-magnitude", "11")  # valid text, refused by the server: past the ramp's bright margin
+    with page.expect_response(lambda r: r.url.split("?")[0].endswith("/api/v1/solve")) as response:
         page.click("#solve-button")
     assert response.value.status == 422
     page.wait_for_selector("#solve-error:not([hidden])")
+    # The refused question's own curves are drawn after the refusal (one more request).
+    page.wait_for_function("() => ['req', 'calc'].every((p) => document.getElementById(`plot-${p}`).dataset.answer === 'none')")
     for plot in ("req", "calc"):
         assert page.get_attribute(f"#plot-{plot}", "data-answer") == "none"
         assert page.evaluate(f"() => state.exports.{plot}.columns.some((c) => c.answer)") is False
-    assert page.is_hidden("#solve-result")
+    # The earlier answer stays, greyed, saying what it answered; pin and downloads are off.
+    assert "m = 18.3" in page.inner_text("[data-testid=stale-note]") and "stale" in page.get_attribute("#solve-result", "class")
+    assert page.is_disabled("#pin-answer") and page.is_disabled("#download-json")
     # The legends read nothing (no value left at the refused answer's magnitude) until hovered.
     for plot in ("req", "calc"):
         values = page.locator(f"#plot-{plot} .u-legend .u-value").all_inner_texts()
@@ -162,7 +168,7 @@ def test_a_shear_budget_takes_the_place_of_the_tolerance(page):
     page.fill("#solve-magnitude", "19")
     page.fill("#solve-shear_m", "2e-3")
     page.fill("#solve-size_ratio", "1.5")
-    with page.expect_request(lambda r: r.url.endswith("/api/v1/solve")) as request:
+    with page.expect_request(lambda r: r.url.split("?")[0].endswith("/api/v1/solve")) as request:
         page.click("#solve-button")
     sent = request.value.post_data_json
     assert sent["shear_m"] == 2e-3 and sent["size_ratio"] == 1.5 and "tolerance" not in sent
@@ -197,7 +203,7 @@ def test_each_flag_on_an_answer_opens_its_meaning_by_keyboard(page):
 
 
 def test_the_effect_explanations_list_the_registrys_effects(page):
-    from nlpsf import scene as scenes
+    from nlpsf.sim import scene as scenes
 
     terms = page.locator("#effect-explanations dt").all_inner_texts()
     # One per registry effect (in the page's words), then the pupil-scale rule.

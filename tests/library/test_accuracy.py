@@ -1,4 +1,4 @@
-"""``accuracy`` keeps its promise (nlpsf.accuracy): impacts measured inside the full scene, a
+"""``accuracy`` keeps its promise (nlpsf.solve.accuracy): impacts measured inside the full scene, a
 left-out set measured as a set, and the answer within A of an independent full-scene simulation."""
 
 from __future__ import annotations
@@ -8,10 +8,14 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import accuracy, defaults, experiment, roman_default, solver, tables
-from nlpsf import scene as scenes
+from nlpsf import defaults
 from nlpsf.flags import FlagCode, codes
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.sim import experiment
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import tables
+from nlpsf.solve import accuracy, solver
 
 
 def _roman_request(band, sca, metric, magnitude, position, accuracy_=0.01):
@@ -167,7 +171,7 @@ def test_accuracy_answer_lands_within_a_of_the_full_scene(band, sca, metric, mag
 
 
 def test_a_roman_default_fidelity_entry_is_read_when_shipped(monkeypatch):
-    from nlpsf import fidelity
+    from nlpsf.slopes import fidelity
 
     shipped = fidelity.measured()
     readout = roman_default.readout("H158", 18)

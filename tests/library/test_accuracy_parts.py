@@ -16,8 +16,9 @@ from importlib import resources
 
 import pytest
 
-from nlpsf import accuracy, model_part, roman_default, solver
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.solve import accuracy, model_part, solver
 
 CHOICES = ("optical_model", "sed", "jitter", "charge_diffusion", "pupil_scale")
 LEFT_OUT = ("brighter_fatter", "nl_shape")

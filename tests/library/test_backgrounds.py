@@ -4,8 +4,9 @@ import math
 
 import pytest
 
-from nlpsf import backgrounds, defaults, roman
+from nlpsf import defaults, roman
 from nlpsf.checks import InputError
+from nlpsf.roman import backgrounds
 
 
 def test_presets_add_up_and_scale_with_exposure():
@@ -61,7 +62,7 @@ def test_a_ramps_default_read_noise_imports_no_astropy():
     import subprocess
     import sys
 
-    code = "import sys; from nlpsf import ramps; ramps.build(6, fit='optimal', sca=3); print('astropy' in sys.modules)"
+    code = "import sys; from nlpsf.sim import ramps; ramps.build(6, fit='optimal', sca=3); print('astropy' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
 
 

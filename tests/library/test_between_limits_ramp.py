@@ -15,9 +15,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import nlpsf.experiment as experiment
-from nlpsf import moments, ramps, reference, roman_default, solve
-from nlpsf.experiment import kernels
+from nlpsf import solve
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import experiment, moments, ramps, reference
+from nlpsf.sim.experiment import kernels
 
 from ..conftest import requires_galsim
 

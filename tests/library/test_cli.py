@@ -9,8 +9,10 @@ import sys
 
 import pytest
 
-from nlpsf import cli, experiment, solver
-from nlpsf import scene as scenes
+from nlpsf import cli
+from nlpsf.sim import experiment
+from nlpsf.sim import scene as scenes
+from nlpsf.solve import solver
 
 SIMULATE_FIELDS = {
     "band",
@@ -214,7 +216,7 @@ def test_solve_batch_answers_each_csv_row_on_its_own(capsys, tmp_path):
     import csv
     import io
 
-    from nlpsf.solver import solve
+    from nlpsf.solve.solver import solve
 
     batch = tmp_path / "requests.csv"
     batch.write_text("band,metric,magnitude,tolerance,precision\nH158,size,18.3,1e-4,\nJ129,e1,,1e-4,0.01\nH158,size,abc,1e-4,\n")

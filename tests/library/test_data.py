@@ -11,8 +11,10 @@ import pytest
 from astropy.constants import h
 from astropy.table import Table
 
-from nlpsf import experiment, photometry, roman
+from nlpsf import roman
 from nlpsf.checks import InputError
+from nlpsf.roman import photometry
+from nlpsf.sim import experiment
 
 DATA = Path(str(resources.files("nlpsf") / "data"))
 
@@ -69,7 +71,7 @@ def test_official_pupil_scale_gives_every_sca_the_official_clear_area(band):
     numpy). The area is measured on what the optics compute with: the open pixels of the pupil
     function the PSF is drawn from, and, independently of any pixel count, the on-axis intensity
     of the aberration-free PSF, which for unit flux is A / lambda^2 (Parseval)."""
-    from nlpsf import optics
+    from nlpsf.sim import optics
 
     table = Table.read(DATA / "rti_pupil_masks" / _OFFICIAL_MASKS[band], format="ascii.ecsv")
     official = {int(s): float(a) for s, a in zip(table["sca"], table["exit_pupil_clear"], strict=True) if str(s).isdigit()}

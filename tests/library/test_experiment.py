@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, moments, optics, render
 from nlpsf.checks import InputError
-from nlpsf.experiment import SimulationConfig, simulate, slopes
 from nlpsf.flags import FlagCode, codes
+from nlpsf.sim import experiment, moments, optics, render
+from nlpsf.sim.experiment import SimulationConfig, simulate, slopes
 
 from .test_cli import SIMULATE_FIELDS
 from .test_optics import circular_pupil
@@ -270,7 +270,7 @@ def test_results_carry_their_conditions(paper_config, paper_scene):
 def test_scaled_perturbed_fits_equal_fitting_the_nl_image_directly(paper_config, paper_scene):
     # The experiment works at unit flux with a perturbation step; build the detector's image the
     # plain way (charge, then S = Q - beta Q^2) and fit it from scratch: the same numbers.
-    from nlpsf import detector
+    from nlpsf.sim import detector
 
     r = one(paper_config, 19.0, 5e-7, paper_scene)
     flux = paper_config.electrons(19.0)

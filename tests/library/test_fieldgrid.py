@@ -1,4 +1,4 @@
-"""Field-grid tables (``nlpsf.fieldgrid``, ``tablebuild.build_tables(grid=n)``): interpolation across
+"""Field-grid tables (``nlpsf.slopes.fieldgrid``, ``tablebuild.build_tables(grid=n)``): interpolation across
 the SCA, the packed float32 file, resuming, and the interpolation error against fresh simulations."""
 
 from __future__ import annotations
@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from nlpsf import experiment, fieldgrid, tablebuild
 from nlpsf.checks import InputError
+from nlpsf.sim import experiment
+from nlpsf.slopes import fieldgrid, tablebuild
 
 #: A cheap table build (the paper's scene at each node, few centroids, a short magnitude grid):
 #: these tests are about the grid machinery, not the slopes' statistics.
@@ -158,7 +159,7 @@ def test_local_dask_workers_keep_glibcs_dynamic_mmap_threshold(monkeypatch):
     """dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which made a Roman-scene table
     cost 3 x the CPU there (docs/field.md); ``cluster.dask_client`` unsets it for a local cluster."""
     pytest.importorskip("dask.distributed")
-    from nlpsf import cluster
+    from nlpsf.sim import cluster
 
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
     with cluster.dask_client("local", workers=1) as client:

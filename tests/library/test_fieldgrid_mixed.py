@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from nlpsf import fieldgrid, tablebuild
+from nlpsf.slopes import fieldgrid, tablebuild
 
 CHEAP = tablebuild.TableSettings(realizations=2, faint_limit=18.0, magnitude_step=0.5)
 

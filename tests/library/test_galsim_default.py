@@ -1,6 +1,6 @@
 """The Roman default's polychromatic slope against GalSim's own computation of the same scene.
 
-The peer (``nlpsf.reference.GalSimRomanDefault``) is GalSim only: ``OpticalPSF`` at the star's position
+The peer (``nlpsf.sim.reference.GalSimRomanDefault``) is GalSim only: ``OpticalPSF`` at the star's position
 with the official pupil scale (from the official clear area), the default star's SED (its tabulated
 spectrum or blackbody, as the answer's conditions name it) through the SCA's official bandpass
 (``galsim.SED`` / ``Bandpass``), jitter and diffusion Gaussians, ``applyIPC`` after the NL, the
@@ -18,7 +18,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from nlpsf import ramps, reference, roman_default, solve
+from nlpsf import solve
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import ramps, reference
 
 from ..conftest import requires_galsim
 from .test_ramps_readout import brute_force

@@ -11,7 +11,9 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import fieldgrid, roman_default, solver
+from nlpsf.request import presets as roman_default
+from nlpsf.slopes import fieldgrid
+from nlpsf.solve import solver
 
 
 @pytest.mark.parametrize("band, sca", [("H158", 18), ("W146", 6)])

@@ -7,10 +7,11 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import experiment, impact, solver
-from nlpsf import scene as scenes
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode
+from nlpsf.sim import experiment
+from nlpsf.sim import scene as scenes
+from nlpsf.solve import impact, over_field, solver
 
 # The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
 paper_solve = functools.partial(solver.solve, preset="paper")
@@ -111,17 +112,17 @@ def test_accuracy_switches_effects_on_and_its_uncertainty_covers_the_full_scene(
                 spread,
             )
             assert answer.uncertainty >= spread
-        # A tighter accuracy never leaves out more (nlpsf.accuracy: where the full scene is affordable,
+        # A tighter accuracy never leaves out more (nlpsf.solve.accuracy: where the full scene is affordable,
         # every accuracy simulates all of it).
         assert included[0] <= included[1] <= included[2]
 
 
 def test_over_field_answers_for_the_worst_field_point():
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     worst = solver.solve_over_field("H158", [18], metric="e1", magnitude=18.3, tolerance=1e-4, preset="paper")
     points = worst.conditions["over_field"]
-    assert len(points) == 5 and {tuple(p["position"]) for p in points} == set(solver.field_points(18))
+    assert len(points) == 5 and {tuple(p["position"]) for p in points} == set(over_field.field_points(18))
     assert worst.precision == min(p["precision"] for p in points)
     assert worst.flags[0].code == FlagCode.WORST_OVER_FIELD and worst.flags[0].values["points"] == 5
     # Read from the tables (centre and field-point): each point is the plain solve at its position,
@@ -164,7 +165,7 @@ def test_background_moves_the_saturation_limit_and_stops_the_table_rescaling():
 
 
 def test_a_capped_sed_says_it_has_fewer_wavelengths_than_its_accuracy_needs():
-    from nlpsf import impact as impact_module
+    from nlpsf.solve import impact as impact_module
 
     wanted = scenes.SceneModel().with_nominal("sed").wavelengths("H158", 1, 18)
     assert wanted > 2

@@ -3,8 +3,10 @@ command): its runs use that rule, so the slopes equal a direct simulation with i
 
 import pytest
 
-from nlpsf import cli, experiment, impact
+from nlpsf import cli
 from nlpsf.checks import InputError
+from nlpsf.sim import experiment
+from nlpsf.solve import impact
 
 
 def test_the_impact_report_simulates_with_the_pupil_rule_asked_for():

@@ -12,7 +12,7 @@ import nlpsf
 
 PACKAGE = Path(nlpsf.__file__).resolve().parent
 ROOT = PACKAGE.parent
-#: Modules of the physics library: everything in nlpsf/ and its code subpackages (nlpsf.tables, ...)
+#: Modules of the physics library: everything in nlpsf/ and its code subpackages (nlpsf.slopes.tables, ...)
 #: except the command line.
 LIBRARY = sorted(
     p for p in PACKAGE.rglob("*.py") if p.name != "__main__.py" and p.relative_to(PACKAGE).parts[0] not in ("cli", "data")
@@ -20,7 +20,7 @@ LIBRARY = sorted(
 
 
 def _module_name(path: Path) -> str:
-    """``nlpsf/tables/model.py`` -> ``nlpsf.tables.model``; a package's ``__init__.py`` -> the package."""
+    """``nlpsf/slopes/tables/model.py`` -> ``nlpsf.slopes.tables.model``; a package's ``__init__.py`` -> the package."""
     parts = ("nlpsf", *path.relative_to(PACKAGE).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
@@ -57,11 +57,11 @@ def _imports(path: Path, package: str) -> set[str]:
 
 def test_relative_imports_resolve_from_each_files_own_package():
     # The layering and cycle tests below read imports by name; a wrong base would hide edges.
-    assert _module_name(PACKAGE / "tables" / "model.py") == "nlpsf.tables.model"
-    assert _package_of(PACKAGE / "tables" / "model.py") == "nlpsf.tables"
-    assert _package_of(PACKAGE / "tables" / "__init__.py") == "nlpsf.tables"
-    imported = _imports(PACKAGE / "tables" / "model.py", "nlpsf.tables")
-    assert {"nlpsf.defaults", "nlpsf.tables.splines"} <= imported
+    assert _module_name(PACKAGE / "slopes" / "tables" / "model.py") == "nlpsf.slopes.tables.model"
+    assert _package_of(PACKAGE / "slopes" / "tables" / "model.py") == "nlpsf.slopes.tables"
+    assert _package_of(PACKAGE / "slopes" / "tables" / "__init__.py") == "nlpsf.slopes.tables"
+    imported = _imports(PACKAGE / "slopes" / "tables" / "model.py", "nlpsf.slopes.tables")
+    assert {"nlpsf.defaults", "nlpsf.slopes.tables.splines"} <= imported
 
 
 def test_the_library_never_imports_the_cli_or_the_web_layer():
@@ -77,7 +77,7 @@ def test_library_modules_import_without_cycles():
     for path in LIBRARY:
         name = _module_name(path)
         # A module's own packages are being imported already when it runs (``from . import x`` in
-        # nlpsf/tables/model.py is no edge to nlpsf.tables), and the top package re-exports lazily.
+        # nlpsf/slopes/tables/model.py is no edge to nlpsf.slopes.tables), and the top package re-exports lazily.
         ancestors = {name.rsplit(".", k)[0] for k in range(1, name.count(".") + 1)} | {"nlpsf"}
         graph[name] = {m for m in _imports(path, _package_of(path)) if m in modules and m != name and m not in ancestors}
     # Depth-first search for a back edge.
@@ -109,14 +109,23 @@ def _modules_after(code: str) -> set[str]:
 
 def test_help_and_solve_import_nothing_heavy():
     # `nlpsf --help`, and a table solve, must not pay for scipy, astropy or the simulator.
-    heavy = {"scipy", "astropy", "nlpsf.experiment", "nlpsf.moments", "nlpsf.optics", "fastapi", "uvicorn", "threadpoolctl"}
+    heavy = {
+        "scipy",
+        "astropy",
+        "nlpsf.sim.experiment",
+        "nlpsf.sim.moments",
+        "nlpsf.sim.optics",
+        "fastapi",
+        "uvicorn",
+        "threadpoolctl",
+    }
     helped = _modules_after("from nlpsf.cli import build_parser; build_parser(['--help'])")
     assert not heavy & helped
     solved = _modules_after("from nlpsf import solve; solve('H158', magnitude=18.3, tolerance=1e-4, scene='paper')")
     assert not heavy & solved, heavy & solved
     # The worst over the focal plane reads the field-point tables' companion just as lightly.
     over_field = "solve_over_field('H158', magnitude=18.3, tolerance=1e-4, scene='paper')"
-    worst = _modules_after(f"from nlpsf.solver import solve_over_field; {over_field}")
+    worst = _modules_after(f"from nlpsf.solve.solver import solve_over_field; {over_field}")
     assert not heavy & worst, heavy & worst
 
 
@@ -138,9 +147,9 @@ def test_every_code_package_ships_in_the_wheel():
 
 def test_the_table_path_reads_curves_and_rows_without_scipy_or_astropy():
     # What the service's calculator and its curve and download endpoints read at start and per request.
-    heavy = {"scipy", "astropy", "nlpsf.experiment", "nlpsf.optics", "nlpsf.tablebuild"}
+    heavy = {"scipy", "astropy", "nlpsf.sim.experiment", "nlpsf.sim.optics", "nlpsf.slopes.tablebuild"}
     code = (
-        "from nlpsf import tables; t = tables.load_tables(); t.get('K213', 3).slope('e', 'scatter', [20.0], 100.0, 1e-6);"
+        "from nlpsf.slopes import tables; t = tables.load_tables(); t.get('K213', 3).slope('e', 'scatter', [20.0], 100.0, 1e-6);"
         " tables.curve('H158', 18, 'e1', 'bias', tables=t); tables.table_rows('J129', 7, tables=t);"
         " tables.load_tables(str(tables.field_table_path())).at_point(2).get('H158', 18).values('size', 'bias', [19.0])"
     )
@@ -179,19 +188,21 @@ def test_modules_call_each_others_public_names_only():
 
 
 #: The simulation package in the order its modules may import each other (each only from earlier ones).
-EXPERIMENT_LAYERS = ("config", "prepared", "results", "readout", "validity", "kernels", "measure")
+EXPERIMENT_LAYERS = ("config", "prepared", "results", "readout", "validity", "correction", "kernels", "measure")
 
 
 def test_the_experiment_package_imports_one_way():
     for index, name in enumerate(EXPERIMENT_LAYERS):
-        path = PACKAGE / "experiment" / f"{name}.py"
+        path = PACKAGE / "sim" / "experiment" / f"{name}.py"
         inside = {
-            m.split(".")[2] for m in _imports(path, "nlpsf.experiment") if m.startswith("nlpsf.experiment.") and m.count(".") >= 2
+            m.split(".")[3]
+            for m in _imports(path, "nlpsf.sim.experiment")
+            if m.startswith("nlpsf.sim.experiment.") and m.count(".") >= 2
         }
         later = inside & set(EXPERIMENT_LAYERS[index:])
         assert not later, (name, later)
     # Every name the old single module had is still there for its callers.
-    from nlpsf import experiment
+    from nlpsf.sim import experiment
 
     for name in ("SimulationConfig", "Scene", "prepare", "simulate", "slopes", "SlopeResult", "SimulationResult", "Statistic"):
         assert hasattr(experiment, name), name
@@ -203,7 +214,7 @@ def test_the_experiment_package_imports_one_way():
 MAX_MODULE_LINES = 600
 #: Functions over ~80 lines, each with why it is still one.
 LONG_FUNCTIONS = {
-    ("nlpsf.moments", "_fit_chunk"): "the adaptive-moment iteration, kept whole for speed",
+    ("nlpsf.sim.moments", "_fit_chunk"): "the adaptive-moment iteration, kept whole for speed",
 }
 
 

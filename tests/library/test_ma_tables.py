@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from nlpsf import ramps
+from nlpsf.sim import ramps
 
 ROMANISIM_TABLES = tuple(range(3, 18))
 

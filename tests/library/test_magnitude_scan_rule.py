@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from nlpsf.flags import FlagCode
-from nlpsf.magnitude_scan import ToleranceUnreachable, scan_magnitude
+from nlpsf.solve.magnitude_scan import ToleranceUnreachable, scan_magnitude
 
 BRIGHT, FAINT = 14.0, 28.0
 DELTA_BETA = 5e-9  # 1 % of 5e-7
@@ -24,8 +24,6 @@ DELTA_BETA = 5e-9  # 1 % of 5e-7
 
 class _AnalyticGrid:
     """A field grid's reading interface over an analytic c(m)."""
-
-    column_value = None  # marks the vectorised reader
 
     def __init__(self, c):
         self.c = c

@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nlpsf import impact, roman, solver
-from nlpsf import scene as scenes
+from nlpsf import roman
+from nlpsf.sim import scene as scenes
+from nlpsf.solve import impact, over_field, solver
 
 # The paper's scene and tables (the default is the Roman star's): preset "paper" also underlies a scene given.
 paper_solve = functools.partial(solver.solve, preset="paper")
@@ -149,7 +150,7 @@ def test_a_table_answers_uncertainty_covers_the_full_roman_scene():
             table.uncertainty_statistical, table.uncertainty_fidelity or 0.0, table.tolerance * table.model["effects_relative"]
         )
         assert table.uncertainty >= parts
-        corner = solver.field_points(sca)[int(rng.integers(1, 5))]
+        corner = over_field.field_points(sca)[int(rng.integers(1, 5))]
         for position in (None, corner):
             scene = replace(ROMAN, position=position)
             full = paper_solve(band, sca, metric, mode, magnitude=magnitude, precision=0.01, fidelity="linear", scene=scene)

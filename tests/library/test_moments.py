@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import moments
-from nlpsf.moments import MomentSettings, MomentStatus
+from nlpsf.sim import moments
+from nlpsf.sim.moments import MomentSettings, MomentStatus
 
 from ..conftest import requires_galsim
 
@@ -154,7 +154,7 @@ def test_bad_settings_are_named():
 def test_agrees_with_galsim_find_adaptive_mom_on_the_same_image(cut, paper_scene):
     import galsim
 
-    from nlpsf.reference import weight_cut_threshold
+    from nlpsf.sim.reference import weight_cut_threshold
 
     images = paper_scene.stamps[:4] * 1e5
     ours = moments.fit(images, MomentSettings(weight_cut_rho2=cut))

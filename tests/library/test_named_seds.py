@@ -1,4 +1,4 @@
-"""The vendored K0V spectrum (nlpsf.seds, ``--sed k0v``), the Roman default's star, and its ``sed`` part."""
+"""The vendored K0V spectrum (nlpsf.roman.seds, ``--sed k0v``), the Roman default's star, and its ``sed`` part."""
 
 from dataclasses import replace
 from importlib import resources
@@ -6,14 +6,19 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from nlpsf import experiment, model_part, optics, roman, roman_default, seds, tablebuild
-from nlpsf import roman_uncertainty as ru
-from nlpsf import scene as scenes
+from nlpsf import roman
 from nlpsf.checks import InputError
+from nlpsf.request import presets as roman_default
+from nlpsf.roman import seds
+from nlpsf.sim import experiment, optics
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import tablebuild
+from nlpsf.solve import model_part
+from nlpsf.solve import roman_uncertainty as ru
 
 
 def _file_rows() -> np.ndarray:
-    """The vendored file, read here on its own (not through nlpsf.seds)."""
+    """The vendored file, read here on its own (not through nlpsf.roman.seds)."""
     text = (resources.files("nlpsf") / "data" / "seds" / "pickles_uk_31.txt").read_text()
     return np.array([[float(v) for v in line.split()] for line in text.splitlines() if line and line[0] != "#"])
 

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from scipy.special import j1
 
-from nlpsf import optics, render, roman
+from nlpsf import roman
 from nlpsf.checks import InputError
+from nlpsf.sim import optics, render
 
 from ..conftest import requires_galsim
 
@@ -173,7 +174,7 @@ def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):
     """Same pupil, aberrations and wavelength; GalSim with the pupil plane padded 4x (converged)."""
     import galsim
 
-    from nlpsf import reference
+    from nlpsf.sim import reference
 
     grid = render.Grid(3, 64)
     offsets = np.array([[0.0, 0.0], [0.37, -1.21]])
@@ -190,7 +191,7 @@ def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):
 
 
 def test_polychromatic_weights_follow_the_sca_s_own_throughput_and_the_sed():
-    from nlpsf import psfstats
+    from nlpsf.roman import psfstats
 
     def mean_wavelength(wavelengths, weights):
         return float(np.sum(wavelengths * weights))

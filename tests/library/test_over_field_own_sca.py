@@ -7,9 +7,12 @@ from dataclasses import fields, replace
 
 import pytest
 
-from nlpsf import backgrounds, roman_default, solver
-from nlpsf.over_field import own_conditions
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.roman import backgrounds
+from nlpsf.slopes import fieldgrid
+from nlpsf.solve import solver
+from nlpsf.solve.over_field import own_conditions
 
 BODY = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 
@@ -34,7 +37,7 @@ def test_the_scas_differ_in_sky_and_read_noise():
     assert abs(backgrounds.read_noise(3) - backgrounds.read_noise(18)) > 1e-3 * backgrounds.read_noise(18)
 
 
-@pytest.mark.skipif(roman_default.field_grid() is None, reason="the Roman default's field grid is not installed")
+@pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="the Roman default's field grid is not installed")
 def test_each_sca_of_the_default_over_field_is_its_own_single_solve():
     # The request as the service builds it: filled for SCA 18 (its sky, its read noise).
     filled = SolveRequest.from_json({**BODY, "sca": 18})

@@ -10,7 +10,12 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import defaults, experiment, photometry, roman_default, solver, tablebuild
+from nlpsf import defaults
+from nlpsf.request import presets as roman_default
+from nlpsf.roman import photometry
+from nlpsf.sim import experiment
+from nlpsf.slopes import tablebuild
+from nlpsf.solve import solver
 
 POSITION = (1000.0, 3000.0)
 
@@ -52,7 +57,7 @@ def test_an_accuracy_answer_of_a_modified_default_saturates_where_its_star_does(
     changes = {"jitter_arcsec": 0.014, "sed": "blackbody:10000"}
     scene = _scene("J129", 9, exposure, **changes)
     answer = solver.solve("J129", 9, magnitude=20.0, precision=0.01, accuracy=0.01, scene=scene)
-    # A modified default is band-integrated like the measured polychromatic level (nlpsf.accuracy):
+    # A modified default is band-integrated like the measured polychromatic level (nlpsf.solve.accuracy):
     # the star simulated integrates its SED over the wavelengths its conditions state.
     waves = answer.conditions["n_wavelengths"]
     assert waves >= 8

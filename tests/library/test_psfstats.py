@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import optics, psfstats, render
+from nlpsf.roman import psfstats
+from nlpsf.sim import optics, render
 
 
 def test_fwhm_fit_returns_a_gaussian_s_fwhm():

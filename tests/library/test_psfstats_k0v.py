@@ -8,8 +8,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from nlpsf import optics, psfstats, roman
+from nlpsf import roman
 from nlpsf.checks import InputError
+from nlpsf.roman import psfstats
+from nlpsf.sim import optics
 
 # Planck's law by hand (h c / k in nm K), f_lambda up to a constant.
 HC_OVER_K_NM_K = 1.438777e7

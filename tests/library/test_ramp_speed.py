@@ -10,15 +10,16 @@ table with the new path against the same table with the old one put back.
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, tablebuild
-from nlpsf import scene as scenes
-from nlpsf.ramps.fits import _factors_for  # the factors for given usable resultants
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim import scene as scenes
+from nlpsf.sim.ramps.fits import _factors_for  # the factors for given usable resultants
+from nlpsf.slopes import tablebuild
 
 FULL_WELL = 1.1e5
 BETA = 5e-7
 KERNEL = np.asarray(scenes.ROMAN_IPC_KERNEL)
 
-#: Every public name of nlpsf/ramps.py before it became a package (``from nlpsf import ramps; ramps.X``).
+#: Every public name of nlpsf/ramps.py before it became a package (``from nlpsf.sim import ramps; ramps.X``).
 OLD_PUBLIC_NAMES = [
     "DEFAULT_READ_NOISE_E",
     "MATable",

@@ -14,11 +14,13 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, ramps, solver, tablebuild
-from nlpsf import scene as scenes
 from nlpsf.checks import InputError
-from nlpsf.experiment import SimulationConfig, simulate, slopes
 from nlpsf.flags import FlagCode, codes
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim import scene as scenes
+from nlpsf.sim.experiment import SimulationConfig, simulate, slopes
+from nlpsf.slopes import tablebuild
+from nlpsf.solve import solver
 
 from .. import shipped
 
@@ -481,7 +483,7 @@ def test_cli_simulate_and_slopes_with_a_ramp_match_the_library(capsys):
 
 
 def test_read_noise_defaults_to_the_scas_official_value_and_says_where_it_came_from(capsys, tmp_path, make_client):
-    from nlpsf import backgrounds
+    from nlpsf.roman import backgrounds
 
     # Library: the SCA's median CDS noise / sqrt(2) (backgrounds, checked against the CDS table there).
     official = {sca: backgrounds.read_noise(sca) for sca in (1, 3, 18)}
@@ -551,7 +553,7 @@ def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(be
 def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
     # The charge rule at the resultant a slope needs, for a linear detector judged by its charge:
     # k = 2 (romancal: one resultant gives no slope) or k = 1 (through zero), ending at k T / n.
-    from nlpsf.request import SolveRequest
+    from nlpsf.request.resolve import SolveRequest
 
     n = 8
     frame = paper_solve("H158", precision=0.01, magnitude=19.0).saturation_magnitude
@@ -575,16 +577,25 @@ def test_the_ramp_rules_reach_the_solver_from_the_cli_and_a_json_body(capsys):
 
 
 def test_cli_slopes_takes_the_linearisation_state(capsys):
-    # "corrected": the slope at the residual NL CORRECTED_RESIDUAL x beta0. A final frame's saturation
-    # does not depend on beta, so that is the paper's slope taken at beta0' = CORRECTED_RESIDUAL x beta0.
+    # "corrected" with the earlier residual model (per_read_beta): the slope at the residual NL
+    # CORRECTED_RESIDUAL x beta0. A final frame's saturation does not depend on beta, so that is the
+    # paper's slope taken at beta0' = CORRECTED_RESIDUAL x beta0.
     argv = ["slopes", "--realizations", "4", "--magnitude", "18", "--method", "linear", "--json"]
-    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected")
+    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected", "--residual-nl", "per_read_beta")
     assert code == 0
-    corrected = json.loads(out)[0]
-    assert corrected["conditions"]["linearised_at"]["state"] == "corrected"
+    earlier = json.loads(out)[0]
+    assert earlier["conditions"]["linearised_at"]["state"] == "corrected"
+    assert earlier["conditions"]["residual_nl"] == "per_read_beta"
     config = SimulationConfig(realizations=4, method="linear")
     at_residual = slopes(config, [18.0], beta0=experiment.CORRECTED_RESIDUAL * BETA)[0]
-    assert corrected["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(at_residual.bias["dR_over_R"].mean, rel=1e-12)
+    assert earlier["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(at_residual.bias["dR_over_R"].mean, rel=1e-12)
+    # The default model corrects the raw beta0 on the final frame (one resultant, no IPC): exactly, so the
+    # calibration error acts on the linear image, the paper's slope as beta0 -> 0 (here 1e-6 beta0).
+    code, out, _ = _cli_json(capsys, *argv, "--linearise-at", "corrected")
+    corrected = json.loads(out)[0]
+    assert corrected["conditions"]["residual_nl"] == "per_resultant_correction"
+    vanishing = slopes(config, [18.0], beta0=1e-6 * BETA)[0]
+    assert corrected["bias_slope"]["dR_over_R"]["mean"] == pytest.approx(vanishing.bias["dR_over_R"].mean, rel=1e-5)
     code, out, _ = _cli_json(capsys, *argv)
     raw = json.loads(out)[0]
     assert "linearised_at" not in raw["conditions"]

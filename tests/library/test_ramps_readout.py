@@ -1,7 +1,7 @@
 """The ramp as the pipeline sees it: an independent read-by-read implementation, romancal's choices.
 
 ``brute_force`` below is written from the physics, pixel by pixel and read by read, sharing no code
-with ``nlpsf.ramps``: charge accumulates linearly, every read reports S(Q), resultants are means of
+with ``nlpsf.sim.ramps``: charge accumulates linearly, every read reports S(Q), resultants are means of
 reads, saturated resultants are flagged (either rule), and the slope is fitted by an explicit
 least-squares solve (numpy's lstsq for OLS; the generalised solve with the covariance built read by
 read for the optimal fit). The romancal saturation rule is checked against stcal's own
@@ -11,7 +11,7 @@ read for the optimal fit). The romancal saturation rule is checked against stcal
 import numpy as np
 import pytest
 
-from nlpsf import ramps
+from nlpsf.sim import ramps
 
 FULL_WELL = 1.1e5
 BETA = 5e-7
@@ -262,7 +262,7 @@ def _scene_brute_force(Q, table, T, coefficients, kernel, order, n, fit, saturat
 @pytest.mark.parametrize("fit", ["ols", "optimal"])
 @pytest.mark.parametrize("rule", [("charge", "through_zero"), ("signal", "unusable")])
 def test_ramp_with_ipc_background_and_polynomial_nl_equals_the_brute_force(order, fit, rule):
-    from nlpsf.scene import ROMAN_IPC_KERNEL
+    from nlpsf.sim.scene import ROMAN_IPC_KERNEL
 
     rng = np.random.default_rng(7)
     n = 3
@@ -291,7 +291,7 @@ def test_ramp_with_ipc_background_and_polynomial_nl_equals_the_brute_force(order
 
 def test_a_ramp_refuses_brighter_fatter_and_says_why():
     from nlpsf.checks import InputError as Error
-    from nlpsf.scene import SceneModel
+    from nlpsf.sim.scene import SceneModel
 
     ramps.check_scene(
         SceneModel(ipc=((0, 0.02, 0), (0.02, 0.92, 0.02), (0, 0.02, 0)), background_e=100.0, nl_coefficients=(1e-12,))
@@ -302,8 +302,8 @@ def test_a_ramp_refuses_brighter_fatter_and_says_why():
 
 @pytest.fixture(scope="module")
 def detector_scene():
-    from nlpsf import experiment
-    from nlpsf.scene import ROMAN_IPC_KERNEL, SceneModel
+    from nlpsf.sim import experiment
+    from nlpsf.sim.scene import ROMAN_IPC_KERNEL, SceneModel
 
     model = SceneModel(ipc=ROMAN_IPC_KERNEL, ipc_label="roman", background_e=300.0, nl_coefficients=(2e-12,))
     config = experiment.SimulationConfig(realizations=6, scene=model, exptime_s=168.1)
@@ -311,7 +311,7 @@ def detector_scene():
 
 
 def _with_ramp(config, prepared, **changes):
-    from nlpsf import experiment
+    from nlpsf.sim import experiment
 
     other = experiment.SimulationConfig(**{**{k: getattr(config, k) for k in config.__dataclass_fields__}, **changes})
     return other, experiment.Scene(other, prepared.psf, prepared.offsets, prepared.stamps, prepared.reference, 0.0)
@@ -321,7 +321,7 @@ def _with_ramp(config, prepared, **changes):
 def test_a_one_read_ramp_in_a_detector_scene_is_the_final_frame(detector_scene, method):
     # One read at the end of the exposure: every factor c_n = 1, so IPC, background and the cubic NL
     # come out exactly as the final frame's detector chain computes them.
-    from nlpsf.experiment import simulate, slopes
+    from nlpsf.sim.experiment import simulate, slopes
 
     config, scene = detector_scene
     frame, frame_scene = _with_ramp(config, scene, method=method)
@@ -341,8 +341,8 @@ def test_a_one_read_ramp_in_a_detector_scene_is_the_final_frame(detector_scene, 
 def test_uniform_ols_ramp_with_ipc_and_background_is_the_final_frame_at_beta_eff(detector_scene):
     # Quadratic NL only, no resultant saturated: every NL term (star, sky, their cross term, IPC after)
     # carries the same c_2 = 1 + 1/N, so the ramp is the final frame at beta (1 + 1/N).
-    from nlpsf.experiment import simulate
-    from nlpsf.scene import ROMAN_IPC_KERNEL, SceneModel
+    from nlpsf.sim.experiment import simulate
+    from nlpsf.sim.scene import ROMAN_IPC_KERNEL, SceneModel
 
     config, scene = detector_scene
     model = SceneModel(ipc=ROMAN_IPC_KERNEL, ipc_label="roman", background_e=300.0)
@@ -360,8 +360,8 @@ def test_a_star_between_the_saturation_limits_matches_the_brute_force_image():
     # The whole chain at the metric level: every pixel of two H158 stamps read by read (brute_force),
     # the fitted images measured, against the simulator's answer at a magnitude where the core keeps
     # only some resultants (romancal's rules, romanisim-110: between its limit m = 15.12 and 17.73).
-    from nlpsf import experiment, moments
-    from nlpsf.experiment import SimulationConfig, simulate
+    from nlpsf.sim import experiment, moments
+    from nlpsf.sim.experiment import SimulationConfig, simulate
 
     table = ramps.load_ma_table("romanisim-110")
     T = table.duration_s

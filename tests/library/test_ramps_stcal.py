@@ -10,7 +10,7 @@ cosmic-ray jumps).
 import numpy as np
 import pytest
 
-from nlpsf import ramps
+from nlpsf.sim import ramps
 
 likely = pytest.importorskip("stcal.ramp_fitting.likely_fit", reason="stcal not installed (test dependency)")
 classes = pytest.importorskip("stcal.ramp_fitting.likely_algo_classes")

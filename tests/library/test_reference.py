@@ -15,7 +15,7 @@ applyNonlinearity, hsm.FindAdaptiveMom (precision 1e-10, and the same weight cut
 import numpy as np
 import pytest
 
-from nlpsf import experiment, moments, reference
+from nlpsf.sim import experiment, moments, reference
 
 from ..conftest import requires_galsim
 

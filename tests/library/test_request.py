@@ -5,10 +5,10 @@ import math
 
 import pytest
 
-from nlpsf import solver
 from nlpsf.checks import InputError
-from nlpsf.request import SolveRequest
-from nlpsf.solution import Uncertainty
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.solve import solver
+from nlpsf.solve.solution import Uncertainty
 
 
 def test_from_mapping_names_the_field_at_fault():
@@ -27,7 +27,7 @@ def test_from_mapping_names_the_field_at_fault():
 
 
 def test_the_budget_sets_the_tolerance_the_shear_relation_gives():
-    # Delta R / R = |m| rho^2 / 2 (nlpsf.shear): the request's tolerance is the budget's.
+    # Delta R / R = |m| rho^2 / 2 (nlpsf.request.shear): the request's tolerance is the budget's.
     request = SolveRequest("H158", magnitude=18.3, shear_m=2e-3, size_ratio=1.5)
     assert request.tolerance is None and request.target_tolerance == pytest.approx(2e-3 * 1.5**2 / 2, rel=1e-12)
     assert request.solved_for == "precision"
@@ -59,7 +59,7 @@ def test_accuracy_with_a_shear_budget_solves_for_the_magnitude():
 
 
 def test_a_json_body_builds_the_same_request_as_the_python_call():
-    from nlpsf import ramps
+    from nlpsf.sim import ramps
 
     body = {"band": "J129", "precision": 0.01, "tolerance": 1e-4, "ma_table": "romanisim-110", "scene": "paper"}
     ramp, exptime = ramps.build(ma_table="romanisim-110")

@@ -6,13 +6,15 @@ from dataclasses import replace
 
 import pytest
 
-from nlpsf import roman_default, solver
+from nlpsf.request import presets as roman_default
+from nlpsf.slopes import fieldgrid
+from nlpsf.solve import solver
 
-pytestmark = pytest.mark.skipif(roman_default.field_grid() is None, reason="no shipped Roman field grid installed")
+pytestmark = pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="no shipped Roman field grid installed")
 
 
 def _covered(band: str, sca: int) -> bool:
-    return f"{band}_{sca:02d}" in roman_default.field_grid().meta["tables"]
+    return f"{band}_{sca:02d}" in fieldgrid.shipped_grid().meta["tables"]
 
 
 @pytest.mark.parametrize(("band", "sca", "position"), [("H158", 9, (1500.0, 2500.0)), ("F184", 1, (600.0, 3400.0))])
@@ -41,7 +43,9 @@ def test_the_defaults_saturation_is_its_own_stars_not_the_paper_tables():
     """Where the grid answers, the saturation limits are the Roman default's star: its brightest pixel
     (through the default's optics, diffusion and IPC, on its sky) reaching the full well, computed here
     from the peak of a fresh preparation of that scene -- not from the paper table's sharper star."""
-    from nlpsf import experiment, photometry, tablebuild
+    from nlpsf.roman import photometry
+    from nlpsf.sim import experiment
+    from nlpsf.slopes import tablebuild
 
     position = (1000.0, 3000.0)
     readout = roman_default.readout("H158", 18)

@@ -6,8 +6,10 @@ from importlib import resources
 
 import pytest
 
-from nlpsf import experiment, ramps, roman_default, solver
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.sim import experiment, ramps
+from nlpsf.solve import solver
 
 
 def test_a_request_without_a_scene_is_the_roman_default():
@@ -36,7 +38,7 @@ def test_the_default_answer_names_every_value_and_its_source():
     assert conditions["scene_name"] == "roman" and conditions["linearise_at"] == "corrected"
     named = {v["name"]: v for v in conditions["roman_default"]}
     assert set(named) == {"optics", "pupil_scale", "sed", "jitter", "charge_diffusion", "ipc", "background", "readout",
-                          "ramp_fit", "linearise_at"}  # fmt: skip
+                          "ramp_fit", "linearise_at", "residual_nl"}  # fmt: skip
     assert all(v["source"] for v in named.values())
     assert list(conditions["scene"]["position"]) == [1000.0, 3000.0]
     assert conditions["scene"]["jitter_arcsec"] == named["jitter"]["value"]

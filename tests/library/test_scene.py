@@ -7,10 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import detector, experiment, moments, optics, photometry, render, roman
-from nlpsf import scene as scenes
+from nlpsf import roman
 from nlpsf.checks import InputError
-from nlpsf.experiment import SimulationConfig
+from nlpsf.roman import photometry
+from nlpsf.sim import detector, experiment, moments, optics, render
+from nlpsf.sim import scene as scenes
+from nlpsf.sim.experiment import SimulationConfig
+from nlpsf.sim.scene import registry as scene_registry
 
 from ..conftest import requires_galsim
 
@@ -440,17 +443,17 @@ def _ours(model, band="H158", sca=18, magnitude=18.3, **kw):
     [
         (scenes.SceneModel(jitter_arcsec=0.014, charge_diffusion_px=0.1), {"blur_sigmas_arcsec": (0.014, 0.011)}),
         (scenes.SceneModel(charge_diffusion_px=0.33), {"blur_sigmas_arcsec": (0.033 * 1.1,)}),
-        (scenes.SceneModel(ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman"), {"ipc_kernel": scenes._ROMAN_IPC_RAW}),
+        (scenes.SceneModel(ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman"), {"ipc_kernel": scene_registry._ROMAN_IPC_RAW}),
         (
             scenes.SceneModel(ipc=scenes.ROMAN_IPC_KERNEL, ipc_label="roman", ipc_order="before"),
-            {"ipc_kernel": scenes._ROMAN_IPC_RAW, "ipc_order": "before"},
+            {"ipc_kernel": scene_registry._ROMAN_IPC_RAW, "ipc_order": "before"},
         ),
         (scenes.SceneModel(position=(300.0, 3900.0)), {"sca_pos": (300.0, 3900.0)}),
     ],
     ids=["jitter+diffusion", "diffusion 0.33", "ipc after", "ipc before", "position"],
 )
 def test_scene_effect_agrees_with_galsim(model, peer_kwargs):
-    from nlpsf import reference
+    from nlpsf.sim import reference
 
     prepared, ours = _ours(model)
     peer = reference.GalSimPipeline(
@@ -466,7 +469,7 @@ def test_flat_fnu_chromatic_psf_agrees_with_galsim():
     """GalSim interpolates its chromatic PSF between WAVES monochromatic images drawn with the pupil
     padded 4x; each of those holds ~1.5 GB while it is made, so WAVES is kept at 4 (16 took the
     test process past 20 GB and out of a 24 GB machine)."""
-    from nlpsf import reference
+    from nlpsf.sim import reference
 
     WAVES = 4
 
@@ -480,7 +483,7 @@ def test_flat_fnu_chromatic_psf_agrees_with_galsim():
 def test_the_effect_registry_is_the_one_list_of_effects():
     # Every SceneModel field that sets an effect belongs to exactly one registry entry, and switching
     # an effect off (its ``off`` values) or to its nominal value changes only that effect.
-    from nlpsf.scene import EFFECTS, REGISTRY, SceneModel
+    from nlpsf.sim.scene import EFFECTS, REGISTRY, SceneModel
 
     assert tuple(REGISTRY) == EFFECTS
     owned = [f for e in REGISTRY.values() for f in e.fields]

@@ -8,10 +8,12 @@ import json
 
 import pytest
 
-from nlpsf import cli, roman_default, solver
-from nlpsf import scene as scenes
-from nlpsf.over_field import range_positions
-from nlpsf.request import SolveRequest
+from nlpsf import cli
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.sim import scene as scenes
+from nlpsf.solve import solver
+from nlpsf.solve.over_field import range_positions
 
 BODY = {"band": "H158", "magnitude": 19.0, "precision": 0.01}
 

@@ -1,4 +1,4 @@
-"""The shear-bias propagation (nlpsf.shear) against a simulated galaxy measured with and without a PSF error.
+"""The shear-bias propagation (nlpsf.request.shear) against a simulated galaxy measured with and without a PSF error.
 
 A Gaussian galaxy convolved with a Gaussian PSF is a Gaussian whose covariance is the sum of the
 two; we draw it on a pixel grid, measure it and the PSF models with our adaptive moments, correct
@@ -13,8 +13,9 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import moments, shear
 from nlpsf.checks import InputError
+from nlpsf.request import shear
+from nlpsf.sim import moments
 
 SETTINGS = moments.MomentSettings(weight_cut_rho2=math.inf)
 R_PSF = 3.0  # fine pixels; R = det(M)^(1/4)

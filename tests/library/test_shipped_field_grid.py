@@ -4,7 +4,10 @@ simulation of the Roman default at a position that is no node, with the same cen
 import numpy as np
 import pytest
 
-from nlpsf import defaults, experiment, fieldgrid, tablebuild
+from nlpsf import defaults
+from nlpsf.sim import experiment
+from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes.fieldgrid import grid_residual_model
 
 GRID = fieldgrid.shipped_grid()
 pytestmark = pytest.mark.skipif(GRID is None, reason="no shipped field grid in this checkout")
@@ -114,7 +117,9 @@ def test_the_shipped_grid_matches_a_fresh_simulation_off_the_nodes():
     magnitudes = [20.0, 22.0]
     settings = tablebuild.TableSettings.roman()
     config = settings.config(band, sca, position=position)
-    fresh = experiment.slopes(config, magnitudes, beta0=settings.beta0, linearise_at=settings.linearise_at)
+    # The residual model the grid's nodes were built with (a grid built before the setting: the earlier one).
+    model = grid_residual_model(GRID.conditions(band, sca)["settings"])
+    fresh = experiment.slopes(config, magnitudes, beta0=settings.beta0, linearise_at=settings.linearise_at, residual_nl=model)
     assert m_sat < magnitudes[0]  # fainter than where any resultant saturates
     for magnitude, result in zip(magnitudes, fresh, strict=True):
         assert result.extras["ramp"]["fitted_on_fewer"] == 0  # no resultant saturates here
@@ -132,7 +137,7 @@ def test_the_shipped_grid_matches_a_fresh_simulation_off_the_nodes():
 def test_every_node_reads_as_its_own_cubic_spline(band, sca):
     """The grid evaluates all nodes at once (tables.splines.evaluate_stacked_cubics); each node's
     value must be scipy's CubicSpline of that node's own table (column / flux in flux, as
-    nlpsf.tables reads a table), bit for bit, and NaN outside the node's magnitude range. The truth
+    nlpsf.slopes.tables reads a table), bit for bit, and NaN outside the node's magnitude range. The truth
     is built here from the file's arrays."""
     from scipy.interpolate import CubicSpline
 

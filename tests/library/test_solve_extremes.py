@@ -15,10 +15,11 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import cli, defaults, fieldgrid, tables
+from nlpsf import cli, defaults
 from nlpsf.flags import FlagCode
-from nlpsf.request import SolveRequest
-from nlpsf.solver import answer
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.slopes import fieldgrid, tables
+from nlpsf.solve.solver import answer
 
 POSITION = (1000.0, 3000.0)
 PRECISION = 0.01
@@ -141,12 +142,15 @@ def test_a_simulated_default_extrapolates_alike_from_its_own_slopes():
 def test_a_star_fainter_than_the_grid_is_read_by_the_flux_law_and_agrees_with_a_simulation():
     from dataclasses import replace
 
-    from nlpsf import roman_default, solve
+    from nlpsf import solve
+    from nlpsf.request import presets as roman_default
 
     extrapolated = answer(
         SolveRequest.from_json({"band": "H158", "magnitude": 30.0, "precision": PRECISION, "scene": {"position": list(POSITION)}})
     )
     assert FlagCode.EXTRAPOLATED_FAINT in [f.code for f in extrapolated.flags]
     scene = replace(roman_default.base_scene(), position=POSITION)
-    fresh = solve("H158", 18, "size", magnitude=30.0, precision=PRECISION, fidelity="linear", scene=scene)
+    # The simulation runs the residual model the grid holds (its answer names it).
+    model = extrapolated.conditions["residual_nl"]
+    fresh = solve("H158", 18, "size", magnitude=30.0, precision=PRECISION, fidelity="linear", scene=scene, residual_nl=model)
     assert extrapolated.slope == pytest.approx(fresh.slope, rel=1e-3)

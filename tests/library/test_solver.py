@@ -10,10 +10,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nlpsf import cli, roman, shear, solver, tables
-from nlpsf import scene as scenes
+from nlpsf import cli, roman
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode, codes
+from nlpsf.request import shear
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import tables
+from nlpsf.solve import solver, validity
 
 from .. import shipped
 
@@ -96,7 +99,7 @@ def test_extreme_precisions(precision):
     assert s.tolerance == pytest.approx(abs(float(shipped.slope("F184", 2, "size", "bias", 19.0))) * precision * 5e-7, rel=1e-9)
     peak = float(shipped.peak_electrons("F184", 2, 19.0))
     # Past delta_beta * Q_peak = 5 % the error is no longer linear in delta_beta: flagged.
-    assert (FlagCode.OUTSIDE_LINEAR_REGIME in codes(s.flags)) == (precision * 5e-7 * peak > solver.LINEAR_REGIME_LIMIT)
+    assert (FlagCode.OUTSIDE_LINEAR_REGIME in codes(s.flags)) == (precision * 5e-7 * peak > validity.LINEAR_REGIME_LIMIT)
 
 
 def test_magnitudes_brighter_than_saturation_and_fainter_than_30():
@@ -109,7 +112,7 @@ def test_magnitudes_brighter_than_saturation_and_fainter_than_30():
     assert faint.tolerance == pytest.approx(inside.tolerance * 10 ** (-0.4 * 4), rel=2e-3)
     with pytest.raises(InputError, match="magnitude") as error:
         paper_solve("Y106", 9, precision=0.01, magnitude=table.magnitudes[0] - 1)
-    assert "too bright" in str(error.value) or "brighter than the tables reach" in str(error.value)
+    assert "too bright" in str(error.value) or "past the tables" in str(error.value)
 
 
 @pytest.mark.parametrize("beta0", [1e-9, 1e-8, 5e-7, 2e-6, 1e-5])
@@ -209,7 +212,7 @@ def test_fresh_simulation_fidelity_agrees_with_the_table():
 
 
 def test_accuracy_picks_the_cheapest_level_that_meets_it():
-    from nlpsf import fidelity
+    from nlpsf.slopes import fidelity
 
     errors = fidelity.measured()["errors"]["H158"]["bias"]["size"]
     paper = scenes.preset("paper")  # the tables' own scene: without a scene, accuracy holds to the Roman default
@@ -283,7 +286,7 @@ def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulati
     assert galsim.conditions["throughput"] == "galsim-2021" and default.conditions["throughput"] == "roman-2024"
     assert FlagCode.THROUGHPUT_RELABELLED in codes(galsim.flags)
     # More electrons per magnitude in GalSim's 2021 curve: stars saturate fainter, by the zero-point gap.
-    from nlpsf import photometry
+    from nlpsf.roman import photometry
 
     gap = photometry.zero_point("J129", sca=11, throughput="galsim-2021") - photometry.zero_point(
         "J129", sca=11, throughput="roman-2024"
@@ -298,7 +301,7 @@ def test_another_throughput_relabels_the_tables_and_agrees_with_a_fresh_simulati
 
 @pytest.mark.slow
 def test_another_pupil_scale_rule_is_simulated_with_that_rule_and_says_so(capsys):
-    from nlpsf import experiment
+    from nlpsf.sim import experiment
 
     request = {"band": "H158", "sca": 18, "magnitude": 18.3, "precision": 0.01}
     official = paper_solve(**request, pupil_scale="official")

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from nlpsf import cli, cluster, experiment, sweep
+from nlpsf import cli
 from nlpsf.checks import InputError
+from nlpsf.sim import cluster, experiment, sweep
 
 SMALL = experiment.SimulationConfig(realizations=4, stamp=48)
 
@@ -164,7 +165,7 @@ def test_dask_workers_in_another_directory_give_the_serial_table(tmp_path, monke
 
 @pytest.mark.slow
 def test_tables_build_on_dask_workers_in_another_directory(tmp_path, monkeypatch, remote_cluster):
-    from nlpsf import tablebuild
+    from nlpsf.slopes import tablebuild
 
     client, elsewhere = remote_cluster
     monkeypatch.chdir(tmp_path)

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from scipy.interpolate import CubicSpline
 
-from nlpsf import experiment, ramps, tablebuild
-from nlpsf.scene_kernels import apply_ipc
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim.scene.kernels import apply_ipc
+from nlpsf.slopes import tablebuild
 
 KERNEL = ((0.002, 0.015, 0.001), (0.013, 0.938, 0.015), (0.001, 0.015, 0.002))
 

@@ -5,7 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf import experiment, roman, tablebuild, tables
+from nlpsf import roman
+from nlpsf.sim import experiment
+from nlpsf.slopes import tablebuild, tables
 
 
 @pytest.fixture(scope="module")
@@ -291,7 +293,7 @@ def test_the_companion_rebuilds_scipys_spline_coefficients_bit_for_bit():
 
 
 def test_byte_shuffling_is_lossless():
-    from nlpsf.tables.storage import shuffle_bytes, unshuffle_bytes
+    from nlpsf.slopes.tables.storage import shuffle_bytes, unshuffle_bytes
 
     values = np.random.default_rng(3).normal(size=(7, 5)) * 10.0 ** np.arange(5)
     values[2, 3] = np.nan

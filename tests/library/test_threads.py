@@ -9,7 +9,8 @@ from __future__ import annotations
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from nlpsf import InputError, experiment, threads
+from nlpsf import InputError, threads
+from nlpsf.sim import experiment
 
 
 def _blas_threads() -> list[int]:

@@ -13,7 +13,7 @@ import math
 import pytest
 from nlpsf.web import budget, security
 
-from nlpsf import roman_default, tables
+from nlpsf.slopes import fieldgrid, tables
 
 DEFAULT = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 PAPER = {**DEFAULT, "scene": "paper"}
@@ -102,8 +102,8 @@ def test_a_one_resultant_ramp_is_refused_naming_the_rule(client, extra, field):
 
 def test_a_one_resultant_table_answers_where_one_resultant_gives_a_slope():
     # The library under the rule that fits one resultant through zero: the final frame's limit.
-    from nlpsf import ramps
     from nlpsf.checks import InputError
+    from nlpsf.sim import ramps
 
     one = ramps.Ramp.uniform(1, 139.149, single_resultant="through_zero")
     assert one.saturation_shift_mag(139.149, 1.1e5, 5e-7, 50.0) == pytest.approx(0.0, abs=0.1)
@@ -122,7 +122,7 @@ def test_a_csv_batch_over_the_row_limit_is_a_422(client):
 
 
 def test_a_server_error_names_no_internal_class(client, monkeypatch):
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     def broken(*args, **kwargs):
         raise KeyError("an internal detail")
@@ -248,15 +248,15 @@ def test_cached_answers_are_the_answers(client):
 def test_a_default_solve_costs_its_nodes():
     from nlpsf.web.solve_api import units_of
 
-    from nlpsf.over_field import range_positions
-    from nlpsf.request import SolveRequest
+    from nlpsf.request.resolve import SolveRequest
+    from nlpsf.solve.over_field import range_positions
 
     request = SolveRequest.from_json(DEFAULT)
     assert units_of(request) == (budget.NODE, float(len(range_positions(request))))
     at = SolveRequest.from_json({**DEFAULT, "scene": {"position": [2000, 2000]}})
     assert units_of(at) == (budget.NODE, 1.0)
     assert units_of(SolveRequest.from_json(PAPER)) == (budget.TABLE, 1.0)
-    assert roman_default.field_grid() is None or len(range_positions(request)) > 1
+    assert fieldgrid.shipped_grid() is None or len(range_positions(request)) > 1
 
 
 def test_buckets_refill_at_the_share_and_cap_at_the_burst():

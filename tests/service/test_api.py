@@ -11,9 +11,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from nlpsf import cli, defaults, experiment, ramps, roman, roman_default, solver, tables
-from nlpsf import scene as scenes
+from nlpsf import cli, defaults, roman
 from nlpsf.checks import InputError
+from nlpsf.request import presets as roman_default
+from nlpsf.sim import experiment, ramps
+from nlpsf.sim import scene as scenes
+from nlpsf.slopes import tables
+from nlpsf.solve import solver
 
 from .. import shipped
 
@@ -340,7 +344,7 @@ def test_simulation_throughput_is_a_request_field_named_in_the_conditions(client
 
 def test_simulation_pupil_scale_official_is_a_request_field(client):
     # The API's simulation is the library's: same rule, same numbers; an unknown rule is a 422.
-    from nlpsf import experiment
+    from nlpsf.sim import experiment
 
     body = {"band": "F184", "sca": 9, "magnitudes": [20.0], "realizations": 2, "fidelity": "linear", "pupil_scale": "official"}
     body["scene"] = "paper"  # compared with the library's paper-scene config below
@@ -474,7 +478,7 @@ def test_a_uniform_ols_ramp_solve_job_is_the_final_frame_at_beta_eff(client):
 
 
 def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
-    from nlpsf import ramps
+    from nlpsf.sim import ramps
 
     table = {"resultants": [[1], [2, 3], [4, 5, 6]], "frame_time_s": 3.04}
     answer = _run_solve_job(client, {"band": "H158", "precision": 0.1, "magnitude": 19.0, "ma_table": table, "scene": "paper"})
@@ -488,7 +492,7 @@ def test_an_ma_table_solve_job_takes_its_exposure_from_the_last_read(client):
 @pytest.mark.parametrize("scene", [{"bfe": 1e-6}, {"ipc": "roman"}, {"background": 10.0}])
 def test_a_scene_with_a_ramp_follows_the_librarys_rule(client, scene):
     # The service holds no rule of its own: it refuses exactly what the library's request refuses.
-    from nlpsf.request import SolveRequest
+    from nlpsf.request.resolve import SolveRequest
 
     body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "ramp": 6, "scene": {**scene, "preset": "paper"}}
     try:
@@ -531,7 +535,7 @@ def test_meta_serves_the_flag_catalogue_and_the_scene_effect_registry(client):
     by_name = {e["name"]: e for e in effects}
     assert by_name["jitter"]["nominal"] == {"jitter_arcsec": scenes.ROMAN_JITTER_ARCSEC}
     assert by_name["jitter"]["kind"] == "optical" and by_name["brighter_fatter"]["kind"] == "detector"
-    from nlpsf import ramps
+    from nlpsf.sim import ramps
 
     for name, effect in by_name.items():  # what a ramp refuses says so
         assert (name in ramps.RAMP_REFUSES) == ("not a ramp" in effect["combines_with"]), name
@@ -556,7 +560,7 @@ def test_an_answers_flags_come_with_their_codes(client):
 
 @pytest.mark.parametrize(("beta0", "accepted"), [(5e-13, False), (defaults.BETA0_RANGE[0], True), (2e-3, False)])
 def test_impact_beta0_is_refused_alike_by_the_library_and_the_service(client, beta0, accepted):
-    from nlpsf import impact
+    from nlpsf.solve import impact
 
     if accepted:
         assert impact.check_request(beta0=beta0)["beta0"] == beta0
@@ -569,7 +573,7 @@ def test_impact_beta0_is_refused_alike_by_the_library_and_the_service(client, be
 
 
 def test_seeds_up_to_2_63_minus_1_at_every_library_entry():
-    from nlpsf import impact
+    from nlpsf.solve import impact
 
     top = 2**63 - 1  # numpy's SeedSequence takes it; one past is refused alike by both entries
     assert impact.check_request(seed=top)["seed"] == top
@@ -618,7 +622,7 @@ def test_a_simulation_result_carries_the_standard_error_of_each_spread(client):
 def test_std_error_is_the_spread_of_sample_standard_deviations():
     # Independent of the formula: the scatter of many samples' std around sigma.
 
-    from nlpsf.experiment.results import Statistic
+    from nlpsf.sim.experiment.results import Statistic
 
     rng = np.random.default_rng(5)
     n = 20

@@ -8,7 +8,8 @@ import json
 import pytest
 from astropy.table import Table
 
-from nlpsf import roman, solver
+from nlpsf import roman
+from nlpsf.solve import solver
 
 
 @pytest.fixture(scope="module")

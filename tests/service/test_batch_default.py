@@ -4,9 +4,9 @@ that need a fresh simulation, naming the field and where to send them."""
 
 import pytest
 
-from nlpsf import roman_default
+from nlpsf.slopes import fieldgrid
 
-pytestmark = pytest.mark.skipif(roman_default.field_grid() is None, reason="the Roman default's field grid is not installed")
+pytestmark = pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="the Roman default's field grid is not installed")
 
 BASE = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from nlpsf import ramps
+from nlpsf.sim import ramps
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +39,6 @@ def test_scene_paper_in_the_api_is_the_table_answer(patient_client):
     assert paper["fidelity"] == "table" and paper["exptime"] == 168.1 and paper["conditions"]["scene_name"] == "paper"
     assert paper["precision"] == preset["precision"]
     # The library's paper answer, the same number.
-    from nlpsf import solver
+    from nlpsf.solve import solver
 
     assert paper["precision"] == solver.solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper").precision

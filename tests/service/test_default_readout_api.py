@@ -6,8 +6,9 @@ given, and a fit or read noise without a ramp was ignored, the answer silently t
 import pytest
 from nlpsf.web import job_kinds, models
 
-from nlpsf import roman_default
-from nlpsf.request import SolveRequest
+from nlpsf.request import presets as roman_default
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.slopes import fieldgrid
 
 BODY = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 
@@ -36,7 +37,7 @@ def test_a_ramp_without_a_fit_gets_the_scenes_fit():
     assert _api_request({**BODY, "ramp": 8, "ramp_fit": "ols"}).ramp.fit == "ols"
 
 
-@pytest.mark.skipif(roman_default.field_grid() is None, reason="the Roman default's field grid is not installed")
+@pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="the Roman default's field grid is not installed")
 def test_a_batch_row_with_another_fit_is_not_answered_from_the_defaults_grid(client):
     rows = [BODY, {**BODY, "ramp_fit": roman_default.RAMP_FIT}, {**BODY, "ramp_fit": "ols"}, {**BODY, "read_noise": 7.5}]
     results = client.post("/api/v1/solve/batch", json={"requests": rows}).json()["results"]

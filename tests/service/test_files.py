@@ -16,7 +16,7 @@ import signal
 import httpx
 import pytest
 
-from nlpsf import ramps
+from nlpsf.sim import ramps
 
 from ..servers import free_port, start_server
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from nlpsf import impact
+from nlpsf.solve import impact
 
 from ..servers import finished_job
 

@@ -122,7 +122,7 @@ def test_repeated_request_is_answered_from_stored_results(make_client):
         assert repeat["id"] != first.json()["id"]
         assert repeat["result"] == first.json()["result"]
         # Spelling a default out, or the band in lower case, is the same request.
-        from nlpsf import roman_default  # the default scene's exposure (its HLWAS table's last read)
+        from nlpsf.request import presets as roman_default  # the default scene's exposure (its HLWAS table's last read)
 
         spelled = {"band": "y106", "stamp": 96, "exptime": roman_default.exptime_s()}
         same = client.post("/api/v1/simulations", json={**SMALL, **spelled}).json()
@@ -239,7 +239,7 @@ def test_a_simulating_solve_is_a_job_not_work_in_the_http_worker(make_client):
 
 
 def test_a_solve_with_an_accuracy_is_a_job_even_when_the_tables_meet_it(make_client):
-    # The accuracy's effects are measured by simulation (nlpsf.impact), never inside the HTTP worker.
+    # The accuracy's effects are measured by simulation (nlpsf.solve.impact), never inside the HTTP worker.
     body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "accuracy": 0.5, "scene": "paper"}
     with make_client(solve_wait_s=0.0) as client:
         queued = client.post("/api/v1/solve", json=body)

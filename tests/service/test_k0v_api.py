@@ -6,7 +6,7 @@ import pytest
 from nlpsf.web import models
 from pydantic import ValidationError
 
-from nlpsf import scene as scenes
+from nlpsf.sim import scene as scenes
 
 
 def test_the_api_scene_takes_the_named_k0v_and_the_library_reads_it():

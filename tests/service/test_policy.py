@@ -14,8 +14,9 @@ import time
 import pytest
 from nlpsf.web.settings import Limits, Settings
 
-from nlpsf import defaults, solver
+from nlpsf import defaults
 from nlpsf.checks import InputError
+from nlpsf.solve import solver
 
 from ..servers import wait_for
 

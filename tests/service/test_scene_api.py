@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from nlpsf import experiment, solver
-from nlpsf import scene as scenes
+from nlpsf.sim import experiment
+from nlpsf.sim import scene as scenes
+from nlpsf.solve import solver
 
 from ..servers import finished_job
 
@@ -57,7 +58,7 @@ def test_api_impact(client):
 
 def test_api_impact_is_a_job_not_work_in_the_http_worker(make_client):
 
-    from nlpsf import impact
+    from nlpsf.solve import impact
 
     body = {"band": "J129", "sca": 3, "magnitude": 19.5, "realizations": 4, "scene": {"ipc": "roman"}}
     with make_client(solve_wait_s=0.0) as test_client:

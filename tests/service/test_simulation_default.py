@@ -1,5 +1,5 @@
 """POST /api/v1/simulations simulates what the CLI's ``simulate`` simulates: the Roman default
-(nlpsf.roman_default) unless the request names the paper's scene, which stays as before."""
+(nlpsf.request.presets) unless the request names the paper's scene, which stays as before."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from nlpsf import roman_default
 from nlpsf.cli import main
+from nlpsf.request import presets as roman_default
 
 BODY = {"band": "J129", "sca": 7, "magnitudes": [20.0], "betas": [5e-7], "realizations": 2, "stamp": 48, "fidelity": "linear"}
 CLI = ["simulate", "--band", "J129", "--sca", "7", "--magnitude", "20", "--beta", "5e-7", "--realizations", "2",

@@ -90,7 +90,7 @@ def test_the_paper_scene_answers_extreme_tolerances(client):
 
 
 def test_the_position_describes_the_default_alike_in_solve_batch_and_page_csv(client):
-    from nlpsf import roman_default
+    from nlpsf.request import presets as roman_default
 
     row = {"band": "H158", "magnitude": 19.0, "precision": 0.01, "scene": {"position": [1000, 3000]}}
     single = client.post("/api/v1/solve", json=row).json()

@@ -1,0 +1,327 @@
+"""The model part of an answer: what a solve leaves out of a Roman scene, and what that adds to
+its uncertainty.
+
+With ``accuracy`` the full scene is simulated, or a set of effects whose combined impact is
+measured within the accuracy is left out (``nlpsf.solve.accuracy.select``, which builds the model
+part); otherwise what is left out is read from the shipped measurement (:func:`shipped_model`).
+:func:`model_at` states the parts relative to the answer's slope. ``slopes`` arguments are the
+solver's c(m) at the request (``band``, ``metric``, ``mode``, ``table``, ``exptime``, ``table_beta0``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from nlpsf import roman
+from nlpsf.slopes import fidelity as levels
+from nlpsf.slopes import tables
+
+from . import roman_uncertainty as roman_parts
+
+#: ``shipped_model``'s ``default`` for the Roman default (``roman_default.NAME``; kept literal so
+#: that this module does not import the default's readout machinery).
+ROMAN_DEFAULT = "roman"
+
+#: The model part's two relative pieces (see :func:`model_at`).
+MODEL_PARTS = ("effects_relative", "pupil_scale_relative")
+COMBINATION = (
+    "uncertainty_model = hypot(effects left out, pupil-scale rule); the total adds the effects left out in "
+    "quadrature with the statistical and fidelity parts and with the larger of the pupil-scale rule and "
+    "uncertainty_optical_model, which both measure the optical model's distance from Roman's (not both)"
+)
+#: How the effects left out add up: measured at the point (each below the accuracy asked for) in
+#: quadrature; from the shipped worst cases as a plain sum, because every Roman star has them all at
+#: once with signs fixed by the optics, often alike (scripts/model_uncertainty.py).
+COMBINE = {"quadrature": lambda values: math.sqrt(math.fsum(v * v for v in values)), "sum": math.fsum}
+
+
+def shipped_model(
+    band: str,
+    sca: int,
+    metric: str,
+    mode: str,
+    scene,
+    fidelity: str,
+    *,
+    default: str = "paper",
+    pupil_scale: str | None = None,
+    request=None,
+) -> dict:
+    """The model part of an answer without ``accuracy``, from a shipped measurement.
+
+    ``default="roman"`` (``roman_default.NAME``): the Roman default's parts
+    (:func:`roman_default_model`, ``nlpsf/data/roman_model_uncertainty.json``). ``default="paper"``
+    (the paper scene, unchanged): what the paper's scene leaves out
+    (``scene.shipped_model_uncertainty``). Effects the scene (or the polychromatic level's flat-f_nu
+    band integration) simulates are not left out; the position's spread over the SCA is left out
+    unless a position is given. An SCA the measurement covers reads its own values, any other the
+    worst over those it covers. ``pupil_scale``: the rule the answer uses (None: the library's
+    default), which the pupil part's label names. ``request`` (the Roman default's only): where it
+    differs from the conditions its parts were measured at (:func:`roman_default_model`)."""
+    if default == ROMAN_DEFAULT:
+        return roman_default_model(band, sca, metric, mode, scene, pupil_scale=pupil_scale, request=request)
+    if default != "paper":
+        raise ValueError(f"default must be 'paper' or {ROMAN_DEFAULT!r}, got {default!r}")
+    from nlpsf import defaults
+    from nlpsf.sim import scene as scenes
+
+    shipped = scenes.shipped_model_uncertainty()
+    conditions = shipped["conditions"]
+    entry = shipped["per_band"][band][mode][metric]
+    own = entry.get("per_sca", {}).get(str(sca))
+    measured_scas = ", ".join(map(str, conditions["scas"]))
+    where = f"SCA {sca}" if own else f"the worst over SCA {measured_scas} (SCA {sca} is not measured)"
+    entry = own or entry
+    measured_at = conditions["measured_at"]
+    on = dict.fromkeys(scenes.EFFECTS, False) if scene is None else scene.effects_on()
+    if fidelity != "table" and levels.simulation_settings(fidelity).n_wavelengths > 1:
+        on["sed"] = True  # a band-integrated PSF simulates the (flat f_nu) SED
+    parts = []
+    for name in scenes.EFFECTS:
+        if on[name]:
+            continue
+        value = entry["effects"].get(name)
+        if name == "position":
+            why = "spread over the SCA: no position given (the worst corner against the centre the tables hold)"
+        elif value is None:
+            why = f"not measured: {measured_at[name]}"
+        else:
+            why = f"not simulated; measured at {measured_at[name]}"
+        parts.append({"name": name, "impact": value, "why": why})
+    used = pupil_scale or defaults.PUPIL_SCALE
+    why = (
+        "pupil-mask scale rule: galsim (used) vs header"
+        if used == "galsim"
+        else f"pupil-mask scale rule: {used} used; the part measured is header vs galsim (scripts/model_uncertainty.py)"
+    )
+    parts.append({"name": "pupil_scale", "impact": entry["pupil_scale"], "why": why})
+    return {
+        "included": [{"name": name, "impact": None} for name in scenes.EFFECTS if on[name]],
+        "left_out": parts,
+        "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
+        "combine": "sum",
+        "basis": (
+            f"shipped measurement ({conditions['script']}, {conditions['measured_utc']}): each effect's worst |impact| on "
+            f"the {mode} slope at its nominal Roman value on {where}, at m = {conditions['magnitudes']} "
+            f"({conditions['method']}), added up (a Roman star has them all at once, with signs often alike)"
+        ),
+    }
+
+
+def model_at(info: dict, slopes, magnitude: float) -> dict:
+    """The model part at the answer's magnitude: impacts relative to this metric's slope, and the
+    relative uncertainty of the effects left out and of the pupil-scale rule (:data:`MODEL_PARTS`).
+
+    A shipped e1 / e2 impact is stated against |c_e| and scaled here by |c_e| / |c_ei|, as the
+    optical model's part is. The Roman default's parts (``combine == "roman"``) are read at the
+    magnitude (``roman_uncertainty.at_magnitude``) and combined by its rule; the optical model's
+    vintage and the pupil rule are among them, so ``effects_relative`` holds the whole model part,
+    ``pupil_scale_relative`` is 0 and ``optical_model_included`` tells the caller not to add
+    ``optical_model_relative`` again."""
+    if info["combine"] == "roman":
+        # The default's e1 / e2 parts are restated with the answer's own slopes (the grid's or the
+        # simulation's), not the paper tables': their ratio |c_e| / |c_ei| differs by up to x3.5.
+        own = None
+        if info["stated_against"] == "modulus" and hasattr(slopes, "modulus_over_component"):
+            own = slopes.modulus_over_component(magnitude)
+        scale = own if own is not None else component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
+        out = _roman_model_at(info, magnitude, scale)
+        if info["stated_against"] == "modulus":
+            out["component_scale_from"] = "the answer's own slopes" if own is not None else "the tables"
+        return out
+    scale = component_scale(slopes, magnitude) if info["stated_against"] == "modulus" else 1.0
+    left = [{**p, "impact": None if p["impact"] is None else p["impact"] * scale} for p in info["left_out"]]
+    effects = COMBINE[info["combine"]]([abs(p["impact"]) for p in left if p["impact"] is not None and p["name"] != "pupil_scale"])
+    pupil = next((abs(p["impact"]) for p in left if p["name"] == "pupil_scale" and p["impact"] is not None), 0.0)
+    out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": effects, "pupil_scale_relative": pupil}
+    out.update(relative_uncertainty=math.hypot(effects, pupil), combination=COMBINATION)
+    if scale != 1.0:
+        out["component_scale"] = scale
+    return out
+
+
+def with_effect(target, source, name: str):
+    """``target`` with effect ``name`` set as in ``source`` (the fields of ``scene.REGISTRY[name]``)."""
+    from nlpsf.sim.scene import REGISTRY
+
+    return replace(target, **{f: getattr(source, f) for f in REGISTRY[name].fields})
+
+
+def optical_model_relative(slopes, magnitude: float | None, model_info: dict | None = None) -> float:
+    """Relative slope uncertainty from the optical model (``roman.optical_model_uncertainty``).
+
+    For one ellipticity component it is stated against |c_e|, so it grows as |c_e| / |c_ei|.
+    Zero when ``model_info`` (:func:`model_at`'s) already holds the optical model's part (the Roman
+    default's vintage part)."""
+    if model_info is not None and model_info.get("optical_model_included"):
+        return 0.0
+    relative = roman.optical_model_uncertainty(slopes.band, slopes.metric)
+    if "relabelled_from" in slopes.table.settings:
+        relative = math.hypot(relative, tables.RELABEL_ERROR[slopes.band][0 if slopes.metric == "size" else 1])
+    return relative * component_scale(slopes, magnitude)
+
+
+def component_scale(slopes, magnitude: float | None) -> float:
+    """|c_e| / |c_ei| at ``magnitude`` for an e1 / e2 answer (1 otherwise): restates a part given
+    against the modulus of the ellipticity slope against the component's own slope."""
+    if slopes.metric not in ("e1", "e2") or magnitude is None:
+        return 1.0
+    modulus, _, _ = slopes.table.slope("e", slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
+    component, _, _ = slopes.table.slope(slopes.metric, slopes.mode, magnitude, slopes.exptime, slopes.table_beta0)
+    if np.isfinite(modulus[0]) and abs(component[0]) > 0:
+        return float(modulus[0] / abs(component[0]))
+    return 1.0
+
+
+#: Scene fields a request may set that decide a Roman-default part: when the request's value differs
+#: from the default's, the star is the user's and that spread is not the default's uncertainty.
+_CHOSEN_BY_REQUEST = {
+    "sed": "sed",
+    "jitter": "jitter_arcsec",
+    "charge_diffusion": "charge_diffusion_px",
+}
+#: What a part the request sets no longer means (it is dropped, with this reason).
+_SET_BY_REQUEST_WHY = {
+    "sed": (
+        "the default's SED spread (3500-10000 K blackbodies against its K0V) is not the uncertainty of the SED the request gives"
+    ),
+    "jitter": "the default's jitter spread (3.4-14 mas against 6 mas) is not the uncertainty of the jitter the request gives",
+    "charge_diffusion": (
+        "the default's diffusion spread (0.30 against 0.332 px) is not the uncertainty of the diffusion the request gives"
+    ),
+}
+
+
+def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupil_scale: str | None = None, request=None) -> dict:
+    """The Roman default's model part: its parts (``nlpsf.solve.roman_uncertainty``) for this band, SCA,
+    mode and metric, each by name with its value over the measured magnitudes.
+
+    A part the request fixes (its own SED, jitter or diffusion) or simulates (brighter-fatter, an NL
+    polynomial) is dropped, with the reason in ``included``. ``pupil_scale``: the rule the answer
+    uses; the part measured is header against official, so with ``header`` it is this answer's
+    distance from the official clear area, and with any other rule it is not measured (impact None,
+    said). ``request`` (a ``SolveRequest``): where its readout, exposure, beta0, full well or state
+    differ from those the parts were measured at (:func:`roman_measurement_differences`), the
+    basis says so and the parts are read at the magnitude of equal charge in the measured exposure."""
+    from nlpsf.request import presets as roman_default
+
+    defaults_scene = roman_default.base_scene()
+    entry, where = roman_parts.entry(band, sca, mode, metric)
+    conditions = roman_parts.shipped()["conditions"]
+    parts, included = [], []
+    for part in roman_parts.PARTS:
+        shipped = entry["parts"][part.name]
+        field = _CHOSEN_BY_REQUEST.get(part.name)
+        chosen = scene is not None and field is not None and getattr(scene, field) != getattr(defaults_scene, field)
+        simulated = scene is not None and (
+            (part.name == "brighter_fatter" and scene.bfe_coefficient != 0)
+            or (part.name == "nl_shape" and any(c != 0 for c in scene.nl_coefficients))
+        )
+        if chosen or simulated:
+            why = f"set by the request: {_SET_BY_REQUEST_WHY[part.name]}" if chosen else "simulated"
+            included.append({"name": part.name, "impact": None, "why": why})
+            continue
+        row = {
+            "name": part.name,
+            "kind": part.kind,
+            "impact": shipped["value"],
+            "by_magnitude": [[r[0], r[1]] for r in shipped["by_magnitude"]],
+            "why": shipped.get("why", part.measured_as),
+        }
+        if part.name == "pupil_scale" and pupil_scale not in (None, roman_default.PUPIL_SCALE):
+            row.update(_pupil_part(pupil_scale, row))
+        parts.append(row)
+    differences, offset = ([], 0.0) if request is None else roman_measurement_differences(request)
+    basis = (
+        f"shipped measurement of the Roman default's parts ({conditions['script']}, {conditions['measured_utc']}, "
+        f"code {conditions['code_version']}) on {where}, SCA centre, m = {conditions['magnitudes']}, "
+        f"{conditions['method']}; combined: {roman_parts.COMBINATION}"
+    )
+    if differences:
+        basis += (
+            f". Measured at the default's readout, exposure, beta0, full well and state; this request differs in "
+            f"{'; '.join(differences)}: the parts are the default's, not measured again"
+        )
+        if offset:
+            basis += f", read at the magnitude whose charge in the measured exposure is this star's (m {offset:+.3f})"
+    out = {
+        "included": included,
+        "left_out": parts,
+        "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
+        "combine": "roman",
+        "basis": basis,
+    }
+    if offset:
+        out["magnitude_offset"] = offset
+    return out
+
+
+def _pupil_part(rule: str, row: dict) -> dict:
+    """The pupil-scale part for an answer that uses another rule than the official one."""
+    if rule == roman_parts.PUPIL_ALTERNATIVE:
+        return {"why": f"this answer uses the {rule} rule; the part is {rule} against official (the rule that "
+                       "reproduces the official clear areas): this answer's distance from the official clear area"}  # fmt: skip
+    return {
+        "impact": None,
+        "by_magnitude": [[m, None] for m, _ in row["by_magnitude"]],
+        "why": f"not measured: this answer uses the {rule} rule; the part shipped is {roman_parts.PUPIL_ALTERNATIVE} "
+        "against official, which is not this rule's distance from the official clear area",
+    }
+
+
+def roman_measurement_differences(request) -> tuple[list[str], float]:
+    """(how ``request`` differs from the conditions the Roman default's parts were measured at, the
+    magnitude offset to the star of equal charge in the measured exposure): the default's readout
+    and exposure at the request's band and SCA, ``defaults.BETA0``, ``defaults.FULL_WELL_E``, the
+    corrected state (``scripts/model_uncertainty_roman.py``)."""
+    import math
+
+    from nlpsf import defaults
+    from nlpsf.request import presets as roman_default
+
+    measured = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
+    out = []
+    if not math.isclose(request.exptime, measured.exptime, rel_tol=1e-9):
+        out.append(f"exposure {request.exptime:g} s (measured at {measured.exptime:g} s)")
+    if request.ramp != measured.ramp:
+        out.append("readout (measured with the default's HLWAS ramp)")
+    if not math.isclose(request.beta0, defaults.BETA0, rel_tol=1e-9):
+        out.append(f"beta0 {request.beta0:g} (measured at {defaults.BETA0:g})")
+    if not math.isclose(request.full_well, defaults.FULL_WELL_E, rel_tol=1e-9):
+        out.append(f"full well {request.full_well:g} e- (measured at {defaults.FULL_WELL_E:g})")
+    if request.linearise_at != measured.linearise_at:
+        out.append(f"state {request.linearise_at} (measured at {measured.linearise_at})")
+    offset = -2.5 * math.log10(request.exptime / measured.exptime)
+    return out, (0.0 if abs(offset) < 1e-12 else offset)
+
+
+def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
+    """:func:`model_at` for the Roman default's parts: each read at ``magnitude`` (the larger of the
+    measured magnitudes around it; shifted by ``magnitude_offset`` to the star of equal charge where
+    the request's exposure is not the measured one), restated against this metric's slope, combined
+    by the rule. A part measured at the answer's own point (``measured_here``: an ``accuracy``
+    answer's left-out set) is already relative to this metric's slope and is read as measured."""
+    left = []
+    values: dict[str, float | None] = {}
+    kinds: dict[str, str] = {}
+    shifted = None if magnitude is None else magnitude + info.get("magnitude_offset", 0.0)
+    for part in info["left_out"]:
+        if part.get("measured_here"):
+            value = None if part["impact"] is None else abs(part["impact"])
+        elif "by_magnitude" in part:
+            value = roman_parts.at_magnitude(part["by_magnitude"], shifted)
+            value = None if value is None else value * scale
+        else:
+            value = None  # named, not measured (e.g. the position an accuracy answer stands in for)
+        values[part["name"]] = value
+        kinds[part["name"]] = part.get("kind", roman_parts.KINDS.get(part["name"], "choice"))
+        left.append({**part, "impact": value if not part.get("measured_here") else part["impact"]})
+    relative = roman_parts.combine(values, kinds)
+    out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": relative, "pupil_scale_relative": 0.0}
+    out.update(relative_uncertainty=relative, combination=roman_parts.COMBINATION, optical_model_included=True)
+    if scale != 1.0:
+        out["component_scale"] = scale
+    return out

@@ -1,0 +1,555 @@
+"""The two-of-three requirement calculator (paper, Eq. ``calib`` and section 4).
+
+For a metric (size ΔR/R, e1, e2, or the modulus |Δe| = hypot(Δe1, Δe2)) and a mode (``bias``: a
+calibration error Δβ = p β0 in the mean NL coefficient; ``scatter``: a per-pixel spread
+σβ = p β0), the PSF error is
+
+    T = |c(m)| p β0,
+
+with c(m) the slope d(metric)/dβ (bias) or σ(metric)/σβ (scatter) at magnitude m, exposure t and
+β0. Given any two of (precision p, tolerance T, magnitude m) the third follows. Solving for m
+returns the magnitude at which the NL error reaches the tolerance, and the brightest usable star:
+the fainter of that and the saturation magnitude, with which limit binds.
+
+Shear budgets. Instead of the tolerance, a shear-bias budget may be given: ``shear_m`` (the
+multiplicative bias, size metric) or ``shear_c`` (the additive bias, e metrics) with the
+galaxy-to-PSF size ratio ``size_ratio`` (a number or a distribution); ``nlpsf.request.shear`` turns it into
+the tolerance (ΔR/R = |m| ρ²/2, Δe = 2 |c| ρ², derived there). With ``size_ratio`` alone, the answer
+reports the shear bias that its tolerance implies.
+
+Averaging (scatter mode). A per-pixel β spread is fixed in the detector, but each star of a PSF
+model, and each dither of it, falls on other pixels: its NL error is an independent draw as long as
+no two of them share the pixels under the moment weight (a few native pixels around each centroid).
+A PSF model that averages ``stars`` such images with equal weight then has the scatter
+σ(metric)/√stars, and the answer holds for that model; with stars of different brightness, all taken
+at the answer's (brightest) magnitude, it is an upper bound. A bias in the mean β is common to
+every star, so averaging does not reduce it and ``stars`` applies to scatter mode only.
+
+Slopes come from the shipped tables (``fidelity="table"``, microseconds) or from fresh simulations
+(``linear``, ``monte_carlo``, ``polychromatic``); ``accuracy`` picks the cheapest level whose
+measured error (``nlpsf tradeoff``) meets it.
+
+Up-the-ramp exposures (``ramp``, see ``nlpsf.sim.ramps``; in a scene where ``ramps.check_scene``
+allows): the saturation rule becomes Roman's (a star
+is usable until its brightest pixel saturates in the resultant a slope needs -- the first, or the
+second where one resultant gives no slope, as in romancal -- about 2.5 log10(T / t_k) mag brighter
+than the final-frame rule, exactly ``Ramp.saturation_shift_mag(T, full well, beta0, background)``),
+and the slopes come from the tables where the mapping is exact (quadratic NL, OLS fit, every
+pixel keeping every resultant: the final frame at beta_eff = c_2 beta0,
+c_2 = 1 + 1/N for N uniform reads, so c(m) = c_2 c_table(m; c_2 beta0)) and from fresh
+linear-response simulations of the ramp otherwise (optimal fit, or a star bright enough that some
+of its pixels drop saturated resultants). ``conditions["ramp_slopes_from"]`` says which.
+
+Model part. Every answer says what it leaves out of a Roman scene (``model``) and adds it to its
+``uncertainty`` (``uncertainty_model``): the scene effects it does not simulate, the spread over the
+SCA when no position is given, and the pupil-mask scale rule. With ``accuracy`` they are measured at
+the answer's point (``nlpsf.solve.impact``) and added in quadrature; otherwise they come from a shipped
+measurement (``nlpsf/data/scene_model_uncertainty.json``: each effect's worst impact on SCA 1, 9
+and 18 at two magnitudes) and are added up, since a Roman star has them all at once with signs often
+alike. The pupil-scale rule and ``uncertainty_optical_model`` (the official-PSF comparison) both
+measure the optical model's error, so the total counts the larger of the two, not both. The Roman
+default's answers (its preset, with or without ``accuracy``) carry its own parts instead
+(``model_part.roman_default_model``: the optics' vintage among them, so the official-PSF figure is
+not added), an ``accuracy`` answer's left-out set beside them as a part of its own.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from functools import partial
+
+from nlpsf import defaults
+from nlpsf.checks import InputError
+from nlpsf.flags import Flag, FlagCode, make
+from nlpsf.request import presets as roman_default
+from nlpsf.request import shear
+from nlpsf.request.resolve import SolveRequest
+from nlpsf.sim import ramps
+from nlpsf.slopes import fidelity as levels
+from nlpsf.slopes import fieldgrid, providers, tables
+from nlpsf.slopes.fidelity import choose_fidelity, fidelity_error
+from nlpsf.slopes.source import Slopes as _Slopes
+
+from . import conditions as answer_conditions
+from . import model_part
+from .magnitude_scan import scan_magnitude
+from .over_field import grid_size, sca_range, worst_over_field
+from .solution import Solution, Uncertainty
+from .validity import (
+    _between_limits_flag,
+    _binding,
+    _magnitude_flags,
+    _ramp_magnitude_flags,
+    _validity_flags,
+    component_flags,
+)
+
+METRICS = defaults.METRICS
+MODES = defaults.MODES
+FIDELITIES = levels.LEVELS
+
+
+def solve(
+    band: str,
+    sca: int = 18,
+    metric: str = "size",
+    mode: str = "bias",
+    beta0: float = defaults.BETA0,
+    exptime: float | None = None,
+    precision: float | None = None,
+    tolerance: float | None = None,
+    magnitude: float | None = None,
+    full_well: float = defaults.FULL_WELL_E,
+    fidelity: str | None = None,
+    accuracy: float | None = None,
+    shear_m: float | None = None,
+    shear_c: float | None = None,
+    size_ratio: float | list | str | shear.SizeRatio | None = None,
+    stars: int = 1,
+    tables_set: tables.TableSet | None = None,
+    ramp: ramps.Ramp | None = None,
+    throughput: str | None = None,
+    scene=None,
+    pupil_scale: str | None = None,
+    linearise_at: str | None = None,
+    preset: str | None = None,
+    residual_nl: str | None = None,
+) -> Solution:
+    """Give exactly two of ``precision`` (Δβ/β0, or σβ/β0 in scatter mode), ``tolerance`` (the PSF
+    error allowed) and ``magnitude`` (AB); get the third. See the module docstring.
+
+    A thin wrapper: ``answer(SolveRequest(...), tables_set)``. ``shear_m`` (size metric) or
+    ``shear_c`` (e metrics), with ``size_ratio`` = R_gal/R_psf (a number, (ratio, weight) pairs, or
+    a string ``nlpsf.request.shear.check_size_ratio`` reads), stands in for ``tolerance``. ``stars``
+    (scatter mode): the PSF model averages that many independent star images (σ / √stars).
+
+    ``ramp``: an up-the-ramp exposure (``ramps.Ramp``; e.g. ``ramps.Ramp.uniform(N, exptime)``)
+    instead of the paper's single final frame. ``exptime`` stays what is given: for an MA table whose
+    exposure is its last read, ``ramps.build(ma_table=...)`` returns both (as the CLI and the service do).
+
+    ``throughput`` (``defaults.THROUGHPUTS``) is the photometry that turns the magnitude into
+    electrons; None is the tables' own. Another one reads the tables relabelled
+    (``tables.with_throughput``), and fresh simulations use it directly.
+
+    ``scene`` (``nlpsf.sim.scene.SceneModel``) is what the star goes through; with ``accuracy`` the
+    answer models only the effects whose measured impact at the point exceeds it (see
+    :func:`nlpsf.solve.accuracy.select`) and its uncertainty gains a ``model`` part for those left out.
+
+    ``pupil_scale`` (``roman.PUPIL_SCALE_RULES``) is the pupil-mask scale rule of fresh
+    simulations; None is the preset's (roman: official; paper: the tables' own, galsim). Another
+    rule than the tables' is not in them, so a table solve is then simulated (fidelity linear).
+
+    The Roman default. ``scene`` None (or "roman") is the Roman star as observed
+    (``nlpsf.request.presets``): its scene at the position, the HLWAS readout and exposure unless
+    ``ramp`` / ``exptime`` are given, the official pupil scale and the corrected state
+    (``linearise_at``); without a position the answer is the most demanding of the SCA's field-grid
+    nodes, with the range in ``conditions["sca_range"]``. ``scene="paper"`` is the paper's
+    idealised scene and final frame (the shipped tables, today's answers), ``"galsim-roman"``
+    GalSim's Roman constants on it; ``preset`` names the base when ``scene`` is a ``SceneModel``.
+    ``residual_nl`` (``experiment.correction.RESIDUAL_MODELS``): how a calibration error acts in the
+    corrected state; None the default's (the correction on every resultant, as romancal applies it).
+    """
+    request = SolveRequest(
+        band, sca, metric, mode, beta0, exptime, precision, tolerance, magnitude, full_well, fidelity, accuracy,
+        shear_m, shear_c, size_ratio, stars, ramp, throughput, scene, pupil_scale, linearise_at, preset, residual_nl,
+    )  # fmt: skip
+    return answer(request, tables_set)
+
+
+@dataclass(frozen=True)
+class SolvePlan:
+    """What a solve reads and what it simulates, and why (the notes, flags of the answer)."""
+
+    #: The fidelity level the slopes come at ("table": read from the tables; else simulated).
+    fidelity: str
+    #: The scene the fresh simulations go through (None: the paper's, or nothing simulated).
+    scene: object | None
+    #: The tables read (the shipped SCA-centre set, or a corner field point's).
+    tables: tables.TableSet
+    #: What the answer leaves out of a Roman scene (measured with ``accuracy``, else shipped).
+    model: dict
+    notes: tuple[Flag, ...]
+    #: Centroids of the fresh simulations (None: the tables' own; ``accuracy`` sets its own).
+    realizations: int | None = None
+    #: The Roman default's field grid the slopes are read from (None: tables or simulations).
+    grid: object | None = None
+    #: The provider that covers the request (``providers``: "field grid", "paper tables", "simulator").
+    provider: str = providers.PaperTables.name
+    #: Why the providers before it did not cover the request (empty where the first covered).
+    refusals: tuple[providers.Refusal, ...] = ()
+    #: Whether the answer may simulate a magnitude the grid turns out not to hold (a batch: no).
+    simulate: bool = True
+
+    @property
+    def reads(self) -> str:
+        return "tables" if self.fidelity == "table" else f"fresh simulations at fidelity {self.fidelity}"
+
+
+def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> SolvePlan:
+    """Choose the fidelity, the scene to simulate and the tables to read for ``request``: the first
+    provider (``nlpsf.slopes.providers``) that covers it. ``simulate`` False: the answer refuses
+    (``providers.NeedsSimulation``) where it would simulate a magnitude the grid does not hold."""
+    default = _measured_default(request)
+    chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode, default)
+    model_info, simulated_scene, realizations = None, None, None
+    if request.accuracy is not None:
+        point = request.magnitude
+        if point is None:
+            # The effects are measured where the answer will be: a first, table-level pass finds it.
+            first = answer(request.table_pass(), tables_set)
+            point = first.magnitude if first.magnitude is not None else defaults.MAGNITUDE
+        from .accuracy import select  # impacts measured inside the full scene; the simulator is loaded there
+
+        selection = select(request, float(point), tables_set)
+        chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
+        realizations = selection.realizations
+    elif request.scene is not None and not request.scene.is_paper:
+        simulated_scene = request.scene
+    tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
+    coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
+    notes.extend(_coverage_notes(request, coverage, refusals, tableset))
+    if model_info is None:
+        # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
+        table_rule = str(tableset.get(request.band, request.sca).settings["pupil_scale"])
+        model_info = model_part.shipped_model(
+            request.band, request.sca, request.metric, request.mode, simulated_scene, coverage.fidelity,
+            default=default, pupil_scale=request.pupil_scale or table_rule, request=request,
+        )  # fmt: skip
+    breaking = simulated_scene.breaks_beta_q_scaling() if simulated_scene is not None else None
+    if breaking:
+        verb = "adds" if len(breaking) == 1 else "add"
+        notes.append(make(FlagCode.BETA_Q_RULE_BROKEN, effects=", ".join(breaking), verb=verb, names=list(breaking)))
+    return SolvePlan(
+        coverage.fidelity, simulated_scene, tableset, model_info, tuple(notes), realizations=realizations,
+        grid=coverage.grid, provider=coverage.provider, refusals=tuple(refusals), simulate=simulate,
+    )  # fmt: skip
+
+
+def _cover(request: SolveRequest, fidelity: str, scene, tableset) -> tuple[providers.Coverage, list[providers.Refusal]]:
+    """The first provider that covers the request, and the refusals of those before it: the field
+    grid (the Roman default's preset only), the paper tables, the simulator."""
+    refusals = []
+    candidates = [providers.FieldGrid()] if request.preset == roman_default.NAME else []
+    for provider in candidates:
+        got = provider.covers(request, fidelity)
+        if isinstance(got, providers.Coverage):
+            return got, refusals
+        refusals.append(got)
+    got = providers.PaperTables().covers(request, scene, fidelity, tableset)
+    if isinstance(got, providers.Coverage):
+        return got, refusals
+    refusals.append(got)
+    return providers.Simulator().covers(request, fidelity, tableset), refusals
+
+
+def _coverage_notes(request: SolveRequest, coverage: providers.Coverage, refusals, tableset) -> list[Flag]:
+    """The flags that say where the slopes come from: the grid at the position, or why a table-level
+    request is simulated instead."""
+    code = providers.RefusalCode
+    if coverage.grid is not None and request.scene.position is not None:
+        size = grid_size(coverage.grid, request)
+        x, y = request.scene.position
+        return [make(FlagCode.DEFAULT_FROM_GRID, grid=size, scheme="lagrange", x=x, y=y)]
+    if coverage.provider != providers.Simulator.name or not refusals:
+        return []
+    last = refusals[-1]
+    if last.code == code.SCENE:
+        if request.preset == roman_default.NAME:
+            return [make(FlagCode.DEFAULT_SIMULATED, why=refusals[0].why)]
+        return [make(FlagCode.SCENE_SIMULATED)]
+    if last.code == code.PUPIL_SCALE:
+        table_rule = str(tableset.get(request.band, request.sca).settings["pupil_scale"])
+        return [make(FlagCode.PUPIL_SCALE_SIMULATED, table_rule=table_rule, rule=request.pupil_scale)]
+    if last.code == code.LINEARISED:
+        return [make(FlagCode.LINEARISED_SIMULATED, state=request.linearise_at)]
+    return []
+
+
+def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None) -> SolvePlan:
+    """The plan of ``request`` where the tables or the field grid cover it (``simulate=False``: a
+    magnitude the grid does not hold is refused too); else ``providers.NeedsSimulation`` with the
+    first refusal's code and field, raised before anything is simulated."""
+    refusal = providers.Refusal
+    code = providers.RefusalCode
+    if request.accuracy is not None:
+        why = f"an accuracy target is met by measuring the scene's effects in fresh simulations: {providers.REFUSAL}"
+        raise providers.NeedsSimulation(refusal(code.ACCURACY, "accuracy", why))
+    if request.preset != roman_default.NAME and request.ramp is not None:
+        # The paper's scene up the ramp maps onto the tables only for some fits and magnitudes.
+        why = f"a ramp on the paper's scene is simulated where the tables do not map it exactly: {providers.REFUSAL}"
+        raise providers.NeedsSimulation(refusal(code.READOUT, "ramp", why))
+    the_plan = plan(request, tables_set, simulate=False)
+    if the_plan.fidelity == "table":
+        return the_plan
+    first = the_plan.refusals[0] if the_plan.refusals else refusal(code.FIDELITY, "fidelity", "")
+    simulated = {
+        FlagCode.SCENE_SIMULATED,
+        FlagCode.PUPIL_SCALE_SIMULATED,
+        FlagCode.DEFAULT_SIMULATED,
+        FlagCode.LINEARISED_SIMULATED,
+    }
+    notes = "; ".join(str(n) for n in the_plan.notes if getattr(n, "code", None) in simulated)
+    why = f"it needs a fresh simulation ({notes or 'fidelity ' + the_plan.fidelity}): {providers.REFUSAL}"
+    raise providers.NeedsSimulation(refusal(first.code, first.field, why))
+
+
+def _measured_default(request: SolveRequest) -> str:
+    """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
+    for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
+    return model_part.ROMAN_DEFAULT if request.preset == roman_default.NAME else "paper"
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """Saturation magnitudes: the rule in use and the single final frame's, and where they come from."""
+
+    saturation: float
+    final_frame: float
+    #: Whose star the limits are of (``conditions["saturation_from"]``; None: the tables', unsaid).
+    source: str | None = None
+
+
+def _own_star(request: SolveRequest, the_plan: SolvePlan) -> bool:
+    """Whether the answer's limits are the simulated scene's own star: a scene other than the
+    paper's that is simulated (not held by tables or the grid). ``--scene paper`` keeps the tables'
+    limits whatever it simulates (its answers stay bit for bit)."""
+    scene = the_plan.scene
+    return (
+        request.preset != "paper"
+        and scene is not None
+        and not scene.is_paper
+        and the_plan.grid is None
+        and the_plan.fidelity != "table"
+    )
+
+
+def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Limits:
+    background = 0.0 if the_plan.scene is None else the_plan.scene.background_e
+    if background >= request.full_well:
+        raise InputError(
+            "background", f"a background of {background:g} e- fills the full well ({request.full_well:g} e-) by itself"
+        )
+    grid, position = the_plan.grid, None if the_plan.scene is None else the_plan.scene.position
+    ramp = request.ramp
+    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
+    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
+    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
+    if grid is not None and position is not None:
+        # The Roman default's own star (its peak through the default's optics and detector, with its
+        # sky), recorded at every node by the grid's build: not the paper table's sharper star.
+        saturation = grid.saturation_magnitude(request.band, request.sca, position)
+        final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
+        if final is not None:
+            source = f"the Roman default's own star: its field grid's nodes ({fieldgrid.SHIPPED_NAME}), interpolated"
+            return _Limits(saturation, final, source)
+    if _own_star(request, the_plan):
+        # The star that is simulated (its optics, SED, blurs and sky), from its own prepared peak.
+        final_frame, peak = slopes.own_final_frame_saturation()
+        source = (
+            f"the simulated scene's own star: its prepared peak ({peak:.6g} of the flux in the brightest fine pixel, "
+            f"over every sub-pixel centroid) on top of {background:g} e- of background against the full well "
+            f"{request.full_well:g} e-" + ("" if ramp is None else f"; the ramp's limit {shift:.4g} mag brighter")
+        )
+        return _Limits(final_frame - shift, final_frame, source)
+    # A background fills part of the well: the star saturates where its peak reaches the rest.
+    final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
+    source = None if request.preset == "paper" else "the tables' star (the paper's scene at the tables' position)"
+    return _Limits(final_frame - shift, final_frame, source)
+
+
+@dataclass
+class _Answer:
+    """The solved triple, its slope and uncertainty, before the conditions are attached."""
+
+    precision: float | None
+    tolerance: float | None
+    magnitude: float | None
+    slope: float | None
+    slope_error: float | None
+    parts: Uncertainty
+    model: dict | None
+    brightest: float | None = None
+    binding: str | None = None
+    m_nl: float | None = None
+
+
+def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None) -> Solution:
+    """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
+    ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
+    total, message)``: told as each node of an SCA range is answered (the Roman default without a
+    position)."""
+    start = time.perf_counter()
+    if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
+        # The Roman default depends on the position: without one, the range over the SCA. (With an
+        # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress)
+        return replace(ranged, elapsed_s=time.perf_counter() - start)
+    the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
+    flags: list[str] = list(the_plan.notes)
+    slopes = _Slopes.for_request(request, the_plan)
+    if "relabelled_from" in slopes.table.settings:
+        flags.append(_relabel_flag(request, slopes))
+    limits = _limits(request, the_plan, slopes)
+    level = the_plan.model.get("level")  # an accuracy answer's level error, for the scene it simulates
+    systematic, systematic_note = (
+        (level["error"], None)
+        if level
+        else fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))
+    )
+    if systematic_note:
+        flags.append(systematic_note)
+    if request.solved_for == "magnitude":
+        result = _answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+    else:
+        result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+    flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
+    flags += component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
+    flags += slopes.slope_quality_flags()
+    if slopes.grid_misses:
+        flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
+    conditions = answer_conditions.conditions(request, the_plan, slopes)
+    shear_answer = None
+    if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
+        statistical = result.parts.statistical if request.solved_for == "tolerance" else None
+        shear_answer = _shear_answer(request.metric, request.budget, request.ratio, result.tolerance, statistical)
+        if request.metric != "size":
+            flags.append(make(FlagCode.SHEAR_CROSS_TERM))
+    if slopes.pupil_scale is not None and the_plan.fidelity != "table":
+        conditions["pupil_scale"] = slopes.pupil_scale
+    answer_conditions.add_simulation_conditions(conditions, the_plan, slopes)
+    if limits.source is not None:
+        conditions["saturation_from"] = limits.source
+    return Solution(
+        band=request.band,
+        sca=request.sca,
+        metric=request.metric,
+        mode=request.mode,
+        beta0=request.beta0,
+        exptime=request.exptime,
+        full_well=request.full_well,
+        precision=result.precision,
+        tolerance=result.tolerance,
+        magnitude=result.magnitude,
+        solved_for=request.solved_for,
+        parts=result.parts,
+        slope=result.slope,
+        slope_uncertainty=result.slope_error,
+        saturation_magnitude=limits.saturation,
+        final_frame_saturation_magnitude=limits.final_frame,
+        brightest_usable_magnitude=result.brightest,
+        binding_limit=result.binding,
+        nonlinearity_magnitude=result.m_nl,
+        flags=flags,
+        fidelity=the_plan.fidelity,
+        conditions=conditions,
+        elapsed_s=time.perf_counter() - start,
+        stars=request.stars,
+        applies_to=conditions["applies_to"],
+        shear=shear_answer,
+        model=result.model,
+    )
+
+
+def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:
+    size_error, e_error = tables.RELABEL_ERROR[request.band]
+    return make(
+        FlagCode.THROUGHPUT_RELABELLED,
+        source=slopes.table.settings["relabelled_from"],
+        throughput=request.throughput,
+        shift=-slopes.relabel_shift,
+        percent=100 * (size_error if request.metric == "size" else e_error),
+    )
+
+
+def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:
+    """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation."""
+    averaging = 1.0 / math.sqrt(request.stars)  # scatter: the PSF model averages `stars` independent draws
+    precision, tolerance, beta0 = request.precision, request.target_tolerance, request.beta0
+    field = "tolerance" if request.budget is None else f"shear_{request.budget.kind}"
+    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation, field)
+    flags += scan.flags
+    m_nl, slope, slope_err, log_derivative = scan.magnitude, scan.slope, scan.slope_error, scan.log_derivative
+    magnitude, binding = _binding(m_nl, limits.saturation, flags)
+    if request.ramp is not None and magnitude < limits.final_frame:
+        flags.append(_between_limits_flag(magnitude, limits.saturation, limits.final_frame))
+    if binding == "nonlinearity" and log_derivative:
+        model_info = model_part.model_at(model_info, slopes, m_nl)
+        effects, pupil = (model_info[k] / abs(log_derivative) for k in model_part.MODEL_PARTS)
+        parts = Uncertainty(
+            statistical=(slope_err / abs(slope)) / abs(log_derivative),
+            fidelity=None if systematic is None else systematic / abs(log_derivative),
+            optical_model=model_part.optical_model_relative(slopes, m_nl, model_info=model_info) / abs(log_derivative),
+            effects=effects,
+            pupil_scale=pupil,
+        )
+    else:
+        # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
+        parts = Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0)
+        slope, slope_err, _ = slopes.at(limits.saturation)  # first: the model part reads the slopes there
+        model_info = model_part.model_at(model_info, slopes, limits.saturation)
+        error = abs(slope) * precision * beta0 * averaging
+        flags.append(
+            make(FlagCode.ERROR_AT_SATURATION, metric=request.metric, mode=request.mode, error=error, tolerance=tolerance)
+        )
+    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info, magnitude, binding, m_nl)
+
+
+def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:
+    """Solve for the tolerance or the precision at a given magnitude."""
+    magnitude, beta0 = request.magnitude, request.beta0
+    precision, tolerance = request.precision, request.target_tolerance
+    if request.ramp is not None:
+        flags += _ramp_magnitude_flags(magnitude, limits.saturation, limits.final_frame)  # refuses before simulating
+    slope, slope_err, region = slopes.at(magnitude)
+    if request.ramp is None:
+        flags += _magnitude_flags(slopes, magnitude, region, limits.saturation, beta0)
+    elif region > 0 and slopes.grid is not None:  # fainter than the field grid: its flux law (slope_source)
+        faintest = slopes.grid.magnitude_range(request.band, request.sca)[1]
+        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=faintest))
+    averaging = 1.0 / math.sqrt(request.stars)
+    c, c_err = abs(slope) * averaging, slope_err * averaging
+    model_info = model_part.model_at(model_info, slopes, magnitude) if region >= 0 else None
+    # After model_at: the Roman default's parts hold the optical model's vintage, not counted twice.
+    optical = model_part.optical_model_relative(slopes, magnitude, model_info=model_info) if region >= 0 else None
+    effects, pupil = (None, None) if model_info is None else (model_info[k] for k in model_part.MODEL_PARTS)
+    if request.solved_for == "tolerance":
+        tolerance = c * precision * beta0
+        statistical, scale = c_err * precision * beta0, tolerance
+    elif c <= max(c_err, 1e-300):
+        flags.append(
+            make(FlagCode.SLOPE_CONSISTENT_WITH_ZERO, metric=request.metric, magnitude=magnitude, slope=slope, error=c_err)
+        )
+        return _Answer(math.inf, tolerance, magnitude, slope, slope_err, Uncertainty.none(), model_info)
+    else:
+        precision = tolerance / (c * beta0)
+        statistical, scale = precision * c_err / c, precision
+    parts = Uncertainty(
+        statistical=statistical,
+        fidelity=None if systematic is None else scale * systematic,
+        optical_model=None if optical is None else scale * optical,
+        effects=None if effects is None else scale * effects,
+        pupil_scale=None if effects is None else scale * pupil,
+    )
+    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info)
+
+
+def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncertainty: float | None) -> dict:
+    """The shear budget given, or the bias the tolerance implies for galaxies of this size ratio."""
+    if budget is not None:
+        return {**budget.to_dict(), "given": budget.kind}
+    kind = shear.BUDGET_FOR_METRIC[metric]
+    factor = (2.0 if kind == "m" else 1.0 / shear.RESPONSIVITY) / ratio.effective**2
+    implied = shear.Budget(kind, tolerance * factor, ratio, tolerance).to_dict()
+    implied["given"] = "tolerance"
+    implied["uncertainty"] = None if tolerance_uncertainty is None else tolerance_uncertainty * factor
+    return implied
+
+
+def solve_over_field(band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request) -> Solution:
+    """The answer for the worst position over the field (``nlpsf.solve.over_field.worst_over_field``):
+    the Roman default's field-grid nodes, or another scene's centre and four corners, of the given
+    SCAs (``"all"``: the 18 of the focal plane).
+    ``filled_for``: the SCA whose Roman-default sky and read noise ``scene`` and ``ramp`` hold."""
+    return worst_over_field(solve, band, scas, scene, progress, filled_for, **request)

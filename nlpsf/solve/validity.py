@@ -1,0 +1,146 @@
+"""What a solve's answer is valid for: the flags and refusals of its magnitude against the tables'
+range, saturation (final frame and ramp), the linear regime of T = c p beta0, and an ellipticity
+component too small against the modulus to carry a requirement.
+
+``slopes`` arguments are the solver's c(m) at the request (``nlpsf.solve.solver``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from nlpsf.checks import InputError
+from nlpsf.flags import Flag, FlagCode, make
+from nlpsf.slopes import tables
+
+#: Past this Δβ Q_peak the error is no longer linear in Δβ and T = c p β0 stops describing it.
+LINEAR_REGIME_LIMIT = 0.05
+#: An e1 / e2 slope below this fraction of |c_e| = hypot(c_e1, c_e2) is flagged as small
+#: (``FlagCode.E_COMPONENT_SMALL``): the model's parts move both components by a fraction of |c_e|,
+#: so a component this small has a relative uncertainty of order part / fraction. The same cut as
+#: docs/validation.md's "near zero" points.
+COMPONENT_SMALL_FRACTION = 0.3
+#: A slope within this many standard errors of zero is "consistent with zero" for that flag.
+COMPONENT_ZERO_SIGMAS = 2.0
+
+
+def _peak_electrons(slopes, magnitude: float) -> float:
+    own = slopes.own_peak_electrons(magnitude) if hasattr(slopes, "own_peak_electrons") else None
+    if own is not None:
+        return own  # the simulated star's own peak, as its saturation limits are
+    table = slopes.table
+    flux = float(table.flux_at(magnitude - 2.5 * math.log10(slopes.exptime / table.exptime_s)))
+    return flux * table.peak_fraction * int(table.settings["oversampling"]) ** 2
+
+
+def _magnitude_flags(slopes, magnitude: float, region: int, m_sat: float, beta0: float) -> list[str]:
+    lo, hi = slopes.range()
+    if region < 0:
+        peak = _peak_electrons(slopes, magnitude)
+        if 2 * beta0 * peak >= 1:
+            raise InputError(
+                "magnitude",
+                f"an m={magnitude:g} star is too bright for beta0={beta0:g}: the quadratic nonlinearity is not monotonic "
+                f"there (2 beta0 Q_peak = {2 * beta0 * peak:.2f} >= 1), so S = Q - beta Q^2 does not describe the detector",
+            )
+        # The tables hold the slopes in beta0 x flux (the beta Q rule), so where they stop depends on
+        # beta0; saturation does not. Say both, with this star's own numbers.
+        full_well = float(getattr(slopes, "full_well", slopes.table.settings["full_well_e"]))
+        reach = beta0 * _peak_electrons(slopes, lo)
+        raise InputError(
+            "magnitude",
+            f"m={magnitude:g} is past the tables at beta0={beta0:g}: they hold the NL strength beta0 x Q_peak up to "
+            f"{reach:.3g} (built to {tables.BRIGHT_MARGIN_MAG} mag past saturation at their own beta0 = "
+            f"{slopes.table.beta0:g}), reached at m={lo:.2f} at this beta0, and this star's is {beta0 * peak:.3g}; its "
+            f"brightest pixel would hold {peak / full_well:.2g} x the full well {full_well:g} e- in a single final frame "
+            f"(stars brighter than m={m_sat:.2f} saturate, whatever beta0). A smaller beta0, a fainter star or an up-the-ramp "
+            "readout (which reads the star before it saturates) is answered",
+        )
+    flags = []
+    if region > 0:
+        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=hi))
+    if magnitude < m_sat:
+        flags.append(make(FlagCode.STAR_SATURATED, magnitude=magnitude, m_sat=m_sat))
+    return flags
+
+
+def _validity_flags(slopes, magnitude: float | None, precision: float | None, beta0: float, full_well: float) -> list[str]:
+    if magnitude is None or not math.isfinite(magnitude):
+        return []
+    peak = _peak_electrons(slopes, magnitude)
+    if slopes.ramp is not None:
+        # The fit only sees reads up to the last unsaturated resultant (or the first one).
+        peak = min(peak, max(full_well, peak * slopes.ramp.first_usable_fraction(slopes.exptime)))
+    flags = []
+    if 2 * beta0 * peak >= 1:
+        flags.append(make(FlagCode.QUADRATIC_NOT_MONOTONIC, value=2 * beta0 * peak, magnitude=magnitude))
+    if precision is not None and math.isfinite(precision) and precision * beta0 * peak > LINEAR_REGIME_LIMIT:
+        flags.append(make(FlagCode.OUTSIDE_LINEAR_REGIME, value=precision * beta0 * peak, limit=LINEAR_REGIME_LIMIT))
+    return flags
+
+
+def _between_limits_flag(magnitude: float, m_sat: float, m_sat_final_frame: float) -> Flag:
+    return make(FlagCode.BETWEEN_SATURATION_LIMITS, magnitude=magnitude, m_sat_final=m_sat_final_frame, m_sat=m_sat)
+
+
+def _ramp_magnitude_flags(magnitude: float, m_sat: float, m_sat_final_frame: float) -> list[str]:
+    if magnitude < m_sat - tables.BRIGHT_MARGIN_MAG:
+        raise InputError(
+            "magnitude",
+            f"m={magnitude:g} saturates the brightest pixel in the resultant a ramp slope needs by more than "
+            f"{tables.BRIGHT_MARGIN_MAG} mag (usable down to m={m_sat:.2f}); such a star has no meaningful NL answer",
+        )
+    if magnitude < m_sat:
+        return [make(FlagCode.RAMP_SATURATED, magnitude=magnitude, m_sat=m_sat)]
+    if magnitude < m_sat_final_frame:
+        return [_between_limits_flag(magnitude, m_sat, m_sat_final_frame)]
+    return []
+
+
+def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float, str]:
+    """The brightest usable star: the fainter of the NL limit and saturation, and which binds."""
+    if m_nl is None or m_nl < m_sat:
+        where = "" if m_nl is None else f" (the NL error would reach the tolerance only at m={m_nl:.2f})"
+        flags.append(make(FlagCode.SATURATION_BINDS, m_sat=m_sat, where=where, nonlinearity_magnitude=m_nl))
+        return m_sat, "saturation"
+    return m_nl, "nonlinearity"
+
+
+def component_flags(slopes, metric: str, magnitude: float | None, slope: float | None, error: float | None) -> list:
+    """The flag of an e1 / e2 answer whose slope is small against the modulus |c_e| (below
+    :data:`COMPONENT_SMALL_FRACTION` of it) or within :data:`COMPONENT_ZERO_SIGMAS` standard errors
+    of zero, whatever was solved for; none for size, e or a slope not known. |c_e| is read from the
+    answer's own slopes (the field grid's or the simulation's at that magnitude), else the tables'."""
+    if metric not in ("e1", "e2") or magnitude is None or slope is None or not math.isfinite(magnitude):
+        return []
+    c, sigma = abs(float(slope)), abs(float(error or 0.0))
+    zero = c <= COMPONENT_ZERO_SIGMAS * sigma
+    ratio = slopes.modulus_over_component(magnitude) if hasattr(slopes, "modulus_over_component") else None
+    if ratio is None and c > 0:
+        from .model_part import component_scale  # the tables' |c_e| / |c_ei|
+
+        ratio = component_scale(slopes, magnitude)
+        ratio = None if ratio == 1.0 else ratio  # 1.0: no e slopes read (not an e answer's tables)
+    fraction = None if ratio is None or not math.isfinite(ratio) or ratio <= 0 else 1.0 / ratio
+    small = fraction is not None and fraction < COMPONENT_SMALL_FRACTION
+    if not (small or zero):
+        return []
+    reasons = []
+    if small:
+        reasons.append(f"small against the modulus (|c_{metric}| = {fraction:.2f} |c_e| < {COMPONENT_SMALL_FRACTION:g} |c_e|)")
+    if zero:
+        reasons.append(f"consistent with zero (within {COMPONENT_ZERO_SIGMAS:g} standard errors)")
+    modulus = math.nan if fraction is None else c / fraction
+    return [
+        make(
+            FlagCode.E_COMPONENT_SMALL,
+            metric=metric,
+            magnitude=float(magnitude),
+            why=" and ".join(reasons),
+            slope=float(slope),
+            error=sigma,
+            modulus=modulus,
+            fraction=fraction,
+            limit=COMPONENT_SMALL_FRACTION,
+        )
+    ]
