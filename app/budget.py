@@ -19,7 +19,8 @@ SCA range without one reads every node of the SCA; a batch counts its rows' node
 (the paper's tables, the field-point tables), and one answer of a page or curve route.
 
 Answers that are a pure function of the request -- the default without a position, the page's
-curves -- are kept (:class:`AnswerCache`, bounded): a repeated request costs a dictionary look-up.
+curves (``documents.CachedAnswers``) -- are kept (:class:`AnswerCache`, bounded): a repeated request
+costs a dictionary look-up.
 """
 
 from __future__ import annotations
@@ -336,6 +337,10 @@ def install_metering() -> None:
 TURN_WAIT_S = 30.0
 
 
+#: Whether the request in progress holds its turn (turns are not taken twice by one request).
+_HOLDING: contextvars.ContextVar[bool] = contextvars.ContextVar("nlpsf_holding_turn", default=False)
+
+
 class Turns:
     """Costly inline work (an answer from the field grid, a page curve, a batch, a large body's
     parsing, a document's build) runs one at a time per HTTP worker, in a worker thread: the event
@@ -347,8 +352,9 @@ class Turns:
         self._shared: asyncio.Semaphore | None = None
         self._lines: dict[str, tuple[asyncio.Semaphore, list[int]]] = {}
 
-    @contextlib.asynccontextmanager
-    async def turn(self, client: str) -> AsyncIterator[None]:
+    async def acquire(self, client: str) -> None:
+        """Wait for ``client``'s turn (its line, then the shared one); :class:`Throttled` after
+        :data:`TURN_WAIT_S`."""
         if self._shared is None:
             self._shared = asyncio.Semaphore(1)
         line, users = self._lines.setdefault(client, (asyncio.Semaphore(1), [0]))
@@ -361,21 +367,38 @@ class Turns:
                 except BaseException:
                     line.release()
                     raise
-        except TimeoutError:
-            users[0] -= 1
-            if users[0] == 0:
-                self._lines.pop(client, None)
-            raise Throttled(
-                f"this worker's inline work has been busy for {TURN_WAIT_S:g} s; retry shortly", "inline_turn_wait_s", 1.0
-            ) from None
+        except BaseException as error:
+            self._leave(client)
+            if isinstance(error, TimeoutError):
+                raise Throttled(
+                    f"this worker's inline work has been busy for {TURN_WAIT_S:g} s; retry shortly", "inline_turn_wait_s", 1.0
+                ) from None
+            raise
+
+    def release(self, client: str) -> None:
+        assert self._shared is not None
+        self._shared.release()
+        self._lines[client][0].release()
+        self._leave(client)
+
+    def _leave(self, client: str) -> None:
+        users = self._lines[client][1]
+        users[0] -= 1
+        if users[0] == 0:
+            self._lines.pop(client, None)
+
+    @contextlib.asynccontextmanager
+    async def turn(self, client: str) -> AsyncIterator[None]:
+        if _HOLDING.get():
+            yield  # this request has its turn already (a cached route's miss parsing its large body)
+            return
+        await self.acquire(client)
+        holding = _HOLDING.set(True)
         try:
             yield
         finally:
-            self._shared.release()
-            line.release()
-            users[0] -= 1
-            if users[0] == 0:
-                self._lines.pop(client, None)
+            _HOLDING.reset(holding)
+            self.release(client)
 
 
 def turn() -> contextlib.AbstractAsyncContextManager[None]:
@@ -393,22 +416,24 @@ def turn_in_thread() -> Iterator[None]:
     import anyio.from_thread
 
     work = ACTIVE.get()
-    if work is None:
+    if work is None or _HOLDING.get():
         yield
         return
-    manager = work.budget.turns.turn(work.meter.client)
+    turns, client = work.budget.turns, work.meter.client
     try:
-        anyio.from_thread.run(manager.__aenter__)
+        anyio.from_thread.run(turns.acquire, client)
     except RuntimeError:  # not in a thread of the event loop's
         yield
         return
+    holding = _HOLDING.set(True)
     try:
         yield
     finally:
-        anyio.from_thread.run(manager.__aexit__, None, None, None)
+        _HOLDING.reset(holding)
+        anyio.from_thread.run_sync(turns.release, client)
 
 
-# --- the middleware: whose request it is, and the page's pure GET answers -------------------------
+# --- the middleware: whose request it is --------------------------------------------------------
 
 
 def client_key(scope: Any) -> str:
@@ -420,14 +445,6 @@ def client_key(scope: Any) -> str:
         return key
     client = scope.get("client")
     return f"address:{client[0] if client else 'unknown'}"
-
-
-def canonical_query(query_string: bytes) -> tuple[tuple[str, str], ...]:
-    """A query as a cache key: its parameters by name (a name's repeated values keep their order)."""
-    from urllib.parse import parse_qsl
-
-    pairs = parse_qsl(query_string.decode("latin-1"), keep_blank_values=True)
-    return tuple(sorted(pairs, key=lambda pair: pair[0]))
 
 
 class ClientMeter:
@@ -487,63 +504,6 @@ def _declared_length(scope: Any) -> int:
         if name == b"transfer-encoding":
             return 1 << 30
     return 0
-
-
-class CachedAnswers:
-    """ASGI middleware for the GET routes in ``routes`` -- pure functions of their query (the page's
-    curves, /fits, /meta): answered from :class:`AnswerCache` when asked again, admitted against the
-    client's share when not, their cost (one unit of their path) learned as measured. Inside the
-    compression, so what it keeps is the route's own answer."""
-
-    def __init__(self, app: Any, budget: InlineBudget, routes: frozenset[str]):
-        self.app = app
-        self.budget = budget
-        self.routes = routes
-
-    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        work = ACTIVE.get()
-        if scope["type"] != "http" or scope["method"] != "GET" or scope.get("path") not in self.routes or work is None:
-            await self.app(scope, receive, send)
-            return
-        path = scope["path"]
-        key = ("GET", path, canonical_query(scope.get("query_string", b"")))
-        if await self._kept(key, send):
-            return
-        try:
-            self.budget.admit(work.meter, self.budget.costs.estimate(path, 1.0))
-            async with self.budget.turns.turn(work.meter.client):
-                if not await self._kept(key, send):  # answered while this request waited its turn?
-                    await self._answer(scope, receive, send, work, key)
-        except Throttled as refused:
-            await refuse(send, refused)
-
-    async def _kept(self, key: Any, send: Any) -> bool:
-        if (hit := self.budget.answers.get(key)) is None:
-            return False
-        headers, body = hit
-        # A fresh list: the middleware outside (gzip, the security headers) edits it in place.
-        await send({"type": "http.response.start", "status": 200, "headers": list(headers)})
-        await send({"type": "http.response.body", "body": body})
-        return True
-
-    async def _answer(self, scope: Any, receive: Any, send: Any, work: Work, key: Any) -> None:
-        path = scope["path"]
-        start: dict[str, Any] = {}
-        chunks: list[bytes] = []
-        used_before = work.meter.used_s
-
-        async def keep(message: Any) -> None:
-            if message["type"] == "http.response.start":
-                start.update(message, headers=list(message.get("headers", [])))  # as this route sent them
-            elif message["type"] == "http.response.body":
-                chunks.append(message.get("body", b""))
-                if not message.get("more_body", False) and start.get("status") == 200:
-                    body = b"".join(chunks)
-                    self.budget.answers.put(key, (start["headers"], body), len(body) + 512)
-            await send(message)
-
-        await self.app(scope, receive, keep)
-        self.budget.costs.observe(path, 1.0, work.meter.used_s - used_before)
 
 
 async def refuse(send: Any, refused: Throttled, headers: list | None = None) -> None:

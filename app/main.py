@@ -29,7 +29,7 @@ from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import providers, tables
 from nlpsf.solve import batch
 
-from . import api, budget, errors, models, page_api, simulations, tables_api
+from . import api, budget, documents, errors, models, page_api, simulations
 from .jobs import Dispatcher, Notifier
 from .security import ApiKey, ApiMethods, BodyLimit, JsonBodies, SecurityHeaders
 from .settings import Settings
@@ -57,23 +57,14 @@ def _answer_one_default_solve() -> None:
         log.exception("the warm-up default solve failed; default answers will fail the same way")
 
 
-#: GET routes whose answer is a pure function of their query (and the settings), costly enough to
-#: budget (milliseconds to tens of them): kept per request and admitted against the client's share.
-CACHED_ROUTES = frozenset(
-    "/api/v1/" + path
-    for path in (
-        "meta",
-        "fits",
-        "paper",
-        "curves/slope",
-        "curves/beta",
-        "curves/sigma_beta",
-        "page/requirement",
-        "page/limits",
-        "page/slopes",
-        "page/presets",
-    )
-)
+#: Routes whose answer is a pure function of the request (its query, and its body for a POST) and
+#: the settings, costly enough to budget (milliseconds to half a second): kept per request and
+#: admitted against the client's share when not kept (``documents.CachedAnswers``); path -> method.
+CACHED_ROUTES = {
+    **{f"/api/v1/{path}": "GET" for path in ("meta", "fits", "paper", "curves/slope", "curves/beta", "curves/sigma_beta")},
+    **{f"/api/v1/page/{path}": "GET" for path in ("presets", "tables.csv")},
+    **{f"/api/v1/page/{path}": "POST" for path in ("limits", "requirement", "slopes")},
+}
 
 
 #: The request model of each route that takes a JSON body: a large body is validated against it off
@@ -83,6 +74,7 @@ REQUEST_SCHEMAS = {
     "/api/v1/solve/batch": models.BatchSolveRequest,
     "/api/v1/simulations": models.SimulationRequest,
     "/api/v1/impact": models.ImpactRequest,
+    **{f"/api/v1/page/{path}": models.SolveRequest for path in ("limits", "requirement", "slopes")},
 }
 
 
@@ -138,7 +130,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     share, burst, total = settings.inline_cpu_share, settings.inline_cpu_burst_s, settings.inline_cpu_total_share
     app.state.budget = budget.InlineBudget(share, burst, total, settings.inline_cache_mb * 1024**2)
-    app.state.documents = tables_api.Documents(settings.documents_cache_mb * 1024**2)
+    app.state.documents = documents.Documents(settings.documents_cache_mb * 1024**2)
     errors.install(app)
     app.include_router(api.router)
     app.include_router(simulations.router)
@@ -160,7 +152,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # metered and charged to its client (outside the body's reading, so a client in debt is refused
     # before its body is read); the key; the Host check; the security headers on every response.
     app.add_middleware(JsonBodies, schemas=REQUEST_SCHEMAS)
-    app.add_middleware(budget.CachedAnswers, budget=app.state.budget, routes=CACHED_ROUTES)
+    app.add_middleware(documents.CachedAnswers, budget=app.state.budget, documents=app.state.documents, routes=CACHED_ROUTES)
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=6)
     app.add_middleware(ApiMethods)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, timeout_s=settings.body_timeout_s)

@@ -146,10 +146,10 @@ def test_the_tables_are_built_once_and_sent_compressed_with_validators(client):
     first = client.get("/api/v1/tables", headers={"Accept-Encoding": "gzip"})
     assert first.status_code == 200 and first.headers["content-encoding"] == "gzip"
     assert first.headers["vary"] == "Accept-Encoding"
-    built = documents.peek(("json", None, None))
-    assert built is not None and int(first.headers["content-length"]) == len(built.gzipped)
+    built = documents.peek(("tables", "json", None, None))
+    assert built is not None and built.gzipped and int(first.headers["content-length"]) == len(built.gzipped)
     again = client.get("/api/v1/tables", headers={"Accept-Encoding": "gzip"})
-    assert documents.peek(("json", None, None)) is built and again.content == first.content
+    assert documents.peek(("tables", "json", None, None)) is built and again.content == first.content
     assert len(first.json()["rows"]) == len(tables.table_rows(None, None))
     plain = client.get("/api/v1/tables", headers={"Accept-Encoding": "identity"})
     assert "content-encoding" not in plain.headers and plain.content == built.body
@@ -162,13 +162,13 @@ def test_the_tables_are_built_once_and_sent_compressed_with_validators(client):
 
 def test_head_does_not_build_a_document(client):
     documents = client.app.state.documents
-    assert documents.peek(("csv", "J129", 7)) is None
+    assert documents.peek(("tables", "csv", "J129", 7)) is None
     head = client.head("/api/v1/tables.csv", params={"band": "J129", "sca": 7})
     assert head.status_code == 200 and head.headers["etag"] and not head.content
-    assert documents.peek(("csv", "J129", 7)) is None
+    assert documents.peek(("tables", "csv", "J129", 7)) is None
     got = client.get("/api/v1/tables.csv", params={"band": "J129", "sca": 7})
     assert got.status_code == 200 and got.headers["etag"] == head.headers["etag"]
-    assert documents.peek(("csv", "J129", 7)) is not None
+    assert documents.peek(("tables", "csv", "J129", 7)) is not None
 
 
 # --- inline work budgeted per client ------------------------------------------------------------------
@@ -228,11 +228,15 @@ def test_a_batch_is_budgeted_by_its_rows_cost_not_its_row_count(client, make_cli
 
 def test_a_costly_page_answer_is_budgeted_and_a_repeated_one_kept(make_client):
     with make_client(inline_cpu_share=1e-6, inline_cpu_total_share=1e-6, inline_cpu_burst_s=0.01) as tight:
-        asked = [{"tolerance": 1e-4 * (1 + k / 10)} for k in range(4)]
-        statuses = [tight.get("/api/v1/page/requirement", params=params).status_code for params in asked]
+        asked = [{**DEFAULT, "tolerance": 1e-4 * (1 + k / 10)} for k in range(4)]
+        answers = [tight.post("/api/v1/page/requirement", json=body) for body in asked]
+        statuses = [a.status_code for a in answers]
         assert statuses[0] == 200 and statuses[-1] == 429, statuses
-        # The first answer is kept: asked again, it costs nothing and is answered.
-        assert tight.get("/api/v1/page/requirement", params={"tolerance": 1e-4}).status_code == 200
+        # The first answer is kept: asked again, it costs nothing and is the same answer, with a validator.
+        again = tight.post("/api/v1/page/requirement", json=asked[0])
+        assert again.status_code == 200 and again.json() == answers[0].json() and again.headers["etag"]
+        revalidated = tight.post("/api/v1/page/requirement", json=asked[0], headers={"If-None-Match": again.headers["etag"]})
+        assert revalidated.status_code == 304
 
 
 def test_cached_answers_are_the_answers(client):
@@ -243,6 +247,8 @@ def test_cached_answers_are_the_answers(client):
     assert entry["solution"] == first
     curves = [client.get("/api/v1/curves/slope", params={"metric": "e1"}) for _ in range(2)]
     assert curves[0].json() == curves[1].json() and curves[0].headers["content-type"] == curves[1].headers["content-type"]
+    download = [client.get("/api/v1/page/tables.csv") for _ in range(2)]
+    assert download[0].text == download[1].text and download[1].headers["content-disposition"].startswith("attachment")
 
 
 def test_a_default_solve_costs_its_nodes():
