@@ -12,7 +12,7 @@ from nlpsf.sim import detector
 from nlpsf.slopes import fidelity, tables
 from nlpsf.solve import solver
 
-from . import models
+from . import data_models, models
 from .errors import SafeJSONResponse
 from .params import ERRORS, Band, Beta0, Exptime, FullWell, Magnitude, MetricQuery, ModeQuery, Points, Sca
 
@@ -21,7 +21,7 @@ router = APIRouter(prefix="/api/v1")
 
 @router.get(
     "/curves/slope",
-    response_model=models.SlopeCurves,
+    response_model=data_models.SlopeCurves,
     responses=ERRORS,
     summary="Slope vs magnitude for every band (the paper's Figs. 3 and 5)",
 )
@@ -90,7 +90,7 @@ def _grid(top: float, points: int) -> list[float]:
 
 @router.get(
     "/curves/beta",
-    response_model=models.BetaCurve,
+    response_model=data_models.BetaCurve,
     responses=ERRORS,
     summary="Metric vs beta at one magnitude (the paper's Fig. 2)",
 )
@@ -127,7 +127,7 @@ def beta_curve(
 
 @router.get(
     "/curves/sigma_beta",
-    response_model=models.SigmaBetaCurve,
+    response_model=data_models.SigmaBetaCurve,
     responses=ERRORS,
     summary="Scatter of the metric vs sigma_beta at one magnitude",
 )

@@ -16,7 +16,7 @@ from nlpsf.sim import scene as scenes
 from nlpsf.slopes import fidelity, tables
 from nlpsf.solve import solver
 
-from . import liveness, models
+from . import data_models, liveness, models
 from .deps import ServicesDep, SettingsDep
 from .errors import SafeJSONResponse
 
@@ -25,7 +25,7 @@ router = APIRouter(prefix="/api/v1")
 
 @router.get(
     "/health",
-    response_model=models.Health,
+    response_model=data_models.Health,
     summary="Liveness: 200 when the service answers; 'degraded' (with the reason) when simulations cannot run",
 )
 async def health(services: ServicesDep) -> dict[str, Any]:
@@ -81,7 +81,7 @@ def scene_effects() -> list[dict[str, Any]]:
     ]
 
 
-@router.get("/meta", response_model=models.Meta, summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
+@router.get("/meta", response_model=data_models.Meta, summary="Bands, SCAs, metrics, defaults, limits, data and code versions")
 def meta(settings: SettingsDep) -> SafeJSONResponse:
     table_set = tables.load_tables()
     solve_defaults = models.SolveRequest.model_fields

@@ -82,15 +82,9 @@ SOLVE_SERVICE_FIELDS = ("over_field",)
 
 
 def solve_body(fields: dict[str, Any], given: set[str]) -> dict[str, Any]:
-    """A solve's JSON fields as the library's request reads them: the service's own fields left
-    out, ``exptime`` only when the client gave it (an MA table's exposure is otherwise its last read)
-    and ``ramp_fit`` likewise (not given: the scene's fit -- the Roman default's likelihood fit, the
-    paper's OLS -- as the CLI and a simulation take it; the schema's "ols" is the paper's)."""
-    body = {k: v for k, v in fields.items() if k not in SOLVE_SERVICE_FIELDS}
-    for name in ("exptime", "ramp_fit"):
-        if name not in given:
-            body.pop(name, None)
-    return body
+    """A solve's JSON fields as the library's request reads them: the service's own fields left out
+    (every published default is the library's: ``exptime`` and ``ramp_fit`` null, the scene's)."""
+    return {k: v for k, v in fields.items() if k not in SOLVE_SERVICE_FIELDS}
 
 
 def solve_request(body: dict[str, Any]) -> SolveRequest:
@@ -122,7 +116,7 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     ramp, exptime = build_ramp(
         request.get("ramp"),
         request.get("ma_table"),
-        request.get("ramp_fit", "ols"),
+        request.get("ramp_fit") or "ols",
         request.get("read_noise"),
         request.get("exptime"),
         request["sca"],
@@ -389,53 +383,12 @@ def _result_row(result) -> dict[str, Any]:
     return row
 
 
-def simulation_scene_defaults(payload: dict[str, Any], given: set[str]) -> dict[str, Any]:
-    """What a simulation leaves unset, filled as the CLI's ``simulate`` fills it (one owner:
-    ``nlpsf.request.presets``): without a scene (or with preset "roman") the Roman default -- its
-    scene at the request's position (the SCA centre otherwise), the HLWAS readout with the
-    likelihood fit and its exposure unless a ramp, MA table or exptime is given, the official pupil
-    scale, and its sky over that exposure unless ``scene.background`` is given. ``scene`` "paper"
-    (or "galsim-roman"): the paper's final frame of 168.1 s and the tables' pupil scale, as before.
-    The normalised request names every value, so its hash says which scene was simulated."""
-    from nlpsf import defaults
-    from nlpsf.request import presets as roman_default
-    from nlpsf.roman import backgrounds
-    from nlpsf.sim import ramps
+def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
+    from nlpsf.request import presets
 
     from .models import build_ramp
 
-    payload = dict(payload)
-    scene = payload.get("scene")
-    scene = {"preset": scene} if isinstance(scene, str) else dict(scene or {})
-    preset = scene.get("preset") or roman_default.NAME
-    if preset != roman_default.NAME:
-        # The paper's scene named alone is the request without a scene: the same hash as before.
-        alone = all(v is None for k, v in scene.items() if k not in ("preset", "sed_units"))
-        payload["scene"] = None if preset == "paper" and alone else scene
-        payload["pupil_scale"] = payload.get("pupil_scale") or defaults.PUPIL_SCALE
-        if "exptime" not in given:
-            payload["exptime"] = None  # an MA table's last read, else the paper's 168.1 s (ramps.build)
-        return payload
-    if payload.get("ramp") is None and payload.get("ma_table") is None:
-        payload["ma_table"] = ramps.load_ma_table(roman_default.MA_TABLE).name
-    if "ramp_fit" not in given:
-        payload["ramp_fit"] = roman_default.RAMP_FIT
-    if "exptime" not in given:
-        payload["exptime"] = None  # the readout's last read (139.149 s for the HLWAS table)
-    payload["pupil_scale"] = payload.get("pupil_scale") or roman_default.PUPIL_SCALE
-    if scene.get("background") is None:
-        _, exptime = build_ramp(
-            payload.get("ramp"), payload.get("ma_table"), payload["ramp_fit"], payload.get("read_noise"),
-            payload["exptime"], payload["sca"],
-        )  # fmt: skip
-        band = str(payload["band"]).upper()
-        scene["background"] = backgrounds.background_electrons(roman_default.BACKGROUND, band, payload["sca"], exptime)
-    payload["scene"] = {**scene, "preset": roman_default.NAME}
-    return payload
-
-
-def _validate_simulation(fields: dict[str, Any], given: set[str], settings: Any) -> dict[str, Any]:
-    payload = simulation_scene_defaults(capped_defaults(fields, given, settings.limits), given)
+    payload = presets.fill_simulation(capped_defaults(fields, given, settings.limits), given, build_ramp)
     return validate(payload, settings.limits, settings.job_memory_mb)
 
 

@@ -13,7 +13,6 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from nlpsf import defaults, roman
-from nlpsf.request import presets as roman_default
 from nlpsf.request import shear
 from nlpsf.request.resolve import MAX_STARS
 from nlpsf.sim import detector, ramps
@@ -208,9 +207,9 @@ class RampFields(BaseModel):
         description=f"MultiAccum table (no unit): a shipped name ({', '.join(SHIPPED_MA_TABLES)}) or the table itself "
         "(never a file on the server); without an exptime the exposure is the table's last read",
     )
-    ramp_fit: RampFit = Field(
-        "ols",
-        description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting); not given: the scene's (the "
+    ramp_fit: RampFit | None = Field(
+        None,
+        description="slope fit (no unit): ols, or optimal (read + Poisson noise weighting); null: the scene's (the "
         "Roman default: optimal, romancal's likelihood fit, on its HLWAS table unless a ramp or MA table is given; the "
         "paper's: ols)",
     )
@@ -253,11 +252,10 @@ class SolveRequest(RampFields):
     beta0: float = _within(
         defaults.BETA0_RANGE, "NL coefficient beta0 in 1/e- (paper convention S = Q - beta Q^2)", _SOLVE_DEFAULTS["beta0"]
     )
-    exptime: float = _within(
+    exptime: float | None = _within(
         defaults.EXPTIME_RANGE_S,
-        "exposure time in s; not given: the scene's (the Roman default's HLWAS table's last read, 139.149 s; the "
-        "paper's 168.1 s)",
-        roman_default.exptime_s(),
+        "exposure time in s; null: the scene's (the Roman default's HLWAS table's last read, 139.149 s; the "
+        "paper's 168.1 s; an MA table's last read)",
     )
     precision: float | None = _within(
         defaults.PRECISION_RANGE,
@@ -337,7 +335,8 @@ class SolveRequest(RampFields):
     )
 
 
-def _f(description: str, default: Any = ...) -> Any:
+def desc(description: str, default: Any = ...) -> Any:
+    """A field with its description (``...``: required)."""
     return Field(default, description=description)
 
 
@@ -346,43 +345,53 @@ class SolveResponse(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    band: str = _f("Roman band (no unit)")
-    sca: int = _f("detector (SCA number, no unit)")
-    metric: str = _f("the PSF metric (no unit): size, e1, e2 or e")
-    mode: str = _f("bias or scatter (no unit)")
-    beta0: float = _f("NL coefficient beta0 in 1/e- (paper convention)")
-    exptime: float = _f("exposure time in s")
-    full_well: float | None = _f("full-well depth in e-", None)
-    precision: float | None = _f("calibration precision, dimensionless fraction of beta0")
-    tolerance: float | None = _f("tolerated error of the metric, dimensionless")
-    magnitude: float | None = _f("star magnitude in AB mag")
-    solved_for: str = _f("which of precision, tolerance, magnitude was solved for (no unit)")
-    uncertainty: float | None = _f("1-sigma uncertainty of the solved quantity, in its unit")
-    uncertainty_statistical: float | None = _f("statistical part of the uncertainty, in the solved quantity's unit", None)
-    uncertainty_fidelity: float | None = _f("fidelity (method) part of the uncertainty, in the solved quantity's unit", None)
-    uncertainty_optical_model: float | None = _f("optical-model part of the uncertainty, in the solved quantity's unit", None)
-    uncertainty_model: float | None = _f(
+    band: str = desc("Roman band (no unit)")
+    sca: int = desc("detector (SCA number, no unit)")
+    metric: str = desc("the PSF metric (no unit): size, e1, e2 or e")
+    mode: str = desc("bias or scatter (no unit)")
+    beta0: float = desc("NL coefficient beta0 in 1/e- (paper convention)")
+    exptime: float = desc("exposure time in s")
+    full_well: float | None = desc("full-well depth in e-", None)
+    precision: float | None = desc("calibration precision, dimensionless fraction of beta0")
+    tolerance: float | None = desc("tolerated error of the metric, dimensionless")
+    magnitude: float | None = desc("star magnitude in AB mag")
+    solved_for: str = desc("which of precision, tolerance, magnitude was solved for (no unit)")
+    uncertainty: float | None = desc("1-sigma uncertainty of the solved quantity, in its unit")
+    uncertainty_statistical: float | None = desc("statistical part of the uncertainty, in the solved quantity's unit", None)
+    uncertainty_fidelity: float | None = desc("fidelity (method) part of the uncertainty, in the solved quantity's unit", None)
+    uncertainty_optical_model: float | None = desc("optical-model part of the uncertainty, in the solved quantity's unit", None)
+    uncertainty_model: float | None = desc(
         "scene-model part of the uncertainty (effects left out and the pupil-scale rule), in the solved quantity's unit", None
     )
-    model: dict[str, Any] | None = _f(
+    model: dict[str, Any] | None = desc(
         "the scene effects the answer includes and leaves out, each with its relative impact on the slope and why", None
     )
-    slope: float | None = _f("slope c(m) = d(metric)/d(beta) or sigma(metric)/sigma_beta, in e- (metric per 1/e-)")
-    slope_uncertainty: float | None = _f("1-sigma uncertainty of the slope in e-", None)
-    saturation_magnitude: float | None = _f("magnitude (AB mag) brighter than which the brightest pixel saturates")
-    final_frame_saturation_magnitude: float | None = _f("saturation magnitude (AB mag) of a single final frame", None)
-    brightest_usable_magnitude: float | None = _f("brightest usable star in AB mag (magnitude solves)", None)
-    binding_limit: str | None = _f("which limit sets the brightest usable star: nonlinearity or saturation (no unit)", None)
-    nonlinearity_magnitude: float | None = _f("magnitude (AB mag) at which the NL error reaches the tolerance", None)
-    stars: int = _f("number of stars/dithers averaged (count)")
-    applies_to: str = _f("what the tolerance applies to (text)")
-    shear: dict[str, Any] | None = _f("shear-bias budget and the tolerance it implies (dimensionless values)")
-    flags: list[str] = _f("warnings about the answer's validity (text)")
-    flag_codes: list[str] = _f(
+    slope: float | None = desc("slope c(m) = d(metric)/d(beta) or sigma(metric)/sigma_beta, in e- (metric per 1/e-)")
+    slope_uncertainty: float | None = desc("1-sigma uncertainty of the slope in e-", None)
+    saturation_magnitude: float | None = desc("magnitude (AB mag) brighter than which the brightest pixel saturates")
+    final_frame_saturation_magnitude: float | None = desc("saturation magnitude (AB mag) of a single final frame", None)
+    brightest_usable_magnitude: float | None = desc("brightest usable star in AB mag (magnitude solves)", None)
+    binding_limit: str | None = desc("which limit sets the brightest usable star: nonlinearity or saturation (no unit)", None)
+    nonlinearity_magnitude: float | None = desc("magnitude (AB mag) at which the NL error reaches the tolerance", None)
+    stars: int = desc("number of stars/dithers averaged (count)")
+    applies_to: str = desc("what the tolerance applies to (text)")
+    shear: dict[str, Any] | None = desc("shear-bias budget and the tolerance it implies (dimensionless values)")
+    flags: list[str] = desc("warnings about the answer's validity (text)")
+    flag_codes: list[str] = desc(
         "the code of each flag, in the same order (flag_codes[i] is flags[i]'s; the catalogue: GET /api/v1/meta → flag_codes)"
     )
-    fidelity: str = _f("the fidelity level used (no unit)")
-    conditions: dict[str, Any] = _f("the conditions of the answer: band, SCA, exposure (s), beta0 (1/e-), settings")
+    fidelity: str = desc("the fidelity level used (no unit)")
+    conservative: dict[str, Any] | None = desc(
+        "the answer that holds if the slope is at the top of its uncertainty: the solved quantity (its unit), "
+        "relative_slope_bound (dimensionless) and its coverage (text)",
+        None,
+    )
+    ranges: dict[str, Any] | None = desc(
+        "what varies from star to star (e.g. the SED): each range's ends, the slope's relative change there "
+        "(dimensionless) and the solved quantity there (its unit); not an uncertainty",
+        None,
+    )
+    conditions: dict[str, Any] = desc("the conditions of the answer: band, SCA, exposure (s), beta0 (1/e-), settings")
 
 
 class FieldError(BaseModel):
@@ -438,131 +447,6 @@ class BatchSolveResponse(BaseModel):
     failed: int = Field(description="number of requests refused (count)")
 
 
-class JobStoreStatus(BaseModel):
-    state: str = Field(description="ok, starting or unavailable (no unit)")
-    reason: str | None = Field(None, description="why simulations cannot run (text)")
-    since: float | None = Field(None, description="Unix time in s of the last state change")
-
-
-class Health(BaseModel):
-    model_config = ConfigDict(extra="allow")
-
-    status: Literal["ok", "degraded"] = Field(description="ok, or degraded when simulations cannot run")
-    version: str = Field(description="code version (no unit)")
-    calculator: str = Field(description="state of the calculator (no unit)")
-    job_store: JobStoreStatus = Field(description="state of the simulation job store")
-    http_workers: dict[str, Any] | None = Field(
-        None,
-        description="the HTTP workers under the supervisor: workers, responding (counts), stalled (each worker's index and "
-        "silence in s), heartbeat_timeout_s; null when no supervisor runs the service",
-    )
-
-
-class FlagCatalogueEntry(BaseModel):
-    code: str = _f("the flag's code, stable across versions and languages (no unit)")
-    template: str = _f("the message's template; {name} is one of quotes (text)")
-    quotes: list[str] = _f("the values the message quotes (no unit)")
-    meaning: str = _f("what the flag means, in one sentence (text)")
-
-
-class SceneEffectEntry(BaseModel):
-    name: str = _f("the effect (no unit), as the impact report names it")
-    fields: list[str] = _f("the library's scene fields that set it (nlpsf.sim.scene.SceneModel; no unit)")
-    nominal: dict[str, Any] = _f("the Roman value tried when a scene leaves it off, in the fields' units (null: none)")
-    source: str = _f("where the nominal value comes from (text)")
-    kind: Literal["optical", "detector"] = _f("optical: acts on the PSF before the pixels; detector: in the pixels")
-    breaks_beta_q: bool = _f("adds a flux dependence of its own (the tables' beta x flux rescaling then does not hold)")
-    combines_with: str = _f("what it can be simulated together with (text)")
-    in_roman_preset: bool = _f("part of the scene preset 'roman' at its nominal value")
-
-
-class Meta(BaseModel):
-    model_config = ConfigDict(extra="allow")
-
-    service: str = _f("service name (no unit)")
-    api_version: str = _f("API version (no unit)")
-    code_version: str = _f("code version (no unit)")
-    data_version: str = _f("optical data version (no unit)")
-    tables: dict[str, Any] = _f("metadata of the shipped slope tables (settings, fingerprint, units)")
-    bands: list[str] = _f("Roman bands (no unit)")
-    table_bands: list[str] = _f("bands with shipped tables (no unit)")
-    scas: list[int] = _f("detector numbers (no unit)")
-    metrics: list[str] = _f("PSF metrics (no unit)")
-    modes: list[str] = _f("modes (no unit)")
-    fidelities: list[str] = _f("solve fidelity levels (no unit)")
-    simulation_fidelities: list[str] = _f("simulation fidelity levels (no unit)")
-    defaults: dict[str, Any] = _f("request defaults, in the units of the request fields")
-    limits: dict[str, Any] = _f("service limits (counts, s, MB, bytes as named)")
-    flag_codes: list[FlagCatalogueEntry] = _f("every flag code an answer or a simulation result may carry (nlpsf.flags)")
-    scene_effects: list[SceneEffectEntry] = _f("the scene effects, in the order they act (nlpsf.sim.scene.REGISTRY)")
-
-
-class TableJSON(BaseModel):
-    meta: dict[str, Any] = _f("metadata of the tables (settings, fingerprint; units under 'units')")
-    rows: list[dict[str, Any]] = _f(
-        "one row per (band, SCA, magnitude): magnitude in AB mag, flux_electrons in e-, peak_electrons in e- per fine "
-        "pixel x N^2, slopes bias_* / scatter_* and their _err / _interp in e- (metric per 1/e- of beta or sigma_beta)"
-    )
-
-
-class Fits(BaseModel):
-    fits: list[dict[str, Any]] | dict[str, Any] = _f(
-        "power-law fits slope = A 10^(B (m - 20)): A in e- (metric per 1/e-), B in 1/mag, per band, SCA and mode"
-    )
-
-
-class SlopeCurve(BaseModel):
-    model_config = ConfigDict(extra="allow")
-
-    band: str = _f("Roman band (no unit)")
-    sca: int = _f("detector (no unit)")
-    magnitude: list[float] = _f("magnitudes in AB mag")
-    slope: list[float | None] = _f("slope c(m) in e- (metric per 1/e- of beta or sigma_beta), signed")
-    uncertainty: list[float | None] = _f("statistical 1-sigma uncertainty of the slope in e-")
-    fidelity_relative_uncertainty: float | None = _f("the table level's measured relative error (dimensionless)", None)
-    saturation_magnitude: float | None = _f("saturation magnitude in AB mag")
-    conditions: dict[str, Any] = _f("conditions: exposure in s, beta0 in 1/e-, full well in e-, settings")
-
-
-class SlopeCurves(BaseModel):
-    source: str = _f("where the numbers come from (text)")
-    metric: str = _f("the PSF metric (no unit)")
-    mode: str = _f("bias or scatter (no unit)")
-    curves: list[SlopeCurve] = _f("one curve per band")
-
-
-class LinearCurve(BaseModel):
-    model_config = ConfigDict(extra="allow")
-
-    source: str = _f("where the numbers come from (text)")
-    band: str = _f("Roman band (no unit)")
-    sca: int = _f("detector (no unit)")
-    metric: str = _f("the PSF metric (no unit)")
-    magnitude: float = _f("star magnitude in AB mag")
-    values: list[float | None] = _f("the metric (dimensionless) at each beta or sigma_beta")
-    uncertainty: list[float | None] = _f("statistical 1-sigma uncertainty of each value (dimensionless)")
-    fidelity_relative_uncertainty: float | None = _f("the table level's measured relative error (dimensionless)", None)
-    slope: float | None = _f("slope in e- (metric per 1/e-)")
-    flags: list[str] = _f("validity warnings (text)")
-    flag_codes: list[str] = _f("the code of each flag, in the same order (catalogue: GET /api/v1/meta → flag_codes)")
-    saturation_magnitude: float | None = _f("saturation magnitude in AB mag")
-    conditions: dict[str, Any] = _f("conditions: exposure in s, beta0 in 1/e-, full well in e-, settings")
-
-
-class BetaCurve(LinearCurve):
-    beta: list[float] = _f("NL coefficients beta in 1/e-")
-
-
-class SigmaBetaCurve(LinearCurve):
-    sigma_beta: list[float] = _f("per-pixel beta scatter sigma_beta in 1/e-")
-
-
-class PaperData(BaseModel):
-    model_config = ConfigDict(extra="allow")
-
-    magnitudes: list[float] = _f("the paper's magnitudes in AB mag")
-
-
 class ImpactRequest(BaseModel):
     """What each scene effect changes in the slopes at one point (``nlpsf impact``)."""
 
@@ -590,20 +474,20 @@ class ImpactRequest(BaseModel):
 class ImpactEffect(BaseModel):
     model_config = ConfigDict(extra="allow")
 
-    name: str = _f("the scene effect (no unit)")
-    on: bool = _f("whether the request's scene has the effect on")
-    impact: dict[str, float | None] = _f("relative change of the slope per metric (dimensionless; 0.05 = +5 %)")
-    uncertainty: dict[str, float | None] = _f("1-sigma uncertainty of each relative change (dimensionless)")
-    cost_s: float | None = _f("time of the run with the effect, in s")
-    value: Any = _f("the effect's value as measured, in the unit of its scene field", None)
-    note: str | None = _f("how the effect was measured (text)", None)
+    name: str = desc("the scene effect (no unit)")
+    on: bool = desc("whether the request's scene has the effect on")
+    impact: dict[str, float | None] = desc("relative change of the slope per metric (dimensionless; 0.05 = +5 %)")
+    uncertainty: dict[str, float | None] = desc("1-sigma uncertainty of each relative change (dimensionless)")
+    cost_s: float | None = desc("time of the run with the effect, in s")
+    value: Any = desc("the effect's value as measured, in the unit of its scene field", None)
+    note: str | None = desc("how the effect was measured (text)", None)
 
 
 class ImpactReport(BaseModel):
     model_config = ConfigDict(extra="allow")
 
-    effects: list[ImpactEffect] = _f("one entry per scene effect")
-    conditions: dict[str, Any] = _f("conditions: band, SCA, magnitude (AB mag), beta0 (1/e-), exposure (s), scene, slopes (e-)")
+    effects: list[ImpactEffect] = desc("one entry per scene effect")
+    conditions: dict[str, Any] = desc("conditions: band, SCA, magnitude (AB mag), beta0 (1/e-), exposure (s), scene, slopes (e-)")
 
 
 class SimulationRequest(RampFields):
@@ -631,11 +515,10 @@ class SimulationRequest(RampFields):
     beta_convention: BetaConvention = Field(
         "paper", description="sign convention (no unit); paper: S = Q - beta Q^2; galsim: S = Q + beta Q^2"
     )
-    exptime: float = _within(
+    exptime: float | None = _within(
         defaults.EXPTIME_RANGE_S,
-        "exposure time in s; not given: the scene's readout's (the Roman default's HLWAS table's last read, "
+        "exposure time in s; null: the scene's readout's (the Roman default's HLWAS table's last read, "
         "139.149 s; the paper's 168.1 s final frame; an MA table's last read)",
-        roman_default.exptime_s(),
     )
     full_well: float = _within(defaults.FULL_WELL_RANGE_E, "full-well depth in e-", defaults.FULL_WELL_E)
     fidelity: SimulationFidelity = Field(
@@ -685,23 +568,25 @@ JobState = Literal["queued", "running", "done", "failed", "cancelled", "interrup
 class Job(BaseModel):
     """A simulation job; ``result`` is filled once ``status`` is done."""
 
-    id: str = _f("the job's id, its capability (hex token)")
-    status: JobState = _f("queued, running, done, failed, cancelled or interrupted (no unit)")
-    progress: float = _f("fraction done, dimensionless 0 to 1")
-    message: str = _f("what the job is doing (text)")
-    cached: bool = _f("answered from stored results of an identical earlier request")
-    cancel_requested: bool = _f("a cancel was asked for")
-    queue_position: int | None = _f("place in the queue (count; null when not queued)")
-    request: dict[str, Any] = _f("the normalised request, in the units of SimulationRequest")
-    request_hash: str = _f("hash of the normalised request (hex)")
-    created_at: float = _f("Unix time in s")
-    started_at: float | None = _f("Unix time in s")
-    finished_at: float | None = _f("Unix time in s")
-    updated_at: float = _f("Unix time in s")
-    error: dict[str, Any] | None = _f("why the job failed: field and message (text)")
-    result: dict[str, Any] | None = _f("the result: metrics (dimensionless), fluxes in e-, magnitudes in AB mag, with conditions")
+    id: str = desc("the job's id, its capability (hex token)")
+    status: JobState = desc("queued, running, done, failed, cancelled or interrupted (no unit)")
+    progress: float = desc("fraction done, dimensionless 0 to 1")
+    message: str = desc("what the job is doing (text)")
+    cached: bool = desc("answered from stored results of an identical earlier request")
+    cancel_requested: bool = desc("a cancel was asked for")
+    queue_position: int | None = desc("place in the queue (count; null when not queued)")
+    request: dict[str, Any] = desc("the normalised request, in the units of SimulationRequest")
+    request_hash: str = desc("hash of the normalised request (hex)")
+    created_at: float = desc("Unix time in s")
+    started_at: float | None = desc("Unix time in s")
+    finished_at: float | None = desc("Unix time in s")
+    updated_at: float = desc("Unix time in s")
+    error: dict[str, Any] | None = desc("why the job failed: field and message (text)")
+    result: dict[str, Any] | None = desc(
+        "the result: metrics (dimensionless), fluxes in e-, magnitudes in AB mag, with conditions"
+    )
 
 
 class JobList(BaseModel):
-    jobs: list[Job] = _f("the caller's recent jobs, without results")
-    counts: dict[str, int] = _f("number of jobs per status (count)")
+    jobs: list[Job] = desc("the caller's recent jobs, without results")
+    counts: dict[str, int] = desc("number of jobs per status (count)")

@@ -21,7 +21,7 @@ from nlpsf import __version__
 from nlpsf.serialise import json_safe
 from nlpsf.slopes import tables
 
-from . import models
+from . import data_models
 from .documents import CACHE_CONTROL, Document, DocumentResponse, Documents, document, not_modified
 from .errors import SafeJSONResponse
 from .health_api import public_table_meta
@@ -65,7 +65,7 @@ def build_with(build: Callable[[], Document], etag: str) -> Document:
 
 @router.get(
     "/tables",
-    response_model=models.TableJSON,
+    response_model=data_models.TableJSON,
     responses={**ERRORS, **_NOT_MODIFIED},
     summary="The shipped slope tables as JSON rows (optionally one band / SCA); gzip-compressed, ETag-cacheable",
 )
@@ -148,7 +148,7 @@ def _csv_value(value: Any) -> Any:
 
 @router.get(
     "/fits",
-    response_model=models.Fits,
+    response_model=data_models.Fits,
     responses=ERRORS,
     summary="Power-law fits slope = A 10^(B (m - 20)) per band and SCA (the paper's Table 2 form)",
 )
@@ -160,7 +160,7 @@ def fits(band: OptionalBand = None, sca: OptionalSca = None) -> SafeJSONResponse
 
 @router.get(
     "/paper",
-    response_model=models.PaperData,
+    response_model=data_models.PaperData,
     summary="The paper's published figure data (Figs. 2, 3, 5, Table 2; Cycle-5 optics)",
 )
 def paper() -> SafeJSONResponse:

@@ -44,6 +44,7 @@ class FlagCode(StrEnum):
     FIDELITY_ERROR_UNKNOWN = "fidelity_error_unknown"
     FIDELITY_FROM_PAPER = "fidelity_from_paper"
     ACCURACY_SCENE = "accuracy_scene"
+    ACCURACY_CENTROIDS = "accuracy_centroids"
     SCENE_SIMULATED = "scene_simulated"
     PUPIL_SCALE_SIMULATED = "pupil_scale_simulated"
     BETA_Q_RULE_BROKEN = "beta_q_rule_broken"
@@ -67,6 +68,7 @@ class FlagCode(StrEnum):
     # The Roman default (nlpsf.request.presets)
     DEFAULT_FROM_GRID = "default_from_grid"
     DEFAULT_SIMULATED = "default_simulated"
+    DEFAULT_BETWEEN_LIMITS = "default_between_limits"
     LINEARISED_SIMULATED = "linearised_simulated"
     SCA_RANGE = "sca_range"
 
@@ -185,6 +187,14 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "{left_out} (measured together: {impact:+.2g}); total {total:.2g}",
         ("accuracy", "level", "level_error", "left_out", "impact", "total"),
         "What an accuracy answer simulates: its level's error and the measured impact of the effects it leaves out.",
+    ),
+    FlagCode.ACCURACY_CENTROIDS: FlagSpec(
+        "pixels lose resultants at m={magnitude:.2f}: the slope's statistical error over {pilot} centroids is "
+        "{pilot_error:.2g} of it, so {used} centroids are simulated (expected statistical error {expected_error:.2g}, "
+        "target {target:.2g}: {verdict})",
+        ("magnitude", "pilot", "pilot_error", "used", "expected_error", "target", "verdict"),
+        "Where pixels lose resultants an accuracy answer simulates enough centroids for its statistical error to fit "
+        "its target (or says it cannot).",
     ),
     FlagCode.SCENE_SIMULATED: FlagSpec(
         "the tables hold the paper's scene only (at the SCA centre and its corner field points): "
@@ -316,6 +326,15 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "no shipped field grid holds the Roman default at this point ({why}): its scene is simulated (fidelity linear)",
         ("why",),
         "The Roman default is not in a shipped table here, so its slope is a fresh linear-response simulation.",
+    ),
+    FlagCode.DEFAULT_BETWEEN_LIMITS: FlagSpec(
+        "between the saturation limits at pixel ({x:.0f}, {y:.0f}): m={magnitude:.2f} lies between the ramp's limit "
+        "m={m_sat:.2f} and the final frame's m={m_sat_final:.2f}, where pixels lose resultants and the slope changes with "
+        "each that does; the field grid's interpolation misses a fresh simulation there (docs/field.md), so the slope is "
+        "simulated afresh at this position with the grid's own {realizations} centroids (fidelity linear)",
+        ("x", "y", "magnitude", "m_sat", "m_sat_final", "realizations"),
+        "Between the saturation limits the Roman default's slope at a position is simulated afresh, not read from "
+        "the field grid (whose interpolation misses there).",
     ),
     FlagCode.LINEARISED_SIMULATED: FlagSpec(
         "the tables hold the slope at beta0: linearised at {state}, the slopes are simulated (fidelity linear)",

@@ -19,6 +19,11 @@ part is also measured for node tables sampled every STEP mag between the limits 
 (the grid's own: not-a-knot cubic of slope/flux in flux) evaluated at m.
 
     nice -n 10 python scripts/between_limits_error.py --points 12 --output build/between_limits.json
+
+``--answers``: also what a user gets there, the default answer (``nlpsf.answer``; simulated afresh
+between the limits since issue 28, with the request's residual model), against a fresh
+``--fidelity polychromatic`` answer of the same request. The grid comparisons use the grid's own
+residual model (its nodes' setting), so that they differ by the interpolation alone.
 """
 
 from __future__ import annotations
@@ -37,19 +42,26 @@ from nlpsf.slopes import fieldgrid, tablebuild
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}
 
 
+#: The residual model the simulations use: the grid's own (``fieldgrid.grid_residual_model``), set by
+#: :func:`main` from the grid read, so that grid and fresh values differ by the interpolation alone.
+RESIDUAL_NL: str | None = None
+
+
 def simulate(band, sca, position, magnitudes, seed=1, realizations=100):
     """{metric: [(value, stderr), ...]} and the ramp summary per magnitude, the grid's settings."""
-    settings = tablebuild.TableSettings.roman(realizations=realizations, seed=seed)
+    settings = tablebuild.TableSettings.roman(realizations=realizations, seed=seed, residual_nl=RESIDUAL_NL)
     config = settings.config(band, sca, position=position)
-    results = experiment.slopes(config, list(magnitudes), beta0=settings.beta0, linearise_at=settings.linearise_at)
+    results = experiment.slopes(
+        config, list(magnitudes), beta0=settings.beta0, linearise_at=settings.linearise_at, residual_nl=settings.residual_nl
+    )
     out = {metric: [(r.bias[name].mean, r.bias[name].stderr) for r in results] for metric, name in METRICS.items()}
     out["flux"] = [r.flux_electrons for r in results]
     out["ramp"] = [{k: r.extras.get("ramp", {}).get(k) for k in ("fitted_on_fewer", "unusable", "pixels")} for r in results]
     return out
 
 
-def draw_point(grid, rng, band=None):
-    covered = [pair for pair in grid.coverage() if band is None or pair[0] == band]
+def draw_point(grid, rng, band=None, only=None):
+    covered = [pair for pair in grid.coverage() if (band is None or pair[0] == band) and (not only or pair in only)]
     band, sca = covered[int(rng.integers(len(covered)))]
     position = tuple(float(v) for v in rng.uniform(60.0, 4030.0, 2))
     ramp = grid.saturation_magnitude(band, sca, position)
@@ -124,6 +136,33 @@ def measure(grid, band, sca, position, magnitude, dense=None) -> dict:
     return out
 
 
+def answers(band, sca, position, magnitude) -> dict:
+    """The default answer at the point (``nlpsf.answer``, what a user gets) against a fresh
+    ``--fidelity polychromatic`` answer of the same scene (Monte Carlo, 8 wavelengths, the same 100
+    centroids), per metric: their slopes and the default's flag codes."""
+    from dataclasses import replace
+
+    from nlpsf import SolveRequest, answer
+    from nlpsf.request import presets
+
+    scene = replace(presets.base_scene(), position=tuple(position))
+    out = {}
+    for metric in METRICS:
+        request = {"sca": sca, "metric": metric, "magnitude": magnitude, "precision": 0.01, "scene": scene}
+        default = answer(SolveRequest(band, **request))
+        poly = answer(SolveRequest(band, fidelity="polychromatic", **request))
+        out[metric] = {
+            "default": default.slope,
+            "default_error": default.slope_uncertainty,
+            "default_fidelity": default.fidelity,
+            "default_flags": [getattr(f, "code", None) and f.code.value for f in default.flags],
+            "polychromatic": poly.slope,
+            "polychromatic_error": poly.slope_uncertainty,
+            "relative": (default.slope - poly.slope) / abs(poly.slope) if poly.slope else None,
+        }
+    return out
+
+
 def relative(row: dict, part: str, metric: str) -> float:
     m = row["metrics"][metric]
     return m[part] / abs(m["fresh"]) if m["fresh"] else math.nan
@@ -150,17 +189,33 @@ def main() -> None:
     parser.add_argument("--band", default=None)
     parser.add_argument("--grid", default=None, help="field-grid file (default: the shipped one)")
     parser.add_argument("--dense", type=float, default=None, help="also the node magnitude error at this row step")
+    parser.add_argument("--only", default=None, help="draw in these (band, SCA)s only: B:S,B:S,...")
+    parser.add_argument(
+        "--answers", action="store_true", help="also the default answer against a fresh --fidelity polychromatic one"
+    )
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
     grid = fieldgrid.FieldGrid.load(args.grid) if args.grid else fieldgrid.shipped_grid()
+    global RESIDUAL_NL
+    band, sca = grid.coverage()[0]
+    RESIDUAL_NL = fieldgrid.grid_residual_model(grid.conditions(band, sca)["settings"])
+    print(f"the grid's residual model: {RESIDUAL_NL}", flush=True)
     rng = np.random.default_rng(args.seed)
+    only = None if not args.only else [(b, int(s)) for b, s in (item.split(":") for item in args.only.split(","))]
     rows = []
     for index in range(args.points):
-        band, sca, position, magnitude, ramp, final = draw_point(grid, rng, args.band)
+        band, sca, position, magnitude, ramp, final = draw_point(grid, rng, args.band, only)
         if index < args.first:
             continue
         cpu = time.process_time()
         row = measure(grid, band, sca, position, magnitude, args.dense)
+        if args.answers:
+            row["answers"] = answers(band, sca, position, magnitude)
+            print(
+                "   default vs polychromatic: "
+                + ", ".join(f"{m} {100 * a['relative']:+.2f} %" for m, a in row["answers"].items() if a["relative"] is not None),
+                flush=True,
+            )
         row.update(index=index, limits=[ramp, final], cpu_s=time.process_time() - cpu)
         rows.append(row)
         text = ", ".join(

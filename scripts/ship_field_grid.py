@@ -13,7 +13,7 @@ in the build folder, else the current one), the date, the CPU time of every node
 (band, SCA) are covered. With ``--into`` the entries replace those of an existing file
 (``fieldgrid.merge_grids``: each keeps its own build's provenance, the others stay bit for bit).
 
-    # a file of an earlier format rewritten in today's (fieldgrid.FORMAT), nothing rebuilt:
+    # a file of an earlier format rewritten in today's (gridfile.FORMAT), nothing rebuilt:
     python scripts/ship_field_grid.py --resave nlpsf/data/tables/roman_field_grid.npz
 
 ``--resave`` keeps every slope bit for bit and rounds the errors up to the format's precision; the
@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from nlpsf import __version__, defaults
-from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes import fieldgrid, gridfile, tablebuild
 
 
 def _commit(build: Path) -> str:
@@ -79,7 +79,7 @@ def main() -> None:
     if args.resave is not None:
         before = args.resave.stat().st_size
         out = resave(args.resave)
-        print(f"{out}: {before / 1e6:.2f} MB -> {out.stat().st_size / 1e6:.2f} MB ({fieldgrid.FORMAT})")
+        print(f"{out}: {before / 1e6:.2f} MB -> {out.stat().st_size / 1e6:.2f} MB ({gridfile.FORMAT})")
         return
     if args.build is None:
         parser.error("give a build folder or --resave FILE")

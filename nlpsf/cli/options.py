@@ -42,23 +42,14 @@ def add_throughput(parser: argparse.ArgumentParser) -> None:
     )
 
 
-class _StoreGiven(argparse.Action):
-    """Store the value and note that the user gave it (an MA table's exposure is otherwise its own)."""
-
-    def __call__(self, parser, namespace, values, option_string=None) -> None:
-        setattr(namespace, self.dest, values)
-        setattr(namespace, f"{self.dest}_given", True)
-
-
 def add_exposure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--exptime",
         type=float,
-        default=defaults.EXPTIME_S,
-        action=_StoreGiven,
-        help="exposure time [s]; with --ma-table and no --exptime, the table's last read",
+        default=None,
+        help="exposure time [s]; default: the scene's readout's (the Roman default: its HLWAS table's last read, "
+        "139.149 s; the paper's: 168.1 s; with --ma-table, the table's last read)",
     )
-    parser.set_defaults(exptime_given=False)
     parser.add_argument("--full-well", type=float, default=defaults.FULL_WELL_E, help="full-well depth [e-]")
     add_ramp_options(parser)
 
@@ -119,7 +110,7 @@ def ramp_from(args: argparse.Namespace, default_fit: str = "ols"):
         args.ma_table,
         args.ramp_fit or default_fit,
         args.read_noise,
-        args.exptime if args.exptime_given else None,
+        args.exptime,
         sca=sca if isinstance(sca, int) else defaults.SCA,  # the official read noise of this SCA unless given
         **{k: v for k, v in rules.items() if v is not None},
     )
@@ -256,9 +247,9 @@ def simulation_preset(args: argparse.Namespace) -> str:
     from nlpsf.request import presets as roman_default
 
     given = getattr(args, "scene", None)
-    if given is None or given.strip().lower() == roman_default.NAME:
-        return roman_default.NAME
-    return given.strip().lower() if given.strip().lower() in roman_default.PRESETS else "paper"
+    if given is None:
+        return roman_default.preset_of(None)
+    return roman_default.named(given) or roman_default.FILE_PRESET
 
 
 def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
@@ -272,16 +263,17 @@ def config_from(args: argparse.Namespace, roman_default_applies: bool = False):
     from nlpsf.request import presets as roman_default
     from nlpsf.sim.experiment import SimulationConfig
 
-    preset = simulation_preset(args) if roman_default_applies else "paper"
+    preset = simulation_preset(args) if roman_default_applies else roman_default.FILE_PRESET
     settings = dict(vars(args))
-    if preset == roman_default.NAME:
-        ramp, exptime = ramp_from(args, roman_default.RAMP_FIT)
+    if roman_default.policy(preset).sky:
+        ramp, exptime = ramp_from(args, roman_default.policy(preset).ramp_fit)
         sca = args.sca if isinstance(args.sca, int) else defaults.SCA
         filled = roman_default.fill(
-            preset, args.band, sca, exptime if ramp is not None or args.exptime_given else None, ramp, None, None
+            preset, args.band, sca, exptime if ramp is not None or args.exptime is not None else None, ramp, None, None
         )
         ramp, exptime = filled.ramp, filled.exptime
-        scene = scene_from(argparse.Namespace(**{**settings, "scene": roman_default.scene(None, filled.background_e)}))[0]
+        base = roman_default.sky_base(preset, args.band, sca, exptime, ramp)
+        scene = scene_from(argparse.Namespace(**{**settings, "scene": base}))[0]
         settings["pupil_scale"] = args.pupil_scale or filled.pupil_scale
     else:
         ramp, exptime = ramp_from(args)
@@ -303,10 +295,11 @@ def with_default_conditions(payloads: list[dict], args: argparse.Namespace) -> l
     their conditions, as a solve quotes them; other presets' results as they are."""
     from nlpsf.request import presets as roman_default
 
-    if simulation_preset(args) != roman_default.NAME:
+    preset = simulation_preset(args)
+    if not roman_default.policy(preset).quotes_default:
         return payloads
     values = roman_default.conditions()
-    return [{**p, "conditions": {**p.get("conditions", {}), "scene_name": roman_default.NAME, "roman_default": values}}
+    return [{**p, "conditions": {**p.get("conditions", {}), "scene_name": preset, "roman_default": values}}
             for p in payloads]  # fmt: skip
 
 

@@ -74,7 +74,7 @@ def _print_table(config, results, sigma_beta: float) -> None:
         f"fine pixels, {config.realizations} {'beta maps' if sigma_beta > 0 else 'centroids'}, seed {config.seed}, "
         f"fidelity {config.fidelity}; {first.to_dict()['nl_model']}"
     )
-    if not config.scene.is_paper:
+    if not config.scene.no_effects:
         print(f"scene: {config.scene.describe()}")
     if config.ramp is not None:
         print(f"up the ramp: {config.ramp.describe()}")

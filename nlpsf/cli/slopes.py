@@ -64,7 +64,7 @@ def _state(args: argparse.Namespace) -> str:
 
     from .options import simulation_preset
 
-    return roman_default.LINEARISE_AT if simulation_preset(args) == roman_default.NAME else "beta0"
+    return roman_default.policy(simulation_preset(args)).linearise_at
 
 
 def run(args: argparse.Namespace) -> int:
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         f"{config.band} SCA {config.sca}, beta0={args.beta0:g} /e- ({args.beta_convention} convention), {config.exptime_s:g} s, "
         f"fidelity {config.fidelity}"
     )
-    if not config.scene.is_paper:
+    if not config.scene.no_effects:
         print(f"scene: {config.scene.describe()}")
     if config.ramp is not None:
         print(f"up the ramp: {config.ramp.describe()}")

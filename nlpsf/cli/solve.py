@@ -41,27 +41,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
     parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
     parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
-    parser.add_argument(
-        "--shear-m",
-        type=float,
-        help="multiplicative shear-bias budget |m| (size metric); with --size-ratio, takes the place of --tolerance",
-    )
-    parser.add_argument(
-        "--shear-c",
-        type=float,
-        help="additive shear-bias budget |c| (e1, e2, e metrics); with --size-ratio, takes the place of --tolerance",
-    )
-    parser.add_argument(
-        "--size-ratio",
-        help="R_gal/R_psf, intrinsic galaxy over PSF, R = det(M)^(1/4): a number, 'ratio:weight,...' or @FILE "
-        "(lines 'ratio [weight]'); alone it reports the shear bias the tolerance implies",
-    )
-    parser.add_argument(
-        "--stars",
-        type=int,
-        default=1,
-        help="scatter mode: the PSF model averages this many stars/dithers on independent pixels (sigma / sqrt(n))",
-    )
+    _add_budget_options(parser)
     parser.add_argument("--fidelity", choices=LEVELS, default=None, help="how the slope is obtained (default table)")
     parser.add_argument(
         "--accuracy",
@@ -108,6 +88,31 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="FILE.csv",
         help="solve every row of a CSV (header: any of " + ", ".join(BATCH_COLUMNS) + "; empty cells take the options' "
         "values); prints one CSV row per input row (or, with --json, a JSON list), each answered or failed on its own",
+    )
+
+
+def _add_budget_options(parser: argparse.ArgumentParser) -> None:
+    """The shear budgets that stand in for the tolerance, and the stars a scatter answer averages."""
+    parser.add_argument(
+        "--shear-m",
+        type=float,
+        help="multiplicative shear-bias budget |m| (size metric); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--shear-c",
+        type=float,
+        help="additive shear-bias budget |c| (e1, e2, e metrics); with --size-ratio, takes the place of --tolerance",
+    )
+    parser.add_argument(
+        "--size-ratio",
+        help="R_gal/R_psf, intrinsic galaxy over PSF, R = det(M)^(1/4): a number, 'ratio:weight,...' or @FILE "
+        "(lines 'ratio [weight]'); alone it reports the shear bias the tolerance implies",
+    )
+    parser.add_argument(
+        "--stars",
+        type=int,
+        default=1,
+        help="scatter mode: the PSF model averages this many stars/dithers on independent pixels (sigma / sqrt(n))",
     )
 
 
@@ -159,10 +164,10 @@ _REQUEST_OPTIONS = (
 def _readout(args: argparse.Namespace, preset: str):
     """(ramp, exptime) of the options: None, None where the preset's own readout applies (the Roman
     default's HLWAS ramp and exposure; the paper's 168.1 s final frame)."""
-    from nlpsf.request.presets import NAME, RAMP_FIT
+    from nlpsf.request import presets
 
-    ramp, exptime = ramp_from(args, RAMP_FIT if preset == NAME else "ols")
-    return ramp, (exptime if ramp is not None or args.exptime_given else None)
+    ramp, exptime = ramp_from(args, presets.policy(preset).ramp_fit)
+    return ramp, (exptime if ramp is not None or args.exptime is not None else None)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -231,7 +236,7 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
         f"{solution.band} SCA {solution.sca}, {solution.metric} {solution.mode}, beta0={solution.beta0:g} /e-, "
         f"{solution.exptime:g} s, full well {solution.full_well:.4g} e-, fidelity {solution.fidelity}"
     )
-    if solution.conditions.get("scene_name") == "roman":
+    if "roman_default" in solution.conditions:  # the answer quotes the Roman default's values
         changed = " (changed by the options given)" if solution.conditions.get("roman_default_changed") else ""
         scene = solution.conditions.get("scene_description", "").removeprefix("roman: ")  # its name is said already
         from nlpsf.request.presets import RESIDUAL_NL
@@ -290,9 +295,27 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
             f"{e['name']} {_percent(e['impact'], measured or bool(e.get('measured_here')))}" for e in solution.model["left_out"]
         )
         print(f"  left out (in the model uncertainty): {left}")
+    _print_beside(solution)
     for flag in solution.flags:
         print(f"  ! {flag}")
     return 0
+
+
+def _print_beside(solution) -> None:
+    """The conservative answer and the star-to-star ranges, beside the nominal one."""
+    solved = solution.solved_for
+    conservative = solution.conservative
+    if conservative and conservative.get(solved) is not None:
+        print(
+            f"  conservative {solved} {conservative[solved]:.4g} (holds for a slope up to "
+            f"{100 * conservative['relative_slope_bound']:.3g} % steeper: k = {conservative['coverage_factor']:g} on the "
+            "standard parts, the left-out shifts in full)"
+        )
+    for name, entry in (solution.ranges or {}).items():
+        values = entry.get(solved) or []
+        if len(values) == 2 and None not in values:
+            ends = " and ".join(entry["ends"])
+            print(f"  range over stars ({name}: {ends}): {solved} {values[0]:.4g} to {values[1]:.4g}")
 
 
 def _percent(value: float | None, signed: bool = True) -> str:
@@ -307,16 +330,15 @@ def _scene(args: argparse.Namespace):
     own scene: the Roman default's at the star's position, or the paper's)."""
     from nlpsf.request import presets as roman_default
 
-    preset = roman_default.NAME
-    if args.scene is not None and args.scene.strip().lower() in roman_default.PRESETS:
-        preset = roman_default.check_preset(args.scene)
+    named = roman_default.named(args.scene)
+    preset = roman_default.preset_of(None, named)
     changed = any(
         getattr(args, name, None) is not None
         for name in ("position", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background")
     )
-    if not changed and (args.scene is None or preset != roman_default.NAME or args.scene.strip().lower() == preset):
+    if not changed and (args.scene is None or named is not None):
         return None, preset  # the preset's own scene (the request fills it)
-    if preset == roman_default.NAME and (args.scene is None or args.scene.strip().lower() == preset):
+    if roman_default.policy(preset).sky and (args.scene is None or named is not None):
         # Options change only what they name of the Roman default; its sky stays unless --background.
         return _default_with_changes(args), preset
     return _scene_of_options(args), preset
@@ -331,9 +353,9 @@ def _default_with_changes(args: argparse.Namespace):
     from nlpsf.request import presets as roman_default
 
     sca = args.sca if isinstance(args.sca, int) else _FILLED_FOR
-    ramp, exptime = _readout(args, roman_default.NAME)
-    filled = roman_default.fill(roman_default.NAME, args.band, sca, exptime, ramp, None, None)
-    base = roman_default.scene(None, filled.background_e)
+    preset = roman_default.preset_of(None, roman_default.named(args.scene))
+    ramp, exptime = _readout(args, preset)
+    base = roman_default.sky_base(preset, args.band, sca, exptime, ramp)
     return _scene_of_options(argparse.Namespace(**{**vars(args), "scene": base}))
 
 

@@ -11,6 +11,7 @@ field grid and the solver all read them here, and every answer quotes :func:`con
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cache, lru_cache
 
 from nlpsf.roman import backgrounds
 from nlpsf.sim import scene as scenes
@@ -103,6 +104,7 @@ def exptime_s() -> float:
     return float(ramps.load_ma_table(MA_TABLE).duration_s)
 
 
+@lru_cache(maxsize=1024)
 def readout(band: str, sca: int, exptime: float | None = None) -> Readout:
     """The HLWAS ramp (likelihood fit, the SCA's official read noise, romancal's rules) and the
     background over its exposure; ``exptime`` None: the table's own exposure."""
@@ -112,6 +114,7 @@ def readout(band: str, sca: int, exptime: float | None = None) -> Readout:
     return Readout(ramp, exposure, backgrounds.background_electrons(BACKGROUND, band, sca, exposure))
 
 
+@cache
 def base_scene() -> scenes.SceneModel:
     """The default's scene effects without position or background (those depend on the point)."""
     return scenes.SceneModel(
@@ -125,6 +128,7 @@ def base_scene() -> scenes.SceneModel:
     )
 
 
+@lru_cache(maxsize=4096)
 def scene(position: tuple[float, float] | None, background_e: float) -> scenes.SceneModel:
     """The default scene at ``position`` (None: the SCA centre) with ``background_e`` per pixel."""
     return replace(base_scene(), position=position, background_e=float(background_e))
@@ -141,6 +145,81 @@ def conditions() -> list[dict]:
 #: answers, bit for bit); GalSim's Roman constants (jitter 0.014", diffusion 0.1 px, flat f_nu, IPC,
 #: on the paper's final frame), the scene the GalSim cross-checks use.
 PRESETS: tuple[str, ...] = (NAME, "paper", "galsim-roman")
+
+
+@dataclass(frozen=True)
+class Policy:
+    """What a preset means for an answer, as data: the solver, the slope providers and the answer's
+    conditions ask these, never the preset's name."""
+
+    name: str
+    #: Answered from the Roman default's shipped field grid where it covers the request.
+    field_grid: bool
+    #: Without a position, the answer is the SCA's range over its field grid's nodes.
+    ranges_over_sca: bool
+    #: The shipped measurements (fidelity errors, model parts) its answers read: "roman" or "paper".
+    measured_as: str
+    #: Its answers keep the paper tables' own saturation limits whatever they simulate (bit for bit).
+    tables_limits: bool
+    #: Its answers quote the Roman default's values (``conditions``).
+    quotes_default: bool
+    #: The ramp fit of a readout the request gives without a fit.
+    ramp_fit: str
+    #: Its scene holds a sky over the exposure (filled where the request changes the scene but not its sky).
+    sky: bool
+    #: The detector state its slopes are taken at unless a request says.
+    linearise_at: str
+
+
+#: Each preset's policy (:data:`PRESETS`).
+POLICIES: dict[str, Policy] = {
+    NAME: Policy(NAME, field_grid=True, ranges_over_sca=True, measured_as="roman", tables_limits=False,
+                 quotes_default=True, ramp_fit=RAMP_FIT, sky=True, linearise_at=LINEARISE_AT),
+    "paper": Policy("paper", field_grid=False, ranges_over_sca=False, measured_as="paper", tables_limits=True,
+                    quotes_default=False, ramp_fit="ols", sky=False, linearise_at="beta0"),
+    "galsim-roman": Policy("galsim-roman", field_grid=False, ranges_over_sca=False, measured_as="paper",
+                           tables_limits=False, quotes_default=False, ramp_fit="ols", sky=False, linearise_at="beta0"),
+}  # fmt: skip
+
+
+def policy(name: str) -> Policy:
+    """The policy of a preset by name (:data:`POLICIES`)."""
+    return POLICIES[check_preset(name)]
+
+
+def preset_of(scene, preset: str | None = None) -> str:
+    """The preset a request builds on: the one named, else the scene's own name where it is a preset,
+    else the Roman default."""
+    if preset is None:
+        name = getattr(scene, "name", None)
+        preset = name if name in PRESETS else NAME
+    return check_preset(preset)
+
+
+def named(text: str | None) -> str | None:
+    """The preset a scene option names (``--scene roman``), None where it names none (a file, or nothing)."""
+    if not isinstance(text, str):
+        return None
+    lowered = text.strip().lower()
+    return lowered if lowered in PRESETS else None
+
+
+#: The preset a scene read from a file builds on: its readout and state are the paper's.
+FILE_PRESET = "paper"
+
+
+def sky_base(preset: str, band: str, sca: int, exptime: float | None = None, ramp=None):
+    """A preset's scene without a position, with its sky over the exposure where it has one
+    (:attr:`Policy.sky`): the base the options a user gives change."""
+    if not policy(preset).sky:
+        return preset_base(preset)
+    filled = fill(preset, band, sca, exptime, ramp, None, None)
+    return replace(preset_base(preset), background_e=float(filled.background_e))
+
+
+def default_fill(band: str, sca: int, exptime: float | None = None, ramp=None) -> Filled:
+    """:func:`fill` of the Roman default (its readout, exposure and sky at ``band`` and ``sca``)."""
+    return fill(NAME, band, sca, exptime, ramp, None, None)
 
 
 def check_preset(name: str) -> str:
@@ -162,6 +241,7 @@ class Filled:
     background_e: float | None
 
 
+@lru_cache(maxsize=4096)
 def fill(preset: str, band: str, sca: int, exptime: float | None, ramp, pupil_scale: str | None,
          linearise_at: str | None) -> Filled:  # fmt: skip
     """The request's readout, exposure, pupil rule and state with the preset's values where unset.
@@ -209,6 +289,54 @@ def load_scene(name_or_path: str) -> scenes.SceneModel:
     return scenes.load(name_or_path)
 
 
+@lru_cache(maxsize=4096)
 def is_default_scene(model, background_e: float) -> bool:
     """Whether ``model`` is the Roman default's scene (any position) with this background."""
     return model is not None and replace(model, position=None) == scene(None, background_e)
+
+
+def fill_simulation(payload: dict, given: set[str], build_ramp=None) -> dict:
+    """A simulation request (the service's ``POST /simulations`` body, JSON-shaped) with what it
+    leaves unset filled as the CLI's ``simulate`` fills it: without a scene (or with preset "roman")
+    the Roman default -- its scene at the request's position (the SCA centre otherwise), the HLWAS
+    readout with the likelihood fit and its exposure unless a ramp, MA table or exptime is given,
+    the official pupil scale, and its sky over that exposure unless ``scene.background`` is given.
+    ``scene`` "paper" (or "galsim-roman"): the paper's final frame of 168.1 s, the OLS fit and the
+    tables' pupil scale. The filled request names every value, so its hash says which scene was
+    simulated. ``given``: the fields the client sent; ``build_ramp(reads, ma_table, fit, read_noise,
+    exptime, sca)`` -> (ramp, exptime): ``ramps.build`` without files (the service passes its own,
+    which reads a shipped table's name only from the package)."""
+    from nlpsf import defaults
+    from nlpsf.sim import ramps
+
+    if build_ramp is None:
+
+        def build_ramp(reads, ma_table, fit, read_noise, exptime, sca):
+            return ramps.build(reads, ma_table, fit, read_noise, exptime, allow_files=False, sca=sca)
+
+    payload = dict(payload)
+    scene = payload.get("scene")
+    scene = {"preset": scene} if isinstance(scene, str) else dict(scene or {})
+    preset = scene.get("preset") or NAME
+    if "exptime" not in given:
+        payload["exptime"] = None  # the readout's last read (an MA table's), else the paper's 168.1 s
+    if preset != NAME:
+        # The paper's scene named alone is the request without a scene: the same hash as before.
+        alone = all(v is None for k, v in scene.items() if k not in ("preset", "sed_units"))
+        payload["scene"] = None if preset == "paper" and alone else scene
+        payload["pupil_scale"] = payload.get("pupil_scale") or defaults.PUPIL_SCALE
+        payload["ramp_fit"] = payload.get("ramp_fit") or "ols"
+        return payload
+    if payload.get("ramp") is None and payload.get("ma_table") is None:
+        payload["ma_table"] = ramps.load_ma_table(MA_TABLE).name
+    payload["ramp_fit"] = payload.get("ramp_fit") or RAMP_FIT
+    payload["pupil_scale"] = payload.get("pupil_scale") or PUPIL_SCALE
+    if scene.get("background") is None:
+        _, exptime = build_ramp(
+            payload.get("ramp"), payload.get("ma_table"), payload["ramp_fit"], payload.get("read_noise"),
+            payload["exptime"], payload["sca"],
+        )  # fmt: skip
+        band = str(payload["band"]).upper()
+        scene["background"] = backgrounds.background_electrons(BACKGROUND, band, payload["sca"], exptime)
+    payload["scene"] = {**scene, "preset": NAME}
+    return payload

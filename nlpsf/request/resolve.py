@@ -8,6 +8,7 @@ bad request meets is the same whichever entry point it came through.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -160,7 +161,7 @@ class SolveRequest:
             )
         elif scene is None and preset == "galsim-roman":
             scene = roman_default.preset_scene(preset)
-        elif preset == "paper" and scene is not None and scene.is_paper:
+        elif preset == "paper" and scene is not None and scene.no_effects:
             scene = None  # the paper's scene is the solver's plain path (today's answers, bit for bit)
         self._set("preset", preset)
         self._set("scene", scene)
@@ -225,6 +226,13 @@ class SolveRequest:
             self._set("magnitude", check_magnitude(self.magnitude))
 
     @property
+    def policy(self):
+        """What the request's preset means for its answer (``presets.Policy``)."""
+        from . import presets
+
+        return presets.POLICIES[self.preset]
+
+    @property
     def target_tolerance(self) -> float | None:
         """The tolerance given, or the one the shear budget sets."""
         return self.budget_tolerance if self.budget is not None else self.tolerance
@@ -237,6 +245,13 @@ class SolveRequest:
     def with_changes(self, **changes) -> SolveRequest:
         """Another request, validated again (``dataclasses.replace``)."""
         return replace(self, **changes)
+
+    def at_position(self, position) -> SolveRequest:
+        """This request for the same star at another ``position`` of its SCA (pixels): its scene
+        moved there, nothing else read again (the position is checked by the scene)."""
+        moved = copy.copy(self)
+        object.__setattr__(moved, "scene", replace(self.scene, position=position))
+        return moved
 
     def table_pass(self) -> SolveRequest:
         """This request on the paper's tables (no ramp, scene, other pupil rule or state): the cheap

@@ -110,7 +110,8 @@ def optical_model_uncertainty(band: str, metric: str) -> float:
     ``metric`` "size": relative to the size slope. "e1", "e2", "e": the change of the ellipticity
     slopes relative to their modulus |c_e| (scale it by |c_e| / |c_e1| for one component).
     """
-    entry = _optical_model_uncertainty()["per_band"][check_band(band)]
+    per_band = _optical_model_uncertainty()["per_band"]
+    entry = per_band[band] if band in per_band else per_band[check_band(band)]  # a request's band: checked once
     return float(entry["size" if metric == "size" else "e"])
 
 

@@ -15,15 +15,12 @@ each axis, n odd so the centre is a node) and are interpolated across it by one 
 slopes) or ``lagrange`` (the tensor-product polynomial through every node, biquadratic on 3 x 3).
 ``scripts/field_interpolation_error.py`` measures both against fresh simulations at random positions.
 
-The runtime format is one ``.npz`` (numpy only): per (band, SCA) the node positions, each node's
-magnitude grid, its slope columns in float32 and their error columns as 16-bit codes rounded up
-(:func:`pack_errors`), and the metadata as JSON. Each (band, SCA) has its
-own grid size n (``meta["tables"][key]["grid"]``), so a file can hold denser grids where the
-field interpolation needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere.
-
-About 600 lines, kept as one module because the file format (its writer, reader and error codes)
-and the reads across the grid share one layout of arrays; the nodes' splines are evaluated
-together by ``nlpsf.slopes.tables.splines.evaluate_stacked_cubics``.
+The file (``nlpsf.slopes.gridfile``: one ``.npz``, numpy only) holds per (band, SCA) the node
+positions, each node's magnitude grid and its slope columns. Each (band, SCA) has its own grid size
+n (``meta["tables"][key]["grid"]``), so a file can hold denser grids where the field interpolation
+needs them (W146: 5 x 5, docs/field.md) and 3 x 3 elsewhere. :class:`FieldGrid` reads the slopes
+out of it: each node's not-a-knot cubics built with numpy when a (band, SCA) is first read, and
+evaluated for every node at once (``nlpsf.slopes.tables.splines``).
 """
 
 from __future__ import annotations
@@ -32,7 +29,7 @@ import json
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +37,8 @@ import numpy as np
 from nlpsf import roman
 from nlpsf.checks import InputError, check_integer
 
-from .tables.splines import evaluate_stacked_cubics, stack_cubics
+from . import gridfile
+from .tables.splines import evaluate_stacked_columns, evaluate_stacked_cubics, not_a_knot_coefficients
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -48,66 +46,6 @@ SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
 GRID_SIZES: tuple[int, ...] = (2, 3, 5, 7, 9)
 #: The scene names a table build understands ("paper": the shipped tables' idealised scene).
 TABLE_SCENES: tuple[str, ...] = ("paper", "roman")
-#: Runtime format tag of a field-grid file (3: the error columns as 16-bit codes, :func:`pack_errors`;
-#: read too: 2, every array float and byte-shuffled, ``tables.storage.shuffle_bytes``; 1, plain arrays).
-FORMAT = "nlpsf-field-grid-3"
-FORMATS_READ: tuple[str, ...] = ("nlpsf-field-grid-1", "nlpsf-field-grid-2", FORMAT)
-#: Mantissa bits an error keeps in a -3 file (float16's 10): rounded up, an error grows by less than
-#: 2**-10 = 9.8e-4 of itself and never shrinks.
-ERROR_MANTISSA_BITS = 10
-_DROPPED_BITS = 23 - ERROR_MANTISSA_BITS
-#: The codes with a meaning of their own (every other code is a positive error): an exact zero,
-#: an error too small for the array's 63 binades (kept exactly, float32, in the outliers), NaN.
-_ZERO_CODE, _OUTLIER_CODE, _NAN_CODE = 0, 0xFFFE, 0xFFFF
-_LARGEST_CODE = 0xFFFD
-
-
-def _is_error_column(name: str) -> bool:
-    return name.endswith(("_err", "_interp"))
-
-
-def pack_errors(errors: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
-    """Non-negative float32 errors as uint16 codes rounded up: (codes, exponent offset, outliers).
-
-    A code is a float32's bit pattern without its sign (an error is never negative) and with its
-    mantissa rounded up to :data:`ERROR_MANTISSA_BITS` bits (the bit pattern of a positive float
-    grows with its value, so rounding the integer up rounds the value up, carrying into the
-    exponent), counted from an offset: 6 bits of exponent (63 binades) and 10 of mantissa, float16's
-    mantissa with a wider exponent. float16 itself holds 30 normal binades; the errors of a grid span
-    up to 67 (6e-18 to 1.2e3 in slope units in the 5-band rebuild: a leave-one-out estimate can be all but zero), so it
-    would flush the smallest to zero or to a few bits. The 63 binades end at the array's largest
-    error; an error below them (a negligible one, next to its standard error) is an outlier: code
-    0xFFFE, its float32 kept exactly, in order. 0: an error of zero; 0xFFFF: NaN (padding)."""
-    errors = np.asarray(errors, dtype=np.float32)
-    finite = np.isfinite(errors)
-    if np.any(np.isinf(errors)) or np.any(errors[finite] < 0):
-        raise InputError("field grid", "errors must be finite and non-negative (or NaN padding) to be packed")
-    bits = np.where(finite, errors, 0).view(np.uint32).astype(np.int64)
-    rounded = (bits + (1 << _DROPPED_BITS) - 1) >> _DROPPED_BITS
-    if np.any(rounded << _DROPPED_BITS >= 0x7F800000):
-        raise InputError("field grid", "an error rounded up would overflow float32")
-    positive = finite & (rounded > 0)
-    offset = 0
-    if positive.any():
-        offset = max(int(rounded[positive].min()), int(rounded[positive].max()) - (_LARGEST_CODE - 1))
-    outlier = positive & (rounded < offset)
-    codes = np.where(positive, rounded - offset + 1, _ZERO_CODE)
-    codes = np.where(outlier, _OUTLIER_CODE, codes)
-    codes = np.where(finite, codes, _NAN_CODE)
-    return codes.astype(np.uint16), offset, errors[outlier].astype(np.float32)
-
-
-def unpack_errors(codes: np.ndarray, offset: int, outliers: np.ndarray | None = None) -> np.ndarray:
-    """The float32 errors :func:`pack_errors` coded (each at or above the error packed)."""
-    codes = np.asarray(codes, dtype=np.int64)
-    coded = (codes >= 1) & (codes <= _LARGEST_CODE)
-    bits = np.where(coded, (codes - 1 + int(offset)) << _DROPPED_BITS, 0)
-    values = bits.astype(np.uint32).view(np.float32).copy()
-    values[codes == _NAN_CODE] = np.nan
-    outlier = codes == _OUTLIER_CODE
-    if outlier.any():
-        values[outlier] = outliers
-    return values
 
 
 def check_grid(n: int) -> int:
@@ -149,7 +87,12 @@ def _bilinear_weights(axis: np.ndarray, x: float) -> np.ndarray:
 
 
 def weights(n: int, position: tuple[float, float], scheme: str = "lagrange") -> np.ndarray:
-    """(n, n) weights [j (y), i (x)] of the grid nodes for a value at ``position`` (pixels)."""
+    """(n, n) weights [j (y), i (x)] of the grid nodes for a value at ``position`` (pixels); read-only."""
+    return _weights(int(n), tuple(float(v) for v in position), scheme)
+
+
+@lru_cache(maxsize=4096)
+def _weights(n: int, position: tuple[float, ...], scheme: str) -> np.ndarray:
     if scheme not in SCHEMES:
         raise InputError("scheme", f"must be one of {', '.join(SCHEMES)}, got {scheme!r}")
     axis = grid_axis(n)
@@ -158,7 +101,9 @@ def weights(n: int, position: tuple[float, float], scheme: str = "lagrange") -> 
         if not (1.0 <= v <= roman.SCA_PIXELS):
             raise InputError("position", f"position must lie in [1, {roman.SCA_PIXELS}] pixels, got {position!r}")
     rule = _lagrange_weights if scheme == "lagrange" else _bilinear_weights
-    return np.outer(rule(axis, y), rule(axis, x))
+    out = np.outer(rule(axis, y), rule(axis, x))
+    out.flags.writeable = False
+    return out
 
 
 def interpolate(values: np.ndarray, position: tuple[float, float], scheme: str = "lagrange") -> np.ndarray:
@@ -168,18 +113,16 @@ def interpolate(values: np.ndarray, position: tuple[float, float], scheme: str =
     if values.shape[1] != n:
         raise InputError("values", f"need an n x n grid of values, got shape {values.shape}")
     w = weights(n, position, scheme)
-    return np.tensordot(w, values, axes=([0, 1], [0, 1]))
+    return contract(w, values)
 
 
-# --- the runtime file ------------------------------------------------------------------------
+def contract(w: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """sum over the nodes of ``w[j, i] values[j, i, ...]``: ``np.tensordot(w, values, axes=([0, 1],
+    [0, 1]))``'s own product (one BLAS call on the same reshaped arrays), without its overhead."""
+    return np.dot(w.reshape(1, -1), values.reshape(w.size, -1)).reshape(values.shape[2:])
 
 
-#: Columns a field-grid file keeps per node (the slope columns of ``nlpsf.slopes.tables``, their standard
-#: errors and their magnitude-interpolation error estimates).
-def _slope_columns() -> list[str]:
-    from .tables import COLUMN_METRICS, MODES
-
-    return [f"{mode}_{metric}{suffix}" for metric in COLUMN_METRICS for mode in MODES for suffix in ("", "_err", "_interp")]
+# --- the field interpolation's error -----------------------------------------------------------
 
 
 #: Field-interpolation error of an n x n Lagrange grid, as a fraction of the median |slope| over the
@@ -252,98 +195,9 @@ def shipped_grid() -> FieldGrid | None:
     return FieldGrid.load(path) if path.is_file() else None
 
 
-def write_grid(
-    tables: list, destination: Path | str, dtype=np.float32, provenance: dict | None = None, per_table: dict | None = None
-) -> Path:
-    """Pack per-node tables (``tablebuild.compute_table`` with a ``grid_node``) into one ``.npz``.
-
-    ``provenance``: how the file was made (code commit, date, CPU time, ...), kept in its metadata;
-    ``per_table``: more metadata per (band, SCA) key (``tablebuild.merge_field_grid``: the ramp's shift).
-
-    Per (band, SCA): ``{key}/positions`` (n, n, 2), ``{key}/magnitude`` and ``{key}/flux`` (n, n, M)
-    in float64 (M the longest node grid, NaN-padded; magnitudes are labels, flux the spline's
-    abscissa) and ``{key}/values`` (n, n, M, C) in ``dtype`` for the slope columns.
-    """
-    columns = _slope_columns()
-    groups: dict[tuple[str, int], list] = {}
-    for t in tables:
-        groups.setdefault((t.meta["band"], int(t.meta["sca"])), []).append(t)
-    arrays: dict[str, np.ndarray] = {}
-    meta: dict = {"format": FORMAT, "columns": columns, "tables": {}, "value_dtype": np.dtype(dtype).name}
-    meta["provenance"] = dict(provenance or {})
-    meta["provenance"]["cpu_s"] = float(sum(float(t.meta.get("cpu_s", 0.0)) for t in tables))
-    for (band, sca), group in sorted(groups.items()):
-        n = int(group[0].meta["grid_node"][0])
-        if len(group) != n * n:
-            raise InputError("tables", f"{band} SCA {sca}: {len(group)} node tables for a {n} x {n} grid")
-        length = max(len(t) for t in group)
-        magnitude = np.full((n, n, length), np.nan)
-        flux = np.full((n, n, length), np.nan)
-        values = np.full((n, n, length, len(columns)), np.nan)
-        positions = np.zeros((n, n, 2))
-        for t in group:
-            _, i, j = t.meta["grid_node"]
-            rows = len(t)
-            magnitude[j, i, :rows] = t["magnitude"]
-            flux[j, i, :rows] = t["flux_electrons"]
-            values[j, i, :rows] = np.stack([np.asarray(t[c], dtype=np.float64) for c in columns], axis=-1)
-            positions[j, i] = t.meta["position"]
-        key = f"{band}_{sca:02d}"
-        arrays[f"{key}/positions"] = positions
-        arrays[f"{key}/magnitude"] = magnitude
-        arrays[f"{key}/flux"] = flux
-        arrays[f"{key}/values"] = values.astype(dtype)
-        fingerprints = {t.meta["fingerprint"] for t in group}
-        if len(fingerprints) != 1:
-            raise InputError("tables", f"{band} SCA {sca}: node tables made with different settings {sorted(fingerprints)}")
-        meta["tables"][key] = {
-            "band": band,
-            "sca": sca,
-            "grid": n,
-            "settings": group[0].meta["settings"],
-            "fingerprint": group[0].meta["fingerprint"],
-            "exptime_s": float(group[0].meta["exptime_s"]),
-            "scene": group[0].meta.get("scene"),
-            "code_version": group[0].meta.get("code_version"),
-            "saturation_magnitude": [[None] * n for _ in range(n)],
-            "cpu_s": [[None] * n for _ in range(n)],
-        }
-        meta["tables"][key].update((per_table or {}).get(key, {}))
-        for t in group:
-            _, i, j = t.meta["grid_node"]
-            meta["tables"][key]["saturation_magnitude"][j][i] = float(t.meta["saturation_magnitude"])
-            meta["tables"][key]["cpu_s"][j][i] = float(t.meta.get("cpu_s", float("nan")))
-    return FieldGrid(meta, arrays).save(destination)
-
-
-def merge_grids(base: FieldGrid, update: FieldGrid) -> FieldGrid:
-    """``base`` with every (band, SCA) of ``update`` put in its place (a denser grid, a rebuild).
-
-    Entries taken from ``update`` keep its provenance as their own (``conditions`` returns it), the
-    file's provenance stays ``base``'s and lists the entries replaced. Both must hold float32 slopes
-    with the same columns."""
-    if base.meta["columns"] != update.meta["columns"] or base.meta["value_dtype"] != update.meta["value_dtype"]:
-        raise InputError("field grid", "the two field grids hold different columns or value types")
-    meta = json.loads(json.dumps(base.meta))
-    arrays = dict(base.arrays)
-    replaced = []
-    for key, entry in update.meta["tables"].items():
-        meta["tables"][key] = {**entry, "provenance": entry.get("provenance", update.meta.get("provenance", {}))}
-        for part in ARRAY_PARTS:
-            arrays[f"{key}/{part}"] = update.arrays[f"{key}/{part}"]
-        replaced.append(key)
-    provenance = meta.setdefault("provenance", {})
-    provenance["replaced_entries"] = sorted({*provenance.get("replaced_entries", []), *replaced})
-    provenance["cpu_s"] = float(sum(c for e in meta["tables"].values() for row in e["cpu_s"] for c in row if c is not None))
-    return FieldGrid(meta, arrays)
-
-
 #: Bytes of (entry, column, magnitudes) evaluations a grid keeps, least recently used dropped first
 #: (a magnitude solve over a 5 x 5 SCA asks ~750 of them, 0.75 MB).
 _NODE_VALUES_KEPT_BYTES = 32 * 2**20
-
-#: The arrays a field-grid file holds per (band, SCA), ``{key}/{part}``.
-ARRAY_PARTS: tuple[str, ...] = ("positions", "magnitude", "flux", "values")
 
 
 @dataclass(frozen=True, eq=False)
@@ -367,61 +221,12 @@ class FieldGrid:
 
     @classmethod
     def load(cls, path: Path | str) -> FieldGrid:
-        from .tables.storage import unshuffle_bytes
-
-        with np.load(path) as data:
-            arrays = {k: data[k] for k in data.files}
-        meta = json.loads(arrays.pop("meta").tobytes().decode())
-        if meta.get("format") not in FORMATS_READ:
-            raise InputError("field grid", f"{path}: not a {FORMAT} file")
-        for name, how in meta.pop("shuffled", {}).items():
-            array = unshuffle_bytes(arrays[name], how["dtype"])
-            arrays[name] = np.ascontiguousarray(np.moveaxis(array, 0, -1)) if how["columns_first"] else array
-        for key, how in meta.pop("packed_errors", {}).items():
-            # -3: the slope columns float32, the error columns coded; every caller sees (.., C) float32.
-            slopes, codes = arrays.pop(f"{key}/values"), arrays.pop(f"{key}/error_codes")
-            values = np.empty((*slopes.shape[:-1], len(meta["columns"])), dtype=np.float32)
-            errors = [i for i, c in enumerate(meta["columns"]) if _is_error_column(c)]
-            values[..., [i for i in range(values.shape[-1]) if i not in errors]] = slopes
-            outliers = arrays.pop(f"{key}/error_outliers", None)  # written only where there are any
-            values[..., errors] = unpack_errors(codes, how["offset"], outliers)
-            arrays[f"{key}/values"] = values
-        meta["format"] = FORMAT
-        return cls(meta, arrays)
+        """A field-grid file read (``gridfile.read``: every format in ``gridfile.FORMATS_READ``)."""
+        return cls(*gridfile.read(path))
 
     def save(self, destination: Path | str) -> Path:
-        """Write this grid as one ``.npz`` (:data:`FORMAT`), atomically: every array through
-        ``tables.storage.shuffle_bytes`` (lossless; the values column by column), 20 % smaller
-        deflated than the plain arrays, the slope columns as they are (float32, bit for bit) and the
-        error columns as :func:`pack_errors`' codes (rounded up; 36 % smaller again)."""
-        from .tables.storage import shuffle_bytes
-
-        errors = [i for i, c in enumerate(self.meta["columns"]) if _is_error_column(c)]
-        slopes = [i for i in range(len(self.meta["columns"])) if i not in errors]
-        stored: dict[str, np.ndarray] = {}
-        packed: dict[str, dict] = {}
-        for name, array in self.arrays.items():
-            if name.endswith("/values") and array.dtype == np.float32:
-                key = name.removesuffix("/values")
-                stored[name] = array[..., slopes]
-                stored[f"{key}/error_codes"], offset, outliers = pack_errors(array[..., errors])
-                if outliers.size:
-                    stored[f"{key}/error_outliers"] = outliers
-                packed[key] = {"offset": offset, "mantissa_bits": ERROR_MANTISSA_BITS}
-            else:
-                stored[name] = array
-        columns_first = ("/values", "/error_codes")
-        shuffled = {k: {"dtype": v.dtype.str, "columns_first": k.endswith(columns_first)} for k, v in stored.items()}
-        arrays = {k: shuffle_bytes(np.moveaxis(v, -1, 0) if shuffled[k]["columns_first"] else v) for k, v in stored.items()}
-        meta = {**self.meta, "format": FORMAT, "shuffled": shuffled, "packed_errors": packed}
-        arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
-        destination = Path(destination)
-        destination.parent.mkdir(parents=True, exist_ok=True)
-        temporary = destination.with_name(destination.name + ".tmp")
-        with open(temporary, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
-        temporary.replace(destination)
-        return destination
+        """This grid written as one ``.npz`` in ``gridfile.FORMAT``, atomically (``gridfile.write``)."""
+        return gridfile.write(self.meta, self.arrays, destination)
 
     def keys(self) -> list[str]:
         return sorted(self.meta["tables"])
@@ -442,6 +247,11 @@ class FieldGrid:
         return sorted(pairs, key=lambda p: (defaults.BANDS.index(p[0]), p[1]))
 
     def _entry(self, band: str, sca: int) -> tuple[str, dict]:
+        # A request's band and SCA were checked where it was read: look up first, check only on a miss.
+        key = f"{band}_{sca:02d}" if isinstance(band, str) and isinstance(sca, int) else None
+        entry = self.meta["tables"].get(key)
+        if entry is not None:
+            return key, entry
         key = self.key(band, sca)
         if key not in self.meta["tables"]:
             raise InputError("band", f"no field grid for {band} SCA {sca} in this file")
@@ -482,17 +292,22 @@ class FieldGrid:
         return None if shift is None else self.saturation_magnitude(band, sca, position, scheme) + float(shift)
 
     def _spline(self, key: str, column: str, j: int, i: int):
-        """(flux range, cubic spline of column / flux in flux) of one node, as ``nlpsf.slopes.tables`` reads
-        a table (not kept: :meth:`_stacked_splines` keeps every node's polynomial as arrays)."""
+        """(flux range, scipy's cubic spline of column / flux in flux) of one node, as
+        ``nlpsf.slopes.tables`` reads a table: the reference :meth:`_stacked_splines` equals (the
+        tests compare them; the grid itself builds its nodes' cubics with numpy)."""
         from scipy.interpolate import CubicSpline
 
-        index = self.meta["columns"].index(column)
+        f, q = self._node_series(key, self.meta["columns"].index(column), j, i)
+        return f[0], f[-1], CubicSpline(f, q)
+
+    def _node_series(self, key: str, index: int, j: int, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(flux ascending, column / flux) of one node's finite rows of column ``index``."""
         flux = self.arrays[f"{key}/flux"][j, i]
         values = self.arrays[f"{key}/values"][j, i, :, index].astype(np.float64)
         ok = np.isfinite(flux) & np.isfinite(values)
         f, q = flux[ok], values[ok] / flux[ok]
         order = np.argsort(f)
-        return f[order][0], f[order][-1], CubicSpline(f[order], q[order])
+        return f[order], q[order]
 
     def node_values(self, band: str, sca: int, column: str, magnitude) -> np.ndarray:
         """(n, n, ...) values of ``column`` at ``magnitude`` (a number or an array) at every node: a
@@ -519,6 +334,59 @@ class FieldGrid:
                 self._node_values_bytes[0] -= self._node_values.popitem(last=False)[1].nbytes
         return out
 
+    def values_at_nodes(self, band: str, sca: int, column: str, magnitudes) -> np.ndarray:
+        """(n, n) each node's ``column`` at its own magnitude ``magnitudes[j, i]`` (any shape of n x n
+        numbers): bit for bit what :meth:`node_values` gives at that node for that one magnitude
+        (NaN outside the node's grid)."""
+        return self.columns_at_nodes(band, sca, (column,), magnitudes)[0]
+
+    def columns_at_nodes(self, band: str, sca: int, columns, magnitudes) -> list[np.ndarray]:
+        """:meth:`values_at_nodes` of several columns at once (each node's flux at its magnitude found once)."""
+        key, _ = self._entry(band, sca)
+        first_flux, first_magnitude = self._references(key)
+        n = first_flux.shape[0]
+        m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
+        target = np.empty((n, n))
+        for j in range(n):
+            for i in range(n):  # each node's own scalar power, as a single magnitude is read
+                target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m[j, i] - first_magnitude[j, i]))
+        stacked = [self._stacked_splines(key, column) for column in columns]
+        out: list[np.ndarray | None] = [None] * len(stacked)
+        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):  # columns sharing their knots together
+            chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
+            knots, _, low, high = stacked[chosen[0]]
+            inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
+            clipped = np.minimum(np.maximum(target, low), high)  # np.clip, without its dtype checks
+            read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
+            for c, values in zip(chosen, read, strict=True):
+                out[c] = np.where(inside, values * target, np.nan)
+        return out
+
+    def slopes_at_nodes(self, band: str, sca: int, metric: str, mode: str, magnitudes) -> tuple[np.ndarray, np.ndarray]:
+        """(slope, standard error), each (n, n): node k's at its own magnitude ``magnitudes[k]`` as
+        :meth:`slope` gives them at that node's position for that one magnitude (the nodes'
+        interpolation weights are 0 and 1 there), every node at once. The field-interpolation term
+        (the median over the nodes) is read from one evaluation of every node at every magnitude
+        asked, which can differ from reading each magnitude alone in the last bit. NaN where a node
+        is outside its grid."""
+        if metric == "e":
+            s1, e1 = self.slopes_at_nodes(band, sca, "e1", mode, magnitudes)
+            s2, e2 = self.slopes_at_nodes(band, sca, "e2", mode, magnitudes)
+            value = np.hypot(s1, s2)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                error = np.where(value > 0, np.hypot(s1 * e1, s2 * e2) / value, np.hypot(e1, e2))
+            return value, error
+        column = f"{mode}_{metric}"
+        n = self._entry(band, sca)[1]["grid"]
+        m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
+        values, statistical, interpolation = self.columns_at_nodes(band, sca, (column, f"{column}_err", f"{column}_interp"), m)
+        errors = np.hypot(statistical, interpolation)
+        distinct, where = np.unique(m, return_inverse=True)
+        everywhere = self.node_values(band, sca, column, distinct[0] if distinct.size == 1 else distinct)
+        median = np.median(np.abs(everywhere), axis=(0, 1))
+        field_term = field_interpolation(n, band)[metric] * (median if distinct.size == 1 else median[where.reshape(n, n)])
+        return values, np.hypot(errors, field_term)
+
     def _evaluate_nodes(self, key: str, column: str, m: np.ndarray) -> np.ndarray:
         first_flux, first_magnitude = self._references(key)
         n = first_flux.shape[0]
@@ -531,21 +399,65 @@ class FieldGrid:
         knots, coefficients, low, high = self._stacked_splines(key, column)
         extra = (slice(None), slice(None), *([None] * m.ndim))
         inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
-        clipped = np.clip(target, low[extra], high[extra])
+        clipped = np.minimum(np.maximum(target, low[extra]), high[extra])
         return np.where(inside, evaluate_stacked_cubics(knots, coefficients, clipped) * target, np.nan)
 
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every node's spline of ``column`` as padded arrays (``nlpsf.slopes.tables.splines.stack_cubics``) and each
-        node's flux range (n, n)."""
+        """Every node's cubic of ``column`` as padded arrays (knots (n, n, L), +inf past a node's last;
+        coefficients (4, n, n, L - 1), zero past its last interval: ``splines.evaluate_stacked_cubics``' layout)
+        and each node's flux range (n, n). Built with numpy for the column and its two error columns
+        at once (``splines.not_a_knot_coefficients``: scipy's not-a-knot CubicSpline, bit for bit)."""
         cached = self._splines.get((key, column, "stacked"))
         if cached is None:
-            n = self.arrays[f"{key}/flux"].shape[0]
-            splines = [[self._spline(key, column, j, i) for i in range(n)] for j in range(n)]
-            knots, coefficients = stack_cubics([[spline for _, _, spline in row] for row in splines])
-            low = np.array([[node_low for node_low, _, _ in row] for row in splines])
-            high = np.array([[node_high for _, node_high, _ in row] for row in splines])
-            cached = self._splines[(key, column, "stacked")] = (knots, coefficients, low, high)
+            base = column.removesuffix("_err").removesuffix("_interp")
+            family = [c for c in (base, f"{base}_err", f"{base}_interp") if c in self.meta["columns"]] or [column]
+            for name, stacked in zip(family, self._build_stacked(key, family), strict=True):
+                self._splines[(key, name, "stacked")] = stacked
+            cached = self._splines[(key, column, "stacked")]
         return cached
+
+    def _build_stacked(self, key: str, columns: list[str]) -> list[tuple[np.ndarray, ...]]:
+        n = self.arrays[f"{key}/flux"].shape[0]
+        series = {
+            (c, j, i): self._node_series(key, self.meta["columns"].index(name), j, i)
+            for c, name in enumerate(columns)
+            for j in range(n)
+            for i in range(n)
+        }
+        # Every node's coefficients, the series of one length at a time.
+        coefficients_of: dict[tuple, np.ndarray] = {}
+        for length in sorted({f.size for f, _ in series.values()}):
+            keys = [k for k, (f, _) in series.items() if f.size == length]
+            x = np.stack([series[k][0] for k in keys])
+            y = np.stack([series[k][1] for k in keys])
+            if length >= 4:
+                built = not_a_knot_coefficients(x, y)
+            else:  # too short for the not-a-knot system: scipy's own special cases
+                from scipy.interpolate import CubicSpline
+
+                built = np.stack([CubicSpline(a, b).c for a, b in zip(x, y, strict=True)], axis=1)
+            for k, index in zip(keys, range(len(keys)), strict=True):
+                coefficients_of[k] = built[:, index]
+        out: list[tuple[np.ndarray, ...]] = []
+        for c in range(len(columns)):
+            size = max(series[(c, j, i)][0].size for j in range(n) for i in range(n))
+            order = coefficients_of[(c, 0, 0)].shape[0]
+            knots = np.full((n, n, size), np.inf)
+            coefficients = np.zeros((order, n, n, size - 1))
+            low, high = np.empty((n, n)), np.empty((n, n))
+            for j in range(n):
+                for i in range(n):
+                    f = series[(c, j, i)][0]
+                    knots[j, i, : f.size] = f
+                    coefficients[:, j, i, : f.size - 1] = coefficients_of[(c, j, i)]
+                    low[j, i], high[j, i] = f[0], f[-1]
+            same = next(
+                (o for o in out if np.array_equal(o[0], knots) and np.array_equal(o[2], low) and np.array_equal(o[3], high)), None
+            )
+            if same is not None:  # the same knots as a column before: shared, so they are read together
+                knots, low, high = same[0], same[2], same[3]
+            out.append((knots, coefficients, low, high))
+        return out
 
     def _references(self, key: str) -> tuple[np.ndarray, np.ndarray]:
         """(n, n) flux and magnitude of each node's brightest row: a magnitude becomes that node's
@@ -596,19 +508,54 @@ class FieldGrid:
             with np.errstate(invalid="ignore", divide="ignore"):
                 error = np.where(value > 0, np.hypot(s1 * e1, s2 * e2) / value, np.hypot(e1, e2))
             return value, error
+        column = self._column(metric, mode)
+        n = self._entry(band, sca)[1]["grid"]
+        w = weights(n, position, scheme)
+        values = self.node_values(band, sca, column, magnitude)
+        statistical = self.node_values(band, sca, f"{column}_err", magnitude)
+        errors = np.hypot(statistical, self.node_values(band, sca, f"{column}_interp", magnitude))
+        value = contract(w, values)
+        error = contract(np.abs(w), errors)
+        field_term = field_interpolation(n, band)[metric] * np.median(np.abs(values), axis=(0, 1))
+        return value, np.hypot(error, field_term)
+
+    def value(self, band: str, sca: int, position, metric: str, mode: str, magnitude, scheme: str = "lagrange") -> np.ndarray:
+        """:meth:`slope`'s slope alone (the same number), without its error."""
+        if metric == "e":
+            s1 = self.value(band, sca, position, "e1", mode, magnitude, scheme)
+            return np.hypot(s1, self.value(band, sca, position, "e2", mode, magnitude, scheme))
+        column = self._column(metric, mode)
+        w = weights(self._entry(band, sca)[1]["grid"], position, scheme)
+        return contract(w, self.node_values(band, sca, column, magnitude))
+
+    @staticmethod
+    def _column(metric: str, mode: str) -> str:
         from .tables import COLUMN_METRICS, MODES
 
         if metric not in COLUMN_METRICS:
             raise InputError("metric", f"must be one of {', '.join([*COLUMN_METRICS, 'e'])}, got {metric!r}")
         if mode not in MODES:
             raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
-        column = f"{mode}_{metric}"
-        n = self._entry(band, sca)[1]["grid"]
-        w = weights(n, position, scheme)
-        values = self.node_values(band, sca, column, magnitude)
-        statistical = self.node_values(band, sca, f"{column}_err", magnitude)
-        errors = np.hypot(statistical, self.node_values(band, sca, f"{column}_interp", magnitude))
-        value = np.tensordot(w, values, axes=([0, 1], [0, 1]))
-        error = np.tensordot(np.abs(w), errors, axes=([0, 1], [0, 1]))
-        field_term = field_interpolation(n, band)[metric] * np.median(np.abs(values), axis=(0, 1))
-        return value, np.hypot(error, field_term)
+        return f"{mode}_{metric}"
+
+
+def merge_grids(base: FieldGrid, update: FieldGrid) -> FieldGrid:
+    """``base`` with every (band, SCA) of ``update`` put in its place (a denser grid, a rebuild).
+
+    Entries taken from ``update`` keep its provenance as their own (``conditions`` returns it), the
+    file's provenance stays ``base``'s and lists the entries replaced. Both must hold float32 slopes
+    with the same columns."""
+    if base.meta["columns"] != update.meta["columns"] or base.meta["value_dtype"] != update.meta["value_dtype"]:
+        raise InputError("field grid", "the two field grids hold different columns or value types")
+    meta = json.loads(json.dumps(base.meta))
+    arrays = dict(base.arrays)
+    replaced = []
+    for key, entry in update.meta["tables"].items():
+        meta["tables"][key] = {**entry, "provenance": entry.get("provenance", update.meta.get("provenance", {}))}
+        for part in gridfile.ARRAY_PARTS:
+            arrays[f"{key}/{part}"] = update.arrays[f"{key}/{part}"]
+        replaced.append(key)
+    provenance = meta.setdefault("provenance", {})
+    provenance["replaced_entries"] = sorted({*provenance.get("replaced_entries", []), *replaced})
+    provenance["cpu_s"] = float(sum(c for e in meta["tables"].values() for row in e["cpu_s"] for c in row if c is not None))
+    return FieldGrid(meta, arrays)

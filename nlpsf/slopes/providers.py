@@ -117,7 +117,7 @@ class FieldGrid:
         entry = grid.meta["tables"].get(f"{request.band}_{request.sca:02d}")
         if entry is None:
             return Refusal(RefusalCode.NO_GRID, "scene", f"the grid has no {request.band} SCA {request.sca}")
-        own = presets.fill(presets.NAME, request.band, request.sca, None, None, None, None)
+        own = presets.default_fill(request.band, request.sca)
         if not math.isclose(request.exptime, own.exptime, rel_tol=1e-9):
             return Refusal(RefusalCode.EXPOSURE, "exptime", "the readout differs from the default's")
         if not presets.is_default_scene(request.scene, own.background_e):
@@ -127,7 +127,7 @@ class FieldGrid:
         settings = entry.get("settings", {})
         wanted = {
             "exptime_s": request.exptime, "beta0": request.beta0, "full_well_e": request.full_well,
-            "pupil_scale": request.pupil_scale, "linearise_at": request.linearise_at, "scene": presets.NAME,
+            "pupil_scale": request.pupil_scale, "linearise_at": request.linearise_at, "scene": request.preset,
         }  # fmt: skip
         for name, field in _GRID_SETTINGS:
             held, value = settings.get(name), wanted[name]
@@ -169,7 +169,7 @@ class PaperTables:
     def tables_for(self, scene, sca: int) -> tables.TableSet:
         """The tables a request reads (for its slopes, its saturation, its photometry): those at the
         scene's position where the store holds the paper's scene there, else the SCA centre's."""
-        if scene is not None and scene.position is not None and replace(scene, position=None).is_paper:
+        if scene is not None and scene.position is not None and replace(scene, position=None).no_effects:
             held = self.at(scene.position, sca)
             if held is not None:
                 return held
@@ -180,7 +180,7 @@ class PaperTables:
         (:meth:`tables_for`'s, or the caller's)."""
         if fidelity != "table":
             return Refusal(RefusalCode.FIDELITY, "fidelity", f"fidelity {fidelity}")
-        if scene is not None and not scene.is_paper and not _holds(scene, tableset, request.band, request.sca):
+        if scene is not None and not scene.no_effects and not _holds(scene, tableset, request.band, request.sca):
             return Refusal(RefusalCode.SCENE, "scene", "the tables hold the paper's scene only")
         table_rule = str(tableset.get(request.band, request.sca).settings["pupil_scale"])
         if request.pupil_scale is not None and request.pupil_scale != table_rule:
@@ -206,7 +206,7 @@ def _same_position(a, b) -> bool:
 def _holds(scene, tableset: tables.TableSet, band: str, sca: int) -> bool:
     """Whether the tables hold the scene: it differs from the paper's by its position alone, and the
     table of (band, SCA) was built at that position (a field-point table, or the centre's)."""
-    if scene.position is None or not replace(scene, position=None).is_paper:
+    if scene.position is None or not replace(scene, position=None).no_effects:
         return False
     return _same_position(tableset.get(band, sca).position_pixels, scene.position)
 

@@ -32,7 +32,7 @@ from nlpsf.request import presets as roman_default
 from nlpsf.roman import photometry
 from nlpsf.sim import cluster, experiment
 
-from . import fidelity, fieldgrid
+from . import fidelity, fieldgrid, gridfile
 from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion
 
 FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
@@ -40,6 +40,16 @@ MAGNITUDE_STEP = defaults.TABLE_MAGNITUDE_STEP
 #: Where the nonlinearity is strong (up to a magnitude fainter than saturation) the grid is twice
 #: as fine, so that interpolation stays below the statistical error there too.
 BRIGHT_STEP_FACTOR = 0.5
+#: Rows every this many magnitudes between a ramp's saturation limit and the final frame's (the
+#: Roman default's recipe, ``TableSettings.roman``): there pixels lose resultants one by one and the
+#: slope has a kink at each. The grid shipped until issue 28 had 0.125 mag rows to 1 mag past the
+#: ramp's limit and 0.25 after, which missed a node's own fresh value by up to 27 % in size (median
+#: 2.5 %, 16 random nodes); 0.125 mag all the way: 2.7 % (median 0.7 %), 0.0625: 7.4 % (0.3 %).
+#: The e slopes there move by their centroid noise, which no row step removes (docs/field.md,
+#: "Between the saturation limits").
+BETWEEN_LIMITS_STEP = 0.125
+#: The dense rows reach this far past both limits [mag] (a pixel near a limit still changes there).
+BETWEEN_LIMITS_MARGIN_MAG = 0.25
 
 
 @dataclass(frozen=True)
@@ -71,6 +81,9 @@ class TableSettings:
     #: How a calibration error acts in the corrected state (``experiment.correction.RESIDUAL_MODELS``);
     #: None: the default's there ("per_resultant_correction"), nothing at beta0.
     residual_nl: str | None = None
+    #: Rows every this many magnitudes between a ramp's saturation limit and the final frame's
+    #: (:data:`BETWEEN_LIMITS_STEP` for the Roman default; None: the plain grid, as the paper tables).
+    between_step: float | None = None
 
     def __post_init__(self) -> None:
         roman.check_throughput(self.throughput)
@@ -83,6 +96,8 @@ class TableSettings:
                 "linearise_at", f"must be one of {', '.join(experiment.LINEARISE_STATES)}, got {self.linearise_at!r}"
             )
         object.__setattr__(self, "residual_nl", experiment.correction.check_model(self.residual_nl, self.linearise_at))
+        if self.between_step is not None and not 0.01 <= float(self.between_step) <= self.magnitude_step:
+            raise InputError("between_step", f"must lie in [0.01, {self.magnitude_step:g}] mag, got {self.between_step!r}")
 
     @classmethod
     def roman(cls, **changes) -> TableSettings:
@@ -94,6 +109,7 @@ class TableSettings:
             "exptime_s": roman_default.exptime_s(),
             "linearise_at": roman_default.LINEARISE_AT,
             "residual_nl": roman_default.RESIDUAL_NL,
+            "between_step": BETWEEN_LIMITS_STEP,
         }
         return cls(**(base | changes))
 
@@ -136,7 +152,14 @@ class TableSettings:
         Fields added after the shipped tables were built enter only when they differ from their
         default, so the paper tables keep their fingerprints."""
         settings = asdict(self)
-        for name, default in (("scene", "paper"), ("fidelity", "linear"), ("linearise_at", "beta0"), ("residual_nl", None)):
+        added = (
+            ("scene", "paper"),
+            ("fidelity", "linear"),
+            ("linearise_at", "beta0"),
+            ("residual_nl", None),
+            ("between_step", None),
+        )
+        for name, default in added:
             if settings[name] == default:
                 settings.pop(name)
         text = json.dumps({**settings, "code": __version__, "data": roman.DATA_VERSION}, sort_keys=True)
@@ -174,14 +197,31 @@ def saturation_magnitude(peak_fraction: float, config: experiment.SimulationConf
     )
 
 
-def magnitude_grid(saturation: float, step: float = MAGNITUDE_STEP, faint_limit: float = FAINT_LIMIT) -> np.ndarray:
-    """From BRIGHT_MARGIN_MAG brighter than saturation to ``faint_limit``, finer at the bright end."""
+def magnitude_grid(
+    saturation: float,
+    step: float = MAGNITUDE_STEP,
+    faint_limit: float = FAINT_LIMIT,
+    between: tuple[float, float] | None = None,
+    between_step: float | None = None,
+) -> np.ndarray:
+    """From BRIGHT_MARGIN_MAG brighter than saturation to ``faint_limit``, finer at the bright end.
+
+    ``between`` (a ramp's saturation limit, the final frame's) with ``between_step``: rows every
+    ``between_step`` mag (multiples of it) from :data:`BETWEEN_LIMITS_MARGIN_MAG` brighter than the
+    first to as much fainter than the second, in place of the plain rows there."""
     fine = step * BRIGHT_STEP_FACTOR
     first = math.floor((saturation - BRIGHT_MARGIN_MAG) / step) * step
     switch = math.ceil((saturation + 1.0) / step) * step
     bright = np.arange(first, switch, fine)
     faint = np.arange(switch, faint_limit + step / 2, step)
-    return np.round(np.concatenate([bright, faint]), 6)
+    rows = np.round(np.concatenate([bright, faint]), 6)
+    if between is None or not between_step:
+        return rows
+    lo = max(first, math.floor((between[0] - BETWEEN_LIMITS_MARGIN_MAG) / between_step) * between_step)
+    hi = math.ceil((between[1] + BETWEEN_LIMITS_MARGIN_MAG) / between_step) * between_step
+    dense = np.round(np.arange(lo, hi + between_step / 2, between_step), 6)
+    keep = rows[(rows < lo - 1e-9) | (rows > hi + 1e-9)]
+    return np.unique(np.concatenate([keep, dense]))
 
 
 def table_magnitudes(scene: experiment.Scene, settings: TableSettings) -> tuple[float, np.ndarray]:
@@ -189,12 +229,14 @@ def table_magnitudes(scene: experiment.Scene, settings: TableSettings) -> tuple[
 
     Final frame: the brightest fine pixel reaches the full well. Up the ramp a star stays measurable
     until its brightest pixel saturates within the resultants a slope needs, so the anchor moves
-    brighter by ``ramps.Ramp.saturation_shift_mag`` (3.4 mag for H158 with C2A_IMG_HLWAS)."""
+    brighter by ``ramps.Ramp.saturation_shift_mag`` (3.4 mag for H158 with C2A_IMG_HLWAS); with
+    ``settings.between_step`` the rows between the two limits are that dense."""
     config = scene.config
-    m_sat = saturation_magnitude(float(scene.star_peak_fraction), config)
+    m_sat = final = saturation_magnitude(float(scene.star_peak_fraction), config)
     if config.ramp is not None:
         m_sat -= config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
-    return m_sat, magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit)
+    between = (m_sat, final) if config.ramp is not None and settings.between_step else None
+    return m_sat, magnitude_grid(m_sat, settings.magnitude_step, settings.faint_limit, between, settings.between_step)
 
 
 def compute_table(
@@ -426,7 +468,7 @@ def merge_field_grid(
     paths: Iterable[Path], destination: Path | str, provenance: dict | None = None, complete_only: bool = False
 ) -> Path:
     """Pack the node tables of a ``build_tables(grid=n)`` run into one field-grid file
-    (``fieldgrid.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads).
+    (``gridfile.write_grid``: float32 slopes, the runtime format ``fieldgrid.FieldGrid`` reads).
 
     ``complete_only``: leave out every (band, SCA) whose n x n nodes are not all there (a build still
     running or stopped), instead of refusing; ``provenance`` goes into the file's metadata."""
@@ -442,7 +484,7 @@ def merge_field_grid(
         tables = [t for group in groups.values() if len(group) == int(group[0].meta["grid_node"][0]) ** 2 for t in group]
         if not tables:
             raise InputError("tables", "no (band, SCA) has all its grid nodes yet")
-    return fieldgrid.write_grid(tables, destination, provenance=provenance, per_table=_ramp_shifts(tables))
+    return gridfile.write_grid(tables, destination, provenance=provenance, per_table=_ramp_shifts(tables))
 
 
 def _ramp_shifts(tables: list) -> dict[str, dict]:

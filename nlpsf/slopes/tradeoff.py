@@ -163,24 +163,7 @@ def tradeoff(points=TEST_POINTS, progress=None, default: str = "paper") -> dict:
         rows += [{**r, "level": "table", "seconds": None, "stated_from": "linear"} for r in rows if r["level"] == "linear"]
     if progress:
         progress(len(points), len(points), "done")
-    bands = sorted({r["band"] for r in rows}, key=roman.BANDS.index)
-    errors = {
-        band: {
-            mode: {
-                metric: {
-                    level: max(
-                        r["relative_error"]
-                        for r in rows
-                        if (r["band"], r["mode"], r["metric"], r["level"]) == (band, mode, metric, level)
-                    )
-                    for level in LEVELS
-                }
-                for metric in METRIC_NAMES
-            }
-            for mode in ("bias", "scatter")
-        }
-        for band in bands
-    }
+    errors = _worst_errors(rows)
     seconds = {}
     for level in LEVELS:
         times = [r["seconds"] for r in rows if r["level"] == level and r["seconds"] is not None]
@@ -209,6 +192,28 @@ def tradeoff(points=TEST_POINTS, progress=None, default: str = "paper") -> dict:
         "data_version": roman.DATA_VERSION,
         "throughput": roman.DEFAULT_THROUGHPUT,
         "throughput_version": roman.THROUGHPUT_VERSIONS[roman.DEFAULT_THROUGHPUT],
+    }
+
+
+def _worst_errors(rows: list[dict]) -> dict:
+    """{band: {mode: {metric: {level: the largest relative error over the test points}}}}."""
+    bands = sorted({r["band"] for r in rows}, key=roman.BANDS.index)
+    return {
+        band: {
+            mode: {
+                metric: {
+                    level: max(
+                        r["relative_error"]
+                        for r in rows
+                        if (r["band"], r["mode"], r["metric"], r["level"]) == (band, mode, metric, level)
+                    )
+                    for level in LEVELS
+                }
+                for metric in METRIC_NAMES
+            }
+            for mode in ("bias", "scatter")
+        }
+        for band in bands
     }
 
 

@@ -53,6 +53,16 @@ PROBE_REALIZATIONS = 20
 #: the slope or below (the answer quotes it), far under any accuracy the range allows, at a quarter
 #: of the tables' 100 centroids' cost. Monte Carlo levels keep the tables' count.
 ANSWER_REALIZATIONS = 25
+#: Where pixels lose resultants (between a ramp's saturation limits) the slope jumps from centroid
+#: to centroid as each pixel does (25 centroids gave a statistical error of 71 % of a Y106 e2
+#: slope, issue 28): an answer there simulates enough centroids for its statistical error to stay
+#: within this share of the accuracy, measured on a pilot of the tables' own draws.
+STATISTICAL_SHARE = 0.5
+#: The pilot's centroids there: the tables' and the field grid's own 100 (the same draws).
+BETWEEN_LIMITS_PILOT = 100
+#: The most centroids an answer simulates there (about 8x a table's cost per magnitude; the stamps
+#: alone are 59 MB at the default's 96 x 96 fine pixels). Beyond it the statistical error is stated.
+MAX_REALIZATIONS = 800
 #: Where ``fidelity.json`` holds the Roman default's measurement (same shape as the top level:
 #: ``errors[band][mode][metric][level]``, ``date``, ``reference``; ``tradeoff(default="roman")``).
 ROMAN_ENTRY = ("roman",)
@@ -94,13 +104,13 @@ def full_scene(request, table) -> FullScene:
 
     linearise_at = getattr(request, "linearise_at", None) or "beta0"
     pupil = request.pupil_scale or str(table.settings["pupil_scale"])
-    default = getattr(request, "preset", None) == roman_default.NAME
+    default = request.policy.quotes_default
     if request.scene is not None:
         # A request filled with the Roman default (``roman_default.fill``) holds the default's scene:
         # it is the Roman default, whose own fidelity measurement applies, at any position.
         own = default and roman_default.is_default_scene(request.scene, request.scene.background_e)
         scene, source = request.scene, "roman default" if own else "request"
-    elif getattr(request, "preset", None) not in (None, roman_default.NAME):
+    elif not request.policy.quotes_default:
         # A preset's scene the request normalises away (``SolveRequest``: "paper" is the plain path).
         scene, source = roman_default.preset_base(request.preset), "request"
     else:
@@ -158,7 +168,7 @@ def level_error(full: FullScene, simulated: scenes.SceneModel | None, band: str,
 def level_for(full: FullScene, simulated, band: str, metric: str, mode: str, budget: float) -> tuple[Level, bool]:
     """The cheapest level whose measured error is within ``budget`` (else the most accurate), and
     whether one meets it. The table level only for the paper's scene (the tables hold nothing else)."""
-    candidates = levels.LEVELS if simulated is None or simulated.is_paper else levels.SIMULATION_LEVELS
+    candidates = levels.LEVELS if simulated is None or simulated.no_effects else levels.SIMULATION_LEVELS
     measured = [level_error(full, simulated, band, metric, mode, name) for name in candidates]
     for level in measured:
         if level.error <= budget:
@@ -291,7 +301,7 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
         left, combined, level, effects = _search(probe, full, band, metric, mode, accuracy, level)
     simulated = probe.without(left) if probe is not None else full.scene
     fidelity_level = level.name
-    if simulated.is_paper:
+    if simulated.no_effects:
         simulated = None if fidelity_level == "table" else simulated
     elif fidelity_level == "table":
         fidelity_level = "linear"
@@ -312,7 +322,78 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
                           level=fidelity_level, error=level.error))  # fmt: skip
     model = _model_info(request, full, magnitude, left, combined, level, effects, probe, accuracy)
     realizations = ANSWER_REALIZATIONS if fidelity_level == "linear" else None
+    if fidelity_level == "linear":
+        centroids = centroids_where_pixels_saturate(request, full, table, simulated, magnitude, accuracy)
+        if centroids is not None:
+            realizations = centroids["used"]
+            model["centroids"] = centroids
+            notes.append(make(FlagCode.ACCURACY_CENTROIDS, **{k: centroids[k] for k in ACCURACY_CENTROIDS_QUOTES}))
     return Selection(fidelity_level, simulated, model, notes, realizations)
+
+
+#: The values ``FlagCode.ACCURACY_CENTROIDS`` quotes from :func:`centroids_where_pixels_saturate`.
+ACCURACY_CENTROIDS_QUOTES = ("magnitude", "pilot", "pilot_error", "used", "expected_error", "target", "verdict")
+
+
+def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, magnitude: float, accuracy: float) -> dict | None:
+    """How many centroids an answer at ``magnitude`` needs where pixels lose resultants, or None
+    where none does (no ramp, or fainter than the tables' final-frame limit, or a pilot without a
+    pixel on fewer resultants). A pilot of :data:`BETWEEN_LIMITS_PILOT` centroids (the tables' draws)
+    measures the slope's relative statistical error r; the answer simulates N = pilot (r / t)^2 with
+    t = :data:`STATISTICAL_SHARE` x accuracy, within [pilot, :data:`MAX_REALIZATIONS`], so that its
+    error is about r sqrt(pilot / N). Where even the cap leaves it above t, ``verdict`` says so."""
+    from nlpsf.sim import experiment
+
+    if full.ramp is None or simulated is None:
+        return None
+    background = float(getattr(full.scene, "background_e", 0.0) or 0.0)
+    # The paper's star is the sharpest the tables hold: no pixel of a broader star saturates fainter.
+    if magnitude > table.saturation(full.exptime, request.full_well - background) + 0.5:
+        return None
+    config = experiment.SimulationConfig.from_table(
+        table.settings,
+        band=request.band,
+        sca=request.sca,
+        exptime_s=full.exptime,
+        throughput=full.throughput,
+        method="linear",
+        realizations=BETWEEN_LIMITS_PILOT,
+        pupil_scale=full.pupil_scale,
+        scene=simulated,
+        ramp=full.ramp,
+        full_well_e=request.full_well,
+    )
+    result = experiment.slopes(
+        config, [magnitude], beta0=request.beta0, linearise_at=full.linearise_at, residual_nl=full.residual_nl
+    )[0]
+    summary = result.extras.get("ramp") or {}
+    if not (summary.get("fitted_on_fewer") or summary.get("unusable")):
+        return None
+    value, error = result.slope(request.mode, defaults.METRIC_COLUMNS[request.metric])
+    relative = math.inf if not value else abs((error or 0.0) / value)
+    target = STATISTICAL_SHARE * accuracy
+    needed = BETWEEN_LIMITS_PILOT * (relative / target) ** 2 if math.isfinite(relative) else math.inf
+    used = int(min(MAX_REALIZATIONS, max(BETWEEN_LIMITS_PILOT, math.ceil(needed) if math.isfinite(needed) else MAX_REALIZATIONS)))
+    expected = relative * math.sqrt(BETWEEN_LIMITS_PILOT / used)
+    met = expected <= target * (1 + 1e-9)
+    verdict = (
+        "within it"
+        if met
+        else f"above it: {needed:.3g} centroids would be needed, more than the {MAX_REALIZATIONS} an answer simulates"
+    )
+    return {
+        "magnitude": float(magnitude),
+        "pilot": BETWEEN_LIMITS_PILOT,
+        "pilot_error": relative,
+        "pixels_on_fewer_resultants": int(summary.get("fitted_on_fewer") or 0) + int(summary.get("unusable") or 0),
+        "needed": needed,
+        "used": used,
+        "expected_error": expected,
+        "target": target,
+        "met": met,
+        "verdict": verdict,
+        "rule": f"N = pilot (r / t)^2 within [{BETWEEN_LIMITS_PILOT}, {MAX_REALIZATIONS}], t = {STATISTICAL_SHARE:g} x accuracy",
+    }
 
 
 def _search(probe: Probe, full: FullScene, band, metric, mode, accuracy: float, level: Level):
@@ -343,10 +424,9 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
     its measured combined impact, and what was measured on the way. For the Roman default (its
     scene, or one the request modified: preset "roman") the default's own parts are added, as its
     table and grid answers carry them (:func:`_roman_parts`)."""
-    from nlpsf.request import presets as roman_default
 
     alone = {e["name"]: e["impact_alone"] for e in effects}
-    roman = request.preset == roman_default.NAME
+    roman = request.policy.quotes_default
     parts = []
     if left:
         parts.append(

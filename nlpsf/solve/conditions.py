@@ -43,9 +43,9 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
         out["residual_nl"] = fieldgrid.grid_residual_model(the_plan.grid.conditions(request.band, request.sca)["settings"])
     else:
         out["residual_nl"] = request.residual_model
-    if request.preset == roman_default.NAME:
+    if request.policy.quotes_default:
         out["roman_default"] = roman_default.conditions()
-        own = roman_default.fill(roman_default.NAME, request.band, request.sca, request.exptime, None, None, None)
+        own = roman_default.default_fill(request.band, request.sca, request.exptime)
         out["roman_default_changed"] = not roman_default.is_default_scene(request.scene, own.background_e) or (
             request.ramp != own.ramp
         )

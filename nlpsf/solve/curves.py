@@ -33,7 +33,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from nlpsf.checks import InputError
-from nlpsf.request import presets as roman_default
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import tables
 from nlpsf.slopes.providers import NeedsSimulation
@@ -189,7 +188,7 @@ def curves(
     if missed:
         gaps = (
             f"the slopes at m = {min(missed):.2f} to {max(missed):.2f} would be simulated (outside what the tables and "
-            "the field grid hold): no value there at table cost"
+            "the field grid hold, or between the saturation limits at a position): no value there at table cost"
         )
     return Curves(
         magnitude=magnitudes,
@@ -257,6 +256,12 @@ def _node_slopes(node: _Node, magnitudes: np.ndarray, missed: list[float]) -> tu
             position = slopes.scene_model.position
             value, error = grid.slope(request.band, request.sca, position, request.metric, request.mode, magnitudes[inside])
             values[inside], errors[inside] = value, np.abs(error)
+            # Between the saturation limits at a position (not a node) the solver simulates afresh
+            # (``validity.between_limits``, issue 28): no value there at table cost.
+            between = _between_limits_mask(grid, request, position, magnitudes) & inside
+            values[between] = errors[between] = np.nan
+            missed.extend(float(m) for m in magnitudes[between])
+            todo &= ~between
         todo &= ~np.isfinite(values)
     for i in np.flatnonzero(todo):  # the plan's slopes refuse to simulate (simulate=False)
         try:
@@ -267,6 +272,20 @@ def _node_slopes(node: _Node, magnitudes: np.ndarray, missed: list[float]) -> tu
         if region >= 0:
             values[i], errors[i] = value, error
     return values, errors
+
+
+def _between_limits_mask(grid, request, position, magnitudes: np.ndarray) -> np.ndarray:
+    """Where ``validity.between_limits`` sends the solver to a fresh simulation, over ``magnitudes``."""
+    from .validity import between_limits
+
+    mask = np.zeros(magnitudes.shape, dtype=bool)
+    if position is None:
+        return mask
+    ramp = grid.saturation_magnitude(request.band, request.sca, position)
+    if between_limits(grid, request.band, request.sca, position, ramp) is None:
+        return mask  # a node, or no final-frame limit stated
+    final = grid.final_frame_saturation_magnitude(request.band, request.sca, position)
+    return (magnitudes >= ramp) & (magnitudes < final)
 
 
 #: Where the curve is refined: linear (and log) interpolation between neighbours within this
@@ -313,7 +332,9 @@ def _nodes(request: SolveRequest) -> tuple[list[_Node], str | None]:
     for position in _positions(request):
         node_request = request if position is None else request.with_changes(scene=replace(request.scene, position=position))
         # At table cost: a slope the plan would simulate is refused (providers.NeedsSimulation).
-        the_plan = solver.plan(node_request, simulate=False)
+        # The grid's plan whatever the request's own magnitude; between the saturation limits at a
+        # position the solver simulates afresh, and those magnitudes are left out (_node_slopes).
+        the_plan = solver.plan(node_request, simulate=False, fresh_between_limits=False)
         if the_plan.fidelity != "table":
             notes = "; ".join(str(n) for n in the_plan.notes)
             return [], f"its slopes are simulated ({notes or 'fidelity ' + the_plan.fidelity})"
@@ -349,7 +370,7 @@ def _simulated_request(request: SolveRequest) -> str | None:
 def _positions(request: SolveRequest) -> list:
     """[None] (the request's own position, or none), or the SCA's field-grid nodes for the Roman
     default without a position (the solver's SCA range)."""
-    if request.preset == roman_default.NAME and request.scene is not None and request.scene.position is None:
+    if request.policy.ranges_over_sca and request.scene is not None and request.scene.position is None:
         from .over_field import range_positions
 
         return list(range_positions(request))
@@ -365,11 +386,11 @@ def _node(solver, request: SolveRequest, the_plan) -> _Node:
     # The solver's limits and conditions for this node, from its answer at the faint end (where it
     # always answers): precision 1, so that its tolerance is |c| beta0 and the method error relative.
     reference = request.with_changes(precision=1.0, tolerance=None, magnitude=faint, shear_m=None, shear_c=None, size_ratio=None)
-    if request.ramp is not None and request.preset != roman_default.NAME and slopes.ramp_factor is None:
+    if request.ramp is not None and not request.policy.field_grid and slopes.ramp_factor is None:
         raise _Simulated("the paper's scene up a ramp the tables do not map (not an OLS fit) is simulated at every magnitude")
     # The table solve (a batch's: it refuses rather than simulates); a ramp on the paper's scene is
     # refused there outright, but at the faint end its OLS mapping onto the tables is exact.
-    table_cost = not (request.ramp is not None and request.preset != roman_default.NAME)
+    table_cost = not (request.ramp is not None and not request.policy.field_grid)
     answer = solver.answer(reference, simulate=not table_cost)
     # Past the ramp's bright margin the solver refuses (solve_validity._ramp_magnitude_flags); in a
     # final frame, brighter than the tables reach (region < 0).
@@ -425,7 +446,7 @@ def _limits(request: SolveRequest, nodes: list[_Node]) -> dict:
     source = nodes[0].answer.conditions.get("saturation_from")
     if source:
         out["saturation_from"] = source
-    if request.preset == "paper" and not ramp and request.scene is None:
+    if request.policy.tables_limits and not ramp and request.scene is None:
         try:
             from .relation import nl_invalid_magnitude
 
@@ -465,7 +486,7 @@ def published(request: SolveRequest, tolerance: float | None) -> dict | None:
     from nlpsf.slopes.tables import paper_data
 
     same = (
-        request.preset == "paper" and request.scene is None and request.ramp is None
+        request.policy.tables_limits and request.scene is None and request.ramp is None
         and request.sca == PUBLISHED_CONDITIONS["sca"]
         and math.isclose(request.exptime, PUBLISHED_CONDITIONS["exptime"], rel_tol=1e-9)
         and math.isclose(request.beta0, PUBLISHED_CONDITIONS["beta0"], rel_tol=1e-9)
@@ -495,7 +516,7 @@ def paper_overlay(request: SolveRequest, tolerance: float | None, at: Iterable[f
     """The paper's idealised scene's curves at the request's band, SCA, metric, mode, beta0, full
     well, stars and exposure (its final frame, the shipped tables), for the same tolerance: the
     overlay beside another scene's answer. None where the request is the paper's scene already."""
-    if request.preset == "paper" and request.scene is None and request.ramp is None:
+    if request.policy.tables_limits and request.scene is None and request.ramp is None:
         return None
     paper = SolveRequest(
         request.band, request.sca, request.metric, request.mode, request.beta0, request.exptime, precision=1.0,

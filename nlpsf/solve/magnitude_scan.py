@@ -143,7 +143,7 @@ def _field_grid_scan(slopes, m_sat: float) -> _Grid:
     brightest, faintest = slopes.grid.magnitude_range(slopes.band, slopes.sca)
     magnitudes = np.arange(faintest, max(m_sat, brightest) - 1e-9, -0.05)
     grid, position = slopes.grid, slopes.scene_model.position
-    values = grid.slope(slopes.band, slopes.sca, position, slopes.metric, slopes.mode, magnitudes)[0]
+    values = grid.value(slopes.band, slopes.sca, position, slopes.metric, slopes.mode, magnitudes)
     slopes.ramp_bases.add("grid")
     everywhere = f"for every star from the field grid's faint end m={faintest:.2f} down to saturation m={m_sat:.2f}"
     return _Grid(magnitudes, np.asarray(values, dtype=np.float64), faintest, everywhere, m_sat, "over the scan")

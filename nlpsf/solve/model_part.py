@@ -176,8 +176,8 @@ def component_scale(slopes, magnitude: float | None) -> float:
     return 1.0
 
 
-#: Scene fields a request may set that decide a Roman-default part: when the request's value differs
-#: from the default's, the star is the user's and that spread is not the default's uncertainty.
+#: Scene fields a request may set that decide a Roman-default part or range: when the request's
+#: value differs from the default's, the star is the user's and that spread is not the default's.
 _CHOSEN_BY_REQUEST = {
     "sed": "sed",
     "jitter": "jitter_arcsec",
@@ -185,43 +185,47 @@ _CHOSEN_BY_REQUEST = {
 }
 #: What a part the request sets no longer means (it is dropped, with this reason).
 _SET_BY_REQUEST_WHY = {
-    "sed": (
-        "the default's SED spread (3500-10000 K blackbodies against its K0V) is not the uncertainty of the SED the request gives"
-    ),
-    "jitter": "the default's jitter spread (3.4-14 mas against 6 mas) is not the uncertainty of the jitter the request gives",
+    "sed": "the default's SED range (3500-10000 K blackbodies against its K0V) is not the range of the SED the request gives",
+    "jitter": "the default's jitter uncertainty (6 +- 0.86 mas) is not the uncertainty of the jitter the request gives",
     "charge_diffusion": (
-        "the default's diffusion spread (0.30 against 0.332 px) is not the uncertainty of the diffusion the request gives"
+        "the default's diffusion uncertainty (0.332 +- 0.011 px) is not the uncertainty of the diffusion the request gives"
     ),
 }
 
 
 def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupil_scale: str | None = None, request=None) -> dict:
     """The Roman default's model part: its parts (``nlpsf.solve.roman_uncertainty``) for this band, SCA,
-    mode and metric, each by name with its value over the measured magnitudes.
+    mode and metric, each by name with its value over the measured magnitudes, and the star-to-star
+    ranges (the SED's) beside them.
 
-    A part the request fixes (its own SED, jitter or diffusion) or simulates (brighter-fatter, an NL
-    polynomial) is dropped, with the reason in ``included``. ``pupil_scale``: the rule the answer
-    uses; the part measured is header against official, so with ``header`` it is this answer's
-    distance from the official clear area, and with any other rule it is not measured (impact None,
-    said). ``request`` (a ``SolveRequest``): where its readout, exposure, beta0, full well or state
-    differ from those the parts were measured at (:func:`roman_measurement_differences`), the
-    basis says so and the parts are read at the magnitude of equal charge in the measured exposure."""
+    A part the request fixes (its own jitter or diffusion) or simulates (brighter-fatter, an NL
+    polynomial) is dropped, with the reason in ``included``; a request's own SED drops the SED range.
+    ``pupil_scale``: the rule the answer uses; the optics part is the jointly fitted optics' distance
+    from the official rule's PSF, so another rule moves that distance by its own log scale (read
+    from the shipped pupil scales). ``request`` (a ``SolveRequest``): where its readout, exposure,
+    beta0, full well or state differ from those the parts were measured at
+    (:func:`roman_measurement_differences`), the basis says so and the parts are read at the
+    magnitude of equal charge in the measured exposure."""
     from nlpsf.request import presets as roman_default
 
     defaults_scene = roman_default.base_scene()
     entry, where = roman_parts.entry(band, sca, mode, metric)
-    conditions = roman_parts.shipped()["conditions"]
+    data = roman_parts.shipped()
+    conditions = data["conditions"]
     parts, included = [], []
+
+    def chosen(name: str) -> bool:
+        field = _CHOSEN_BY_REQUEST.get(name)
+        return scene is not None and field is not None and getattr(scene, field) != getattr(defaults_scene, field)
+
     for part in roman_parts.PARTS:
         shipped = entry["parts"][part.name]
-        field = _CHOSEN_BY_REQUEST.get(part.name)
-        chosen = scene is not None and field is not None and getattr(scene, field) != getattr(defaults_scene, field)
         simulated = scene is not None and (
             (part.name == "brighter_fatter" and scene.bfe_coefficient != 0)
             or (part.name == "nl_shape" and any(c != 0 for c in scene.nl_coefficients))
         )
-        if chosen or simulated:
-            why = f"set by the request: {_SET_BY_REQUEST_WHY[part.name]}" if chosen else "simulated"
+        if chosen(part.name) or simulated:
+            why = f"set by the request: {_SET_BY_REQUEST_WHY[part.name]}" if chosen(part.name) else "simulated"
             included.append({"name": part.name, "impact": None, "why": why})
             continue
         row = {
@@ -230,10 +234,18 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
             "impact": shipped["value"],
             "by_magnitude": [[r[0], r[1]] for r in shipped["by_magnitude"]],
             "why": shipped.get("why", part.measured_as),
+            "source": part.source,
         }
-        if part.name == "pupil_scale" and pupil_scale not in (None, roman_default.PUPIL_SCALE):
-            row.update(_pupil_part(pupil_scale, row))
+        if part.name == "optics" and pupil_scale not in (None, roman_default.PUPIL_SCALE):
+            row.update(_optics_for_rule(band, sca, entry, pupil_scale))
         parts.append(row)
+    ranges = {}
+    for name in roman_parts.RANGES:
+        if chosen(name):
+            included.append({"name": name, "impact": None, "why": f"set by the request: {_SET_BY_REQUEST_WHY[name]}"})
+            continue
+        shipped = entry["ranges"][name]
+        ranges[name] = {"ends": list(shipped["ends"]), "by_magnitude": [list(r) for r in shipped["by_magnitude"]]}
     differences, offset = ([], 0.0) if request is None else roman_measurement_differences(request)
     basis = (
         f"shipped measurement of the Roman default's parts ({conditions['script']}, {conditions['measured_utc']}, "
@@ -250,6 +262,7 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
     out = {
         "included": included,
         "left_out": parts,
+        "ranges": ranges,
         "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
         "combine": "roman",
         "basis": basis,
@@ -259,16 +272,31 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
     return out
 
 
-def _pupil_part(rule: str, row: dict) -> dict:
-    """The pupil-scale part for an answer that uses another rule than the official one."""
-    if rule == roman_parts.PUPIL_ALTERNATIVE:
-        return {"why": f"this answer uses the {rule} rule; the part is {rule} against official (the rule that "
-                       "reproduces the official clear areas): this answer's distance from the official clear area"}  # fmt: skip
+def _optics_for_rule(band: str, sca: int, entry: dict, rule: str) -> dict:
+    """The optics part of an answer whose pupil rule is not the official one: the jointly fitted
+    optics less the rule's own log scale, through the same sensitivities."""
+    data = roman_parts.shipped()
+    scales = data.get("pupil_log_scale", {}).get(f"{band} {sca}", {})
+    if rule not in scales:
+        return {
+            "impact": None,
+            "by_magnitude": [[r[0], None] for r in entry["parts"]["optics"]["by_magnitude"]],
+            "why": f"not measured: this answer uses the {rule} rule, whose pupil scale on {band} SCA {sca} is not shipped",
+        }
+    fit = data["optics_fit"][band]
+    rows = []
+    for m, sv, ss in entry["optics_sensitivity"]:
+        if sv is None or ss is None:
+            rows.append([m, None])
+            continue
+        value, offset = roman_parts.optics_value(fit, np.array([sv, ss]), scales[rule])
+        rows.append([m, math.copysign(float(value), float(offset))])
+    values = [r[1] for r in rows if r[1] is not None]
     return {
-        "impact": None,
-        "by_magnitude": [[m, None] for m, _ in row["by_magnitude"]],
-        "why": f"not measured: this answer uses the {rule} rule; the part shipped is {roman_parts.PUPIL_ALTERNATIVE} "
-        "against official, which is not this rule's distance from the official clear area",
+        "impact": max(values, key=abs) if values else None,
+        "by_magnitude": rows,
+        "why": f"this answer uses the {rule} rule (ln s = {scales[rule]:+.4f} from the official one): the jointly fitted "
+        "optics' distance from this rule's PSF, with the fit's covariance",
     }
 
 
@@ -282,7 +310,7 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
     from nlpsf import defaults
     from nlpsf.request import presets as roman_default
 
-    measured = roman_default.fill(roman_default.NAME, request.band, request.sca, None, None, None, None)
+    measured = roman_default.default_fill(request.band, request.sca)
     out = []
     if not math.isclose(request.exptime, measured.exptime, rel_tol=1e-9):
         out.append(f"exposure {request.exptime:g} s (measured at {measured.exptime:g} s)")
@@ -296,6 +324,32 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
         out.append(f"state {request.linearise_at} (measured at {measured.linearise_at})")
     offset = -2.5 * math.log10(request.exptime / measured.exptime)
     return out, (0.0 if abs(offset) < 1e-12 else offset)
+
+
+def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
+    """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"] ==
+    "roman"``) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
+    at its own answer: each part read at every magnitude in one look-up
+    (``roman_uncertainty.at_magnitudes``), scaled, and combined by ``roman_uncertainty.combine``'s
+    rule with numpy's sums (``combine`` adds with ``math.fsum``: the two agree to the last bits)."""
+    offset = info.get("magnitude_offset", 0.0)
+    shifted = np.array([m + offset for m in magnitudes], dtype=np.float64)
+    count = shifted.size
+    standard, left_out = np.zeros(count), np.zeros(count)
+    for part in info["left_out"]:
+        name = part["name"]
+        if part.get("measured_here"):
+            read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
+        elif "by_magnitude" in part:
+            read = np.abs(roman_parts.at_magnitudes(part["by_magnitude"], shifted) * np.asarray(scales, dtype=np.float64))
+        else:
+            continue  # named, not measured: counts zero
+        read = np.where(np.isnan(read), 0.0, read)
+        if part.get("kind", roman_parts.KINDS.get(name, roman_parts.STANDARD)) == roman_parts.LEFT_OUT:
+            left_out = left_out + read
+        else:
+            standard = standard + read * read
+    return np.sqrt(standard) + left_out
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
@@ -320,8 +374,112 @@ def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
         kinds[part["name"]] = part.get("kind", roman_parts.KINDS.get(part["name"], "choice"))
         left.append({**part, "impact": value if not part.get("measured_here") else part["impact"]})
     relative = roman_parts.combine(values, kinds)
+    standard, shifts = roman_parts.split(values, kinds)
     out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": relative, "pupil_scale_relative": 0.0}
     out.update(relative_uncertainty=relative, combination=roman_parts.COMBINATION, optical_model_included=True)
+    out.update(standard_relative=standard, shifts_relative=shifts)
+    out["ranges"] = _ranges_at(info.get("ranges", {}), shifted, scale)
     if scale != 1.0:
         out["component_scale"] = scale
     return out
+
+
+def _ranges_at(ranges: dict, magnitude: float | None, scale: float) -> dict:
+    """Each star-to-star range at ``magnitude``: the slope's relative change at its two ends
+    (signed; e1 / e2 restated against the component's own slope by ``scale``), linear between the
+    measured magnitudes (the ends' changes are smooth in m), the nearest outside them."""
+    out = {}
+    for name, shipped in ranges.items():
+        rows = shipped["by_magnitude"]
+        at = float(np.median([r[0] for r in rows])) if magnitude is None else magnitude
+        ends = [float(roman_parts.at_signed(rows, np.array([at]), column)[0]) * scale for column in (1, 2)]
+        out[name] = {
+            "ends": list(shipped["ends"]),
+            "relative_slope_change": ends,
+            "unit": "relative change of this answer's slope at each end (signed)",
+            "why": "what varies from star to star: a range the answer holds over, not an uncertainty",
+        }
+    return out
+
+
+# --- beside the nominal answer: the conservative one and the star-to-star ranges --------------
+
+#: Coverage factor of the conservative answer on the standard parts (statistical, fidelity, the
+#: model's standard uncertainties): about 95 % for normal errors; the left-out shifts count in full.
+CONSERVATIVE_K = 2.0
+#: d ln|c| / dm of a slope proportional to the flux (the linear regime): -0.4 ln 10.
+FLUX_LAW_LOG_DERIVATIVE = -0.4 * math.log(10.0)
+
+
+def answer_extras(solved_for: str, result, log_derivative: float | None = None) -> tuple[dict | None, dict | None]:
+    """(the conservative answer, the ranges) of a solved answer ``result`` (the solver's
+    ``_Answer``: precision, tolerance, magnitude, slope, slope_error, parts, model, binding, m_nl).
+
+    Conservative: the answer that still holds if the slope's modulus is at the top of its
+    uncertainty, |c| (1 + U) with U = k hypot(statistical, fidelity, the model's standard parts,
+    the optical model) + the left-out shifts, k = :data:`CONSERVATIVE_K`: the tolerance reached
+    T (1 + U), the precision needed p / (1 + U), the brightest usable star where |c| p beta0 (1 + U)
+    meets the tolerance (first order in ln(1 + U) through the slope's log derivative; at saturation
+    the flux law). Ranges: each star-to-star range's ends (the model's, e.g. the SED's) as the
+    solved quantity there. None where the answer has no uncertainty."""
+    model, parts, slope = result.model, result.parts, result.slope
+    if model is None or parts is None or parts.statistical is None or not slope:
+        return None, None
+    value = {"precision": result.precision, "tolerance": result.tolerance, "magnitude": result.magnitude}[solved_for]
+    if value is None or not math.isfinite(value):
+        return None, None
+    if solved_for == "magnitude":
+        scale = abs(log_derivative) if log_derivative else None
+        statistical = (result.slope_error or 0.0) / abs(slope)
+        fidelity = (parts.fidelity or 0.0) * scale if scale else 0.0
+        optical = (parts.optical_model or 0.0) * scale if scale else 0.0
+    else:
+        statistical, fidelity, optical = (
+            (x or 0.0) / abs(value) for x in (parts.statistical, parts.fidelity, parts.optical_model)
+        )
+    standard = model.get("standard_relative")
+    shifts = model.get("shifts_relative")
+    if standard is None:
+        # The paper scene's parts: the effects left out are shifts (added, as its rule adds them);
+        # the pupil rule and the official-PSF figure both measure the optics, the larger counts.
+        standard, shifts = max(model.get("pupil_scale_relative", 0.0), optical), model.get("effects_relative", 0.0)
+        optical = 0.0
+    k = CONSERVATIVE_K
+    bound = k * math.sqrt(statistical**2 + fidelity**2 + standard**2 + optical**2) + shifts
+    conservative = {
+        "relative_slope_bound": bound,
+        "slope_bound": abs(slope) * (1 + bound),
+        "coverage": (
+            f"|c| (1 + U), U = {k:g} x hypot(statistical, fidelity, the model's standard parts, optical model) + the "
+            "left-out shifts: about 95 % for normal errors, the shifts in full"
+        ),
+        "coverage_factor": k,
+        "solved_for": solved_for,
+    }
+    conservative[solved_for] = _solved_at(solved_for, value, bound, result, log_derivative)
+    ranges = {}
+    for name, entry in (model.get("ranges") or {}).items():
+        ends = entry["relative_slope_change"]
+        ranges[name] = {
+            **entry,
+            solved_for: [_solved_at(solved_for, value, change, result, log_derivative) for change in ends],
+        }
+    return conservative, ranges
+
+
+def _solved_at(solved_for: str, value: float, change: float, result, log_derivative: float | None) -> float | None:
+    """The solved quantity if the slope's modulus were (1 + change) times the answer's."""
+    if 1 + change <= 0:
+        return None
+    if solved_for == "tolerance":
+        return value * (1 + change)
+    if solved_for == "precision":
+        return value / (1 + change)
+    if result.binding == "saturation":
+        # The NL limit moves by the slope's log derivative (the flux law there); saturation holds
+        # the answer unless the moved NL limit falls fainter than it.
+        moved = None if result.m_nl is None else result.m_nl + math.log(1 + change) / abs(FLUX_LAW_LOG_DERIVATIVE)
+        return value if moved is None else max(value, moved)
+    if not log_derivative:
+        return None
+    return value + math.log(1 + change) / abs(log_derivative)

@@ -33,7 +33,7 @@ def over_field_from_tables(scene=None, fidelity: str | None = None, accuracy: fl
     """Whether ``solve_over_field`` answers such a request from the tables alone (milliseconds, no
     simulation): the paper's scene, the table level, no accuracy to measure, no ramp, and the
     field-point tables installed."""
-    plain = (scene is None or scene.is_paper) and ramp is None and accuracy is None
+    plain = (scene is None or scene.no_effects) and ramp is None and accuracy is None
     return plain and fidelity in (None, "table") and field_tables() is not None
 
 
@@ -62,29 +62,13 @@ def worst_over_field(
     preset = request.get("preset") or (scene if isinstance(scene, str) else None)
     if isinstance(scene, str):
         scene = None
-    if preset is None:
-        name = getattr(scene, "name", None)
-        preset = name if name in roman_default.PRESETS else roman_default.NAME
-    request["preset"] = roman_default.check_preset(preset)
-    default = request["preset"] == roman_default.NAME
+    request["preset"] = preset = roman_default.preset_of(scene, preset)
+    default = roman_default.policy(preset).field_grid
     base = scene if scene is not None else (roman_default.preset_scene(preset) or scenes.SceneModel())
     if base is not None and base.position is not None:
         raise InputError("position", "give a position or ask for the worst over the field, not both")
     answers = []
-    if default:
-        # The Roman default: the nodes of each SCA's field grid (read from the shipped grid where it
-        # holds them, else simulated by the solver, which says so); the default's sky per SCA.
-        points = []
-        for sca in chosen:
-            for position in range_positions(_Where(band, sca)):
-                points.append((sca, position))
-    else:
-        # Each corner's own table is found by ``solve`` from the position (``providers.PaperTables``).
-        corners = field_tables() if base.is_paper and request.get("tables_set") is None else None
-        if corners is None and request.get("fidelity") in (None, "table"):
-            # Without field-point tables (or with a scene they do not hold) every point is simulated.
-            request["fidelity"] = "linear"
-        points = [(s, p) for s in chosen for p in field_points(s)]
+    points = _points_over_field(band, chosen, default, base, request)
     for index, (sca, position) in enumerate(points):
         if progress:
             progress(index, len(points), f"SCA {sca} at {position[0]:.0f},{position[1]:.0f}")
@@ -121,6 +105,20 @@ def worst_over_field(
     return replace(worst, flags=[flag, *worst.flags], conditions=conditions)
 
 
+def _points_over_field(band: str, chosen: list[int], default: bool, base, request: dict) -> list[tuple[int, tuple]]:
+    """(SCA, position) of every point :func:`worst_over_field` answers: the Roman default's field-grid
+    nodes (read from the shipped grid where it holds them, else simulated by the solver, which says
+    so), another scene's centre and four corners (each corner's own table is found by ``solve`` from
+    the position: ``providers.PaperTables``; without field-point tables, or with a scene they do not
+    hold, every point is simulated: ``request["fidelity"]`` becomes "linear")."""
+    if default:
+        return [(sca, position) for sca in chosen for position in range_positions(_Where(band, sca))]
+    corners = field_tables() if base.no_effects and request.get("tables_set") is None else None
+    if corners is None and request.get("fidelity") in (None, "table"):
+        request["fidelity"] = "linear"
+    return [(s, p) for s in chosen for p in field_points(s)]
+
+
 def own_conditions(scene, request: dict, band: str, filled_for: int, sca: int) -> tuple[object, dict]:
     """(scene, request) for ``sca`` where they hold what the Roman default filled in for the SCA
     ``filled_for``: its sky over the exposure (``roman_default.fill``, the owner of the default's
@@ -131,8 +129,8 @@ def own_conditions(scene, request: dict, band: str, filled_for: int, sca: int) -
     from nlpsf.sim import ramps
 
     exptime, ramp = request.get("exptime"), request.get("ramp")
-    there = roman_default.fill(roman_default.NAME, band, filled_for, exptime, ramp, None, None)
-    here = roman_default.fill(roman_default.NAME, band, sca, exptime, ramp, None, None)
+    there = roman_default.default_fill(band, filled_for, exptime, ramp)
+    here = roman_default.default_fill(band, sca, exptime, ramp)
     if scene is not None and math.isclose(scene.background_e, there.background_e, rel_tol=1e-12, abs_tol=0.0):
         scene = replace(scene, background_e=here.background_e)
     if ramp is not None:
@@ -174,45 +172,46 @@ def range_positions(request) -> list[tuple[float, float]]:
 
 def _demand(solved: str):
     def demand(solution: Solution) -> float:
-        value = getattr(solution, solved)
-        if value is None or not math.isfinite(value):
-            return -math.inf
-        return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+        return _demand_of(solved, getattr(solution, solved))
 
     return demand
 
 
-def _node(position, solution: Solution, solved: str) -> dict:
-    value, error = getattr(solution, solved), solution.uncertainty
-    fidelity = solution.fidelity
+def _demand_of(solved: str, value: float | None) -> float:
+    """How demanding an answer is: the smallest precision, the largest tolerance, the faintest star."""
+    if value is None or not math.isfinite(value):
+        return -math.inf
+    return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
+
+
+def _node(position, value: float | None, error: float | None, fidelity: str, solved: str) -> dict:
     return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
 
 
-def sca_range(answer, request, tables_set=None, progress=None) -> Solution:
+def sca_range(answer, request, tables_set=None, progress=None, nodes=None) -> Solution:
     """The Roman default without a position: the answer at every node of the SCA's field grid, the
     most demanding one returned (it holds everywhere on the SCA: the smallest precision, the largest
     tolerance, the faintest brightest-usable star), the least demanding and every node's value in
     ``conditions["sca_range"]`` and a flag. ``answer`` is ``nlpsf.solve.solver.answer`` (passed in).
-    ``progress(done, total, message)``, if given, is told as each node is answered."""
+
+    ``progress(done, total, message)``, if given, is told as the nodes are answered. ``nodes(request,
+    positions)``: every node's value and uncertainty at once (``sca_nodes``), or None; then only the
+    most demanding node is answered in full (its value checked against the one found for it), else
+    every node is."""
     positions = range_positions(request)
-    answers = []
-    for index, p in enumerate(positions):
-        if progress:
-            where = f"the SCA's field-grid node {index + 1} of {len(positions)}, pixel ({p[0]:g}, {p[1]:g})"
-            progress(index, len(positions), where)
-        answers.append((p, answer(request.with_changes(scene=replace(request.scene, position=p)), tables_set)))
-    solved = answers[0][1].solved_for
-    demand = _demand(solved)
-    ranked = sorted(answers, key=lambda item: demand(item[1]))
-    (least_at, least), (most_at, most) = ranked[0], ranked[-1]
+    found = nodes(request, positions) if nodes is not None else None
+    ranged = _ranged_at_once(answer, request, tables_set, positions, found, progress) if found is not None else None
+    if ranged is None:
+        ranged = _ranged_node_by_node(answer, request, tables_set, positions, progress)
+    solved, (most_at, most), (least_at, least_value), rows, slopes_from = ranged
     conditions = dict(most.conditions)
     conditions["sca_range"] = {
         "primary": "most demanding: the requirement that holds everywhere on the SCA",
         "solved_for": solved,
         "most_demanding": {"position": list(most_at), solved: json_number(getattr(most, solved))},
-        "least_demanding": {"position": list(least_at), solved: json_number(getattr(least, solved))},
-        "nodes": [_node(p, a, solved) for p, a in answers],
-        "slopes_from": sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers}),
+        "least_demanding": {"position": list(least_at), solved: json_number(least_value)},
+        "nodes": rows,
+        "slopes_from": slopes_from,
     }
     flag = make(
         FlagCode.SCA_RANGE,
@@ -221,9 +220,59 @@ def sca_range(answer, request, tables_set=None, progress=None) -> Solution:
         x=most_at[0],
         y=most_at[1],
         solved=solved,
-        least=getattr(least, solved),
+        least=least_value,
         lx=least_at[0],
         ly=least_at[1],
         most=getattr(most, solved),
     )
     return replace(most, flags=[flag, *most.flags], conditions=conditions)
+
+
+def _at(request, position):
+    return request.at_position(position)
+
+
+def _ranged_at_once(answer, request, tables_set, positions, found, progress):
+    """(solved, (where, answer) of the most demanding node, (where, value) of the least, the nodes'
+    rows, where their slopes came from) from every node's value found at once; None where the most
+    demanding node's own answer is not the one found for it (never expected)."""
+    solved = found.solved_for
+    ranked = sorted(range(len(positions)), key=lambda k: _demand_of(solved, found.values[k]))
+    if progress:
+        progress(
+            len(positions) - 1, len(positions), f"the SCA's {len(positions)} field-grid nodes at once, the most demanding in full"
+        )
+    most = answer(_at(request, positions[ranked[-1]]), tables_set)
+    if not _same_answer(getattr(most, solved), most.uncertainty, found, ranked[-1]):
+        return None
+    rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
+    least = (positions[ranked[0]], found.values[ranked[0]])
+    return solved, (positions[ranked[-1]], most), least, rows, ["field grid"]
+
+
+def _ranged_node_by_node(answer, request, tables_set, positions, progress):
+    """:func:`_ranged_at_once`'s figures from every node answered in full, one after the other."""
+    answers = []
+    for index, p in enumerate(positions):
+        if progress:
+            progress(
+                index, len(positions), f"the SCA's field-grid node {index + 1} of {len(positions)}, pixel ({p[0]:g}, {p[1]:g})"
+            )
+        answers.append((p, answer(_at(request, p), tables_set)))
+    solved = answers[0][1].solved_for
+    ranked = sorted(answers, key=lambda item: _demand(solved)(item[1]))
+    (least_at, least), most = ranked[0], ranked[-1]
+    rows = [_node(p, getattr(a, solved), a.uncertainty, a.fidelity, solved) for p, a in answers]
+    slopes_from = sorted({"field grid" if a.fidelity == "table" else f"simulation ({a.fidelity})" for _, a in answers})
+    return solved, most, (least_at, getattr(least, solved)), rows, slopes_from
+
+
+def _same_answer(value, error, found, k: int) -> bool:
+    """Whether a node's own answer is the one found for it with the others: its value to the last
+    bit, its uncertainty to 1e-12 (the field interpolation's term is read once for all nodes)."""
+    if value != found.values[k] and not (value is not None and math.isnan(value) and math.isnan(found.values[k])):
+        return False
+    other = found.uncertainties[k]
+    if error is None or other is None:
+        return error is other
+    return math.isclose(error, other, rel_tol=1e-12, abs_tol=0.0)

@@ -1,131 +1,236 @@
-"""The Roman default's model uncertainty: what its scene still leaves out, as named parts.
+"""The Roman default's model uncertainty: each part from what a source states, not from two guesses.
 
 The default (``nlpsf.request.presets``) simulates a Roman star as it is observed. What it cannot
-know, or does not simulate, is measured here as the relative change of the NL slope, one named
-part at a time, inside the full default scene (linear response, the same centroid draws with and
-without, so the differences are systematic, not noise):
+know is a *part* of its uncertainty: a physical parameter whose value a source gives with an
+uncertainty, carried to the slope by the slope's measured sensitivity (linear response inside the
+full default scene, the same centroid draws with and without, so the differences are systematic,
+not noise). What varies from star to star is a *range*, not an uncertainty. What the default leaves
+out of every star is a *shift* with the sign the physics gives it.
 
-choices and vintage (the default's value is a best estimate; the truth lies in a range)
-    - ``optical_model``: the optical model's vintage. nlpsf's PSF under the official conditions
-      (their K0V star as the vendored Pickles K0V, the default's own star) against the official
-      post-CDR statistics (``psfstats``): the Gaussian variance that closes the
-      N_eff gap or the FWHM gap, whichever is larger, added to the default's jitter; the slope change
-      it causes (a gap that asks for a sharper PSF is measured as the same variance added and the
-      sign turned, linear in the variance). SCAs without official statistics take the larger gap
-      of the SCAs that have them (1 and 18).
-    - ``sed``: the stars people fit PSF models with, 3500-10000 K blackbodies (M-dwarfs to A-stars)
-      against the default's Pickles K0V spectrum; the larger change of the two ends.
-    - ``jitter``: 3.4 mas (the official PSF products' 8 mas FWHM) and 14 mas (GalSim's) rms against
-      the default's 6 mas; the larger.
-    - ``charge_diffusion``: 0.30 px rms (STPSF's 0.033", the alternative nlpsf/data/SOURCES.md
-      quotes) against the default's 0.332 px (Givans et al. 2022, one detector).
-    - ``pupil_scale``: the pupil-mask scale rule, ``header`` against the ``official`` one used.
-effects left out (present in every real star, with a sign the physics fixes)
-    - ``brighter_fatter``: a ramp refuses it (``ramps.RAMP_REFUSES``), so it is measured on the
-      default scene read as one final frame of the same exposure: with the nearest-neighbour
-      coefficient a = 3.54e-7 per electron, against without. Source: Freudenburg et al. 2020
-      (PASP 132, 074504; arXiv:2003.05978), whose abstract quotes the BFE as the increase of a
-      pixel's effective area per electron deposited in a neighbouring pixel, for SCA 20829, not
-      IPC-deconvolved. The paper, detector, quantity and "not IPC-deconvolved" are verified; the
-      digits 3.54e-7 are not (the stored abstract text lost its numbers; nlpsf/data/SOURCES.md).
-      A figure that is not IPC-deconvolved already carries IPC's smoothing of the BFE kernel
-      ([K^2 a + K K^I]_<1,0> in Hirata & Choi's notation), while this scene applies IPC on its
-      own, so the part is probably an underestimate (the IPC-deconvolved nearest-neighbour
-      coefficient is ~1.4x larger for an SCA-20829-like kernel with alpha = 0.0169, and the part is
-      linear in a to 2-11 % at twice a; not applied).
-    - ``nl_shape``: the NL beyond the quadratic, b3 = 1e-13 and b4 = 1e-18 per e- (each 0.1 % of
-      the signal at 1e5 e-), present in the image, against the quadratic alone. At the corrected
-      state the slope hardly depends on the image's NL (it changes the image by ~0.1 %), so this
-      part is small; the shape of the calibration *error* itself (a cubic error instead of a
-      quadratic one) is a different question, not measured here.
+standard uncertainties (one standard deviation each, combined in quadrature)
+    - ``optics``: the optical model (GalSim's Cycle-9 Zernikes and pupil masks) against the official
+      post-CDR PSF statistics of SCA 1 and 18 (``SummaryPSFstats_{center,corner}``: FWHM, N_eff and
+      peak at both centrings, and the flux inside the ~7" image, EE), fitted jointly
+      (:func:`fit_optics`): two parameters, a Gaussian variance ``v`` added to nlpsf's PSF and the
+      pupil's log scale ``ln s`` (the official clear-area rule against the header rule), with the
+      statistics' rounding as their stated error and an intrinsic scatter fitted so that chi^2 per
+      degree of freedom is 1 (the two parameters cannot describe everything the newer model
+      changes, and that scatter says how much). The part is the slope's change to the fitted
+      (v, ln s), which the default does not apply, and the fit's covariance carried through the
+      slope's sensitivities: sqrt((S theta)^2 + S C S^T).
+    - ``jitter``: 6 mas rms per axis (STPSF's "representative predicted average"); GSFC states that
+      the 8 mas requirement "is exceeded in under 1 % of the present simulations" (STPSF issue 111,
+      2025; the requirement: roman-technical-information PR 58). A normal distribution about 6 mas
+      with 1 % above 8 mas has sigma = 2 mas / 2.326 = 0.86 mas; the slope's sensitivity is measured
+      at 8 mas and is linear in the variance.
+    - ``charge_diffusion``: 0.332 px = sqrt((C11 + C22) / 2) from Givans et al. 2022 (SCA 20829,
+      C11 = 0.1066 +- 0.0011, C22 = 0.1136 +- 0.0012 px^2, statistical). Macbeth et al. 2026
+      (arXiv:2604.26114, another flight-lot detector, laser speckle) find 0.3279 +0.0043/-0.0042
+      (stat) +- 0.0093 (sys) px per axis, no wavelength dependence over 850-2000 nm. The standard
+      uncertainty is those stated errors and the two detectors' spread in quadrature
+      (:data:`DIFFUSION_SIGMA_PX`, 0.0107 px); the slope's change is measured at 0.332 + 0.0107 px.
+shifts (present in every star, a fixed sign; added linearly)
+    - ``diffusion_profile``: Macbeth et al. 2026 prefer a hyperbolic-secant profile strongly over a
+      Gaussian; the default's is Gaussian. Measured: the same per-axis sigma as a separable sech
+      profile (its transfer function sech(2 pi sigma k) per axis) against the Gaussian.
+    - ``brighter_fatter``: a ramp refuses BFE, so it is measured on the default scene read as one
+      final frame of the same exposure. Freudenburg et al. 2020 (PASP 132, 074504) quote the
+      nearest-neighbour area change per electron for SCA 20829 "not IPC-deconvolved"; the value used
+      before, 3.54e-7, could not be checked against the paper's text (nlpsf/data/SOURCES.md). This
+      scene applies IPC itself, so the coefficient it needs is the deconvolved one: measured here on
+      an SCA-20829-like kernel, IPC smooths the nearest-neighbour coefficient to 0.72 of itself, so
+      the part uses 3.54e-7 / 0.72 = 4.9e-7 (:data:`BFE_COEFFICIENT`).
+    - ``nl_shape``: the NL beyond the quadratic, b3 = 1e-13 and b4 = 1e-18 per e- (0.1 % each of the
+      signal at 1e5 e-), against the quadratic alone.
+ranges (star to star, not an uncertainty; stated beside the answer)
+    - ``sed``: blackbodies of 3500 K and 10000 K (M-dwarfs to A-stars, the stars PSF models are
+      fitted with) against the default's Pickles K0V; the slope's change at each end.
 
-How they combine (:func:`combine`): the choices are independent unknowns, so they add in
-quadrature; the effects left out are present in every star with fixed signs, so their moduli add
-linearly on top: ``relative = hypot(choices) + sum(|left out|)``. Each part is quoted at its worst
-|value| of the two ends it was measured at (never the mean of the ends).
+How they combine (:func:`combine`): ``relative = hypot(standard parts) + sum(|shifts|)``. ``size``
+and ``e`` parts are relative to their own slope; ``e1`` and ``e2`` are the component's change
+relative to |c_e| = hypot(c_e1, c_e2) (``model_part.model_at`` restates them against the
+component's own slope). The reading side is a function of (band, SCA, mode, metric, magnitude)
+that takes arrays (:func:`relative`); the measuring side (``scripts/model_uncertainty_roman.py``,
+``nlpsf/data/roman_model_uncertainty.json``) imports the simulator lazily.
 
-``size`` and ``e`` parts are relative to their own slope; ``e1`` and ``e2`` parts are the
-component's change relative to |c_e| = hypot(c_e1, c_e2) (``model_part.model_at`` restates them
-against the component's own slope at the answer's magnitude), as the paper scene's file does.
-
-Measured by ``scripts/model_uncertainty_roman.py`` into ``nlpsf/data/roman_model_uncertainty.json``.
-This module's reading side is light (json only); the measuring side imports the simulator lazily.
+About 600 lines, kept as one module: the sources' stated values, the parts built from them, the
+reader that answers read them with and the measurement that ships them share those constants, and
+a part's reading must follow its measuring exactly.
 """
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
+from statistics import NormalDist
+
+import numpy as np
+
+from nlpsf.request import presets
 
 #: Where the shipped measurement lives (nlpsf/data/).
 FILE = "roman_model_uncertainty.json"
 METRICS = ("size", "e1", "e2", "e")
 MODES = ("bias", "scatter")
-#: Blackbody temperatures [K] bracketing the stars PSF models are fitted with (M0V 3850 K to F0V
-#: 7220 K in Pecaut & Mamajek 2013, widened to 3500-10000 K).
+
+# --- what the sources state ------------------------------------------------------------------
+
+#: Jitter [arcsec rms per axis]: the default's (STPSF's "representative predicted average"), the
+#: requirement, and the fraction of GSFC's simulations above it (STPSF issue 111, 2025-08).
+JITTER_ARCSEC = presets.JITTER_ARCSEC
+JITTER_REQUIREMENT_ARCSEC = 0.008
+JITTER_EXCEEDED_FRACTION = 0.01
+#: The jitter's standard uncertainty: a normal about the default with the stated fraction above
+#: the requirement, (8 - 6) mas / z_0.99 = 0.86 mas.
+JITTER_SIGMA_ARCSEC = (JITTER_REQUIREMENT_ARCSEC - JITTER_ARCSEC) / NormalDist().inv_cdf(1 - JITTER_EXCEEDED_FRACTION)
+#: Where the jitter's sensitivity is measured (the requirement); the part scales it by the variance.
+JITTER_PROBE_ARCSEC = JITTER_REQUIREMENT_ARCSEC
+
+#: Charge diffusion [native px rms]: Givans et al. 2022 (PASP, arXiv:2110.08155), SCA 20829 at
+#: 0.5 um, C11 and C22 with their statistical errors [px^2]; Macbeth et al. 2026 (arXiv:2604.26114),
+#: a flight-lot detector, 850-2000 nm, the sech profile's per-axis sigma and its errors [px].
+GIVANS_C11_PX2, GIVANS_C11_ERR_PX2 = 0.1066, 0.0011
+GIVANS_C22_PX2, GIVANS_C22_ERR_PX2 = 0.1136, 0.0012
+MACBETH_SIGMA_PX, MACBETH_STAT_PX, MACBETH_SYS_PX = 0.3279, 0.0043, 0.0093
+DIFFUSION_PX = presets.CHARGE_DIFFUSION_PX
+
+
+def diffusion_uncertainty() -> dict[str, float]:
+    """The charge diffusion's standard uncertainty [px] and its pieces: Givans's statistical error
+    carried to sigma = sqrt((C11 + C22) / 2), Macbeth's statistical and systematic errors, and the
+    spread of the two detectors' values (the standard deviation of two, |difference| / sqrt 2)."""
+    givans_sigma = math.sqrt((GIVANS_C11_PX2 + GIVANS_C22_PX2) / 2)
+    givans_stat = math.hypot(GIVANS_C11_ERR_PX2, GIVANS_C22_ERR_PX2) / 2 / (2 * givans_sigma)
+    spread = abs(givans_sigma - MACBETH_SIGMA_PX) / math.sqrt(2)
+    pieces = {
+        "givans_statistical": givans_stat,
+        "macbeth_statistical": MACBETH_STAT_PX,
+        "macbeth_systematic": MACBETH_SYS_PX,
+        "detector_spread": spread,
+    }
+    return {**pieces, "total": math.sqrt(math.fsum(v * v for v in pieces.values())), "givans_sigma": givans_sigma}
+
+
+#: The diffusion's standard uncertainty [px] (:func:`diffusion_uncertainty`), where its
+#: sensitivity is measured: the default's 0.332 px plus it.
+DIFFUSION_SIGMA_PX = diffusion_uncertainty()["total"]
+
+#: The optics fit: the SCAs the official statistics cover, their star, the probing Gaussian
+#: variance [arcsec^2] and the pupil rule the scale's direction is probed with.
+OPTICS_SCAS = (1, 18)
+OFFICIAL_SED = "K0V"
+OPTICS_BLUR_PROBE_ARCSEC2 = 1.0e-4
+OPTICS_PUPIL_PROBE = "header"
+#: The official tables' rounding (half a unit of their last digit) by statistic: a uniform error of
+#: that half-width, standard deviation half-width / sqrt 3.
+OFFICIAL_ROUNDING = {"fwhm_arcsec": 5e-4, "n_eff_pixels": 5e-3, "peak_fraction": 5e-6, "total_flux": 5e-6}
+
+#: The SED range's ends: blackbodies bracketing the stars PSF models are fitted with (M0V 3850 K
+#: to F0V 7220 K in Pecaut & Mamajek 2013, widened to 3500-10000 K).
+SED_RANGE = ("blackbody:3500", "blackbody:10000")
 SED_RANGE_K = (3500.0, 10000.0)
-#: Jitter per axis [arcsec rms]: the official PSF products' 8 mas FWHM and GalSim's 14 mas.
-JITTER_RANGE_ARCSEC = (0.0034, 0.014)
-#: The other charge diffusion [native px rms]: STPSF's 0.033" on 0.11" pixels.
-DIFFUSION_ALTERNATIVE_PX = 0.30
-#: The other pupil-scale rule.
-PUPIL_ALTERNATIVE = "header"
-#: Brighter-fatter nearest-neighbour coefficient [1/e-]: Freudenburg et al. 2020 (PASP 132, 074504),
-#: SCA 20829, the area change of a pixel per electron in a neighbour, not IPC-deconvolved. The
-#: value's digits are unverified (see the module docstring and nlpsf/data/SOURCES.md).
-BFE_COEFFICIENT = 3.54e-7
+
+#: Brighter-fatter: the published nearest-neighbour coefficient (Freudenburg et al. 2020, SCA
+#: 20829, not IPC-deconvolved; digits not verified against the paper's text), the factor IPC
+#: smooths it by (measured here on solid-waffle's SCA-20829-like kernel with alpha = 0.0169;
+#: nlpsf/data/SOURCES.md), and the deconvolved coefficient the part uses [1/e-].
+BFE_COEFFICIENT_PUBLISHED = 3.54e-7
+BFE_IPC_SMOOTHING = 0.72
+BFE_COEFFICIENT = BFE_COEFFICIENT_PUBLISHED / BFE_IPC_SMOOTHING
+#: The residual model the brighter-fatter pair is measured with: the per-resultant correction the
+#: default uses is not modelled with BFE (``experiment.correction``), so the pair (final frame with
+#: and without BFE) takes the residual on every read, and the part is the difference BFE makes there.
+BFE_RESIDUAL_NL = "per_read_beta"
 #: b3, b4 of the NL beyond the quadratic [e-^-2, e-^-3]: each 0.1 % of the signal at 1e5 e-.
 NL_SHAPE_COEFFICIENTS = (1e-13, 1e-18)
+
+#: Kinds: "standard" parts add in quadrature, "left_out" shifts add linearly.
+STANDARD, LEFT_OUT = "standard", "left_out"
 
 
 @dataclass(frozen=True)
 class Part:
     name: str
-    kind: str  # "choice" (quadrature) or "left_out" (linear)
+    kind: str  # STANDARD or LEFT_OUT
     measured_as: str
+    source: str
 
 
 PARTS: tuple[Part, ...] = (
     Part(
-        "optical_model",
-        "choice",
-        "Gaussian variance closing nlpsf's N_eff or FWHM gap to the official SummaryPSFstats (the larger; official "
-        "conditions, their K0V star as the Pickles K0V), added to the jitter; sign turned where the official PSF is sharper",
+        "optics",
+        STANDARD,
+        "the slope's change to the jointly fitted (Gaussian variance, pupil log scale) that brings nlpsf's PSF to the "
+        "official statistics of SCA 1 and 18, with the fit's covariance: sqrt((S theta)^2 + S C S^T)",
+        "roman-technical-information 1.5.0 SummaryPSFstats_{center,corner} (post-CDR, K0V, 8 mas FWHM jitter)",
     ),
-    Part("sed", "choice", "blackbody 3500 K and 10000 K against the default's K0V (Pickles 1998); the larger"),
-    Part("jitter", "choice", "3.4 mas and 14 mas rms against the default's 6 mas; the larger"),
-    Part("charge_diffusion", "choice", "0.30 px (STPSF's 0.033\") against the default's 0.332 px rms"),
-    Part("pupil_scale", "choice", "pupil-mask scale rule header against official (used)"),
+    Part(
+        "jitter",
+        STANDARD,
+        f"sigma {1e3 * JITTER_SIGMA_ARCSEC:.2f} mas about 6 mas: the slope's change at 8 mas scaled by the variance",
+        "GSFC via STPSF issue 111 (2025): 6 mas typical, the 8 mas requirement exceeded in under 1 % of simulations",
+    ),
+    Part(
+        "charge_diffusion",
+        STANDARD,
+        f"sigma {DIFFUSION_SIGMA_PX:.4f} px about 0.332 px: the slope's change at 0.332 px plus it",
+        "Givans et al. 2022 (C11, C22 with statistical errors, SCA 20829); Macbeth et al. 2026 (0.3279 px, stat and sys)",
+    ),
+    Part(
+        "diffusion_profile",
+        LEFT_OUT,
+        "a separable hyperbolic-secant profile of the same per-axis sigma against the default's Gaussian",
+        "Macbeth et al. 2026: the sech profile is strongly preferred over the Gaussian",
+    ),
     Part(
         "brighter_fatter",
-        "left_out",
-        "final frame of the same exposure with a = 3.54e-7 /e- (Freudenburg et al. 2020) against without; "
-        "a ramp refuses BFE (ramps.RAMP_REFUSES)",
+        LEFT_OUT,
+        f"final frame of the same exposure with a = {BFE_COEFFICIENT:.3g} /e- (3.54e-7, not IPC-deconvolved, / 0.72) "
+        "against without; a ramp refuses BFE",
+        "Freudenburg et al. 2020 (PASP 132, 074504), SCA 20829; the IPC deconvolution measured here",
     ),
-    Part("nl_shape", "left_out", "b3 = 1e-13, b4 = 1e-18 /e- (0.1 % each at 1e5 e-) against the quadratic alone"),
+    Part(
+        "nl_shape",
+        LEFT_OUT,
+        "b3 = 1e-13, b4 = 1e-18 /e- (0.1 % each at 1e5 e-) against the quadratic alone",
+        "the residual level of scene.NOMINAL['nl_polynomial']",
+    ),
 )
 PART_NAMES = tuple(p.name for p in PARTS)
 KINDS = {p.name: p.kind for p in PARTS}
+#: Star-to-star ranges stated beside the answer (not in its uncertainty).
+RANGES = ("sed",)
 COMBINATION = (
-    "hypot of the choices (optical_model, sed, jitter, charge_diffusion, pupil_scale: independent unknowns) plus "
-    "the plain sum of the effects left out (brighter_fatter, nl_shape: present in every star, signs fixed)"
+    "hypot of the standard uncertainties (optics, jitter, charge_diffusion: one standard deviation each, from the "
+    "sources' stated uncertainties) plus the plain sum of the shifts left out (diffusion_profile, brighter_fatter, "
+    "nl_shape: present in every star, signs fixed); the SED is a range, not a part"
 )
 
 
 def combine(values: dict[str, float | None], kinds: dict[str, str] | None = None) -> float:
-    """The rule (:data:`COMBINATION`): quadrature over the choices, then the left-out effects'
-    moduli added. Parts that are None (not measured) or absent count zero; the caller names them.
-    ``kinds`` names the kind ("choice" or "left_out") of parts that are not among :data:`PARTS`
-    (an ``accuracy`` answer's left-out set, a measured shift with a fixed sign: "left_out")."""
+    """The rule (:data:`COMBINATION`): quadrature over the standard parts, then the left-out
+    shifts' moduli added. Parts that are None (not measured) or absent count zero; the caller names
+    them. ``kinds`` names the kind of parts that are not among :data:`PARTS` (an ``accuracy``
+    answer's left-out set: "left_out"); any kind but "left_out" is a standard part."""
     kind = {**KINDS, **(kinds or {})}
-    choices = [abs(v) for name, v in values.items() if v is not None and kind.get(name, "choice") == "choice"]
-    left_out = [abs(v) for name, v in values.items() if v is not None and kind.get(name) == "left_out"]
-    return math.sqrt(math.fsum(v * v for v in choices)) + math.fsum(left_out)
+    standard = [abs(v) for name, v in values.items() if v is not None and kind.get(name, STANDARD) != LEFT_OUT]
+    left_out = [abs(v) for name, v in values.items() if v is not None and kind.get(name) == LEFT_OUT]
+    return math.sqrt(math.fsum(v * v for v in standard)) + math.fsum(left_out)
+
+
+def split(values: dict[str, float | None], kinds: dict[str, str] | None = None) -> tuple[float, float]:
+    """(the standard parts in quadrature, the shifts' sum): the two pieces :func:`combine` adds."""
+    kind = {**KINDS, **(kinds or {})}
+    standard = [abs(v) for name, v in values.items() if v is not None and kind.get(name, STANDARD) != LEFT_OUT]
+    left_out = [abs(v) for name, v in values.items() if v is not None and kind.get(name) == LEFT_OUT]
+    return math.sqrt(math.fsum(v * v for v in standard)), math.fsum(left_out)
+
+
+# --- reading the shipped measurement ---------------------------------------------------------
 
 
 def _path() -> Path:
@@ -151,21 +256,78 @@ def entry(band: str, sca: int, mode: str, metric: str) -> tuple[dict, str]:
 
 
 def at_magnitude(by_magnitude: list[list[float]], magnitude: float | None) -> float | None:
-    """A part's |value| at ``magnitude`` from its measured [[m, value], ...]: the larger of the two
-    measured magnitudes around it (the nearest end outside them); None: the worst of all."""
-    points = sorted((m, abs(v)) for m, v in by_magnitude if v is not None)
-    if not points:
-        return None
+    """A part's |value| at ``magnitude`` from its measured [[m, value, ...], ...]: the larger of
+    the two measured magnitudes around it (the nearest end outside them); None: the worst of all."""
     if magnitude is None:
-        return max(v for _, v in points)
-    if magnitude <= points[0][0]:
-        return points[0][1]
-    if magnitude >= points[-1][0]:
-        return points[-1][1]
-    for (m0, v0), (m1, v1) in itertools.pairwise(points):
-        if m0 <= magnitude <= m1:
-            return max(v0, v1)
-    return max(v for _, v in points)  # not reached
+        points = [abs(r[1]) for r in by_magnitude if r[1] is not None]
+        return max(points) if points else None
+    value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
+    return None if not np.isfinite(value) else float(value)
+
+
+def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int = 1) -> np.ndarray:
+    """:func:`at_magnitude` for an array of magnitudes (NaN where nothing is measured)."""
+    rows = sorted((r[0], abs(r[column])) for r in by_magnitude if r[column] is not None)
+    m = np.asarray(magnitudes, dtype=np.float64)
+    if not rows:
+        return np.full(m.shape, np.nan)
+    knots = np.array([r[0] for r in rows])
+    values = np.array([r[1] for r in rows])
+    upper = np.clip(np.searchsorted(knots, m, side="left"), 0, len(knots) - 1)
+    lower = np.clip(np.searchsorted(knots, m, side="right") - 1, 0, len(knots) - 1)
+    return np.maximum(values[lower], values[upper])
+
+
+def optics_value(fit: dict, sensitivity: np.ndarray, log_scale_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(the optics part, its offset) from the band's joint fit and the slope's sensitivities
+    ``sensitivity`` [..., 2] = (d slope / d v [per arcsec^2], d slope / d ln s), relative: the offset
+    S theta (theta the fitted (v, ln s) less ``log_scale_offset`` in ln s, for an answer whose pupil
+    rule sits that far from the official one) and sqrt(offset^2 + S C S^T)."""
+    theta = np.asarray(fit["theta"], dtype=np.float64) - np.array([0.0, log_scale_offset])
+    covariance = np.asarray(fit["covariance"], dtype=np.float64)
+    s = np.asarray(sensitivity, dtype=np.float64)
+    offset = s @ theta
+    spread = np.einsum("...i,ij,...j->...", s, covariance, s)
+    return np.sqrt(offset**2 + spread), offset
+
+
+def relative(band: str, sca: int, mode: str, metric: str, magnitude, pupil_log_scale_offset: float = 0.0, position=None) -> dict:
+    """The Roman default's relative model uncertainty at ``magnitude`` (a number or an array), as a
+    function of (band, SCA, mode, metric): every part's |value| (e1 / e2 against |c_e|), the
+    standard parts in quadrature and the shifts' sum, their combination (:func:`combine`) and the
+    SED range's two ends (signed). Vectorised over magnitudes; an unmeasured SCA reads the worst
+    over the measured ones. ``pupil_log_scale_offset``: ln(s_rule / s_official) of the answer's pupil
+    rule (0: the official rule the default uses). ``position``: accepted for any pixel position;
+    the parts are measured at the SCA centre and stand for every position on it (re-measured at two
+    others: the combination within 1.2 % of |c_e|, docs/validation.md, "Off the SCA centre")."""
+    del position  # the centre's parts stand for the SCA (see above)
+    own, where = entry(band, sca, mode, metric)
+    m = np.atleast_1d(np.asarray(magnitude, dtype=np.float64))
+    parts = {}
+    for part in PARTS:
+        rows = own["parts"][part.name]["by_magnitude"]
+        if part.name == "optics" and pupil_log_scale_offset:
+            fit = shipped()["optics_fit"][band]
+            s = np.stack([at_signed(own["optics_sensitivity"], m, 1), at_signed(own["optics_sensitivity"], m, 2)], -1)
+            parts[part.name] = optics_value(fit, s, pupil_log_scale_offset)[0]
+        else:
+            parts[part.name] = at_magnitudes(rows, m)
+    standard = np.sqrt(sum(np.nan_to_num(parts[p.name]) ** 2 for p in PARTS if p.kind == STANDARD))
+    shifts = sum(np.nan_to_num(parts[p.name]) for p in PARTS if p.kind == LEFT_OUT)
+    ranges = {name: (at_signed(own["ranges"][name]["by_magnitude"], m, 1), at_signed(own["ranges"][name]["by_magnitude"], m, 2))
+              for name in RANGES}  # fmt: skip
+    return {"parts": parts, "standard": standard, "shifts": shifts, "model": standard + shifts, "ranges": ranges,
+            "where": where}  # fmt: skip
+
+
+def at_signed(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int) -> np.ndarray:
+    """A signed column of [[m, ...], ...] at ``magnitudes``, linear between the measured ones and
+    constant outside them (the ranges' ends and the optics' sensitivities are smooth in m)."""
+    rows = sorted((r[0], r[column]) for r in by_magnitude if r[column] is not None)
+    m = np.asarray(magnitudes, dtype=np.float64)
+    if not rows:
+        return np.full(m.shape, np.nan)
+    return np.interp(m, [r[0] for r in rows], [r[1] for r in rows])
 
 
 # --- measuring (scripts/model_uncertainty_roman.py and the tests) ------------------------------
@@ -213,23 +375,39 @@ def default_config(band: str, sca: int, realizations: int, seed: int, position=N
     return tablebuild.TableSettings.roman(realizations=realizations, seed=seed).config(band, sca, position=position)
 
 
-def variant_configs(config, optical_variance_arcsec2: float | None) -> dict[str, list[tuple[object, float]]]:
-    """The configurations each part compares against the default, with the sign to apply to the
-    change: {part: [(config, sign), ...]}; brighter-fatter's pair is built by :func:`bfe_pair`."""
-    from nlpsf.request import presets as roman_default
-
+#: Each measured variant: (part or range, scale applied to its relative change). The optics'
+#: two directions are sensitivities (per unit of v and of ln s), combined with the fit later.
+def variant_configs(config) -> dict[str, tuple[object, float]]:
+    """The configurations compared against the default, with the factor that turns the slope's
+    relative change into the part's value: {name: (config, factor)}. Brighter-fatter's pair is
+    :func:`bfe_pair`'s and the diffusion profile's scene :func:`prepare_sech_diffusion`'s."""
     scene = config.scene
-    out: dict[str, list[tuple[object, float]]] = {}
-    if optical_variance_arcsec2 is not None:
-        jitter = math.sqrt(roman_default.JITTER_ARCSEC**2 + abs(optical_variance_arcsec2))
-        sign = 1.0 if optical_variance_arcsec2 >= 0 else -1.0
-        out["optical_model"] = [(replace(config, scene=replace(scene, jitter_arcsec=jitter)), sign)]
-    out["sed"] = [(replace(config, scene=replace(scene, sed=f"blackbody:{t:g}")), 1.0) for t in SED_RANGE_K]
-    out["jitter"] = [(replace(config, scene=replace(scene, jitter_arcsec=j)), 1.0) for j in JITTER_RANGE_ARCSEC]
-    out["charge_diffusion"] = [(replace(config, scene=replace(scene, charge_diffusion_px=DIFFUSION_ALTERNATIVE_PX)), 1.0)]
-    out["pupil_scale"] = [(replace(config, pupil_scale=PUPIL_ALTERNATIVE), 1.0)]
-    out["nl_shape"] = [(replace(config, scene=replace(scene, nl_coefficients=NL_SHAPE_COEFFICIENTS)), 1.0)]
+    out: dict[str, tuple[object, float]] = {}
+    jitter = math.sqrt(scene.jitter_arcsec**2 + OPTICS_BLUR_PROBE_ARCSEC2)
+    out["optics_v"] = (replace(config, scene=replace(scene, jitter_arcsec=jitter)), 1.0 / OPTICS_BLUR_PROBE_ARCSEC2)
+    log_scale = pupil_log_scale(config.band, config.sca, OPTICS_PUPIL_PROBE, config.pupil_scale)
+    out["optics_s"] = (replace(config, pupil_scale=OPTICS_PUPIL_PROBE), 1.0 / log_scale)
+    # Jitter: linear in the variance; the part is one standard deviation of it (2 j sigma_j).
+    probe_variance = JITTER_PROBE_ARCSEC**2 - scene.jitter_arcsec**2
+    out["jitter"] = (
+        replace(config, scene=replace(scene, jitter_arcsec=JITTER_PROBE_ARCSEC)),
+        2 * scene.jitter_arcsec * JITTER_SIGMA_ARCSEC / probe_variance,
+    )
+    out["charge_diffusion"] = (
+        replace(config, scene=replace(scene, charge_diffusion_px=scene.charge_diffusion_px + DIFFUSION_SIGMA_PX)),
+        1.0,
+    )
+    out["nl_shape"] = (replace(config, scene=replace(scene, nl_coefficients=NL_SHAPE_COEFFICIENTS)), 1.0)
+    for end, sed in zip(("sed_cool", "sed_hot"), SED_RANGE, strict=True):
+        out[end] = (replace(config, scene=replace(scene, sed=sed)), 1.0)
     return out
+
+
+def pupil_log_scale(band: str, sca: int, rule: str, reference: str = "official") -> float:
+    """ln(s_rule / s_reference) of the binned pupil's metres per pixel (``roman.pupil``)."""
+    from nlpsf import roman
+
+    return math.log(roman.pupil(sca, band, 4, rule).scale_m / roman.pupil(sca, band, 4, reference).scale_m)
 
 
 def bfe_pair(config):
@@ -239,64 +417,192 @@ def bfe_pair(config):
     return frame, replace(frame, scene=replace(frame.scene, bfe_coefficient=BFE_COEFFICIENT))
 
 
-def _slopes(config, magnitudes, linearise_at):
+def sech_transfer(frequencies: np.ndarray, sigma_arcsec: float) -> np.ndarray:
+    """Fourier transform of a unit-flux separable hyperbolic-secant profile of per-axis standard
+    deviation ``sigma`` (density sech(pi x / (2 sigma)) / (2 sigma) per axis): sech(2 pi sigma k_x)
+    sech(2 pi sigma k_y) on (f_y, f_x). To second order in k it is the Gaussian's of that sigma."""
+    one = 1.0 / np.cosh(2.0 * math.pi * sigma_arcsec * np.asarray(frequencies, dtype=np.float64))
+    return one[:, None] * one[None, :]
+
+
+def prepare_sech_diffusion(config):
+    """``experiment.prepare`` of ``config`` with its charge diffusion a separable sech profile of
+    the same per-axis sigma instead of the Gaussian (the jitter stays Gaussian). Everything else is
+    ``prepare``'s own code path; ``tests/library/test_roman_uncertainty.py`` checks that with the
+    Gaussian put back it is ``prepare`` exactly."""
+    return _prepare_with_diffusion(config, "sech")
+
+
+def _prepare_with_diffusion(config, profile: str):
+    import time
+
+    from nlpsf import roman
+    from nlpsf.sim import moments, optics, render
+    from nlpsf.sim import scene as scenes
+    from nlpsf.sim.experiment.prepared import Scene
+
+    start = time.perf_counter()
+    grid = config.grid
+    psf = optics.effective_psf(config.optics, round(grid.field_arcsec(), 9))
+    sigma = config.scene.charge_diffusion_px * roman.PIXEL_SCALE_ARCSEC
+    if profile == "gaussian":
+        psf = scenes.blur(psf, config.scene.blur_sigma_arcsec())
+    else:
+        psf = scenes.blur(psf, config.scene.jitter_arcsec)
+        coefficients = psf.coefficients * sech_transfer(psf.frequencies, sigma)
+        coefficients.setflags(write=False)
+        psf = optics.EffectivePSF(psf.optics, psf.field_arcsec, psf.frequencies, coefficients, psf.wavelengths_nm, psf.weights)
+    rng = np.random.default_rng(config.seed)
+    offsets = render.draw_offsets(rng, config.realizations, config.oversampling)
+    stamps = np.empty((config.realizations, grid.stamp, grid.stamp))
+    for first in range(0, config.realizations, 256):
+        stamps[first : first + 256] = render.draw(psf, grid, offsets[first : first + 256])
+    unit_charge = None
+    if config.scene.ipc is not None:
+        unit_charge, stamps = stamps, scenes.apply_ipc(stamps, config.scene.ipc, config.oversampling)
+    parts = [moments.fit(stamps[first : first + 256], config.moment_settings) for first in range(0, config.realizations, 256)]
+    reference = moments.concatenate(parts)
+    return Scene(config, psf, offsets, stamps, reference, time.perf_counter() - start, unit_charge)
+
+
+def _slopes(config, magnitudes, linearise_at, scene=None, residual_nl: str = presets.RESIDUAL_NL):
     from nlpsf.sim import experiment
 
     try:
-        return [_metric_values(r) for r in experiment.slopes(config, list(magnitudes), linearise_at=linearise_at)]
+        results = experiment.slopes(config, list(magnitudes), linearise_at=linearise_at, scene=scene, residual_nl=residual_nl)
+        return [_metric_values(r) for r in results]
     except Exception as error:  # a variant the simulator refuses is recorded, not fatal
         return [{"error": f"{type(error).__name__}: {error}"} for _ in magnitudes]
 
 
-def measure_point(
-    band: str,
-    sca: int,
-    magnitudes,
-    realizations: int = 50,
-    seed: int = 1,
-    optical_variance_arcsec2: float | None = None,
-    parts: tuple[str, ...] = PART_NAMES,
-) -> dict:
-    """Every part's signed relative change at (band, sca) for each magnitude and mode:
-    {"parts": {part: {mode: {metric: [[m, change, error, which_end], ...]}}}, "base": ...}.
-    For a two-ended part both ends are kept (``ends``) and the larger |change| is the part's."""
-    from nlpsf.request import presets as roman_default
-
-    linearise = roman_default.LINEARISE_AT
+def measure_point(band: str, sca: int, magnitudes, realizations: int = 50, seed: int = 1) -> dict:
+    """Every variant's signed relative change at (band, sca), per magnitude and mode, scaled to its
+    part (:func:`variant_configs`): {"changes": {name: {mode: {metric: [[m, value, error], ...]}}},
+    "base": ..., "pupil_log_scale": {rule: ln(s_rule / s_official)}}. ``optics_v`` and ``optics_s``
+    are sensitivities (per arcsec^2, per unit ln s), the rest parts' values or a range's ends."""
+    linearise = presets.LINEARISE_AT
     config = default_config(band, sca, realizations, seed)
     base = _slopes(config, magnitudes, linearise)
-    configs = variant_configs(config, optical_variance_arcsec2)
-    runs: dict[str, list[tuple[list, list, float]]] = {}
-    for name, variants in configs.items():
-        if name in parts:
-            runs[name] = [(base, _slopes(c, magnitudes, linearise), sign) for c, sign in variants]
-    if "brighter_fatter" in parts:
-        frame, with_bfe = bfe_pair(config)
-        runs["brighter_fatter"] = [(_slopes(frame, magnitudes, linearise), _slopes(with_bfe, magnitudes, linearise), 1.0)]
-    out: dict = {"band": band, "sca": sca, "magnitudes": list(magnitudes), "parts": {}, "errors": {}}
-    for name, pairs in runs.items():
+    runs: dict[str, tuple[list, list, float]] = {}
+    for name, (variant, factor) in variant_configs(config).items():
+        runs[name] = (base, _slopes(variant, magnitudes, linearise), factor)
+    runs["diffusion_profile"] = (base, _slopes(config, magnitudes, linearise, prepare_sech_diffusion(config)), 1.0)
+    frame, with_bfe = bfe_pair(config)
+    # The per-resultant correction is not modelled with BFE: the pair's difference at the per-read residual.
+    runs["brighter_fatter"] = (
+        _slopes(frame, magnitudes, linearise, residual_nl=BFE_RESIDUAL_NL),
+        _slopes(with_bfe, magnitudes, linearise, residual_nl=BFE_RESIDUAL_NL),
+        1.0,
+    )
+    out: dict = {"band": band, "sca": sca, "magnitudes": list(magnitudes), "changes": {}, "errors": {}}
+    for name, (reference, variant, factor) in runs.items():
         per_mode: dict = {mode: {metric: [] for metric in METRICS} for mode in MODES}
         for index, magnitude in enumerate(magnitudes):
+            r, v = reference[index], variant[index]
             for mode in MODES:
-                ends = []
-                for end, (reference, variant, sign) in enumerate(pairs):
-                    r, v = reference[index], variant[index]
-                    if "error" in r or "error" in v:
-                        out["errors"][name] = r.get("error") or v.get("error")
-                        continue
+                if "error" in r or "error" in v:
+                    out["errors"][name] = r.get("error") or v.get("error")
+                    change = dict.fromkeys(METRICS)
+                else:
                     change = relative_change(r[mode], v[mode])
-                    ends.append({m: None if c is None else (sign * c[0], c[1], end) for m, c in change.items()})
                 for metric in METRICS:
-                    values = [e[metric] for e in ends if e[metric] is not None]
-                    if not values:
-                        per_mode[mode][metric].append([magnitude, None, None, None])
-                        continue
-                    worst = max(values, key=lambda c: abs(c[0]))
-                    per_mode[mode][metric].append([magnitude, worst[0], worst[1], worst[2]])
-        out["parts"][name] = per_mode
+                    c = change[metric]
+                    per_mode[mode][metric].append(
+                        [magnitude, None, None] if c is None else [magnitude, factor * c[0], abs(factor) * c[1]]
+                    )
+        out["changes"][name] = per_mode
+    out["pupil_log_scale"] = {rule: pupil_log_scale(band, sca, rule) for rule in ("header", "galsim")}
     out["base"] = {
-        str(m): {mode: None if b.get(mode) is None else {k: v[0] for k, v in b[mode].items()} for mode in MODES}
+        f"{m:g}": {mode: None if b.get(mode) is None else {k: v[0] for k, v in b[mode].items()} for mode in MODES}
         for m, b in zip(magnitudes, base, strict=True)
         if "error" not in b
     }
     return out
+
+
+# --- the optics fit ----------------------------------------------------------------------------
+
+
+def _official_data(band: str, sca: int) -> list[tuple[str, str, float]]:
+    """(statistic, centring, official value) of one (band, SCA); the FWHM once (centring-free)."""
+    from nlpsf.roman import psfstats
+
+    official = psfstats.official_statistics()
+    rows = [("fwhm_arcsec", "center", official[(sca, band, "center")].fwhm_arcsec)]
+    for name in ("n_eff_pixels", "peak_fraction", "total_flux"):
+        for centring in psfstats.CENTRINGS:
+            rows.append((name, centring, getattr(official[(sca, band, centring)], name)))
+    return rows
+
+
+def fit_with_scatter(y: np.ndarray, jacobian: np.ndarray, errors: np.ndarray):
+    """Weighted linear least squares of ``y`` = ``jacobian`` theta with each datum's stated error and
+    an intrinsic scatter s added to all in quadrature, s chosen so that chi^2 per degree of freedom
+    is 1 (0 where the stated errors alone already give chi^2 <= dof): (theta, its covariance, chi^2,
+    residuals, s). The usual way to let a model that cannot describe everything say how much it
+    cannot, without narrowing the parameters' errors to the data's rounding."""
+
+    def solve(scatter: float):
+        w = 1.0 / (errors**2 + scatter**2)
+        covariance = np.linalg.inv(jacobian.T @ (w[:, None] * jacobian))
+        theta = covariance @ (jacobian.T @ (w * y))
+        residual = y - jacobian @ theta
+        return theta, covariance, float(np.sum(w * residual**2)), residual
+
+    dof = len(y) - jacobian.shape[1]
+    scatter = 0.0
+    theta, covariance, chi2, residual = solve(0.0)
+    if chi2 > dof:
+        lo, hi = 0.0, float(np.max(np.abs(y))) + float(np.max(errors)) + 1.0
+        for _ in range(200):  # chi^2 falls as the scatter grows: bisect chi^2 / dof = 1
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if solve(mid)[2] > dof else (lo, mid)
+        scatter = hi
+        theta, covariance, chi2, residual = solve(scatter)
+    return theta, covariance, chi2, residual, scatter
+
+
+def fit_optics(band: str, scas=OPTICS_SCAS) -> dict:
+    """The joint fit of nlpsf's optics to the official PSF statistics of ``scas`` (see the module
+    docstring): theta = (v [arcsec^2], ln s), its covariance, the intrinsic scatter, chi^2 and the
+    data with their residuals. Linear: each statistic's log is linear in v (a probing blur of
+    :data:`OPTICS_BLUR_PROBE_ARCSEC2`) and in ln s (the ``header`` rule against the ``official``)."""
+    from nlpsf.roman import psfstats
+    from nlpsf.sim import scene as scenes
+
+    rows, y, jacobian, rounding = [], [], [], []
+    for sca in scas:
+        optical = psfstats.official_condition_psf(band, sca, OFFICIAL_SED, pupil_scale=presets.PUPIL_SCALE)
+        ours = psfstats.statistics_of(optical, band, sca)
+        blurred = psfstats.statistics_of(scenes.blur(optical, math.sqrt(OPTICS_BLUR_PROBE_ARCSEC2)), band, sca)
+        header = psfstats.psf_statistics(band, sca, OFFICIAL_SED, pupil_scale=OPTICS_PUPIL_PROBE)
+        log_scale = pupil_log_scale(band, sca, OPTICS_PUPIL_PROBE)
+        for name, centring, theirs in _official_data(band, sca):
+            value = getattr(ours[centring], name)
+            y.append(math.log(theirs / value))
+            jacobian.append(
+                [
+                    math.log(getattr(blurred[centring], name) / value) / OPTICS_BLUR_PROBE_ARCSEC2,
+                    math.log(getattr(header[centring], name) / value) / log_scale,
+                ]
+            )
+            rounding.append(OFFICIAL_ROUNDING[name] / math.sqrt(3) / theirs)
+            rows.append({"sca": sca, "statistic": name, "centring": centring, "official": theirs, "nlpsf": value})
+    y, jacobian, rounding = np.array(y), np.array(jacobian), np.array(rounding)
+    theta, covariance, chi2, residual, scatter = fit_with_scatter(y, jacobian, rounding)
+    dof = len(y) - jacobian.shape[1]
+    for row, r in zip(rows, residual, strict=True):
+        row["residual_log"] = float(r)
+    return {
+        "band": band,
+        "scas": list(scas),
+        "parameters": ["v_arcsec2", "ln_pupil_scale"],
+        "theta": theta.tolist(),
+        "covariance": covariance.tolist(),
+        "sigma": np.sqrt(np.diag(covariance)).tolist(),
+        "intrinsic_scatter_log": scatter,
+        "chi2": chi2,
+        "dof": dof,
+        "data": rows,
+        "sed": OFFICIAL_SED,
+    }

@@ -103,6 +103,12 @@ class Solution:
     model: dict | None = None
     #: The single-final-frame rule's saturation magnitude (equal to ``saturation_magnitude`` without a ramp).
     final_frame_saturation_magnitude: float | None = None
+    #: The answer that holds across the uncertainty (``model_part.answer_extras``): the solved
+    #: quantity if the slope's modulus were |c| (1 + U), U the bound and its coverage named.
+    conservative: dict | None = None
+    #: What varies from star to star, as ranges the answer holds over (not uncertainties): each
+    #: range's ends, the slope's relative change there and the solved quantity there.
+    ranges: dict | None = None
 
     @property
     def uncertainty(self) -> float | None:
@@ -157,6 +163,8 @@ class Solution:
             "stars": self.stars,
             "applies_to": self.applies_to,
             "shear": self.shear,
+            "conservative": self.conservative,
+            "ranges": self.ranges,
             "conditions": self.conditions,
             "elapsed_s": self.elapsed_s,
         }

@@ -63,7 +63,6 @@ from functools import partial
 from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.flags import Flag, FlagCode, make
-from nlpsf.request import presets as roman_default
 from nlpsf.request import shear
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.sim import ramps
@@ -73,17 +72,14 @@ from nlpsf.slopes.fidelity import choose_fidelity, fidelity_error
 from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
-from . import model_part
-from .magnitude_scan import scan_magnitude
+from . import model_part, quantity, sca_nodes
 from .over_field import grid_size, sca_range, worst_over_field
-from .solution import Solution, Uncertainty
+from .solution import Solution
 from .validity import (
-    _between_limits_flag,
-    _binding,
-    _magnitude_flags,
-    _ramp_magnitude_flags,
     _validity_flags,
+    between_limits_note,
     component_flags,
+    fresh_between_limits,
 )
 
 METRICS = defaults.METRICS
@@ -187,10 +183,14 @@ class SolvePlan:
         return "tables" if self.fidelity == "table" else f"fresh simulations at fidelity {self.fidelity}"
 
 
-def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True) -> SolvePlan:
+def plan(
+    request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, fresh_between_limits: bool = True
+) -> SolvePlan:
     """Choose the fidelity, the scene to simulate and the tables to read for ``request``: the first
     provider (``nlpsf.slopes.providers``) that covers it. ``simulate`` False: the answer refuses
-    (``providers.NeedsSimulation``) where it would simulate a magnitude the grid does not hold."""
+    (``providers.NeedsSimulation``) where it would simulate a magnitude the grid does not hold.
+    ``fresh_between_limits`` False: the grid's plan even where the request's magnitude lies between
+    the saturation limits at its position (the page's curves, which leave those magnitudes out)."""
     default = _measured_default(request)
     chosen, notes = choose_fidelity(request.fidelity, request.accuracy, request.band, request.metric, request.mode, default)
     model_info, simulated_scene, realizations = None, None, None
@@ -205,11 +205,20 @@ def plan(request: SolveRequest, tables_set: tables.TableSet | None = None, simul
         selection = select(request, float(point), tables_set)
         chosen, simulated_scene, model_info, notes = selection.fidelity, selection.scene, selection.model, selection.notes
         realizations = selection.realizations
-    elif request.scene is not None and not request.scene.is_paper:
+    elif request.scene is not None and not request.scene.no_effects:
         simulated_scene = request.scene
     tableset = tables_set or providers.PaperTables().tables_for(simulated_scene, request.sca)
     coverage, refusals = _cover(request, chosen, simulated_scene, tableset)
-    notes.extend(_coverage_notes(request, coverage, refusals, tableset))
+    between = between_limits_note(request, coverage.grid, request.magnitude) if fresh_between_limits else None
+    if between is None:
+        notes.extend(_coverage_notes(request, coverage, refusals, tableset))
+    else:
+        # Between the saturation limits the grid misses a fresh simulation: the position is simulated afresh.
+        coverage = providers.Simulator().covers(request, chosen, tableset)
+        notes.append(between[0])
+        realizations = between[1]
+        why = "between the saturation limits at this position the field grid misses a fresh simulation"
+        refusals = [*refusals, providers.Refusal(providers.RefusalCode.FIDELITY, "magnitude", why)]
     if model_info is None:
         # No accuracy asked for: what the answer leaves out comes from the shipped measurement.
         table_rule = str(tableset.get(request.band, request.sca).settings["pupil_scale"])
@@ -231,7 +240,7 @@ def _cover(request: SolveRequest, fidelity: str, scene, tableset) -> tuple[provi
     """The first provider that covers the request, and the refusals of those before it: the field
     grid (the Roman default's preset only), the paper tables, the simulator."""
     refusals = []
-    candidates = [providers.FieldGrid()] if request.preset == roman_default.NAME else []
+    candidates = [providers.FieldGrid()] if request.policy.field_grid else []
     for provider in candidates:
         got = provider.covers(request, fidelity)
         if isinstance(got, providers.Coverage):
@@ -256,7 +265,7 @@ def _coverage_notes(request: SolveRequest, coverage: providers.Coverage, refusal
         return []
     last = refusals[-1]
     if last.code == code.SCENE:
-        if request.preset == roman_default.NAME:
+        if request.policy.field_grid:
             return [make(FlagCode.DEFAULT_SIMULATED, why=refusals[0].why)]
         return [make(FlagCode.SCENE_SIMULATED)]
     if last.code == code.PUPIL_SCALE:
@@ -276,7 +285,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
     if request.accuracy is not None:
         why = f"an accuracy target is met by measuring the scene's effects in fresh simulations: {providers.REFUSAL}"
         raise providers.NeedsSimulation(refusal(code.ACCURACY, "accuracy", why))
-    if request.preset != roman_default.NAME and request.ramp is not None:
+    if not request.policy.field_grid and request.ramp is not None:
         # The paper's scene up the ramp maps onto the tables only for some fits and magnitudes.
         why = f"a ramp on the paper's scene is simulated where the tables do not map it exactly: {providers.REFUSAL}"
         raise providers.NeedsSimulation(refusal(code.READOUT, "ramp", why))
@@ -289,6 +298,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
         FlagCode.PUPIL_SCALE_SIMULATED,
         FlagCode.DEFAULT_SIMULATED,
         FlagCode.LINEARISED_SIMULATED,
+        FlagCode.DEFAULT_BETWEEN_LIMITS,
     }
     notes = "; ".join(str(n) for n in the_plan.notes if getattr(n, "code", None) in simulated)
     why = f"it needs a fresh simulation ({notes or 'fidelity ' + the_plan.fidelity}): {providers.REFUSAL}"
@@ -298,7 +308,7 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
 def _measured_default(request: SolveRequest) -> str:
     """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
     for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
-    return model_part.ROMAN_DEFAULT if request.preset == roman_default.NAME else "paper"
+    return request.policy.measured_as
 
 
 @dataclass(frozen=True)
@@ -317,9 +327,9 @@ def _own_star(request: SolveRequest, the_plan: SolvePlan) -> bool:
     limits whatever it simulates (its answers stay bit for bit)."""
     scene = the_plan.scene
     return (
-        request.preset != "paper"
+        not request.policy.tables_limits
         and scene is not None
-        and not scene.is_paper
+        and not scene.no_effects
         and the_plan.grid is None
         and the_plan.fidelity != "table"
     )
@@ -355,24 +365,8 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         return _Limits(final_frame - shift, final_frame, source)
     # A background fills part of the well: the star saturates where its peak reaches the rest.
     final_frame = slopes.table.saturation(request.exptime, request.full_well - background)
-    source = None if request.preset == "paper" else "the tables' star (the paper's scene at the tables' position)"
+    source = None if request.policy.tables_limits else "the tables' star (the paper's scene at the tables' position)"
     return _Limits(final_frame - shift, final_frame, source)
-
-
-@dataclass
-class _Answer:
-    """The solved triple, its slope and uncertainty, before the conditions are attached."""
-
-    precision: float | None
-    tolerance: float | None
-    magnitude: float | None
-    slope: float | None
-    slope_error: float | None
-    parts: Uncertainty
-    model: dict | None
-    brightest: float | None = None
-    binding: str | None = None
-    m_nl: float | None = None
 
 
 def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None) -> Solution:
@@ -381,10 +375,11 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     total, message)``: told as each node of an SCA range is answered (the Roman default without a
     position)."""
     start = time.perf_counter()
-    if request.preset == roman_default.NAME and request.scene.position is None and request.accuracy is None:
+    if request.policy.ranges_over_sca and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
-        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress)
+        nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)
+        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
@@ -401,19 +396,40 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
     if systematic_note:
         flags.append(systematic_note)
     if request.solved_for == "magnitude":
-        result = _answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        result = quantity.answer_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        between = None if result.binding != "nonlinearity" else between_limits_note(request, the_plan.grid, result.magnitude)
+        if between is not None:
+            # The grid's NL limit lies between the saturation limits: solved again on fresh simulations
+            # (where saturation binds, the answer is the grid's limit itself, not the slope's).
+            fresh = fresh_between_limits(partial(answer, tables_set=tables_set), request, simulate, between[0], result.magnitude)
+            return replace(fresh, elapsed_s=time.perf_counter() - start)
     else:
-        result = _answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+        result = quantity.answer_at_magnitude(request, slopes, limits, the_plan.model, systematic, flags)
+    return _solution(request, the_plan, slopes, limits, result, flags, start)
+
+
+def _solution(
+    request: SolveRequest,
+    the_plan: SolvePlan,
+    slopes: _Slopes,
+    limits: _Limits,
+    result: quantity.Answer,
+    flags: list,
+    start: float,
+) -> Solution:
+    """The answer's validity flags, conditions and shear budget around the solved quantity: the Solution."""
     flags += _validity_flags(slopes, result.magnitude, result.precision, request.beta0, request.full_well)
-    flags += component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
+    flags += [f for f in component_flags(slopes, request.metric, result.magnitude, result.slope, result.slope_error)
+              if f.code not in {getattr(g, "code", None) for g in flags}]  # fmt: skip
     flags += slopes.slope_quality_flags()
     if slopes.grid_misses:
         flags.append(make(FlagCode.DEFAULT_SIMULATED, why=f"m={min(slopes.grid_misses):.3g} is outside a node's magnitude grid"))
     conditions = answer_conditions.conditions(request, the_plan, slopes)
+    conservative, ranges = model_part.answer_extras(request.solved_for, result, result.log_derivative)
     shear_answer = None
     if request.ratio is not None and result.tolerance is not None and math.isfinite(result.tolerance):
         statistical = result.parts.statistical if request.solved_for == "tolerance" else None
-        shear_answer = _shear_answer(request.metric, request.budget, request.ratio, result.tolerance, statistical)
+        shear_answer = quantity.shear_answer(request.metric, request.budget, request.ratio, result.tolerance, statistical)
         if request.metric != "size":
             flags.append(make(FlagCode.SHEAR_CROSS_TERM))
     if slopes.pupil_scale is not None and the_plan.fidelity != "table":
@@ -449,7 +465,25 @@ def answer(request: SolveRequest, tables_set: tables.TableSet | None = None, sim
         applies_to=conditions["applies_to"],
         shear=shear_answer,
         model=result.model,
+        conservative=conservative,
+        ranges=ranges,
     )
+
+
+def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: bool = True):
+    """Every node's value and uncertainty of the Roman default without a position, at once
+    (``sca_nodes.answer_nodes``), where its field grid covers it; None: answer node by node."""
+    first = request.at_position(positions[0])
+    the_plan = plan(first, tables_set) if simulate else table_plan(first, tables_set)
+    grid = the_plan.grid
+    if grid is None or tables_set is not None or the_plan.scene.background_e >= request.full_well:
+        return None
+    if grid.final_frame_saturation_magnitude(request.band, request.sca, positions[0]) is None:
+        return None  # the limits are then not the grid's own
+    # Each node's own value (its interpolation weights are 0 and 1 there), in the positions' order.
+    saturation = [float(m) for m in grid.saturation_magnitudes(request.band, request.sca).reshape(-1)]
+    systematic = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))[0]
+    return sca_nodes.answer_nodes(request, the_plan, saturation, systematic)
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:
@@ -461,90 +495,6 @@ def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:
         shift=-slopes.relabel_shift,
         percent=100 * (size_error if request.metric == "size" else e_error),
     )
-
-
-def _answer_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:
-    """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation."""
-    averaging = 1.0 / math.sqrt(request.stars)  # scatter: the PSF model averages `stars` independent draws
-    precision, tolerance, beta0 = request.precision, request.target_tolerance, request.beta0
-    field = "tolerance" if request.budget is None else f"shear_{request.budget.kind}"
-    scan = scan_magnitude(slopes, precision * beta0 * averaging, tolerance, limits.saturation, field)
-    flags += scan.flags
-    m_nl, slope, slope_err, log_derivative = scan.magnitude, scan.slope, scan.slope_error, scan.log_derivative
-    magnitude, binding = _binding(m_nl, limits.saturation, flags)
-    if request.ramp is not None and magnitude < limits.final_frame:
-        flags.append(_between_limits_flag(magnitude, limits.saturation, limits.final_frame))
-    if binding == "nonlinearity" and log_derivative:
-        model_info = model_part.model_at(model_info, slopes, m_nl)
-        effects, pupil = (model_info[k] / abs(log_derivative) for k in model_part.MODEL_PARTS)
-        parts = Uncertainty(
-            statistical=(slope_err / abs(slope)) / abs(log_derivative),
-            fidelity=None if systematic is None else systematic / abs(log_derivative),
-            optical_model=model_part.optical_model_relative(slopes, m_nl, model_info=model_info) / abs(log_derivative),
-            effects=effects,
-            pupil_scale=pupil,
-        )
-    else:
-        # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
-        parts = Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0)
-        slope, slope_err, _ = slopes.at(limits.saturation)  # first: the model part reads the slopes there
-        model_info = model_part.model_at(model_info, slopes, limits.saturation)
-        error = abs(slope) * precision * beta0 * averaging
-        flags.append(
-            make(FlagCode.ERROR_AT_SATURATION, metric=request.metric, mode=request.mode, error=error, tolerance=tolerance)
-        )
-    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info, magnitude, binding, m_nl)
-
-
-def _answer_at_magnitude(request, slopes: _Slopes, limits: _Limits, model_info: dict, systematic, flags: list) -> _Answer:
-    """Solve for the tolerance or the precision at a given magnitude."""
-    magnitude, beta0 = request.magnitude, request.beta0
-    precision, tolerance = request.precision, request.target_tolerance
-    if request.ramp is not None:
-        flags += _ramp_magnitude_flags(magnitude, limits.saturation, limits.final_frame)  # refuses before simulating
-    slope, slope_err, region = slopes.at(magnitude)
-    if request.ramp is None:
-        flags += _magnitude_flags(slopes, magnitude, region, limits.saturation, beta0)
-    elif region > 0 and slopes.grid is not None:  # fainter than the field grid: its flux law (slope_source)
-        faintest = slopes.grid.magnitude_range(request.band, request.sca)[1]
-        flags.append(make(FlagCode.EXTRAPOLATED_FAINT, magnitude=magnitude, faintest=faintest))
-    averaging = 1.0 / math.sqrt(request.stars)
-    c, c_err = abs(slope) * averaging, slope_err * averaging
-    model_info = model_part.model_at(model_info, slopes, magnitude) if region >= 0 else None
-    # After model_at: the Roman default's parts hold the optical model's vintage, not counted twice.
-    optical = model_part.optical_model_relative(slopes, magnitude, model_info=model_info) if region >= 0 else None
-    effects, pupil = (None, None) if model_info is None else (model_info[k] for k in model_part.MODEL_PARTS)
-    if request.solved_for == "tolerance":
-        tolerance = c * precision * beta0
-        statistical, scale = c_err * precision * beta0, tolerance
-    elif c <= max(c_err, 1e-300):
-        flags.append(
-            make(FlagCode.SLOPE_CONSISTENT_WITH_ZERO, metric=request.metric, magnitude=magnitude, slope=slope, error=c_err)
-        )
-        return _Answer(math.inf, tolerance, magnitude, slope, slope_err, Uncertainty.none(), model_info)
-    else:
-        precision = tolerance / (c * beta0)
-        statistical, scale = precision * c_err / c, precision
-    parts = Uncertainty(
-        statistical=statistical,
-        fidelity=None if systematic is None else scale * systematic,
-        optical_model=None if optical is None else scale * optical,
-        effects=None if effects is None else scale * effects,
-        pupil_scale=None if effects is None else scale * pupil,
-    )
-    return _Answer(precision, tolerance, magnitude, slope, slope_err, parts, model_info)
-
-
-def _shear_answer(metric: str, budget, ratio, tolerance: float, tolerance_uncertainty: float | None) -> dict:
-    """The shear budget given, or the bias the tolerance implies for galaxies of this size ratio."""
-    if budget is not None:
-        return {**budget.to_dict(), "given": budget.kind}
-    kind = shear.BUDGET_FOR_METRIC[metric]
-    factor = (2.0 if kind == "m" else 1.0 / shear.RESPONSIVITY) / ratio.effective**2
-    implied = shear.Budget(kind, tolerance * factor, ratio, tolerance).to_dict()
-    implied["given"] = "tolerance"
-    implied["uncertainty"] = None if tolerance_uncertainty is None else tolerance_uncertainty * factor
-    return implied
 
 
 def solve_over_field(band: str, scas="all", scene=None, progress=None, filled_for: int | None = None, **request) -> Solution:

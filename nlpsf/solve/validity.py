@@ -109,12 +109,19 @@ def _binding(m_nl: float | None, m_sat: float, flags: list[str]) -> tuple[float,
 def component_flags(slopes, metric: str, magnitude: float | None, slope: float | None, error: float | None) -> list:
     """The flag of an e1 / e2 answer whose slope is small against the modulus |c_e| (below
     :data:`COMPONENT_SMALL_FRACTION` of it) or within :data:`COMPONENT_ZERO_SIGMAS` standard errors
-    of zero, whatever was solved for; none for size, e or a slope not known. |c_e| is read from the
+    of zero, whatever was solved for; for size and e, ``slope_consistent_with_zero`` where the
+    slope is within those standard errors of zero; none for a slope not known. |c_e| is read from the
     answer's own slopes (the field grid's or the simulation's at that magnitude), else the tables'."""
-    if metric not in ("e1", "e2") or magnitude is None or slope is None or not math.isfinite(magnitude):
+    if magnitude is None or slope is None or not math.isfinite(magnitude):
         return []
     c, sigma = abs(float(slope)), abs(float(error or 0.0))
     zero = c <= COMPONENT_ZERO_SIGMAS * sigma
+    if metric not in ("e1", "e2"):
+        # size or |e|: a slope its own error cannot tell from zero (between the saturation limits the
+        # size slope changes sign) is said, whatever is solved for.
+        if not zero:
+            return []
+        return [make(FlagCode.SLOPE_CONSISTENT_WITH_ZERO, metric=metric, magnitude=magnitude, slope=float(slope), error=sigma)]
     ratio = slopes.modulus_over_component(magnitude) if hasattr(slopes, "modulus_over_component") else None
     if ratio is None and c > 0:
         from .model_part import component_scale  # the tables' |c_e| / |c_ei|
@@ -144,3 +151,68 @@ def component_flags(slopes, metric: str, magnitude: float | None, slope: float |
             limit=COMPONENT_SMALL_FRACTION,
         )
     ]
+
+
+def between_limits(grid, band: str, sca: int, position, magnitude: float | None) -> tuple[float, float] | None:
+    """(the ramp's saturation limit, the final frame's) at ``position`` where ``magnitude`` lies
+    between them -- pixels lose resultants there and the field grid's interpolation misses a fresh
+    simulation (docs/field.md, "Between the saturation limits") -- else None. None at a node of the
+    grid too (only the magnitude is interpolated there) and where the grid states no final-frame limit."""
+    if grid is None or position is None or magnitude is None or not math.isfinite(magnitude):
+        return None
+    final = grid.final_frame_saturation_magnitude(band, sca, position)
+    if final is None:
+        return None
+    ramp = grid.saturation_magnitude(band, sca, position)
+    if not ramp <= magnitude < final:
+        return None
+    from nlpsf.slopes import fieldgrid
+
+    n = int(grid.conditions(band, sca)["grid"])
+    if any(abs(x - position[0]) < 1e-6 and abs(y - position[1]) < 1e-6 for _, _, (x, y) in fieldgrid.grid_positions(n)):
+        return None
+    return float(ramp), float(final)
+
+
+def between_limits_flag(position, magnitude: float, limits: tuple[float, float], realizations: int) -> Flag:
+    """The flag of a Roman-default answer simulated afresh between the saturation limits."""
+    return make(
+        FlagCode.DEFAULT_BETWEEN_LIMITS,
+        x=position[0],
+        y=position[1],
+        magnitude=magnitude,
+        m_sat=limits[0],
+        m_sat_final=limits[1],
+        realizations=realizations,
+    )
+
+
+def between_limits_note(request, grid, magnitude: float | None) -> tuple[Flag, int] | None:
+    """Where the Roman default's grid would answer at a position between the saturation limits
+    (:func:`between_limits`) at ``magnitude``: the flag and the grid's centroid count, for a fresh
+    simulation there (``solver.plan``); None elsewhere."""
+    if grid is None:
+        return None
+    position = request.scene.position
+    limits = between_limits(grid, request.band, request.sca, position, magnitude)
+    if limits is None:
+        return None
+    realizations = int(grid.conditions(request.band, request.sca)["settings"]["realizations"])
+    return between_limits_flag(position, float(magnitude), limits, realizations), realizations
+
+
+def fresh_between_limits(answer, request, simulate: bool, flag: Flag, magnitude: float):
+    """A magnitude answer the grid puts between the saturation limits at a position, solved again
+    on fresh simulations with the grid's centroids; at table cost refused. ``answer`` is the
+    solver's (``answer(request)``, passed in: this module sits below it)."""
+    from dataclasses import replace
+
+    from nlpsf.slopes import providers
+
+    if not simulate:
+        why = f"the answer lies between the saturation limits ({flag}): {providers.REFUSAL}"
+        raise providers.NeedsSimulation(providers.Refusal(providers.RefusalCode.FIDELITY, "magnitude", why))
+    fresh = answer(request.with_changes(fidelity="linear"))
+    limits = [flag.values["m_sat"], flag.values["m_sat_final"]]
+    conditions = {**fresh.conditions, "between_limits": {"grid_magnitude": magnitude, "limits": limits}}
+    return replace(fresh, flags=[flag, *fresh.flags], conditions=conditions)

@@ -2,10 +2,10 @@
 grid answers do, with the accuracy's own level error and left-out set as separate parts.
 
 The expected values are read from ``nlpsf/data/roman_model_uncertainty.json`` directly (json, not the
-library's reader) and combined by hand by the documented rule: the choices (optical_model, sed,
-jitter, charge_diffusion, pupil_scale) in quadrature, the effects left out (brighter_fatter,
-nl_shape) added linearly; a part at a magnitude is the larger |value| of the measured magnitudes
-either side of it (the nearest end outside them)."""
+library's reader) and combined by hand by the documented rule: the standard parts (optics, jitter,
+charge_diffusion) in quadrature, the shifts left out (diffusion_profile, brighter_fatter, nl_shape)
+added linearly; a part at a magnitude is the larger |value| of the measured magnitudes either side
+of it (the nearest end outside them)."""
 
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from nlpsf.request import presets as roman_default
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.solve import accuracy, model_part, solver
 
-CHOICES = ("optical_model", "sed", "jitter", "charge_diffusion", "pupil_scale")
-LEFT_OUT = ("brighter_fatter", "nl_shape")
+CHOICES = ("optics", "jitter", "charge_diffusion")
+LEFT_OUT = ("diffusion_profile", "brighter_fatter", "nl_shape")
 POSITION = (1000.0, 3000.0)
 
 
@@ -92,19 +92,24 @@ def test_a_part_the_request_sets_is_dropped_with_its_reason():
 
 
 @pytest.mark.parametrize("rule", ["header", "galsim"])
-def test_another_pupil_rule_says_what_the_pupil_part_means(rule):
+def test_another_pupil_rule_moves_the_optics_part_by_its_own_scale(rule):
     answer = solver.solve(
         "H158", 18, magnitude=19.0, tolerance=1e-4, accuracy=0.01, scene=_default_scene("H158", 18), pupil_scale=rule
     )
-    part = next(p for p in answer.model["left_out"] if p["name"] == "pupil_scale")
+    part = next(p for p in answer.model["left_out"] if p["name"] == "optics")
     assert rule in part["why"]
-    parts = _file_parts("H158", 18, "bias", "size")
-    if rule == "header":  # the part measured is header against official: this answer's distance from official
-        relative = _by_hand(parts, 19.0)
-    else:  # not measured for this rule: named, counted zero
-        assert part["impact"] is None and "not measured" in part["why"]
-        relative = _by_hand(parts, 19.0, skip=("pupil_scale",))
-    assert answer.uncertainty_model == pytest.approx(relative * answer.precision, rel=1e-9)
+    # By hand from the file: the fitted (v, ln s) less the rule's own ln s, through the sensitivities.
+    data = json.loads((resources.files("nlpsf") / "data" / "roman_model_uncertainty.json").read_text())
+    fit, scale = data["optics_fit"]["H158"], data["pupil_log_scale"]["H158 18"][rule]
+    entry = data["per_band"]["H158"]["bias"]["size"]["per_sca"]["18"]
+    rows = []
+    for m, sv, ss in entry["optics_sensitivity"]:
+        offset = sv * fit["theta"][0] + ss * (fit["theta"][1] - scale)
+        c = fit["covariance"]
+        spread = sv * sv * c[0][0] + 2 * sv * ss * c[0][1] + ss * ss * c[1][1]
+        rows.append([m, math.sqrt(offset**2 + spread)])
+    parts = {**_file_parts("H158", 18, "bias", "size"), "optics": {"by_magnitude": rows}}
+    assert answer.uncertainty_model == pytest.approx(_by_hand(parts, 19.0) * answer.precision, rel=1e-5)
 
 
 def test_a_default_at_another_exposure_reads_the_parts_at_equal_charge():

@@ -184,7 +184,7 @@ def test_every_option_has_help_and_shows_its_default():
             assert action.help, f"{command} {action.option_strings} has no help"
         text = sub.format_help()
         if command in ("simulate", "slopes", "solve"):
-            assert "(default: 168.1)" in text and "(default: H158)" in text
+            assert "(default: H158)" in text and "139.149 s" in text and "168.1 s" in text  # the exposure: the scene's
 
 
 def test_a_closed_pipe_is_not_a_traceback():

@@ -9,7 +9,7 @@ from astropy.table import Table
 
 from nlpsf.checks import InputError
 from nlpsf.sim import experiment
-from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes import fieldgrid, gridfile, tablebuild
 
 #: A cheap table build (the paper's scene at each node, few centroids, a short magnitude grid):
 #: these tests are about the grid machinery, not the slopes' statistics.
@@ -187,7 +187,7 @@ def test_a_format_2_file_rewritten_keeps_its_slopes_and_only_rounds_its_errors_u
     float16's 30) and slopes to 1e5, with NaN padding and an exact zero: read back from the -3 file,
     every slope is the float32 written, bit for bit, and every error at or above the one written,
     by less than 2**-10 of it (float16's mantissa), never flushed to zero nor made infinite."""
-    columns = fieldgrid._slope_columns()
+    columns = gridfile._slope_columns()
     is_error = np.array([c.endswith(("_err", "_interp")) for c in columns])
     rng = np.random.default_rng(17)
     shape = (5, 5, 40, len(columns))
@@ -227,15 +227,15 @@ def test_a_format_2_file_rewritten_keeps_its_slopes_and_only_rounds_its_errors_u
 
 def test_packing_refuses_errors_it_cannot_state_and_keeps_the_tiny_ones_exactly():
     with pytest.raises(InputError):
-        fieldgrid.pack_errors(np.array([1.0, np.inf], dtype=np.float32))
+        gridfile.pack_errors(np.array([1.0, np.inf], dtype=np.float32))
     with pytest.raises(InputError):
-        fieldgrid.pack_errors(np.array([1.0, -1e-3], dtype=np.float32))
+        gridfile.pack_errors(np.array([1.0, -1e-3], dtype=np.float32))
     # 1 + 2**-23 (one float32 step above 1) is stated as 1 + 2**-10, the next code up.
-    codes, offset, outliers = fieldgrid.pack_errors(np.array([1.0, np.nextafter(np.float32(1), np.float32(2))], dtype=np.float32))
-    assert fieldgrid.unpack_errors(codes, offset, outliers).tolist() == [1.0, 1.0 + 2.0**-10] and outliers.size == 0
+    codes, offset, outliers = gridfile.pack_errors(np.array([1.0, np.nextafter(np.float32(1), np.float32(2))], dtype=np.float32))
+    assert gridfile.unpack_errors(codes, offset, outliers).tolist() == [1.0, 1.0 + 2.0**-10] and outliers.size == 0
     # 70 binades: more than the codes' 63 below the largest; the error below them is kept as it is.
     errors = np.array([2.0**-66 * 1.2345, 3.0, 10.0, 0.0, np.nan], dtype=np.float32)
-    codes, offset, outliers = fieldgrid.pack_errors(errors)
-    back = fieldgrid.unpack_errors(codes, offset, outliers)
+    codes, offset, outliers = gridfile.pack_errors(errors)
+    back = gridfile.unpack_errors(codes, offset, outliers)
     assert outliers.tolist() == [errors[0]] and back[0] == errors[0] and back[1:3].tolist() == [3.0, 10.0]
     assert back[3] == 0.0 and np.isnan(back[4])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes import fieldgrid, gridfile, tablebuild
 
 CHEAP = tablebuild.TableSettings(realizations=2, faint_limit=18.0, magnitude_step=0.5)
 
@@ -29,7 +29,7 @@ def test_each_entry_is_read_on_its_own_grid(grids):
     assert merged.meta["tables"]["F184_04"]["grid"] == 3 and merged.meta["tables"]["F184_05"]["grid"] == 5
     assert merged.arrays["F184_05/values"].shape[:2] == (5, 5)
     # The entry not replaced is the base's, bit for bit, and keeps the base's provenance.
-    for part in fieldgrid.ARRAY_PARTS:
+    for part in gridfile.ARRAY_PARTS:
         np.testing.assert_array_equal(merged.arrays[f"F184_04/{part}"], base.arrays[f"F184_04/{part}"])
     assert merged.conditions("F184", 4)["provenance"]["built"] == "3"
     assert merged.conditions("F184", 5)["provenance"]["built"] == "5"
@@ -53,7 +53,7 @@ def test_the_denser_grid_shares_the_coarser_grids_nodes(grids):
 
 
 def test_merging_refuses_grids_of_other_columns():
-    meta = {"format": fieldgrid.FORMAT, "columns": ["bias_size", "bias_e1"], "value_dtype": "float32", "tables": {}}
+    meta = {"format": gridfile.FORMAT, "columns": ["bias_size", "bias_e1"], "value_dtype": "float32", "tables": {}}
     base = fieldgrid.FieldGrid(meta, {})
     with pytest.raises(fieldgrid.InputError):
         fieldgrid.merge_grids(base, fieldgrid.FieldGrid({**meta, "columns": ["bias_size"]}, {}))

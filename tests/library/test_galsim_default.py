@@ -8,9 +8,12 @@ background (removed after the fit as a local sky estimate removes it, its own NL
 C2A_IMG_HLWAS ramp read by read with romancal's saturation flags and the likelihood fit (written
 from the physics, checked here against the read-by-read brute force of ``test_ramps_readout``), HSM
 moments, and the slope at the corrected state by a symmetric difference
-in beta. It is drawn at the answer's own centroids (the answer's seed), so the two differ only by
-their physics and numerics. ``scripts/galsim_default_points.py`` runs the same comparison at random
-points (docs/validation.md, last section).
+in beta. The peer's calibration residual is a beta on every read (the earlier model, ``residual_nl=
+"per_read_beta"``), so the answer here is asked for in that model; the default's own model (the
+correction applied per resultant as romancal applies it) is checked against stcal's linearity routine
+and a read-by-read brute force in ``test_residual_correction``. It is drawn at the answer's own
+centroids (the answer's seed), so the two differ only by their physics and numerics.
+``scripts/galsim_default_points.py`` runs the same comparison at random points (docs/validation.md, last section).
 """
 
 from dataclasses import replace
@@ -66,7 +69,16 @@ def test_the_peers_ramp_is_the_read_by_read_brute_force(fit):
 )
 def test_polychromatic_default_agrees_with_galsim(band, sca, position, metric, magnitude):
     scene = replace(roman_default.base_scene(), position=position)  # the default's own star, the Pickles K0V
-    answer = solve(band, sca, metric, magnitude=magnitude, tolerance=1e-4, fidelity="polychromatic", scene=scene)
+    answer = solve(
+        band,
+        sca,
+        metric,
+        magnitude=magnitude,
+        tolerance=1e-4,
+        fidelity="polychromatic",
+        scene=scene,
+        residual_nl="per_read_beta",  # the peer's residual model (module docstring)
+    )
     conditions = answer.conditions
     offsets = (np.random.default_rng(conditions["seed"]).random((conditions["realizations"], 2)) - 0.5) * 3
     peer = reference.GalSimRomanDefault(

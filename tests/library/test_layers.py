@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 import tomllib
@@ -210,30 +211,61 @@ def test_the_experiment_package_imports_one_way():
         assert hasattr(experiment, name), name
 
 
-#: Library modules over ~600 lines must say why in their docstring (checked below) -- or be split.
+#: No module over 600 lines, no function over 80 (issue 25): the library, its command line and the web layer.
 MAX_MODULE_LINES = 600
-#: Functions over ~80 lines, each with why it is still one.
-LONG_FUNCTIONS = {
-    ("nlpsf.sim.moments", "_fit_chunk"): "the adaptive-moment iteration, kept whole for speed",
+MAX_FUNCTION_LINES = 80
+#: Functions still over the limit, each in a module another piece of work is changing now; the list
+#: can only shrink (a new long function fails the test).
+LONG_FUNCTIONS: dict[tuple[str, str], str] = {
+    ("nlpsf.sim.experiment.measure", "simulate"): "85 lines; the experiment package's own work (issue 29)",
+    ("nlpsf.sim.experiment.measure", "slopes"): "82 lines; the experiment package's own work (issue 29)",
+    ("nlpsf.slopes.tablebuild", "compute_table"): "83 lines; the field grid's build recipe (issue 28)",
+    ("nlpsf.solve.accuracy", "_model_info"): "83 lines; the uncertainty built from sources (issue 28)",
+}
+#: Modules still over the limit, likewise.
+LONG_MODULES: dict[str, str] = {
+    "nlpsf.web.store": "671 lines; the job store under abuse (issue 26)",
+    "nlpsf.solve.roman_uncertainty": "608 lines; the uncertainty built from sources (issue 28)",
 }
 
 
-def test_modules_and_functions_are_small_or_say_why():
-    long_modules = []
-    long_functions = set()
-    for path in LIBRARY:
+def _sized_files() -> list[tuple[str, Path]]:
+    """(module name, path) of every code file of the library, its command line and the web layer."""
+    files = [(_module_name(p), p) for p in PACKAGE.rglob("*.py") if "data" not in p.relative_to(PACKAGE).parts]
+    web = sorted((ROOT / "app").glob("*.py")) if (ROOT / "app").is_dir() else []
+    return files + [(f"nlpsf.web.{p.stem}", p) for p in web]
+
+
+def test_modules_and_functions_are_small():
+    long_modules, long_functions = set(), set()
+    for name, path in _sized_files():
         text = path.read_text()
-        tree = ast.parse(text)
-        doc = ast.get_docstring(tree) or ""
-        if len(text.splitlines()) > MAX_MODULE_LINES and "lines" not in doc:
-            long_modules.append(_module_name(path))
-        for node in ast.walk(tree):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 85:
-                long_functions.add((_module_name(path), node.name))
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            long_modules.add(name)
+        for node in ast.walk(ast.parse(text)):
+            if (
+                isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+                and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
+            ):
+                long_functions.add((name, node.name))
     assert long_functions <= set(LONG_FUNCTIONS), sorted(long_functions - set(LONG_FUNCTIONS))
-    # Modules that are still long (and not explained) are listed, so the list can only shrink.
-    assert set(long_modules) <= LONG_MODULES, sorted(set(long_modules) - LONG_MODULES)
+    assert long_modules <= set(LONG_MODULES), sorted(long_modules - set(LONG_MODULES))
 
 
-#: Library modules over MAX_MODULE_LINES whose docstring does not yet say why (owned by other work).
-LONG_MODULES: set[str] = set()
+#: A request's preset decided by its name: compared, or the Roman default's NAME or ``is_paper`` read.
+PRESET_BY_NAME = re.compile(
+    r"\bpreset\s*[!=]=|[!=]=\s*preset\b|\b(?:roman_default|presets)\.NAME\b|\bis_paper\b|\.preset\s+(?:not\s+)?in\b"
+)
+#: The files that may: the presets themselves, and the request read once (which names them).
+DECIDE_BY_PRESET_NAME = {"nlpsf/request/presets.py", "nlpsf/request/resolve.py"}
+
+
+def test_only_the_request_decides_by_the_presets_name():
+    # Everything else asks the request's policy (``presets.Policy``: field grid, SCA range, the
+    # measurements its answers read, ...), so a preset is data, not a name compared in many files.
+    found = set()
+    for _, path in _sized_files():
+        code = "\n".join(line for line in path.read_text().splitlines() if not line.lstrip().startswith(("#", '"', "'", "`")))
+        if PRESET_BY_NAME.search(code):
+            found.add(path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else str(path))
+    assert found <= DECIDE_BY_PRESET_NAME, sorted(found - DECIDE_BY_PRESET_NAME)

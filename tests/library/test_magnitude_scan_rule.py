@@ -35,6 +35,9 @@ class _AnalyticGrid:
         values = self.c(np.asarray(magnitudes, dtype=float))
         return values, np.zeros_like(values)
 
+    def value(self, band, sca, position, metric, mode, magnitudes):
+        return self.slope(band, sca, position, metric, mode, magnitudes)[0]
+
 
 def _slopes(c):
     return SimpleNamespace(

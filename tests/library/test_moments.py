@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf.sim import moments
+from nlpsf.sim import moment_kernels, moments
 from nlpsf.sim.moments import MomentSettings, MomentStatus
 
 from ..conftest import requires_galsim
@@ -139,7 +139,7 @@ def test_a_perturbed_fit_on_the_core_is_the_fit_on_the_whole_stamp():
 
 def test_integer_powers_by_products_equal_numpy_powers():
     d = np.random.default_rng(3).uniform(-12, 12, (4, 30))
-    np.testing.assert_allclose(moments._powers(d, 4), d[..., None] ** np.arange(5), rtol=1e-14)
+    np.testing.assert_allclose(moment_kernels.powers(d, 4), d[..., None] ** np.arange(5), rtol=1e-14)
 
 
 def test_bad_settings_are_named():

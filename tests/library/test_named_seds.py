@@ -104,34 +104,34 @@ def test_k0v_is_a_named_sed_everywhere_a_scene_is_read(tmp_path):
     assert seds.NAMED["k0v"].file == "pickles_uk_31.txt"
 
 
-def test_sed_part_is_the_larger_blackbody_end_against_the_k0v():
-    # The part's variants are the default scene with a 3500 K and a 10000 K blackbody and nothing
+def test_sed_range_is_the_two_blackbody_ends_against_the_k0v():
+    # The range's variants are the default scene with a 3500 K and a 10000 K blackbody and nothing
     # else changed; the default's own star is the K0V spectrum, and no stand-in part is left.
     config = tablebuild.TableSettings.roman(realizations=6, seed=3).config("H158", 18)
     assert config.scene.sed == "k0v"
-    variants = ru.variant_configs(config, None)["sed"]
-    assert [v.scene for v, _ in variants] == [replace(config.scene, sed=f"blackbody:{t:g}") for t in (3500, 10000)]
-    assert "sed_standin" not in ru.PART_NAMES
-    # Measured directly on other draws, the H158 bias-size change at m = 20 (the larger |change| of
-    # the two ends against the K0V) has the sign and size of the shipped SCA-18 value.
-    base, *ends = (
-        experiment.slopes(c, [20.0], linearise_at=roman_default.LINEARISE_AT)[0].bias["dR_over_R"].mean
-        for c in (config, *(v for v, _ in variants))
+    variants = ru.variant_configs(config)
+    ends = [variants["sed_cool"][0], variants["sed_hot"][0]]
+    assert [v.scene for v in ends] == [replace(config.scene, sed=f"blackbody:{t:g}") for t in (3500, 10000)]
+    assert "sed_standin" not in ru.PART_NAMES and "sed" not in ru.PART_NAMES
+    # Measured directly on other draws, the H158 bias-size change at m = 20 at each end has the sign
+    # and size of the shipped SCA-18 range's.
+    base, *changes = (
+        experiment.slopes(c, [20.0], linearise_at=roman_default.LINEARISE_AT)[0].bias["dR_over_R"].mean for c in (config, *ends)
     )
-    change = max((end / base - 1.0 for end in ends), key=abs)
-    part = ru.shipped()["per_band"]["H158"]["bias"]["size"]["per_sca"]["18"]["parts"]["sed"]
-    shipped = {m: v for m, v, *_ in part["by_magnitude"]}
-    assert np.sign(change) == np.sign(shipped[20.0]) and abs(change) > 1e-3
-    assert change == pytest.approx(shipped[20.0], rel=0.25)
+    shipped = ru.shipped()["per_band"]["H158"]["bias"]["size"]["per_sca"]["18"]["ranges"]["sed"]
+    row = next(r for r in shipped["by_magnitude"] if r[0] == 20.0)
+    for end, value in zip(changes, row[1:], strict=True):
+        change = end / base - 1.0
+        assert change == pytest.approx(value, rel=0.25, abs=5e-4)
+    assert abs(row[2]) > 1e-3
 
 
-def test_a_request_with_its_own_sed_is_not_charged_the_sed_spread():
+def test_a_request_with_its_own_sed_is_not_given_the_sed_range():
     # The old 5270 K blackbody stand-in is now a star of the request's own.
     scene = replace(roman_default.base_scene(), sed="blackbody:5270")
     info = model_part.shipped_model("H158", 18, "size", "bias", scene, "linear", default="roman")
-    assert "sed" not in [p["name"] for p in info["left_out"]]
+    assert "sed" not in info["ranges"]
     dropped = {p["name"]: p for p in info["included"]}["sed"]
     assert dropped["impact"] is None and dropped["why"].startswith("set by the request")
     default = model_part.shipped_model("H158", 18, "size", "bias", None, "table", default="roman")
-    names = [p["name"] for p in default["left_out"]]
-    assert "sed" in names and "sed_standin" not in names
+    assert "sed" in default["ranges"] and "sed_standin" not in [p["name"] for p in default["left_out"]]

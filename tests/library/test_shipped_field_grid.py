@@ -6,7 +6,7 @@ import pytest
 
 from nlpsf import defaults
 from nlpsf.sim import experiment
-from nlpsf.slopes import fieldgrid, tablebuild
+from nlpsf.slopes import fieldgrid, gridfile, tablebuild
 from nlpsf.slopes.fieldgrid import grid_residual_model
 
 GRID = fieldgrid.shipped_grid()
@@ -92,7 +92,7 @@ def test_the_shipped_errors_are_stated_rounded_up_and_its_slopes_as_built():
 
 
 def test_the_shipped_errors_are_positive_wherever_a_slope_is_stated():
-    assert GRID.meta["format"] == fieldgrid.FORMAT
+    assert GRID.meta["format"] == gridfile.FORMAT
     is_error = np.array([c.endswith(("_err", "_interp")) for c in GRID.meta["columns"]])
     for key in sorted(GRID.meta["tables"]):
         values = GRID.arrays[f"{key}/values"]

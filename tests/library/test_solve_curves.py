@@ -53,6 +53,11 @@ def test_the_curve_is_the_solvers_answer_at_random_magnitudes(band, options, pos
             assert not math.isfinite(curves.precision[1.0][i]), f"the solver refuses m={m}, the curve has a value"
             continue
         p = curves.precision[1.0][i]
+        if "default_between_limits" in [getattr(f, "code", None) for f in answer.flags]:
+            # Between the saturation limits at a position the solver simulates afresh (issue 28): the
+            # curve, read at table cost, has no value there.
+            assert not math.isfinite(p) and "saturation limits" in (curves.gaps or "")
+            continue
         if answer.precision == math.inf:
             assert p == math.inf
             continue

@@ -46,7 +46,9 @@ def test_meta_lists_what_the_library_offers(client):
     assert list(meta["throughputs"]) == list(roman.THROUGHPUTS) and meta["default_throughput"] == "roman-2024"
     assert meta["tables"]["fingerprint"] == tables.load_tables().meta["fingerprint"]
     assert meta["defaults"]["solve"]["beta0"] == 5e-7
-    assert meta["defaults"]["solve"]["exptime"] == roman_default.exptime_s()  # the Roman default's (paper: 168.1 s)
+    # Not given, the exposure is the scene's (published as null; the exposure each scene fills is beside it).
+    assert meta["defaults"]["solve"]["exptime"] is None
+    assert meta["defaults"]["scene_exptime"]["roman"] == roman_default.exptime_s()
     assert meta["limits"]["max_realizations"] == 500
     assert meta["limits"]["max_queue"] == 8
 

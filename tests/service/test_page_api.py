@@ -64,6 +64,10 @@ def test_the_drawn_curve_is_the_solve_answer_at_random_magnitudes(client, questi
             assert chosen["precision"][i] is None, f"/solve refuses m={m}; the curve has a value"
             continue
         answer = response.json()
+        if "default_between_limits" in answer["flag_codes"]:
+            # Between the saturation limits at a position /solve simulates afresh (issue 28): no curve value there.
+            assert chosen["precision"][i] is None
+            continue
         assert chosen["precision"][i] == pytest.approx(answer["precision"], rel=1e-9, abs=0)
         assert data["slope"][i] == pytest.approx(answer["slope"], rel=1e-9, abs=0)
         compared += 1
@@ -105,8 +109,11 @@ def test_one_saturation_story_for_the_default_ramp(client):
     answer = solved(client, body)
     limits = curves(client, body)["curves"]["limits"]
     assert limits["readout"] == "ramp"
-    assert limits["saturation_magnitude"] == pytest.approx(answer["saturation_magnitude"], rel=1e-12)
-    assert limits["final_frame_saturation_magnitude"] == pytest.approx(answer["final_frame_saturation_magnitude"], rel=1e-12)
+    # Between the limits the answer is simulated afresh (issue 28): its limits are its own star's prepared
+    # peak, the curve's the grid's nodes interpolated (equal to 4e-9 mag); elsewhere the same numbers.
+    rel = 1e-8 if "default_between_limits" in answer["flag_codes"] else 1e-12
+    assert limits["saturation_magnitude"] == pytest.approx(answer["saturation_magnitude"], rel=rel)
+    assert limits["final_frame_saturation_magnitude"] == pytest.approx(answer["final_frame_saturation_magnitude"], rel=rel)
     assert limits["saturation_magnitude"] < 18.3 < limits["final_frame_saturation_magnitude"]
     # Without a position: the faintest limit over the SCA's nodes, which the answer's node's lies within.
     whole_body = {**body, "scene": None}
@@ -148,7 +155,11 @@ def test_slopes_of_every_band_are_the_questions(client):
     for band in ("W146", "F184"):
         answer = solved(client, {**body, "band": band})
         curve = by_band[band]
-        assert curve["slope"][curve["magnitude"].index(18.3)] == pytest.approx(abs(answer["slope"]), rel=1e-9)
+        value = curve["slope"][curve["magnitude"].index(18.3)]
+        if "default_between_limits" in answer["flag_codes"]:  # simulated afresh there (issue 28): no curve value
+            assert value is None
+            continue
+        assert value == pytest.approx(abs(answer["slope"]), rel=1e-9)
         assert curve["where"]["kind"] == "position"
 
 

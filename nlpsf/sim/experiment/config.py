@@ -95,7 +95,7 @@ class SimulationConfig:
         check_choice(self.pupil_scale, "pupil_scale", roman.PUPIL_SCALE_RULES)
         moments.MomentSettings(weight_cut_rho2=self.weight_cut_rho2)
         optics_config = self.optics  # validates n_wavelengths and pupil_bin
-        if not self.scene.is_paper:
+        if not self.scene.no_effects:
             optics_config.wavelengths_and_weights()  # a SED table must cover the band: refuse it here, not mid-run
         if self.ramp is not None:
             if not isinstance(self.ramp, ramps.Ramp):
@@ -157,7 +157,7 @@ class SimulationConfig:
     @property
     def fidelity(self) -> str:
         polychromatic = self.n_wavelengths > 1 or self.scene.sed is not None
-        return level_name(self.method, 2 if polychromatic else 1) + ("" if self.scene.is_paper else "+scene")
+        return level_name(self.method, 2 if polychromatic else 1) + ("" if self.scene.no_effects else "+scene")
 
     def conditions(self) -> dict:
         """What every number computed under this configuration holds for."""

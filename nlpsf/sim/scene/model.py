@@ -108,7 +108,8 @@ class SceneModel:
         return {name: effect.is_on(self) for name, effect in REGISTRY.items()}
 
     @property
-    def is_paper(self) -> bool:
+    def no_effects(self) -> bool:
+        """Every effect off: the paper's idealised scene (at any position the ``position`` effect allows)."""
         return not any(self.effects_on().values())
 
     @property
@@ -174,7 +175,7 @@ class SceneModel:
         return out
 
     def describe(self) -> str:
-        if self.is_paper:
+        if self.no_effects:
             return "paper scene (SCA centre, one wavelength, quadratic NL only)"
         parts = []
         if self.position is not None:
@@ -235,6 +236,19 @@ def _check_table(table) -> tuple[tuple[float, ...], tuple[float, ...]]:
 
 
 def check_kernel(kernel) -> tuple[tuple[float, ...], ...]:
+    """A 3x3 IPC kernel checked and normalised to unit sum (a kernel given as tuples is checked once:
+    every scene built from another, ``dataclasses.replace``, checks its kernel again)."""
+    if isinstance(kernel, tuple) and all(isinstance(row, tuple) for row in kernel):
+        return _checked_kernel(kernel)
+    return _check_kernel(kernel)
+
+
+@lru_cache(maxsize=256)
+def _checked_kernel(kernel: tuple) -> tuple[tuple[float, ...], ...]:
+    return _check_kernel(kernel)
+
+
+def _check_kernel(kernel) -> tuple[tuple[float, ...], ...]:
     try:
         array = np.asarray(kernel, dtype=np.float64)
     except (TypeError, ValueError):

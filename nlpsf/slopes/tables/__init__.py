@@ -60,7 +60,7 @@ from .model import (
     with_throughput,
 )
 from .paper import PAPER_FIT_RANGE, paper_data, powerlaw_fit, powerlaw_fits, table2_comparison, table2_markdown
-from .splines import evaluate_cubic, hermite_coefficients, knot_derivatives, spline_coefficients
+from .splines import evaluate_cubic, hermite_coefficients, knot_derivatives
 from .storage import (
     COMPANION_FORMAT,
     KEY_COLUMNS,
@@ -74,15 +74,6 @@ from .storage import (
     shipped_table_path,
     write_companion,
 )
-
-# The names these had when tables was one module; other modules and branches still call them.
-# Remove once nothing does (grep "tables._").
-_conditions = conditions
-_ecsv_fingerprint = ecsv_fingerprint
-_load_ecsv = load_ecsv
-_groups = groups
-_spline_coefficients = spline_coefficients
-_evaluate_cubic = evaluate_cubic
 
 __all__ = [
     "BRIGHT_MARGIN_MAG",
@@ -113,7 +104,6 @@ __all__ = [
     "powerlaw_fit",
     "powerlaw_fits",
     "shipped_table_path",
-    "spline_coefficients",
     "table2_comparison",
     "table2_markdown",
     "table_key",

@@ -101,7 +101,7 @@ class SlopeTable:
             return np.hypot(self.values("e1", mode, magnitude), self.values("e2", mode, magnitude))
         fluxes, spline, _, _ = self._interpolant(f"{mode}_{metric}")
         flux = self.flux_at(magnitude)
-        value = spline(np.clip(flux, fluxes[0], fluxes[-1])) * flux
+        value = spline(np.minimum(np.maximum(flux, fluxes[0]), fluxes[-1])) * flux
         return np.where(flux > fluxes[-1] * (1 + 1e-9), np.nan, value)
 
     def lookup(self, metric: str, mode: str, magnitude) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -118,7 +118,7 @@ class SlopeTable:
         fluxes, spline, relative, interp = self._interpolant(f"{mode}_{metric}")
         flux = self.flux_at(m)
         region = np.where(flux > fluxes[-1] * (1 + 1e-9), -1, np.where(flux < fluxes[0] * (1 - 1e-9), 1, 0))
-        clipped = np.clip(flux, fluxes[0], fluxes[-1])
+        clipped = np.minimum(np.maximum(flux, fluxes[0]), fluxes[-1])
         value = spline(clipped) * flux
         statistical = np.interp(clipped, fluxes, relative) * np.abs(value)
         interpolation = np.interp(clipped, fluxes, interp) * flux
@@ -169,6 +169,9 @@ class TableSet:
         self._lock = Lock()
 
     def get(self, band: str, sca: int, point: int | None = None) -> SlopeTable:
+        table = self._tables.get((band, sca) + ((point,) if point else ()))  # a request's band and SCA, checked once
+        if table is not None:
+            return table
         key = (roman.check_band(band), roman.check_sca(sca)) + ((int(point),) if point else ())
         table = self._tables.get(key)
         if table is None:

@@ -1,0 +1,292 @@
+"""The Roman default without a position: every node of the SCA's field grid answered at once.
+
+``solver.answer`` answers such a request with the most demanding of the SCA's nodes
+(``over_field.sca_range``): it needs every node's solved value and uncertainty, and the whole
+answer of one node. The values and uncertainties come from here, every node at once -- the grid
+read at each node's own magnitude in one call (``FieldGrid.slopes_at_nodes``), a magnitude solve's
+scan of every node from one evaluation and the crossings found side by side, the model parts read at
+every node's magnitude in one look-up (``model_part.roman_effects_at``) -- with the arithmetic of
+``quantity`` and ``magnitude_scan`` repeated number for number: each node's value is what answering
+it alone gives, bit for bit, and its uncertainty agrees to the last bits (the field interpolation's
+term read once for all nodes, the parts added with numpy's sums). Where a node leaves the common
+case (a magnitude the grid does not hold, a refusal, an answer extrapolated past the scan, a
+crossing the secant does not bracket), :func:`answer_nodes` returns None and the caller answers
+node by node.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from nlpsf.slopes import tables
+
+from . import model_part
+from .magnitude_scan import _H, _TREND_MAG
+
+
+@dataclass(frozen=True)
+class NodeAnswers:
+    """Every node's solved value and total uncertainty (as its own answer's ``Solution`` holds them)."""
+
+    solved_for: str
+    values: list[float | None]
+    uncertainties: list[float | None]
+
+
+class _Nodes:
+    """The grid read at the SCA's nodes, each node at its own magnitude, as ``Slopes.at`` reads it."""
+
+    def __init__(self, request, grid):
+        self.request, self.grid = request, grid
+        self.band, self.sca, self.metric, self.mode = request.band, request.sca, request.metric, request.mode
+        self.n = int(grid.meta["tables"][f"{self.band}_{self.sca:02d}"]["grid"])
+        self.brightest, self.faintest = grid.magnitude_range(self.band, self.sca)
+
+    def held(self, magnitudes) -> bool:
+        """Whether every magnitude is one every node holds (else ``Slopes.at`` would simulate)."""
+        return all(self.brightest <= m for m in magnitudes)
+
+    def at(self, magnitudes: list[float]) -> tuple[list[float], list[float]]:
+        """(slope, |error|) of node k at ``magnitudes[k]`` (None: keep it at the faint end): in the
+        grid, or fainter than its faint end by the flux law from there (``Slopes._from_grid``)."""
+        inside = [min(m, self.faintest) for m in magnitudes]
+        value, error = self.grid.slopes_at_nodes(
+            self.band, self.sca, self.metric, self.mode, np.reshape(inside, (self.n, self.n))
+        )
+        values, errors = [float(v) for v in value.reshape(-1)], [float(e) for e in error.reshape(-1)]
+        for k, m in enumerate(magnitudes):
+            if m > self.faintest:
+                scale = 10 ** (-0.4 * (m - self.faintest))
+                values[k], errors[k] = values[k] * scale, abs(errors[k]) * scale
+            else:
+                errors[k] = abs(errors[k])
+        return values, errors
+
+    def held_values(self, magnitudes: list[float]) -> list[float] | None:
+        """Node k's slope at ``magnitudes[k]`` (each within the grid), None where ``Slopes.at`` would
+        not read it from the grid (a value or an error not stated there)."""
+        column = f"{self.mode}_{self.metric}"
+        m = np.reshape(magnitudes, (self.n, self.n))
+        if self.metric == "e":
+            names = [f"{self.mode}_{c}{s}" for c in ("e1", "e2") for s in ("", "_err", "_interp")]
+            e1, e1_err, e1_interp, e2, e2_err, e2_interp = self.grid.columns_at_nodes(self.band, self.sca, names, m)
+            values, checks = np.hypot(e1, e2), (e1_err, e1_interp, e2_err, e2_interp)
+        else:
+            names = (column, f"{column}_err", f"{column}_interp")
+            values, *checks = self.grid.columns_at_nodes(self.band, self.sca, names, m)
+        if not all(np.isfinite(c).all() for c in checks):
+            return None
+        return [float(v) for v in values.reshape(-1)]
+
+    def modulus_over_component(self, magnitudes: list[float]) -> list[float | None]:
+        """``Slopes.modulus_over_component`` at every node (e1 / e2 answers; 1 otherwise)."""
+        if self.metric not in ("e1", "e2"):
+            return [1.0] * len(magnitudes)
+        m = np.reshape([min(v, self.faintest) for v in magnitudes], (self.n, self.n))
+        e1, e2 = (
+            v.reshape(-1) for v in self.grid.columns_at_nodes(self.band, self.sca, (f"{self.mode}_e1", f"{self.mode}_e2"), m)
+        )
+        out = []
+        for k, magnitude in enumerate(magnitudes):
+            if magnitude > self.faintest:
+                out.append(None)  # not held by the grid: the answer takes the tables' ratio
+                continue
+            pair = [float(e1[k]), float(e2[k])]
+            component = abs(pair[0] if self.metric == "e1" else pair[1])
+            ok = all(math.isfinite(v) for v in pair) and component > 0
+            out.append(math.hypot(*pair) / component if ok else None)
+        return out
+
+
+def answer_nodes(request, the_plan, saturation: list[float], systematic: float | None) -> NodeAnswers | None:
+    """Every node's value and uncertainty of ``request`` (the Roman default without a position, its
+    plan ``the_plan`` read from the field grid; ``saturation``: each node's saturation magnitude, the
+    ramp's, ``systematic``: the fidelity level's relative error), or None where a node leaves the
+    common case (see the module docstring)."""
+    if the_plan.grid is None or the_plan.model.get("combine") != "roman" or request.throughput is not None:
+        return None
+    nodes = _Nodes(request, the_plan.grid)
+    if not nodes.held(saturation):
+        return None
+    if request.solved_for == "magnitude":
+        return _magnitudes(request, nodes, the_plan.model, saturation, systematic)
+    return _at_magnitude(request, nodes, the_plan.model, saturation, systematic)
+
+
+def _effects(model: dict, nodes: _Nodes, magnitudes: list[float]) -> np.ndarray | None:
+    """``model_at``'s relative model part at each node's magnitude (None: a node needs the tables' ratio)."""
+    scales = nodes.modulus_over_component(magnitudes) if model["stated_against"] == "modulus" else [1.0] * len(magnitudes)
+    if any(s is None for s in scales):
+        return None
+    return model_part.roman_effects_at(model, magnitudes, scales)
+
+
+def _totals(statistical, fidelity, effects) -> list[float]:
+    """``Uncertainty.total`` of every node (its optical-model and pupil parts are 0 for the Roman
+    default: its parts hold the optical model's vintage)."""
+    fidelity = np.zeros_like(statistical) if fidelity is None else fidelity
+    return [math.hypot(s, f, e, 0.0) for s, f, e in zip(statistical.tolist(), fidelity.tolist(), effects.tolist(), strict=True)]
+
+
+def _at_magnitude(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
+    """``quantity.answer_at_magnitude`` at every node (one magnitude for all), node by node in arrays."""
+    magnitude, beta0 = request.magnitude, request.beta0
+    if any(magnitude < m_sat - tables.BRIGHT_MARGIN_MAG for m_sat in saturation) or not nodes.held([magnitude]):
+        return None  # refused (too bright) or not held: the node-by-node answer says so
+    count = len(saturation)
+    slopes, errors = (np.array(v) for v in nodes.at([magnitude] * count))
+    if not (np.isfinite(slopes).all() and np.isfinite(errors).all()):
+        return None
+    effects = _effects(model, nodes, [magnitude] * count)
+    if effects is None:
+        return None
+    averaging = 1.0 / math.sqrt(request.stars)
+    c, c_err = np.abs(slopes) * averaging, errors * averaging
+    if request.solved_for == "tolerance":
+        values = c * request.precision * beta0
+        statistical = c_err * request.precision * beta0
+        zero = np.zeros(count, dtype=bool)
+    else:
+        zero = c <= np.maximum(c_err, 1e-300)  # a slope consistent with zero: no precision needed
+        with np.errstate(divide="ignore", invalid="ignore"):
+            values = np.where(zero, math.inf, request.target_tolerance / (c * beta0))
+            statistical = values * c_err / c
+    fidelity = None if systematic is None else values * systematic
+    totals = _totals(statistical, fidelity, values * effects)
+    return NodeAnswers(request.solved_for, values.tolist(), [None if z else u for z, u in zip(zero, totals, strict=True)])
+
+
+def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
+    """``quantity.answer_magnitude`` at every node: ``magnitude_scan.scan_magnitude`` on the field
+    grid's c(m) of each node, then the binding limit."""
+    averaging = 1.0 / math.sqrt(request.stars)
+    required = request.target_tolerance / (request.precision * request.beta0 * averaging)
+    faintest, brightest = nodes.faintest, nodes.brightest
+    grids = [np.arange(faintest, max(m_sat, brightest) - 1e-9, -0.05) for m_sat in saturation]
+    longest = max(grids, key=len)
+    everywhere = _scan_values(nodes, longest)
+    m_nl: list[float | None] = []
+    brackets: dict[int, tuple[float, float]] = {}
+    log_derivatives: dict[int, float] = {}
+    for k, magnitudes in enumerate(grids):
+        values = everywhere[k, : magnitudes.size]
+        above = np.abs(values) > required
+        if above[0]:
+            step = float(magnitudes[0] - magnitudes[1])
+            at_faint, brighter = float(values[0]), float(values[min(round(_TREND_MAG / step), values.size - 1)])
+            if not abs(at_faint) < abs(brighter):
+                return None  # no star meets the tolerance: the node-by-node answer refuses
+            m_nl.append(float(faintest + 2.5 * math.log10(abs(at_faint) / required)))
+            log_derivatives[k] = -0.4 * math.log(10)
+        elif not above.any():
+            m_nl.append(None)
+        else:
+            first = int(np.argmax(above))
+            brackets[k] = (float(magnitudes[first]), float(magnitudes[first - 1]))
+            m_nl.append(math.nan)
+    roots = _secant_roots(nodes, brackets, required)
+    if roots is None:
+        return None
+    for k, root in roots.items():
+        m_nl[k] = root
+    return _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, set(brackets), log_derivatives)
+
+
+def _scan_values(nodes: _Nodes, magnitudes: np.ndarray) -> np.ndarray:
+    """(nodes, magnitudes): each node's c(m) on the scan's magnitudes (``FieldGrid.slope``'s values at
+    a node: the node's own, its weights being 0 and 1 there)."""
+    grid, band, sca = nodes.grid, nodes.band, nodes.sca
+    if nodes.metric == "e":
+        e1 = grid.node_values(band, sca, f"{nodes.mode}_e1", magnitudes)
+        e2 = grid.node_values(band, sca, f"{nodes.mode}_e2", magnitudes)
+        values = np.hypot(e1, e2)
+    else:
+        values = grid.node_values(band, sca, f"{nodes.mode}_{nodes.metric}", magnitudes)
+    return values.reshape(-1, magnitudes.size)
+
+
+def _secant_roots(nodes: _Nodes, brackets: dict[int, tuple[float, float]], required: float) -> dict[int, float] | None:
+    """``magnitude_scan._secant_root`` of every bracketed node, side by side: each iteration reads
+    every node still iterating at once. None where a bracket does not hold a sign change (the
+    node-by-node answer widens it) or a slope is not held."""
+    count = len(nodes.grid.arrays[f"{nodes.band}_{nodes.sca:02d}/positions"].reshape(-1, 2))
+
+    def excess(points: dict[int, float]) -> dict[int, float] | None:
+        magnitudes = [points.get(k, nodes.faintest) for k in range(count)]
+        if not nodes.held(magnitudes) or max(magnitudes) > nodes.faintest:
+            return None
+        slopes = nodes.held_values(magnitudes)
+        if slopes is None:
+            return None
+        out = {}
+        for k in points:
+            if not math.isfinite(slopes[k]) or slopes[k] == 0:
+                return None
+            out[k] = math.log(abs(slopes[k]) / required)
+        return out
+
+    a = {k: bright for k, (bright, _) in brackets.items()}
+    b = {k: faint for k, (_, faint) in brackets.items()}
+    fa, fb = excess(a), excess(b)
+    if fa is None or fb is None or any(fa[k] * fb[k] > 0 for k in brackets):
+        return None
+    roots: dict[int, float] = {}
+    c = dict(b)
+    active = set(brackets)
+    for _ in range(12):
+        if not active:
+            break
+        c.update({k: b[k] - fb[k] * (b[k] - a[k]) / (fb[k] - fa[k]) for k in active})
+        fc = excess({k: c[k] for k in active})
+        if fc is None:
+            return None
+        for k in sorted(active):
+            if abs(fc[k]) < 1e-6 or abs(c[k] - b[k]) < 1e-4:
+                roots[k] = c[k]
+                active.discard(k)
+            elif fa[k] * fc[k] < 0:
+                b[k], fb[k] = c[k], fc[k]
+            else:
+                a[k], fa[k] = c[k], fc[k]
+    roots.update({k: c[k] for k in active})
+    return roots
+
+
+def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, crossed, log_derivatives) -> NodeAnswers | None:
+    """The binding limit and the uncertainty of every node's magnitude answer (``quantity.answer_magnitude``)."""
+    count = len(saturation)
+    binds = [m is None or m < m_sat for m, m_sat in zip(m_nl, saturation, strict=True)]
+    at_root = [nodes.faintest if bound else m for m, bound in zip(m_nl, binds, strict=True)]
+    slopes, errors = nodes.at(at_root)
+    if crossed:
+        plus, plus_errors = nodes.at([m + _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)])
+        minus_points = [m - _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
+        if not nodes.held(minus_points) or max(minus_points) > nodes.faintest:
+            return None
+        minus = nodes.held_values(minus_points)
+        if minus is None:
+            return None
+        for k in crossed:
+            if binds[k]:
+                continue
+            read = (plus[k], plus_errors[k], minus[k])
+            if not all(math.isfinite(v) for v in read) or plus[k] == 0 or minus[k] == 0:
+                return None
+            log_derivatives[k] = (math.log(abs(plus[k])) - math.log(abs(minus[k]))) / (2 * _H)
+    effects = _effects(model, nodes, at_root)
+    if effects is None:
+        return None
+    derivative = np.array([abs(log_derivatives.get(k) or 0.0) for k in range(count)])
+    answered = np.array([not binds[k] and bool(log_derivatives.get(k)) for k in range(count)])
+    slopes, errors = np.array(slopes), np.array(errors)
+    if not (np.isfinite(slopes[answered]).all() and np.isfinite(errors[answered]).all()):
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        statistical = np.where(answered, (errors / np.abs(slopes)) / derivative, 0.0)
+        fidelity = None if systematic is None else np.where(answered, systematic / derivative, 0.0)
+        totals = _totals(statistical, fidelity, np.where(answered, effects / derivative, 0.0))
+    values = [saturation[k] if binds[k] else m_nl[k] for k in range(count)]
+    return NodeAnswers("magnitude", values, totals)

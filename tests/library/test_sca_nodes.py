@@ -1,0 +1,79 @@
+"""The Roman default without a position, every node answered at once (``nlpsf.solve.sca_nodes``),
+is the answer node by node: the same most demanding node and answer, every node's value to the
+last bit and its uncertainty to 1e-12 (the field interpolation's term is read once for all nodes)."""
+
+from __future__ import annotations
+
+import json
+import random
+
+import pytest
+
+from nlpsf import InputError, SolveRequest
+from nlpsf.slopes import fieldgrid
+from nlpsf.solve import over_field, solver
+
+from .test_stored_answers import differences
+
+pytestmark = pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="the Roman default's field grid is not installed")
+BANDS = ("R062", "Z087", "Y106", "J129", "H158", "F184", "W146", "K213")
+
+
+def requests(count: int, seed: int = 11) -> list[SolveRequest]:
+    draw, out = random.Random(seed), []
+    while len(out) < count:
+        body = {"band": draw.choice(BANDS), "sca": draw.randint(1, 18), "metric": draw.choice(("size", "e1", "e2", "e"))}
+        body["mode"] = draw.choice(("bias", "scatter"))
+        solved = draw.choice(("precision", "tolerance", "magnitude"))
+        if solved != "precision":
+            body["precision"] = 10 ** draw.uniform(-3.0, -1.0)
+        if solved != "tolerance":
+            body["tolerance"] = 10 ** draw.uniform(-5.0, -2.5)
+        if solved != "magnitude":
+            body["magnitude"] = round(draw.uniform(15.0, 26.0), 3)
+        try:
+            out.append(SolveRequest.from_json(body))
+        except InputError:
+            continue
+    return out
+
+
+def as_json(solution) -> dict:
+    out = solution.to_dict()
+    out.pop("elapsed_s")
+    return json.loads(json.dumps(out))
+
+
+def test_every_node_at_once_is_the_answer_node_by_node():
+    at_once = 0
+    for request in requests(36):
+        alone = as_json(over_field.sca_range(solver.answer, request, nodes=None))
+        found = solver._node_answers(request, over_field.range_positions(request))
+        together = as_json(over_field.sca_range(solver.answer, request, nodes=solver._node_answers))
+        at_once += found is not None
+        assert differences(alone, together, 1e-12) == [], request
+        if found is not None:
+            nodes = alone["conditions"]["sca_range"]["nodes"]
+            assert [n[request.solved_for] for n in nodes] == [
+                n[request.solved_for] for n in together["conditions"]["sca_range"]["nodes"]
+            ]
+    assert at_once >= 30  # the common case is the one answered at once
+
+
+def test_every_nodes_uncertainty_at_once_is_its_own_answers():
+    # The uncertainty of each node read at once (its model parts combined in arrays) against the
+    # node's own answer (the scalar rule, roman_uncertainty.combine): a part dropped or combined by
+    # another rule shows here.
+    checked = 0
+    for request in requests(12, seed=5):
+        positions = over_field.range_positions(request)
+        found = solver._node_answers(request, positions)
+        if found is None:
+            continue
+        for position, value, uncertainty in zip(positions, found.values, found.uncertainties, strict=True):
+            own = solver.answer(request.at_position(position))
+            assert value == pytest.approx(getattr(own, request.solved_for), rel=1e-12, abs=0.0), (request, position)
+            if uncertainty is not None and own.uncertainty is not None:
+                assert uncertainty == pytest.approx(own.uncertainty, rel=1e-12), (request, position)
+                checked += 1
+    assert checked >= 50
