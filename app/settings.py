@@ -104,11 +104,11 @@ class Settings(BaseSettings):
 
     # --- inline answers (the tables, the field grid, the page's curves), budgeted per client ----------
     #: CPU a client's inline answers may use, sustained, in CPU-seconds per second of each HTTP worker
-    inline_cpu_share: float = Field(0.25, gt=0.0, le=1.0)
+    inline_cpu_share: float = Field(0.1, gt=0.0, le=1.0)
     #: CPU-seconds a client may spend at once (its bucket's size); also the most one request (a batch) may cost
     inline_cpu_burst_s: float = Field(2.0, ge=0.01, le=3600.0)
     #: CPU all clients' inline answers may use together, in CPU-seconds per second of each HTTP worker
-    inline_cpu_total_share: float = Field(0.75, gt=0.0, le=1.0)
+    inline_cpu_total_share: float = Field(0.5, gt=0.0, le=1.0)
     #: answers kept for repeated requests (pure functions of the request), MB per HTTP worker
     inline_cache_mb: int = Field(32, ge=0, le=64 * 1024)
     #: the large fixed documents (/tables, .csv, .ecsv with their gzip), MB per HTTP worker

@@ -214,6 +214,7 @@ def main() -> int:
     victim = threading.Thread(target=_victim, args=(port, stop, samples), daemon=True)
     windows: list[tuple[str, float, float, dict, list[float]]] = []
     cpu_before = _cpu_s([server.pid, *http_workers(server.pid)])
+    rss_at_start = _rss_mb(http_workers(server.pid))
     try:
         victim.start()
 
@@ -282,6 +283,7 @@ def main() -> int:
     attack_fives = sum(int(v) for _, _, _, statuses, _ in windows for k, v in statuses.items() if k.startswith("5"))
     print()
     print(f"victim p99 over all baselines: {base_p99:.1f} ms ({len(base)} requests)")
+    print(f"HTTP workers' RSS at start: {'/'.join(f'{m:.0f}' for m in rss_at_start)} MB (after each phase: the table)")
     print(f"5xx: victim {fives}, attackers {attack_fives}; workers killed (silent): {kills}, restarted: {restarts}")
     print(f"server CPU over the run (supervisor and HTTP workers): {cpu_after - cpu_before:.1f} s")
     for name, ok in verdicts:
