@@ -74,6 +74,8 @@ class Dispatcher:
         # _tick runs in a thread that cancelling the task cannot stop: stopping waits for it.
         self._lock = threading.Lock()
         self._stopping = False
+        #: set by stop(): the loop ends at its next turn even if the cancellation below is lost
+        self._closing = False
         #: per running job: start (monotonic), wall-time limit, last CPU time, last progress write, last sign of work
         self.watch: dict[str, dict[str, float]] = {}
         self._last_watch = 0.0
@@ -94,6 +96,11 @@ class Dispatcher:
 
     async def stop(self) -> None:
         if self._task:
+            # Python 3.11's asyncio.wait_for loses a cancellation that arrives as the awaited wake-up
+            # completes (a job woke the loop as the service stopped; fixed in 3.12): the task then
+            # ran on and this await never returned (a shutdown that hung). The flag ends the loop anyway.
+            self._closing = True
+            self._wake.set()
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
@@ -119,7 +126,7 @@ class Dispatcher:
     async def _loop(self) -> None:
         last_heartbeat = last_sweep = time.monotonic()
         last_prune = 0.0
-        while True:
+        while not self._closing:
             try:
                 now = time.monotonic()
                 if not self.instance:
