@@ -214,16 +214,22 @@ def test_a_client_past_its_share_of_inline_cpu_gets_429_with_retry_after(client,
 
 def test_a_batch_is_budgeted_by_its_rows_cost_not_its_row_count(client, make_client):
     node = _node_cost(client)
-    with make_client(inline_cpu_burst_s=max(0.01, 9 * node * 50)) as tight:
+    # The burst: reading a thousand rows (each row's reading is work too, measured like a node's) and
+    # fifty rows' answers, far less than a thousand answers.
+    row = budget.COSTS.per_unit(budget.ROW)
+    burst = max(0.01, 1.5 * 1000 * row + 9 * node * 50)
+    assert 1000 * 9 * node > 5 * burst
+    with make_client(inline_cpu_burst_s=burst) as tight:
         # A thousand distinct default rows: every node of the SCA each, far more than one client's budget.
         refused = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1000)})
         assert refused.status_code == 422 and refused.json()["limit"] == "inline_cpu_burst_s"
         csv_text = "band,tolerance,magnitude\n" + "".join(f"H158,1e-4,{19 + 0.0001 * k:.4f}\n" for k in range(1000))
         csv_refused = tight.post("/api/v1/page/batch", content=csv_text, headers={"Content-Type": "text/csv"})
         assert csv_refused.status_code == 422 and csv_refused.json()["limit"] == "inline_cpu_burst_s"
-    with make_client(inline_cpu_burst_s=max(0.01, 9 * node * 50)) as tight:
-        # As many rows, all the same: one answer's cost.
-        assert tight.post("/api/v1/solve/batch", json={"requests": _defaults(1) * 1000}).status_code == 200
+    with make_client(inline_cpu_burst_s=burst) as tight:
+        # As many rows, all the same: their reading and one answer's cost.
+        same = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1) * 1000})
+        assert same.status_code == 200, same.text[:300]
 
 
 def test_a_costly_page_answer_is_budgeted_and_a_repeated_one_kept(make_client):
