@@ -118,10 +118,10 @@ class PixelCoefficients(BaseModel):
         max_length=residuals.MAX_COEFFICIENTS,
         description="the calibration it is compared with (the truth), the same pixels, [n][rows][cols]",
     )
-    first_row: models._Int((1, roman.SCA_PIXELS)) = Field(
+    first_row: models.BoundedInt((1, roman.SCA_PIXELS)) = Field(
         description=f"science pixel row (1-{roman.SCA_PIXELS}) of the coefficients' [.][0][.]"
     )
-    first_column: models._Int((1, roman.SCA_PIXELS)) = Field(
+    first_column: models.BoundedInt((1, roman.SCA_PIXELS)) = Field(
         description=f"science pixel column (1-{roman.SCA_PIXELS}) of the coefficients' [.][.][0]"
     )
     gain: float | None = Field(

@@ -41,6 +41,10 @@ def _Int(bounds: tuple[int, int]) -> Any:
     return Annotated[int, Field(ge=bounds[0], le=bounds[1]), BeforeValidator(_whole)]
 
 
+#: The integer field type for the other request models (calibration_models) too.
+BoundedInt = _Int
+
+
 def _whole(value: Any) -> Any:
     # JSON Schema calls 1.0 an integer (a number with a zero fractional part); so does this API.
     # Strings stay refused (strict models), and so do 1.5 and floats too large to be exact.
