@@ -295,3 +295,12 @@ def test_a_keyed_service_keys_its_schema_and_docs(make_client):
             assert client.get(path, headers={"X-API-Key": key}).status_code == 200, path
         assert client.get("/").status_code == 200  # the page itself
         assert client.get("/api/v1/health").status_code == 200  # probes
+
+
+def test_a_band_asked_many_times_is_one_curve(client):
+    # 1,000 repeats of one band were 1,000 curves (3 MB); now as many curves as distinct bands.
+    once = client.get("/api/v1/curves/slope", params={"bands": "H158"})
+    repeated = client.get("/api/v1/curves/slope", params=[("bands", "H158")] * 1000 + [("bands", "J129")])
+    assert once.status_code == repeated.status_code == 200
+    assert [c["band"] for c in repeated.json()["curves"]] == ["H158", "J129"]
+    assert repeated.json()["curves"][0] == once.json()["curves"][0]
