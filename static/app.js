@@ -1524,6 +1524,7 @@ function showAnswer(s) {
     ${s.binding_limit ? `<div class="binding" data-testid="binding-limit">${escapeHtml(bindingText(s))}</div>` : ""}
     ${uncertaintyParts.length && !noConstraint ? `<div class="muted">uncertainty parts (1σ): ${uncertaintyParts.map(([k, v]) =>
       `${k} ${fmt(v * scale, 2)}${unit}`).join(" · ")}</div>` : ""}
+    ${boundLines(s, noConstraint)}
     <div data-testid="slope-line">${escapeHtml(slopeText(s, methodRelativeOf(s)))}</div>
     <div data-testid="saturation-line">${escapeHtml(saturationText(s))}</div>
     ${s.shear ? `<div data-testid="shear">${escapeHtml(shearText(s.shear))}</div>` : ""}
@@ -1540,6 +1541,33 @@ function showAnswer(s) {
   state.lastSolution = s;
   const paperButton = document.getElementById("use-paper-scene");
   if (paperButton) paperButton.addEventListener("click", usePaperScene);
+}
+
+// The solved quantity as the library gives it, in the headline's unit (no arithmetic here).
+function solvedValueText(solved, v) {
+  if (v === null || v === undefined || !Number.isFinite(v)) return "n/a";
+  if (solved === "precision") return v >= 1 ? "no constraint" : `${fmt(v * 100, 3)} %`;
+  if (solved === "magnitude") return `m = ${v.toFixed(2)}`;
+  return `T = ${fmt(v, 3)}`;
+}
+
+// The answer's conservative bound and its ranges (what varies from star to star), as the library states them.
+function boundLines(s, noConstraint) {
+  const lines = [];
+  const bound = s.conservative;
+  if (bound && !noConstraint && bound[bound.solved_for] !== undefined) {
+    lines.push(`<div class="muted" data-testid="conservative-line">conservative: ${escapeHtml(solvedValueText(bound.solved_for, bound[bound.solved_for]))} ` +
+      `(slope bound |c| (1 + ${fmt(bound.relative_slope_bound, 2)}); ${escapeHtml(bound.coverage)})</div>`);
+  }
+  for (const [name, range] of Object.entries(s.ranges || {})) {
+    const values = range[s.solved_for];
+    if (!Array.isArray(values)) continue;
+    const ends = (range.ends || []).map((e) => String(e).replace("blackbody:", "blackbody "));
+    const label = name === "sed" ? "star colour (SED)" : name.replace(/_/g, " ");
+    const at = values.map((v, k) => `${escapeHtml(solvedValueText(s.solved_for, v))}${ends[k] ? ` at ${escapeHtml(ends[k])}` : ""}`);
+    lines.push(`<div class="muted" data-testid="range-line">${escapeHtml(label)}: ${at.join(" … ")} (${escapeHtml(range.why || "a range, not an uncertainty")})</div>`);
+  }
+  return lines.join("\n    ");
 }
 
 function bindingText(s) {

@@ -80,3 +80,20 @@ def test_the_scene_choice_is_sent_shown_and_shared(page, server):
     )
     page.fill("#solve-exptime", "")
     page.select_option("#solve-scene", "")
+
+
+def test_the_answer_shows_its_conservative_bound_and_the_star_colour_range(page):
+    # The library's conservative bound and SED range for the same request, shown in the headline's unit.
+    _, answer = solve_sent(page)
+    truth = solver.solve("H158", tolerance=1e-4, magnitude=18.3).to_dict()
+    bound = truth["conservative"]
+    assert answer["conservative"]["precision"] == pytest.approx(bound["precision"], rel=1e-9)
+    line = page.inner_text("[data-testid=conservative-line]")
+    assert f"{bound['precision'] * 100:.3g} %" in line and "95 %" in line
+    assert bound["precision"] < truth["precision"]  # a larger slope bound asks for a finer precision
+    ranges = page.locator("[data-testid=range-line]").all_inner_texts()
+    sed = next(text for text in ranges if text.startswith("star colour"))
+    for end, value in zip(truth["ranges"]["sed"]["ends"], truth["ranges"]["sed"]["precision"], strict=True):
+        assert f"{value * 100:.3g} % at {end.replace('blackbody:', 'blackbody ')}" in sed
+    assert "not an uncertainty" in sed
+    page.locator("#solve-result").screenshot(path=str(ARTIFACTS / "e2e-default-bound-and-ranges.png"))
