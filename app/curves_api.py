@@ -34,7 +34,7 @@ def slope_curves(
     full_well: FullWell = defaults.FULL_WELL_E,
     bands: Annotated[list[models.Band] | None, Query(description="bands to include (no unit; default: all with tables)")] = None,
 ) -> SafeJSONResponse:
-    chosen = bands or tables.load_tables().bands
+    chosen = list(dict.fromkeys(bands)) if bands else tables.load_tables().bands  # a band asked twice is one curve
     curves = [tables.curve(b, sca, metric, mode, exptime=exptime, beta0=beta0, full_well=full_well) for b in chosen]
     for curve in curves:
         # The table level's measured error beside the statistical one (the calculator quotes both).

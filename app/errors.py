@@ -14,11 +14,13 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
 
+from .headers import SECURITY_HEADERS
 from .store import StoreUnavailable
 
 #: Longest piece of a client's input an error message repeats: enough to recognise it, never the
@@ -62,6 +64,8 @@ PROBLEM_TYPES = {
     # Valid, but its answer needs a fresh simulation, which a batch does not run: POST /solve does (a job).
     "needs_simulation": "/problems/needs-simulation",
     429: "/problems/queue-full",
+    # A client's (or all clients') share of the HTTP workers' inline CPU is used: retry after Retry-After.
+    "throttled": "/problems/inline-cpu-used",
     500: "/problems/internal-error",
     503: "/problems/unavailable",
 }
@@ -93,8 +97,56 @@ def problem_body(
     }
 
 
+class Throttled(Exception):
+    """A client (or all clients together) has used its share of inline CPU (``budget``): a 429 with
+    Retry-After, the time its share takes to cover the request."""
+
+    def __init__(self, message: str, limit: str, retry_after_s: float):
+        super().__init__(message)
+        self.message = message
+        self.limit = limit
+        self.retry_after_s = retry_after_s
+
+    #: Pause before a 429 is sent (s): the client's wait, at least MIN_PAUSE_S, at most MAX_PAUSE_S.
+    MIN_PAUSE_S = 0.5
+    MAX_PAUSE_S = 1.0
+
+    def retry_after(self) -> str:
+        import math
+
+        return str(max(1, math.ceil(self.retry_after_s)))
+
+    def pause_s(self) -> float:
+        """How long the refusal waits before it is sent: the client's wait, from half a second to one."""
+        return min(max(self.retry_after_s, self.MIN_PAUSE_S), self.MAX_PAUSE_S)
+
+    def body(self) -> dict:
+        return problem_body(429, self.message, None, self.limit, kind=PROBLEM_TYPES["throttled"])
+
+
 class ProblemResponse(SafeJSONResponse):
     media_type = PROBLEM_MEDIA_TYPE
+
+
+async def send_problem(
+    send, status: int, message: str, limit: str | None = None, headers: list | None = None, body: dict | None = None
+) -> None:
+    """A problem answer written straight to an ASGI ``send``: for the middleware that refuses a
+    request before the application sees it (no JSON parsing, no thread). ``body``: the problem
+    object, if not the one ``status``, ``message`` and ``limit`` make."""
+    body = json.dumps(body or problem_body(status, message, None, limit)).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", PROBLEM_MEDIA_TYPE.encode()),
+                (b"content-length", str(len(body)).encode()),
+                *(headers or []),
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
 
 
 def problem(status: int, message: str, field: str | None = None, limit: str | None = None, detail=None, headers=None):
@@ -181,13 +233,20 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
     return problem(exc.status_code, message, headers=getattr(exc, "headers", None))
 
 
-async def _server_error(request: Request, exc: Exception) -> JSONResponse:
-    from .security import SECURITY_HEADERS
+#: What a 500 says: never the exception's class or text, which name the server's code (the log has them).
+INTERNAL_ERROR = "internal error; please report it with the request that caused it"
 
+
+async def _server_error(request: Request, exc: Exception) -> JSONResponse:
     # This handler answers outside the middleware stack: add its headers here.
     headers = {name.decode(): value.decode() for name, value in SECURITY_HEADERS}
-    message = f"internal error ({type(exc).__name__}); please report it with the request that caused it"
-    return problem(500, message, headers=headers)
+    return problem(500, INTERNAL_ERROR, headers=headers)
+
+
+async def _model_error(request: Request, exc: ValidationError) -> JSONResponse:
+    """A request model a route builds from what it read (a CSV's rows as a batch): its schema's
+    refusal is the client's, a 422 naming the field, as FastAPI's own validation gives."""
+    return ProblemResponse(validation_problem_body(exc.errors(), ("body",)), status_code=422)
 
 
 def store_unavailable_response(error: StoreUnavailable) -> JSONResponse:
@@ -199,9 +258,18 @@ async def _store_unavailable(request: Request, exc: StoreUnavailable) -> JSONRes
     return store_unavailable_response(exc)
 
 
+async def _throttled(request: Request, exc: Throttled) -> JSONResponse:
+    import asyncio
+
+    await asyncio.sleep(exc.pause_s())  # see budget.refuse
+    return ProblemResponse(exc.body(), status_code=429, headers={"Retry-After": exc.retry_after()})
+
+
 def install(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
+    app.add_exception_handler(ValidationError, _model_error)  # type: ignore[arg-type]
     app.add_exception_handler(InputError, _input_error)  # type: ignore[arg-type]
     app.add_exception_handler(StoreUnavailable, _store_unavailable)  # type: ignore[arg-type]
+    app.add_exception_handler(Throttled, _throttled)  # type: ignore[arg-type]
     app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
     app.add_exception_handler(Exception, _server_error)

@@ -17,6 +17,7 @@ import multiprocessing
 import os
 import threading
 import time
+from collections.abc import Iterator
 from multiprocessing.process import BaseProcess
 
 from .settings import Settings
@@ -41,6 +42,27 @@ _context = multiprocessing.get_context("forkserver")
 _context.set_forkserver_preload([_WORKER_MODULE])
 
 
+@contextlib.contextmanager
+def safe_path() -> Iterator[None]:
+    """Processes started inside do not put the working directory on ``sys.path`` (PYTHONSAFEPATH).
+
+    The forkserver is a fresh interpreter started with ``python -c``, which puts the working
+    directory first on its path, and Python before 3.13 ignores the parent's path it is handed:
+    started from a clone's root, ``import nlpsf`` there would find the source folder ``./nlpsf``
+    instead of the installed package (which holds ``nlpsf.web``, and is what the service runs), and
+    every job would fail. Set while a process is started, so the forkserver (started with the first
+    job, and again if it dies) never looks there."""
+    before = os.environ.get("PYTHONSAFEPATH")
+    os.environ["PYTHONSAFEPATH"] = "1"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PYTHONSAFEPATH", None)
+        else:
+            os.environ["PYTHONSAFEPATH"] = before
+
+
 class Dispatcher:
     def __init__(self, store: Store, settings: Settings):
         self.store = store
@@ -52,6 +74,8 @@ class Dispatcher:
         # _tick runs in a thread that cancelling the task cannot stop: stopping waits for it.
         self._lock = threading.Lock()
         self._stopping = False
+        #: set by stop(): the loop ends at its next turn even if the cancellation below is lost
+        self._closing = False
         #: per running job: start (monotonic), wall-time limit, last CPU time, last progress write, last sign of work
         self.watch: dict[str, dict[str, float]] = {}
         self._last_watch = 0.0
@@ -72,6 +96,11 @@ class Dispatcher:
 
     async def stop(self) -> None:
         if self._task:
+            # Python 3.11's asyncio.wait_for loses a cancellation that arrives as the awaited wake-up
+            # completes (a job woke the loop as the service stopped; fixed in 3.12): the task then
+            # ran on and this await never returned (a shutdown that hung). The flag ends the loop anyway.
+            self._closing = True
+            self._wake.set()
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
@@ -97,7 +126,7 @@ class Dispatcher:
     async def _loop(self) -> None:
         last_heartbeat = last_sweep = time.monotonic()
         last_prune = 0.0
-        while True:
+        while not self._closing:
             try:
                 now = time.monotonic()
                 if not self.instance:
@@ -182,7 +211,8 @@ class Dispatcher:
                 name=f"nlpsf-job-{job['id'][:8]}",
                 daemon=True,
             )
-            process.start()
+            with safe_path():
+                process.start()
             self.processes[job["id"]] = process
             now = time.monotonic()
             self.watch[job["id"]] = {

@@ -10,7 +10,9 @@ answers 503 until it is back.
 
 from __future__ import annotations
 
+import gc
 import logging
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib import resources
@@ -27,13 +29,16 @@ from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import providers, tables
 from nlpsf.solve import batch
 
-from . import api, errors, models, page_api, simulations
+from . import api, budget, documents, errors, models, page_api, simulations
 from .jobs import Dispatcher, Notifier
-from .security import ApiKey, ApiMethods, BodyLimit, SecurityHeaders
+from .security import ApiKey, ApiMethods, BodyLimit, JsonBodies, SecurityHeaders
 from .settings import Settings
 from .store import Store
 
 log = logging.getLogger("nlpsf.web")
+
+#: How often a thread holding the interpreter lock is asked to let another run (Python's default: 5 ms).
+SWITCH_INTERVAL_S = 0.001
 
 
 def static_dir(settings: Settings) -> Path:
@@ -52,6 +57,27 @@ def _answer_one_default_solve() -> None:
         log.exception("the warm-up default solve failed; default answers will fail the same way")
 
 
+#: Routes whose answer is a pure function of the request (its query, and its body for a POST) and
+#: the settings, costly enough to budget (milliseconds to half a second): kept per request and
+#: admitted against the client's share when not kept (``documents.CachedAnswers``); path -> method.
+CACHED_ROUTES = {
+    **{f"/api/v1/{path}": "GET" for path in ("meta", "fits", "paper", "curves/slope", "curves/beta", "curves/sigma_beta")},
+    **{f"/api/v1/page/{path}": "GET" for path in ("presets", "tables.csv")},
+    **{f"/api/v1/page/{path}": "POST" for path in ("limits", "requirement", "slopes")},
+}
+
+
+#: The request model of each route that takes a JSON body: a large body is validated against it off
+#: the event loop (``security.JsonBodies``) before FastAPI validates it again, cheaply, on the loop.
+REQUEST_SCHEMAS = {
+    "/api/v1/solve": models.SolveRequest,
+    "/api/v1/solve/batch": models.BatchSolveRequest,
+    "/api/v1/simulations": models.SimulationRequest,
+    "/api/v1/impact": models.ImpactRequest,
+    **{f"/api/v1/page/{path}": models.SolveRequest for path in ("limits", "requirement", "slopes")},
+}
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
 
@@ -66,6 +92,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # One default answer (the Roman default at its field grid's nodes, its readout, sky and model
         # parts): what a first /solve would otherwise load lazily (~1.3 s, against ~40 ms after).
         _answer_one_default_solve()
+        # What is loaded now lives as long as the process: out of the cyclic collector's sight, so a
+        # full collection (0.2-0.5 s over the ~180,000 objects loaded, holding the GIL: every request
+        # of this worker waits) never runs over it again.
+        gc.collect()
+        gc.freeze()
+        # The event loop waits at most this long for the interpreter lock a worker thread holds (a
+        # default solve, a large body's parsing) before it may answer another request: 1 ms, not 5.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         store = Store(settings.db_path)
         if store.state != "ok":
             log.error("starting without simulations: %s; the calculator runs, /health says why", store.reason)
@@ -94,6 +128,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         redoc_url=None,
     )
     app.state.settings = settings
+    share, burst, total = settings.inline_cpu_share, settings.inline_cpu_burst_s, settings.inline_cpu_total_share
+    app.state.budget = budget.InlineBudget(share, burst, total, settings.inline_cache_mb * 1024**2)
+    app.state.documents = documents.Documents(settings.documents_cache_mb * 1024**2)
     errors.install(app)
     app.include_router(api.router)
     app.include_router(simulations.router)
@@ -107,13 +144,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if directory.is_dir():
         app.mount("/", StaticFiles(directory=directory, html=True), name="page")
     _problem_schema(app)
-    # The 6.5 MB tables (and the page's scripts) compressed for clients that accept gzip.
+    # Synchronous endpoints' cost measured where it is spent (their thread); pure answers kept by request.
+    budget.install_metering()
+    # Middleware, innermost first (each add_middleware wraps the ones before it): JSON bodies checked
+    # (off the loop when large); the page's pure answers kept; answers compressed for clients that
+    # accept gzip (the tables come compressed); the API's methods; the body's limits; each request
+    # metered and charged to its client (outside the body's reading, so a client in debt is refused
+    # before its body is read); the key; the Host check; the security headers on every response.
+    app.add_middleware(JsonBodies, schemas=REQUEST_SCHEMAS)
+    app.add_middleware(documents.CachedAnswers, budget=app.state.budget, documents=app.state.documents, routes=CACHED_ROUTES)
     app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=6)
-    # Outermost last: every response, refusals included, gets the security headers.
-    if settings.api_keys:
-        app.add_middleware(ApiKey, keys=[k.get_secret_value() for k in settings.api_keys])
     app.add_middleware(ApiMethods)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
+    app.add_middleware(budget.ClientMeter, budget=app.state.budget)
+    if settings.api_keys:
+        app.add_middleware(ApiKey, keys=[k.get_secret_value() for k in settings.api_keys])
     if settings.allowed_hosts != ["*"]:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts)
     app.add_middleware(SecurityHeaders)

@@ -34,7 +34,10 @@ JOB_ANSWER_RESPONSES: dict[int | str, dict[str, Any]] = {
     **ERRORS,
     202: {"model": models.Job, "description": "the answer needs a simulation that is still running: poll the Location"},
     413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
-    429: {"model": models.Problem, "description": "the simulation queue is full; retry later (Retry-After)"},
+    429: {
+        "model": models.Problem,
+        "description": "the simulation queue, or your share of the inline CPU, is full; retry later (Retry-After)",
+    },
     500: {
         "model": models.Problem,
         "description": "the simulation the answer needed failed (the message says why; Location names the job)",

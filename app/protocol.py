@@ -16,7 +16,8 @@ import json
 from uvicorn.protocols.http import httptools_impl
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from .security import SECURITY_HEADERS
+from .errors import PROBLEM_MEDIA_TYPE, problem_body, send_problem
+from .headers import SECURITY_HEADERS
 
 #: Default deadline for a request's headers, s (the setting header_timeout_s).
 HEADER_TIMEOUT_S = 10.0
@@ -25,8 +26,6 @@ HEADER_TIMEOUT_S = 10.0
 def raw_problem(status: int, phrase: str, message: str) -> bytes:
     """A complete HTTP/1.1 problem response with the security headers, for answers written to the
     socket before (or without) the application."""
-    from .errors import PROBLEM_MEDIA_TYPE, problem_body
-
     body = json.dumps(problem_body(status, message)).encode()
     lines = [
         f"HTTP/1.1 {status} {phrase}".encode(),
@@ -41,11 +40,9 @@ def raw_problem(status: int, phrase: str, message: str) -> bytes:
 async def _too_many_connections(scope, receive, send) -> None:
     """uvicorn's answer past limit_concurrency (max_connections), as the service's problem JSON with
     its headers; uvicorn's own is plain text without them."""
-    from .security import _problem
-
     message = "this worker has as many open connections as it takes (the setting max_connections); retry shortly"
     headers = [(b"retry-after", b"1"), (b"connection", b"close"), *SECURITY_HEADERS]
-    await _problem(send, 503, message, "max_connections", headers)
+    await send_problem(send, 503, message, "max_connections", headers)
 
 
 # uvicorn calls this module-level name for every request over its limit; there is no option for it.

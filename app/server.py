@@ -43,6 +43,9 @@ class ServeOptions:
     max_connections: int = 1000
     #: one listening socket for all workers (True), or one per worker with SO_REUSEPORT (False)
     shared_socket: bool = True
+    #: trusted reverse proxies (the setting forwarded_allow_ips): only their X-Forwarded-For is read;
+    #: empty, none is (uvicorn's own default would trust 127.0.0.1)
+    forwarded_allow_ips: tuple[str, ...] = ()
 
 
 def serve(host: str, port: int, workers: int, options: ServeOptions | None = None) -> int:
@@ -68,6 +71,11 @@ def _uvicorn_options(options: ServeOptions) -> dict:
         # Open connections (and requests in progress) per worker; beyond it uvicorn answers 503.
         "limit_concurrency": options.max_connections,
         "http": GuardedHttpTools,
+        # The client is the socket's peer unless that peer is a proxy the operator named: uvicorn's
+        # defaults would read X-Forwarded-For from 127.0.0.1, so any local client could claim to be
+        # another and take a fresh share of the queue and of the inline CPU.
+        "proxy_headers": bool(options.forwarded_allow_ips),
+        "forwarded_allow_ips": list(options.forwarded_allow_ips) or None,
     }
 
 

@@ -97,6 +97,22 @@ class Settings(BaseSettings):
     shared_socket: bool = True
     #: the page's files; None: the installed package data ``nlpsf.web.static``
     static_dir: str | None = None
+    #: addresses of trusted reverse proxies (comma-separated; "*" trusts any peer): uvicorn takes a
+    #: request's client address from their X-Forwarded-For (and the scheme from X-Forwarded-Proto).
+    #: Empty (the default): the socket's peer is the client, whatever headers it sends
+    forwarded_allow_ips: Annotated[list[str], NoDecode] = Field(default_factory=list)
+
+    # --- inline answers (the tables, the field grid, the page's curves), budgeted per client ----------
+    #: CPU a client's inline answers may use, sustained, in CPU-seconds per second of each HTTP worker
+    inline_cpu_share: float = Field(0.1, gt=0.0, le=1.0)
+    #: CPU-seconds a client may spend at once (its bucket's size); also the most one request (a batch) may cost
+    inline_cpu_burst_s: float = Field(2.0, ge=0.01, le=3600.0)
+    #: CPU all clients' inline answers may use together, in CPU-seconds per second of each HTTP worker
+    inline_cpu_total_share: float = Field(0.5, gt=0.0, le=1.0)
+    #: answers kept for repeated requests (pure functions of the request), MB per HTTP worker
+    inline_cache_mb: int = Field(32, ge=0, le=64 * 1024)
+    #: the large fixed documents (/tables, .csv, .ecsv with their gzip), MB per HTTP worker
+    documents_cache_mb: int = Field(64, ge=8, le=64 * 1024)
 
     # --- simulation jobs ----------------------------------------------------------------------
     db_path: str = Field(default_factory=_default_db_path)
@@ -157,6 +173,19 @@ class Settings(BaseSettings):
         if isinstance(value, str):
             return [h.strip() for h in value.split(",") if h.strip()] or ["*"]
         return value
+
+    @field_validator("forwarded_allow_ips", mode="before")
+    @classmethod
+    def _split_proxies(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return [a.strip() for a in value.split(",") if a.strip()]
+        return value
+
+    @model_validator(mode="after")
+    def _total_covers_one(self) -> Settings:
+        if self.inline_cpu_total_share < self.inline_cpu_share:
+            raise ValueError("inline_cpu_total_share must be at least inline_cpu_share")
+        return self
 
     @field_validator("api_keys", mode="before")
     @classmethod

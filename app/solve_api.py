@@ -1,8 +1,18 @@
 """The calculator: POST /solve (two of precision, tolerance, magnitude -> the third) and
-POST /solve/batch (many solves at table cost: the tables and the Roman default's field grid)."""
+POST /solve/batch (many solves at table cost: the tables and the Roman default's field grid).
+
+What they answer inline is budgeted per client (``budget``): each answer's cost is estimated in
+units before it runs -- a field-grid node read per position the answer looks at (the Roman default
+at a position: one; its SCA range without one: every node of the SCA), a table solve otherwise --
+reserved against the client's share (429 with Retry-After past it) and charged as measured. Answers
+from the field grid are kept by request (``budget.AnswerCache``), so a repeated one is a look-up.
+"""
 
 from __future__ import annotations
 
+import functools
+import json
+import logging
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Query
@@ -14,13 +24,52 @@ from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
 from nlpsf.solve import batch, over_field, solver
 
-from . import job_kinds, models
+from . import budget, job_kinds, models
 from .deps import CallerDep, ServicesDep
 from .errors import SafeJSONResponse
 from .params import ERRORS, JOB_ANSWER_RESPONSES
 from .simulations import job_answer
 
+log = logging.getLogger("nlpsf.web")
 router = APIRouter(prefix="/api/v1")
+
+#: Points of the field-point tables an over-field answer reads on each SCA (its centre and corners).
+OVER_FIELD_POINTS = 5
+
+
+def answer_key(fields: dict[str, Any], given: set[str]) -> str:
+    """A request's answer is a pure function of this (for the tables and the field grid: the shipped
+    data and the code are the process's own): its fields as the library reads them, canonically."""
+    return json.dumps(job_kinds.solve_body(fields, given), sort_keys=True, separators=(",", ":"), default=str)
+
+
+def units_of(request) -> tuple[str, float]:
+    """(kind, units) of inline work answering ``request`` costs: field-grid nodes for the Roman
+    default (every node of the SCA without a position), one table solve otherwise."""
+    from nlpsf.request import presets
+    from nlpsf.solve.over_field import range_positions
+
+    if request.preset == presets.NAME:
+        if request.scene is None or request.scene.position is None:
+            return budget.NODE, float(len(range_positions(request)))
+        return budget.NODE, 1.0
+    return budget.TABLE, 1.0
+
+
+def _answer_inline(request, kind: str, units: float) -> dict[str, Any]:
+    """``batch.answer_from_tables`` (raises ``NeedsSimulation``), metered, as the JSON it answers."""
+    with budget.metered(kind, units):
+        return json_safe(batch.answer_from_tables(request).to_dict())
+
+
+def _keep(key: str, answer: dict[str, Any]) -> None:
+    if (work := budget.active()) is not None:
+        work.budget.answers.put(("solve", key), answer, len(json.dumps(answer, default=str)))
+
+
+def _kept(key: str) -> dict[str, Any] | None:
+    work = budget.active()
+    return work.budget.answers.get(("solve", key)) if work is not None else None
 
 
 @router.post(
@@ -52,19 +101,31 @@ async def solve(
     tables_pupil = request.pupil_scale in (None, defaults.PUPIL_SCALE)
     plain = request.ramp is None and request.scene is None and body.over_field is None and tables_pupil
     if plain and request.fidelity in (None, "table") and request.accuracy is None:
-        return SafeJSONResponse(solver.answer(request).to_dict())
+        # Microseconds: charged, never refused (a client past its share keeps its table solves).
+        with budget.metered(budget.TABLE, 1.0):
+            return SafeJSONResponse(solver.answer(request).to_dict())
     if body.over_field is None:
         # Whatever the tables or the Roman default's field grid answer is answered here, whatever the
         # scene: the cost of the answer decides, not its name. The batch's own check and answer
         # (``batch.answer_from_tables``: the plan read first, a simulation refused before it starts),
         # on the event loop like a table solve (a range over the SCA reads its nodes at once: about a
-        # millisecond; a thread hop cost the service half its default throughput), not a job.
+        # millisecond; a thread hop cost the service half its default throughput), one at a time per
+        # worker (the turn), not a job; kept by request, and budgeted against the client's share of
+        # the inline CPU.
+        key = answer_key(raw, body.model_fields_set)
+        if (kept := _kept(key)) is not None:
+            return SafeJSONResponse(kept)
+        kind, units = units_of(request)
+        budget.admit(kind, units)
         try:
-            answer = batch.answer_from_tables(request)
+            async with budget.turn():
+                if (kept := _kept(key)) is None:  # answered while this request waited its turn?
+                    kept = _answer_inline(request, kind, units)
+                    _keep(key, kept)
         except batch.NeedsSimulation:
             pass  # it needs a fresh simulation: a job, below
         else:
-            return SafeJSONResponse(answer.to_dict())
+            return SafeJSONResponse(kept)
     over_field_tables = over_field.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
     if tables_pupil and body.over_field is not None and over_field_tables:
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
@@ -72,8 +133,15 @@ async def solve(
         rest = job_kinds.request_arguments(request)
         band, sca = rest.pop("band"), rest.pop("sca")
         scas = "all" if body.over_field == "focal_plane" else [sca]
-        answer = await run_in_threadpool(solver.solve_over_field, band, scas, filled_for=sca, **rest)
-        return SafeJSONResponse(answer.to_dict())
+        units = float(OVER_FIELD_POINTS * (18 if scas == "all" else 1))
+        budget.admit(budget.TABLE, units)
+
+        def worst() -> dict[str, Any]:
+            with budget.metered(budget.TABLE, units):
+                return solver.solve_over_field(band, scas, filled_for=sca, **rest).to_dict()
+
+        async with budget.turn():
+            return SafeJSONResponse(await run_in_threadpool(worst))
     # What remains -- a simulating level, an accuracy (its effects are measured by simulation even
     # when the table level meets it), a ramp, scene, exposure or rule neither the tables nor the
     # field grid hold, or an over-field answer the field-point tables do not hold -- is a job like
@@ -86,34 +154,102 @@ async def solve(
 @router.post(
     "/solve/batch",
     response_model=models.BatchSolveResponse,
-    responses={**ERRORS, 413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"}},
+    responses={
+        **ERRORS,
+        413: {"model": models.Problem, "description": "the request body is larger than max_body_bytes"},
+        429: {"model": models.Problem, "description": "your share of the inline CPU is used; retry after Retry-After"},
+    },
     summary="Many solves at table cost (the tables, the Roman default's field grid); each answered or refused on its own",
 )
 def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
-    results = [_solve_one(index, item) for index, item in enumerate(body.requests)]
+    """Every entry read first (a bad one refused in its own entry), the batch's cost estimated from
+    its entries' units (an entry already answered, or repeated in the batch, costs nothing) and
+    admitted as one against the client's share -- more than a client's whole budget is a 422 naming
+    ``inline_cpu_burst_s``, more than its balance a 429 -- then every entry answered."""
+    rows = body.requests
+    work = budget.active()
+    if work is not None:
+        # Estimated from the rows as sent, before any is read (reading 600 rows is itself 0.1 s): each
+        # distinct row's units, and every row's reading.
+        costs = work.budget.costs
+        distinct = {json.dumps(row, sort_keys=True, default=str): row for row in rows}
+        total = costs.estimate(budget.ROW, len(rows)) + sum(costs.estimate(*_sent_units(row)) for row in distinct.values())
+        work.budget.check_size(total, "requests", f"this batch of {len(rows):,} requests")
+        work.budget.admit(work.meter, total)
+    with budget.turn_in_thread():
+        with budget.metered(budget.ROW, len(rows)):
+            entries = [_read_one(index, item) for index, item in enumerate(rows)]
+        results = [_answer_one(entry) for entry in entries]
     answered = sum(1 for r in results if r["ok"])
     return SafeJSONResponse({"results": results, "answered": answered, "failed": len(results) - answered})
 
 
-def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
-    """One batch entry: the same typed request as POST /solve, answered by the library where the
-    tables or the Roman default's field grid hold it (``nlpsf.solve.batch.answer_from_tables``: the very
-    ``solver.answer`` a single solve runs), refused on its own otherwise."""
+def _sent_units(row: Any) -> tuple[str, float]:
+    """:func:`units_of` a batch row as sent, before it is read: the paper's scene (or another preset,
+    refused in its entry) a table solve; the Roman default one node at a position, every node of its
+    SCA without one."""
+    from nlpsf.request import presets
+
+    scene = row.get("scene") if isinstance(row, dict) else None
+    preset = scene if isinstance(scene, str) else scene.get("preset") if isinstance(scene, dict) else None
+    if preset not in (None, presets.NAME):
+        return budget.TABLE, 1.0
+    if isinstance(scene, dict) and scene.get("position") is not None:
+        return budget.NODE, 1.0
+    return budget.NODE, _range_nodes(str(row.get("band", "")).upper(), str(row.get("sca") or defaults.SCA))
+
+
+@functools.lru_cache(maxsize=1024)
+def _range_nodes(band: str, sca: str) -> float:
+    """How many nodes the SCA range of (band, SCA) reads (as sent: a bad one gets the 3 x 3 grid's)."""
+    from types import SimpleNamespace
+
+    from nlpsf.solve.over_field import RANGE_GRID, range_positions
+
+    try:
+        return float(len(range_positions(SimpleNamespace(band=band, sca=int(float(sca))))))
+    except (TypeError, ValueError, KeyError, OverflowError):
+        return float(RANGE_GRID**2)
+
+
+def _read_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
+    """One batch entry read into the same typed request as POST /solve (``request``, its answer's
+    ``key`` and its cost's ``units``), or its refusal as a finished result (``result``)."""
     from pydantic import ValidationError
 
+    from .errors import input_error_body, validation_problem_body
+
+    try:
+        model = models.SolveRequest.model_validate(item)
+    except ValidationError as invalid:
+        return {"result": {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}}
+    try:
+        if model.over_field is not None:
+            raise InputError("over_field", "a batch solves one position at a time: send over-field solves to POST /solve")
+        raw = model.model_dump()
+        request = job_kinds.solve_request(job_kinds.solve_body(raw, model.model_fields_set))
+        return {"index": index, "request": request, "key": answer_key(raw, model.model_fields_set), "units": units_of(request)}
+    except InputError as error:
+        return {"result": {"index": index, "ok": False, "error": input_error_body(error)}}
+
+
+def _answer_one(entry: dict[str, Any]) -> dict[str, Any]:
+    """One batch entry: answered by the library where the tables or the Roman default's field grid
+    hold it (``nlpsf.solve.batch.answer_from_tables``: the very ``solver.answer`` a single solve runs),
+    refused on its own otherwise."""
     from nlpsf.checks import SimulationError
 
-    from .errors import input_error_body, needs_simulation_body, problem_body, validation_problem_body
+    from .errors import INTERNAL_ERROR, input_error_body, needs_simulation_body, problem_body
 
+    if "result" in entry:
+        return entry["result"]
+    index = entry["index"]
     try:
-        request = models.SolveRequest.model_validate(item)
-    except ValidationError as invalid:
-        return {"index": index, "ok": False, "error": validation_problem_body(invalid.errors(), ("body",))}
-    try:
-        if request.over_field is not None:
-            raise InputError("over_field", "a batch solves one position at a time: send over-field solves to POST /solve")
-        solve = job_kinds.solve_request(job_kinds.solve_body(request.model_dump(), request.model_fields_set))
-        return {"index": index, "ok": True, "solution": json_safe(batch.answer_from_tables(solve).to_dict())}
+        if (kept := _kept(entry["key"])) is not None:
+            return {"index": index, "ok": True, "solution": kept}
+        answer = _answer_inline(entry["request"], *entry["units"])
+        _keep(entry["key"], answer)
+        return {"index": index, "ok": True, "solution": answer}
     except batch.NeedsSimulation as error:
         return {"index": index, "ok": False, "error": needs_simulation_body(error)}
     except InputError as error:
@@ -121,6 +257,6 @@ def _solve_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
     except SimulationError as error:
         # Not the request's fault (e.g. missing shipped data): a server error for this item.
         return {"index": index, "ok": False, "error": problem_body(500, str(error))}
-    except Exception as error:  # a fault in one entry must not fail the others
-        message = f"internal error ({type(error).__name__}); please report it with the request that caused it"
-        return {"index": index, "ok": False, "error": problem_body(500, message)}
+    except Exception:  # a fault in one entry must not fail the others
+        log.exception("batch entry %d", index)
+        return {"index": index, "ok": False, "error": problem_body(500, INTERNAL_ERROR)}

@@ -164,7 +164,7 @@ def describe_fault(error: BaseException, path: str) -> str:
         return "the job database is locked by another process"
     if "no such table" in text:
         return "the job database has lost its tables"
-    return f"the job database failed ({type(error).__name__})"
+    return "the job database failed (an error it does not name; the service's log has it)"
 
 
 #: Runs of one job: a job whose service process died is queued again until it has started this often.

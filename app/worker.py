@@ -132,9 +132,10 @@ def run_job(
         message = f"the simulation needed more than its memory budget ({memory_mb} MB, the setting job_memory_mb)"
         end("failed", message, {"field": None, "message": message, "limit": "job_memory_mb"})
         return
-    except Exception as error:  # a bug or resource failure: report it on the job, never lose it
+    except Exception:  # a bug or resource failure: report it on the job, never lose it
         traceback.print_exc()  # to the service's log; the job says what failed, without server paths
-        message = f"simulation failed: {type(error).__name__}: {str(error)[:300]}"
+        # Not the exception's class or text: they name the server's code (the log above has them).
+        message = "the simulation failed unexpectedly; please report it with the request that caused it"
         end("failed", message, {"field": None, "message": message})
         return
     _record(lambda: store.finish(job_id, owner, request_hash, result), service_pid)

@@ -52,5 +52,6 @@ def run(args: argparse.Namespace) -> int:
         keep_alive_s=settings.keep_alive_s,
         max_connections=settings.max_connections,
         shared_socket=settings.shared_socket,
+        forwarded_allow_ips=tuple(settings.forwarded_allow_ips),
     )
     return serve(host, port, workers, options)

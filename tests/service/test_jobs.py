@@ -4,6 +4,7 @@ budget, retention, and waiters sharing one poll. Real simulations throughout."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import time
@@ -171,6 +172,27 @@ def test_graceful_shutdown_queues_running_jobs_again(tmp_path, make_client):
         running = until_status(client, job["id"], "running")
         assert running["started_at"] is not None
         client.delete(f"/api/v1/simulations/{job['id']}")
+
+
+def test_stopping_ends_the_dispatcher_when_a_wake_up_meets_the_cancellation(tmp_path):
+    # Python 3.11's asyncio.wait_for loses a cancellation that arrives just as what it awaits
+    # completes: a job waking the dispatcher as the service stopped left the shutdown waiting for
+    # ever (seen once in the test above). Here the wake-up and the stop meet on purpose.
+    from nlpsf.web.jobs import Dispatcher
+    from nlpsf.web.settings import Settings
+
+    async def scenario() -> None:
+        db = tmp_path / "jobs.sqlite3"
+        dispatcher = Dispatcher(Store(db), Settings(db_path=str(db)))
+        await dispatcher.start()
+        await asyncio.sleep(1.0)  # its first turn done, the loop waits for a wake-up
+        dispatcher.wake()
+        await asyncio.sleep(0)  # the wait completes; the loop has not resumed yet
+        stopping = asyncio.create_task(dispatcher.stop())
+        await asyncio.wait({stopping}, timeout=30)  # a guard against the hang, not a speed test
+        assert stopping.done() and dispatcher._task is not None and dispatcher._task.done()
+
+    asyncio.run(scenario())
 
 
 # --- a real restart of a real server ----------------------------------------------------------

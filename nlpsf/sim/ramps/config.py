@@ -175,6 +175,20 @@ class Ramp:
         """Fewest usable resultants that give a slope."""
         return 1 if self.single_resultant == "through_zero" else 2
 
+    def check_gives_slopes(self) -> None:
+        """Refuse a table that gives no pixel a slope under its one-resultant rule: one resultant
+        under ``single_resultant="unusable"`` (romancal's: stcal's fits need two resultants), where
+        every pixel, however faint, is unusable and no star has an answer. Under ``"through_zero"``
+        a one-resultant table gives every pixel the slope S_1 / t_1 (docs/ramps.md)."""
+        if self.table.n_resultants < self.min_usable:
+            field = "ramp" if self.table.name.startswith("uniform-") else "ma_table"
+            raise InputError(
+                field,
+                f"a table of {self.table.n_resultants} resultant gives no pixel a slope under the one-resultant rule "
+                f"{self.single_resultant!r} (romancal's: a slope needs two resultants, so every pixel is unusable); give "
+                "at least two resultants, or the rule 'through_zero' (slope S_1 / t_1) where the entry point takes it",
+            )
+
     def conditions(self, exptime_s: float) -> dict:
         out = {
             "ma_table": self.table.name,
@@ -208,7 +222,8 @@ class Ramp:
 @lru_cache(maxsize=1024)
 def _limit_charge(ramp: Ramp, exptime_s: float, full_well_e: float, beta: float, background_e: float) -> float:
     """:meth:`Ramp.limit_charge` (a pure function of a frozen ramp and four numbers)."""
-    needed = min(ramp.min_usable, ramp.table.n_resultants)
+    ramp.check_gives_slopes()  # else no charge keeps a slope and the limit would be 0
+    needed = ramp.min_usable
 
     def keeps(q: float) -> bool:
         return bool(usable_resultants(np.array([q + background_e]), ramp, exptime_s, full_well_e, (beta,))[0] >= needed)
@@ -349,6 +364,7 @@ def build(
         if reads is None:
             return None, exptime
         ramp = Ramp.uniform(reads, exptime, fit, *_read_noise(read_noise_e, sca), **rules)
+        ramp.check_gives_slopes()
         return ramp, exptime
     if isinstance(ma_table, MATable):
         table = ma_table
@@ -359,6 +375,7 @@ def build(
     else:
         table = load_ma_table(ma_table)
     ramp = Ramp(table, fit, *_read_noise(read_noise_e, sca), **rules)
+    ramp.check_gives_slopes()
     exptime = table.duration_s if exptime_s is None else exptime_s
     check_number(exptime, "exptime", *defaults.EXPTIME_RANGE_S)
     ramp.check_exposure(exptime)
