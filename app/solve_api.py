@@ -46,11 +46,10 @@ def answer_key(fields: dict[str, Any], given: set[str]) -> str:
 def units_of(request) -> tuple[str, float]:
     """(kind, units) of inline work answering ``request`` costs: field-grid nodes for the Roman
     default (every node of the SCA without a position), one table solve otherwise."""
-    from nlpsf.request import presets
     from nlpsf.solve.over_field import range_positions
 
-    if request.preset == presets.NAME:
-        if request.scene is None or request.scene.position is None:
+    if request.policy.field_grid:
+        if request.policy.ranges_over_sca and (request.scene is None or request.scene.position is None):
             return budget.NODE, float(len(range_positions(request)))
         return budget.NODE, 1.0
     return budget.TABLE, 1.0
@@ -192,7 +191,8 @@ def _sent_units(row: Any) -> tuple[str, float]:
 
     scene = row.get("scene") if isinstance(row, dict) else None
     preset = scene if isinstance(scene, str) else scene.get("preset") if isinstance(scene, dict) else None
-    if preset not in (None, presets.NAME):
+    name = presets.preset_of(None) if preset is None else presets.named(preset)  # None: not a preset, refused in its entry
+    if name is None or not presets.policy(name).field_grid:
         return budget.TABLE, 1.0
     if isinstance(scene, dict) and scene.get("position") is not None:
         return budget.NODE, 1.0

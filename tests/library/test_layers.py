@@ -221,6 +221,7 @@ LONG_FUNCTIONS: dict[tuple[str, str], str] = {
     ("nlpsf.sim.experiment.measure", "slopes"): "82 lines; the experiment package's own work (issue 29)",
     ("nlpsf.slopes.tablebuild", "compute_table"): "83 lines; the field grid's build recipe (issue 28)",
     ("nlpsf.solve.accuracy", "_model_info"): "83 lines; the uncertainty built from sources (issue 28)",
+    ("nlpsf.web.main", "create_app"): "85 lines; the service under abuse (issue 26)",
 }
 #: Modules still over the limit, likewise.
 LONG_MODULES: dict[str, str] = {
