@@ -6,11 +6,11 @@
     python scripts/model_uncertainty_roman.py --report        # docs/validation.md's tables from the shipped file
 
 First, per band, the joint fit of nlpsf's optics to the official PSF statistics of SCA 1 and 18
-(``roman_uncertainty.fit_optics``). Then for every band at each SCA in ``--scas`` (the SCA centre),
+(``roman_uncertainty_measure.fit_optics``). Then for every band at each SCA in ``--scas`` (the SCA centre),
 m = 18.5, 20 and 22, both modes, the parts of ``nlpsf.solve.roman_uncertainty`` are measured inside
 the full default scene (``tablebuild.TableSettings.roman``, HLWAS likelihood ramp, slopes at the
 "corrected" state) with the linear response and the same 50 centroid draws for every variant
-(``roman_uncertainty.measure_point``): the optics' two sensitivities (combined with the band's fit
+(``roman_uncertainty_measure.measure_point``): the optics' two sensitivities (combined with the band's fit
 here), jitter and diffusion at one standard deviation, the diffusion profile, brighter-fatter, the
 NL's shape, and the SED range's two ends. About 12 slope runs per (band, SCA).
 
@@ -36,6 +36,7 @@ import numpy as np
 from nlpsf import __version__, roman
 from nlpsf.request import presets as roman_default
 from nlpsf.solve import roman_uncertainty as ru
+from nlpsf.solve import roman_uncertainty_measure as measure
 
 OUTPUT = Path(__file__).resolve().parent.parent / "nlpsf" / "data" / ru.FILE
 SCAS = tuple(range(1, 19))
@@ -246,12 +247,12 @@ def main(argv: list[str] | None = None) -> int:
     bands = args.bands.split(",")
     scas = [int(s) for s in args.scas.split(",")]
     start = time.perf_counter()
-    fits = {band: ru.fit_optics(band) for band in bands}
+    fits = {band: measure.fit_optics(band) for band in bands}
     print(f"optics fits in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     points = []
     for band in bands:
         for sca in scas:
-            point = ru.measure_point(band, sca, MAGNITUDES, REALIZATIONS, SEED)
+            point = measure.measure_point(band, sca, MAGNITUDES, REALIZATIONS, SEED)
             points.append(point)
             elapsed = time.perf_counter() - start
             print(f"{band} SCA {sca:2d} {elapsed:6.1f} s {point['errors'] or ''}", file=sys.stderr, flush=True)

@@ -15,6 +15,7 @@ from nlpsf.sim import scene as scenes
 from nlpsf.slopes import tablebuild
 from nlpsf.solve import model_part
 from nlpsf.solve import roman_uncertainty as ru
+from nlpsf.solve import roman_uncertainty_measure as measure
 
 
 def _file_rows() -> np.ndarray:
@@ -109,7 +110,7 @@ def test_sed_range_is_the_two_blackbody_ends_against_the_k0v():
     # else changed; the default's own star is the K0V spectrum, and no stand-in part is left.
     config = tablebuild.TableSettings.roman(realizations=6, seed=3).config("H158", 18)
     assert config.scene.sed == "k0v"
-    variants = ru.variant_configs(config)
+    variants = measure.variant_configs(config)
     ends = [variants["sed_cool"][0], variants["sed_hot"][0]]
     assert [v.scene for v in ends] == [replace(config.scene, sed=f"blackbody:{t:g}") for t in (3500, 10000)]
     assert "sed_standin" not in ru.PART_NAMES and "sed" not in ru.PART_NAMES

@@ -18,6 +18,7 @@ from nlpsf.sim import experiment
 from nlpsf.slopes import fidelity, tablebuild
 from nlpsf.solve import model_part
 from nlpsf.solve import roman_uncertainty as ru
+from nlpsf.solve import roman_uncertainty_measure as measure
 
 
 def test_the_combination_rule_against_a_hand_computed_case():
@@ -50,7 +51,7 @@ def test_the_jitter_and_diffusion_uncertainties_are_the_sources_numbers_propagat
 def test_the_brighter_fatter_coefficient_is_the_ipc_deconvolved_estimate():
     assert ru.BFE_COEFFICIENT_PUBLISHED == 3.54e-7
     assert pytest.approx(3.54e-7 / 0.72) == ru.BFE_COEFFICIENT
-    assert ru.bfe_pair(ru.default_config("H158", 18, 4, 1))[1].scene.bfe_coefficient == ru.BFE_COEFFICIENT
+    assert measure.bfe_pair(measure.default_config("H158", 18, 4, 1))[1].scene.bfe_coefficient == ru.BFE_COEFFICIENT
 
 
 def test_the_sech_profile_has_the_stated_per_axis_sigma():
@@ -62,12 +63,12 @@ def test_the_sech_profile_has_the_stated_per_axis_sigma():
     assert np.trapezoid(x**2 * density, x) == pytest.approx(s**2, rel=1e-6)
     k = np.array([0.0, 1.3, 4.1])
     numeric = [np.trapezoid(density * np.cos(2 * math.pi * f * x), x) for f in k]
-    assert ru.sech_transfer(k, s)[0] == pytest.approx(numeric, rel=1e-7)
+    assert measure.sech_transfer(k, s)[0] == pytest.approx(numeric, rel=1e-7)
 
 
 def test_the_sech_preparation_is_prepare_with_the_gaussian_put_back():
-    config = ru.default_config("H158", 18, 6, 3)
-    mine = ru._prepare_with_diffusion(config, "gaussian")
+    config = measure.default_config("H158", 18, 6, 3)
+    mine = measure._prepare_with_diffusion(config, "gaussian")
     theirs = experiment.prepare(config)
     assert np.array_equal(mine.stamps, theirs.stamps) and np.array_equal(mine.offsets, theirs.offsets)
     a = experiment.slopes(config, [20.0], linearise_at="corrected", scene=mine)[0]
@@ -81,7 +82,7 @@ def test_the_fit_with_scatter_against_a_written_out_weighted_fit():
     truth = np.array([0.3, -0.7])
     errors = np.full(14, 1e-4)
     y = jacobian @ truth + rng.normal(scale=0.02, size=14)  # a scatter 200 x the stated errors
-    theta, covariance, chi2, _, scatter = ru.fit_with_scatter(y, jacobian, errors)
+    theta, covariance, chi2, _, scatter = measure.fit_with_scatter(y, jacobian, errors)
     assert chi2 == pytest.approx(12.0, rel=1e-6) and 0.01 < scatter < 0.04
     # The same fit written out: weights 1 / (e^2 + s^2), normal equations solved by numpy.
     w = 1.0 / (errors**2 + scatter**2)
@@ -90,7 +91,7 @@ def test_the_fit_with_scatter_against_a_written_out_weighted_fit():
     assert theta == pytest.approx(solution, rel=1e-9)
     assert covariance == pytest.approx(np.linalg.inv(a.T @ a), rel=1e-9)
     # Exact data: no scatter, the truth back.
-    theta, _, chi2, _, scatter = ru.fit_with_scatter(jacobian @ truth, jacobian, errors)
+    theta, _, chi2, _, scatter = measure.fit_with_scatter(jacobian @ truth, jacobian, errors)
     assert scatter == 0.0 and theta == pytest.approx(truth, rel=1e-9)
 
 
