@@ -29,7 +29,8 @@ def wait_for(predicate: Callable[[], T], timeout: float = 60.0, interval: float 
 
 
 def finished_job(client, job_id: str, timeout: float = 600.0):
-    """GET /simulations/ID until the job has finished (any final status); fails after ``timeout`` s (generous: a loaded machine runs the job late, a broken one never)."""
+    """GET /simulations/ID until the job has finished (any final status); fails after ``timeout`` s
+    (generous: a loaded machine runs the job late, a broken one never)."""
 
     def poll():
         response = client.get(f"/api/v1/simulations/{job_id}")
