@@ -49,8 +49,10 @@ def test_wheel_holds_the_web_package_and_the_page_and_no_top_level_app(wheel):
 #: coefficients it measured 28.50 MB, 25.43 MB with the grid's error columns as 16-bit codes
 #: (nlpsf-field-grid-3); the rebuild with R062 and K213 on 5 x 5 as well measured 30.42 MB as a -2 file,
 #: 26.60 MB as a -3 one (`pip wheel . --no-deps`, docs/field.md). A budget, so a regrowth is seen:
-#: each band more on 5 x 5 adds about 0.6 MB.
-WHEEL_BUDGET_MB = 27.0
+#: each band more on 5 x 5 adds about 0.6 MB. The rebuild of 2026-12-04 (rows every 0.125 mag between
+#: the saturation limits, issue 28; the per-resultant residual) measured 28.03 MB (the grid file 6.88 ->
+#: 7.97 MB), as docs/field.md projected (about 28.2 MB).
+WHEEL_BUDGET_MB = 28.5
 
 
 def test_the_wheel_stays_near_its_size_before_the_field_grid(wheel):
