@@ -92,13 +92,19 @@ def test_the_shipped_errors_are_stated_rounded_up_and_its_slopes_as_built():
 
 
 def test_the_shipped_errors_are_positive_wherever_a_slope_is_stated():
+    # The statistical errors are positive; the interpolation estimates (a row left out and predicted
+    # from the others) are finite and not negative: one can be exactly zero where the spline reproduces
+    # the row (K213 SCA 12 node 41, m = 27.25 in the 2026-12-04 build, the flux law's faint end).
     assert GRID.meta["format"] == gridfile.FORMAT
-    is_error = np.array([c.endswith(("_err", "_interp")) for c in GRID.meta["columns"]])
+    columns = GRID.meta["columns"]
+    is_error = np.array([c.endswith(("_err", "_interp")) for c in columns])
+    is_statistical = np.array([c.endswith("_err") for c in columns])
     for key in sorted(GRID.meta["tables"]):
         values = GRID.arrays[f"{key}/values"]
         stated = np.isfinite(values[..., ~is_error]).all(axis=-1)
-        errors = values[stated][:, is_error]
-        assert np.all(np.isfinite(errors) & (errors > 0)), key
+        assert np.all(np.isfinite(values[stated][:, is_error])), key
+        assert np.all(values[stated][:, is_statistical] > 0), key
+        assert np.all(values[stated][:, is_error & ~is_statistical] >= 0), key
 
 
 def test_the_reader_returns_none_without_the_file(monkeypatch, tmp_path):
