@@ -165,6 +165,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
+#: The 429 every API path may answer (``budget.ClientMeter``), where a route documents no 429 of its own.
+THROTTLED_DESCRIPTION = "your share of the service's inline CPU is used (inline_cpu_share); retry after Retry-After s"
+
+
 def _problem_schema(app: FastAPI) -> None:
     """Every error response in the OpenAPI schema is the Problem model as application/problem+json
     (FastAPI documents extra responses as application/json and adds its own 422 shape)."""
@@ -177,11 +181,14 @@ def _problem_schema(app: FastAPI) -> None:
             title=app.title, version=app.version, summary=app.summary, description=app.description, routes=app.routes
         )
         problem = {"schema": {"$ref": "#/components/schemas/Problem"}}
-        for operations in schema.get("paths", {}).values():
+        for path, operations in schema.get("paths", {}).items():
             for method, operation in operations.items():
                 if method in ("post", "put", "patch"):
                     # BodyLimit answers any request body over max_body_bytes before the route runs.
                     operation["responses"].setdefault("413", {"description": "the request body is larger than max_body_bytes"})
+                if path.startswith("/api/"):
+                    # ClientMeter charges every API request to its client: past the share, any answers 429.
+                    operation["responses"].setdefault("429", {"description": THROTTLED_DESCRIPTION})
                 for code, response in operation.get("responses", {}).items():
                     if code.isdigit() and int(code) >= 400:
                         response["content"] = {errors.PROBLEM_MEDIA_TYPE: problem}
