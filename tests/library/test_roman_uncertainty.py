@@ -70,10 +70,14 @@ def test_the_sech_preparation_is_prepare_with_the_gaussian_put_back():
     config = measure.default_config("H158", 18, 6, 3)
     mine = measure._prepare_with_diffusion(config, "gaussian")
     theirs = experiment.prepare(config)
-    assert np.array_equal(mine.stamps, theirs.stamps) and np.array_equal(mine.offsets, theirs.offsets)
+    # The same operations to the last bit (with the declared minimum numpy 2.0 the stamps differ by an
+    # ulp, 1.6e-16 of the peak: bit for bit is not promised there).
+    assert np.array_equal(mine.offsets, theirs.offsets)
+    peak = float(np.max(np.abs(theirs.stamps)))
+    np.testing.assert_allclose(mine.stamps, theirs.stamps, rtol=0, atol=1e-14 * peak)
     a = experiment.slopes(config, [20.0], linearise_at="corrected", scene=mine)[0]
     b = experiment.slopes(config, [20.0], linearise_at="corrected", scene=theirs)[0]
-    assert a.bias["dR_over_R"].mean == b.bias["dR_over_R"].mean
+    assert a.bias["dR_over_R"].mean == pytest.approx(b.bias["dR_over_R"].mean, rel=1e-12, abs=0)
 
 
 def test_the_fit_with_scatter_against_a_written_out_weighted_fit():
