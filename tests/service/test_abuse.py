@@ -174,9 +174,13 @@ def test_head_does_not_build_a_document(client):
 # --- inline work budgeted per client ------------------------------------------------------------------
 
 
-def _defaults(count: int, start: int = 0) -> list[dict]:
+def _defaults(count: int, start: int = 0, band: str = "H158") -> list[dict]:
     """Distinct Roman-default solves without a position (each reads every node of the SCA)."""
-    return [{"band": "H158", "magnitude": round(19.0 + 0.0001 * k, 4), "tolerance": 1e-4} for k in range(start, start + count)]
+    return [{"band": band, "magnitude": round(19.0 + 0.0001 * k, 4), "tolerance": 1e-4} for k in range(start, start + count)]
+
+
+#: W146's SCAs hold 5 x 5 field-grid nodes (H158's 3 x 3): a row there costs 25 node reads.
+W146_NODES = 25
 
 
 def _node_cost(client) -> float:
@@ -215,20 +219,21 @@ def test_a_client_past_its_share_of_inline_cpu_gets_429_with_retry_after(client,
 def test_a_batch_is_budgeted_by_its_rows_cost_not_its_row_count(client, make_client):
     node = _node_cost(client)
     # The burst: reading a thousand rows (each row's reading is work too, measured like a node's) and
-    # fifty rows' answers, far less than a thousand answers.
+    # fifty rows' answers, far less than a thousand answers. W146 rows (25 nodes each): a node now costs
+    # about what reading a row does, so H158's nine did not leave the margin on every machine.
     row = budget.COSTS.per_unit(budget.ROW)
-    burst = max(0.01, 3 * 1000 * row + 9 * node * 50)
-    assert 1000 * 9 * node > 2 * burst, (node, row)
+    burst = max(0.01, 3 * 1000 * row + W146_NODES * node * 50)
+    assert 1000 * W146_NODES * node > 2 * burst, (node, row)
     with make_client(inline_cpu_burst_s=burst) as tight:
         # A thousand distinct default rows: every node of the SCA each, far more than one client's budget.
-        refused = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1000)})
+        refused = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1000, band="W146")})
         assert refused.status_code == 422 and refused.json()["limit"] == "inline_cpu_burst_s"
-        csv_text = "band,tolerance,magnitude\n" + "".join(f"H158,1e-4,{19 + 0.0001 * k:.4f}\n" for k in range(1000))
+        csv_text = "band,tolerance,magnitude\n" + "".join(f"W146,1e-4,{19 + 0.0001 * k:.4f}\n" for k in range(1000))
         csv_refused = tight.post("/api/v1/page/batch", content=csv_text, headers={"Content-Type": "text/csv"})
         assert csv_refused.status_code == 422 and csv_refused.json()["limit"] == "inline_cpu_burst_s"
     with make_client(inline_cpu_burst_s=burst) as tight:
         # As many rows, all the same: their reading and one answer's cost.
-        same = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1) * 1000})
+        same = tight.post("/api/v1/solve/batch", json={"requests": _defaults(1, band="W146") * 1000})
         assert same.status_code == 200, same.text[:300]
 
 
