@@ -242,8 +242,9 @@ def _ranged_at_once(answer, request, tables_set, positions, found, progress):
         progress(
             len(positions) - 1, len(positions), f"the SCA's {len(positions)} field-grid nodes at once, the most demanding in full"
         )
-    # The node's crossing (a magnitude solve's) is not sought again; its value is checked all the same.
-    most = answer(_at(request, positions[ranked[-1]]), tables_set, crossing=found.crossings.get(ranked[-1]))
+    # The node's crossing (a magnitude solve's) is not sought again, nor its plan made again (the first
+    # node's, moved); its value is checked all the same.
+    most = answer(_at(request, positions[ranked[-1]]), tables_set, crossing=found.crossings.get(ranked[-1]), node_plan=found.plan)
     if not _same_answer(getattr(most, solved), most.uncertainty, found, ranked[-1]):
         return None
     rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]

@@ -37,6 +37,8 @@ class NodeAnswers:
     #: Node k's crossing of a magnitude solve's scan, where it crossed inside it: (root, d ln|c| / dm,
     #: None where saturation binds there), as ``magnitude_scan.scan_magnitude`` finds them at the node.
     crossings: dict[int, tuple[float, float | None]] = field(default_factory=dict)
+    #: The plan of the first node (``solver.plan``), which the most demanding node's answer moves there.
+    plan: object | None = None
 
 
 class _Nodes:

@@ -305,6 +305,25 @@ def table_plan(request: SolveRequest, tables_set: tables.TableSet | None = None)
     raise providers.NeedsSimulation(refusal(first.code, first.field, why))
 
 
+def plan_at_node(base: SolvePlan, request: SolveRequest) -> SolvePlan:
+    """``plan(request)`` from ``base``, the plan of the same request at another node of its SCA's
+    field grid (the SCA range plans its first node, then answers its most demanding one in full):
+    only the scene's position and the note naming it differ. The tables, the coverage, the model part
+    and the other notes do not depend on the position, and a node is never between the saturation
+    limits (``validity.between_limits``). ``tests/library/test_sca_nodes.py`` checks it equal to
+    planning the node again."""
+    if base.grid is None or base.scene is None or request.scene.position is None:
+        raise ValueError("plan_at_node moves a field-grid plan from one node of an SCA to another")
+    x, y = request.scene.position
+    notes = tuple(
+        make(FlagCode.DEFAULT_FROM_GRID, **{**note.values, "x": x, "y": y})
+        if getattr(note, "code", None) == FlagCode.DEFAULT_FROM_GRID
+        else note
+        for note in base.notes
+    )
+    return replace(base, scene=request.scene, notes=notes)
+
+
 def _measured_default(request: SolveRequest) -> str:
     """Which shipped measurement (fidelity errors, model part) an answer reads: the Roman default's
     for its preset ("roman"), the paper scene's otherwise (``fidelity.DEFAULT_SCENES``)."""
@@ -370,13 +389,20 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
 
 
 def answer(
-    request: SolveRequest, tables_set: tables.TableSet | None = None, simulate: bool = True, progress=None, crossing=None
+    request: SolveRequest,
+    tables_set: tables.TableSet | None = None,
+    simulate: bool = True,
+    progress=None,
+    crossing=None,
+    node_plan: SolvePlan | None = None,
 ) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
     ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
     total, message)``: told as each node of an SCA range is answered (the Roman default without a
     position). ``crossing``: a magnitude solve's crossing at this node, found with the SCA's other
-    nodes (``sca_nodes``; ``magnitude_scan.scan_magnitude``), not sought again."""
+    nodes (``sca_nodes``; ``magnitude_scan.scan_magnitude``), not sought again. ``node_plan``: the
+    plan of the same request at another node of the SCA's field grid (:func:`plan_at_node`), moved
+    here rather than planned again."""
     start = time.perf_counter()
     if request.policy.ranges_over_sca and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
@@ -384,7 +410,10 @@ def answer(
         nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)
         ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
-    the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
+    if node_plan is not None:
+        the_plan = plan_at_node(node_plan, request)
+    else:
+        the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     flags: list[str] = list(the_plan.notes)
     slopes = _Slopes.for_request(request, the_plan)
     if "relabelled_from" in slopes.table.settings:
@@ -486,7 +515,8 @@ def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: b
     # Each node's own value (its interpolation weights are 0 and 1 there), in the positions' order.
     saturation = [float(m) for m in grid.saturation_magnitudes(request.band, request.sca).reshape(-1)]
     systematic = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))[0]
-    return sca_nodes.answer_nodes(request, the_plan, saturation, systematic)
+    found = sca_nodes.answer_nodes(request, the_plan, saturation, systematic)
+    return None if found is None else replace(found, plan=the_plan)
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:

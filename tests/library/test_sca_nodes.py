@@ -77,3 +77,17 @@ def test_every_nodes_uncertainty_at_once_is_its_own_answers():
                 assert uncertainty == pytest.approx(own.uncertainty, rel=1e-12), (request, position)
                 checked += 1
     assert checked >= 50
+
+
+def test_a_nodes_plan_moved_from_another_node_is_its_own_plan():
+    """The most demanding node's answer moves the first node's plan there (``solver.plan_at_node``)
+    instead of planning again: the same plan, field by field (notes, model part, tables, coverage)."""
+    for request in requests(12, seed=5):
+        positions = over_field.range_positions(request)
+        first = solver.plan(request.at_position(positions[0]))
+        for position in positions[1:]:
+            at = request.at_position(position)
+            assert solver.plan_at_node(first, at) == solver.plan(at), (request, position)
+            assert [getattr(n, "values", None) for n in solver.plan_at_node(first, at).notes] == [
+                getattr(n, "values", None) for n in solver.plan(at).notes
+            ]
