@@ -37,8 +37,8 @@ import numpy as np
 from nlpsf import roman
 from nlpsf.checks import InputError, check_integer
 
-from . import gridfile
-from .tables.splines import evaluate_stacked_columns, not_a_knot_coefficients
+from . import gridcubics, gridfile
+from .tables.splines import evaluate_stacked_columns
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -315,17 +315,8 @@ class FieldGrid:
         tests compare them; the grid itself builds its nodes' cubics with numpy)."""
         from scipy.interpolate import CubicSpline
 
-        f, q = self._node_series(key, self.meta["columns"].index(column), j, i)
+        f, q = gridcubics.node_series(self, key, self.meta["columns"].index(column), j, i)
         return f[0], f[-1], CubicSpline(f, q)
-
-    def _node_series(self, key: str, index: int, j: int, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(flux ascending, column / flux) of one node's finite rows of column ``index``."""
-        flux = self.arrays[f"{key}/flux"][j, i]
-        values = self.arrays[f"{key}/values"][j, i, :, index].astype(np.float64)
-        ok = np.isfinite(flux) & np.isfinite(values)
-        f, q = flux[ok], values[ok] / flux[ok]
-        order = np.argsort(f)
-        return f[order], q[order]
 
     def node_values(self, band: str, sca: int, column: str, magnitude) -> np.ndarray:
         """(n, n, ...) values of ``column`` at ``magnitude`` (a number or an array) at every node: a
@@ -372,19 +363,20 @@ class FieldGrid:
     def columns_at_nodes(self, band: str, sca: int, columns, magnitudes) -> list[np.ndarray]:
         """:meth:`values_at_nodes` of several columns at once (each node's flux at its magnitude found once)."""
         key, _ = self._entry(band, sca)
-        first_flux, first_magnitude = self._references(key)
-        n = first_flux.shape[0]
-        m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
-        target = np.empty((n, n))
-        for j in range(n):
-            for i in range(n):  # each node's own scalar power, as a single magnitude is read
-                target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m[j, i] - first_magnitude[j, i]))
-        return self._read(key, columns, target, (slice(None), slice(None)))
+        return self._read_at(key, columns, np.asarray(magnitudes, dtype=np.float64).reshape(-1).tolist())
+
+    def _read_at(self, key: str, columns, magnitudes: list[float]) -> list[np.ndarray]:
+        """Node k's columns at its own ``magnitudes[k]``: its flux there from its own brightest row by a
+        scalar power (Python's float power is C's ``pow``, as numpy's scalar one: the same numbers)."""
+        flux, reference, n = self._reference_floats(key)
+        target = np.array([f * 10 ** (-0.4 * (m - r)) for f, m, r in zip(flux, magnitudes, reference, strict=True)])
+        return self._read(key, columns, target.reshape(n, n), (slice(None), slice(None)))
 
     def slopes_at_nodes(self, band: str, sca: int, metric: str, mode: str, magnitudes) -> tuple[np.ndarray, np.ndarray]:
         """(slope, standard error), each (n, n): node k's at its own magnitude ``magnitudes[k]`` as
         :meth:`slope` gives them at that node's position for that one magnitude (the nodes'
-        interpolation weights are 0 and 1 there), every node at once. The field-interpolation term
+        interpolation weights are 0 and 1 there), every node at once (a number: every node at that
+        one magnitude). The field-interpolation term
         (the median over the nodes) is read from one evaluation of every node at every magnitude
         asked, which can differ from reading each magnitude alone in the last bit. NaN where a node
         is outside its grid."""
@@ -397,8 +389,13 @@ class FieldGrid:
             return value, error
         column = f"{mode}_{metric}"
         n = self._entry(band, sca)[1]["grid"]
-        m = np.asarray(magnitudes, dtype=np.float64).reshape(n, n)
         names = (column, f"{column}_err", f"{column}_interp")
+        m = np.asarray(magnitudes, dtype=np.float64)
+        if m.ndim == 0:  # one magnitude for every node (as the same n x n magnitudes are read)
+            values, statistical, interpolation = self.columns_node_values(band, sca, names, m)
+            field_term = field_interpolation(n, band)[metric] * node_median(np.abs(values))
+            return values, np.hypot(np.hypot(statistical, interpolation), field_term)
+        m = m.reshape(n, n)
         distinct, where = np.unique(m, return_inverse=True)
         if distinct.size == 1:  # one magnitude: every node's values there, memoised (the same numbers)
             values, statistical, interpolation = self.columns_node_values(band, sca, names, distinct[0])
@@ -412,6 +409,8 @@ class FieldGrid:
         return values, np.hypot(errors, field_term)
 
     def _evaluate_nodes(self, key: str, columns: list[str], m: np.ndarray) -> list[np.ndarray]:
+        if m.ndim == 0:  # one magnitude: each node's scalar power, as a node at its own magnitude is read
+            return self._read_at(key, columns, [float(m)] * len(self._reference_floats(key)[0]))
         first_flux, first_magnitude = self._references(key)
         n = first_flux.shape[0]
         # Each node's flux at m, from its own brightest row, one node at a time (numpy's scalar and
@@ -447,53 +446,10 @@ class FieldGrid:
         cached = self._splines.get((key, column, "stacked"))
         if cached is None:
             family = list(self.meta["columns"]) if column in self.meta["columns"] else [column]
-            for name, stacked in zip(family, self._build_stacked(key, family), strict=True):
+            for name, stacked in zip(family, gridcubics.build_stacked(self, key, family), strict=True):
                 self._splines[(key, name, "stacked")] = stacked
             cached = self._splines[(key, column, "stacked")]
         return cached
-
-    def _build_stacked(self, key: str, columns: list[str]) -> list[tuple[np.ndarray, ...]]:
-        n = self.arrays[f"{key}/flux"].shape[0]
-        series = {
-            (c, j, i): self._node_series(key, self.meta["columns"].index(name), j, i)
-            for c, name in enumerate(columns)
-            for j in range(n)
-            for i in range(n)
-        }
-        # Every node's coefficients, the series of one length at a time.
-        coefficients_of: dict[tuple, np.ndarray] = {}
-        for length in sorted({f.size for f, _ in series.values()}):
-            keys = [k for k, (f, _) in series.items() if f.size == length]
-            x = np.stack([series[k][0] for k in keys])
-            y = np.stack([series[k][1] for k in keys])
-            if length >= 4:
-                built = not_a_knot_coefficients(x, y)
-            else:  # too short for the not-a-knot system: scipy's own special cases
-                from scipy.interpolate import CubicSpline
-
-                built = np.stack([CubicSpline(a, b).c for a, b in zip(x, y, strict=True)], axis=1)
-            for k, index in zip(keys, range(len(keys)), strict=True):
-                coefficients_of[k] = built[:, index]
-        out: list[tuple[np.ndarray, ...]] = []
-        for c in range(len(columns)):
-            size = max(series[(c, j, i)][0].size for j in range(n) for i in range(n))
-            order = coefficients_of[(c, 0, 0)].shape[0]
-            knots = np.full((n, n, size), np.inf)
-            coefficients = np.zeros((order, n, n, size - 1))
-            low, high = np.empty((n, n)), np.empty((n, n))
-            for j in range(n):
-                for i in range(n):
-                    f = series[(c, j, i)][0]
-                    knots[j, i, : f.size] = f
-                    coefficients[:, j, i, : f.size - 1] = coefficients_of[(c, j, i)]
-                    low[j, i], high[j, i] = f[0], f[-1]
-            same = next(
-                (o for o in out if np.array_equal(o[0], knots) and np.array_equal(o[2], low) and np.array_equal(o[3], high)), None
-            )
-            if same is not None:  # the same knots as a column before: shared, so they are read together
-                knots, low, high = same[0], same[2], same[3]
-            out.append((knots, coefficients, low, high))
-        return out
 
     def _references(self, key: str) -> tuple[np.ndarray, np.ndarray]:
         """(n, n) flux and magnitude of each node's brightest row: a magnitude becomes that node's
@@ -504,6 +460,15 @@ class FieldGrid:
             first = np.nanargmax(flux, axis=-1)[..., None]
             cached = np.take_along_axis(flux, first, -1)[..., 0], np.take_along_axis(mags, first, -1)[..., 0]
             self._splines[(key, "references")] = cached
+        return cached
+
+    def _reference_floats(self, key: str) -> tuple[list[float], list[float], int]:
+        """:meth:`_references` flattened to Python floats, and n."""
+        cached = self._splines.get((key, "reference floats"))
+        if cached is None:
+            flux, magnitude = self._references(key)
+            cached = flux.reshape(-1).tolist(), magnitude.reshape(-1).tolist(), int(flux.shape[0])
+            self._splines[(key, "reference floats")] = cached
         return cached
 
     def column_value(
@@ -561,9 +526,13 @@ class FieldGrid:
         if metric == "e":
             s1 = self.value(band, sca, position, "e1", mode, magnitude, scheme)
             return np.hypot(s1, self.value(band, sca, position, "e2", mode, magnitude, scheme))
-        column = self._column(metric, mode)
+        return self.values(band, sca, position, (metric,), mode, magnitude, scheme)[0]
+
+    def values(self, band: str, sca: int, position, metrics, mode: str, magnitude, scheme: str = "lagrange") -> list:
+        """:meth:`value` of several column metrics ("size", "e1", "e2") read together (the same numbers)."""
+        columns = [self._column(metric, mode) for metric in metrics]
         w = weights(self._entry(band, sca)[1]["grid"], position, scheme)
-        return contract(w, self.node_values(band, sca, column, magnitude))
+        return [contract(w, v) for v in self.columns_node_values(band, sca, columns, magnitude)]
 
     @staticmethod
     def _column(metric: str, mode: str) -> str:

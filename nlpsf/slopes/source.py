@@ -262,7 +262,7 @@ class Slopes:
         pair = None
         if self.grid is not None:
             position = self.scene_model.position
-            pair = [float(self.grid.value(self.band, self.sca, position, m, self.mode, magnitude)) for m in ("e1", "e2")]
+            pair = [float(v) for v in self.grid.values(self.band, self.sca, position, ("e1", "e2"), self.mode, magnitude)]
             pair = pair if all(math.isfinite(v) for v in pair) else None
         result = self._results.get(round(magnitude, 9))
         if pair is None and result is not None:

@@ -58,9 +58,9 @@ class _Nodes:
         """(slope, |error|) of node k at ``magnitudes[k]`` (None: keep it at the faint end): in the
         grid, or fainter than its faint end by the flux law from there (``Slopes._from_grid``)."""
         inside = [min(m, self.faintest) for m in magnitudes]
-        value, error = self.grid.slopes_at_nodes(
-            self.band, self.sca, self.metric, self.mode, np.reshape(inside, (self.n, self.n))
-        )
+        one = inside[0] if all(m == inside[0] for m in inside) else None  # one magnitude: read (and kept) once
+        at = np.reshape(inside, (self.n, self.n)) if one is None else one
+        value, error = self.grid.slopes_at_nodes(self.band, self.sca, self.metric, self.mode, at)
         values, errors = [float(v) for v in value.reshape(-1)], [float(e) for e in error.reshape(-1)]
         for k, m in enumerate(magnitudes):
             if m > self.faintest:
@@ -90,10 +90,13 @@ class _Nodes:
         """``Slopes.modulus_over_component`` at every node (e1 / e2 answers; 1 otherwise)."""
         if self.metric not in ("e1", "e2"):
             return [1.0] * len(magnitudes)
-        m = np.reshape([min(v, self.faintest) for v in magnitudes], (self.n, self.n))
-        e1, e2 = (
-            v.reshape(-1) for v in self.grid.columns_at_nodes(self.band, self.sca, (f"{self.mode}_e1", f"{self.mode}_e2"), m)
-        )
+        inside = [min(v, self.faintest) for v in magnitudes]
+        columns = (f"{self.mode}_e1", f"{self.mode}_e2")
+        if all(m == inside[0] for m in inside):  # one magnitude: read once, and kept for the node answered in full
+            read = self.grid.columns_node_values(self.band, self.sca, columns, inside[0])
+        else:
+            read = self.grid.columns_at_nodes(self.band, self.sca, columns, np.reshape(inside, (self.n, self.n)))
+        e1, e2 = (v.reshape(-1) for v in read)
         out = []
         for k, magnitude in enumerate(magnitudes):
             if magnitude > self.faintest:
