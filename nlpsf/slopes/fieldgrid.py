@@ -38,7 +38,6 @@ from nlpsf import roman
 from nlpsf.checks import InputError, check_integer
 
 from . import gridcubics, gridfile
-from .tables.splines import evaluate_stacked_columns
 
 #: Interpolation schemes across the field grid.
 SCHEMES: tuple[str, ...] = ("bilinear", "lagrange")
@@ -424,17 +423,11 @@ class FieldGrid:
     def _read(self, key: str, columns, target: np.ndarray, extra: tuple) -> list[np.ndarray]:
         """Every column's values at the nodes' fluxes ``target`` (n, n, ...; ``extra`` spreads a node's
         flux range over the rest), NaN outside a node's range; the columns sharing knots read together."""
-        stacked = [self._stacked_splines(key, column) for column in columns]
-        out: list[np.ndarray | None] = [None] * len(stacked)
-        for knots_id in dict.fromkeys(id(s[0]) for s in stacked):
-            chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
-            knots, _, low, high = stacked[chosen[0]]
-            inside = (target >= low[extra] * (1 - 1e-12)) & (target <= high[extra] * (1 + 1e-12))
-            clipped = np.minimum(np.maximum(target, low[extra]), high[extra])  # np.clip, without its dtype checks
-            read = evaluate_stacked_columns(knots, [stacked[c][1] for c in chosen], clipped)
-            for c, values in zip(chosen, read, strict=True):
-                out[c] = np.where(inside, values * target, np.nan)
-        return out
+        groups = self._splines.get((key, tuple(columns), "groups"))
+        if groups is None:
+            groups = gridcubics.prepare([self._stacked_splines(key, column) for column in columns])
+            self._splines[(key, tuple(columns), "groups")] = groups
+        return gridcubics.read(groups, len(columns), target, extra)
 
     def _stacked_splines(self, key: str, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every node's cubic of ``column`` as padded arrays (knots (n, n, L), +inf past a node's last;

@@ -5,6 +5,8 @@ them): each node's finite rows of a column as column / flux in flux, and scipy's
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .tables.splines import not_a_knot_coefficients
@@ -63,3 +65,77 @@ def build_stacked(grid, key: str, columns: list[str]) -> list[tuple[np.ndarray, 
             knots, low, high = same[0], same[2], same[3]
         out.append((knots, coefficients, low, high))
     return out
+
+
+class Group(NamedTuple):
+    """Columns of a (band, SCA) that share their knots, ready to read (:func:`prepare`)."""
+
+    #: Where each column of the group stands among the columns asked for.
+    chosen: tuple[int, ...]
+    knots: np.ndarray  # (n, n, L)
+    last: np.ndarray  # (n, n, 1): each node's last interval
+    node_knots: np.ndarray  # (n, n, 1): each node's first knot as a flat index
+    node_coefficients: np.ndarray  # (n, n, 1): each node's first interval as a flat index
+    #: (order, [columns,] n n (L - 1)): the group's coefficients, flat over the nodes (one column: no column axis).
+    coefficients: np.ndarray
+    low: np.ndarray  # (n, n): each node's flux range
+    high: np.ndarray
+    low_edge: np.ndarray  # the range widened by 1e-12 relative: inside it a node answers
+    high_edge: np.ndarray
+
+
+def prepare(stacked: list[tuple[np.ndarray, ...]]) -> list[Group]:
+    """The groups of ``stacked`` (``FieldGrid._stacked_splines`` of each column asked for) whose
+    knots are one array (built together: shared), each with what every read of it needs, computed
+    once: ``splines.evaluate_stacked_columns``' own intermediate arrays (columns whose coefficients
+    differ in shape read one by one, as it reads them)."""
+    groups = []
+    for knots_id in dict.fromkeys(id(s[0]) for s in stacked):
+        chosen = [c for c, s in enumerate(stacked) if id(s[0]) == knots_id]
+        knots, _, low, high = stacked[chosen[0]]
+        shapes = {stacked[c][1].shape for c in chosen}
+        for part in [chosen] if len(shapes) == 1 else [[c] for c in chosen]:
+            coefficients = [stacked[c][1] for c in part]
+            n, order, size = knots.shape[0], coefficients[0].shape[0], coefficients[0].shape[-1]
+            node = np.arange(n * n).reshape(n, n, 1)
+            flat = (
+                coefficients[0].reshape(order, -1)
+                if len(part) == 1
+                else np.stack(coefficients, axis=1).reshape(order, len(part), -1)
+            )
+            last = np.sum(np.isfinite(knots), axis=-1)[..., None] - 2
+            edges = low * (1 - 1e-12), high * (1 + 1e-12)
+            groups.append(Group(tuple(part), knots, last, node * knots.shape[-1], node * size, flat, low, high, *edges))
+    return groups
+
+
+def read(groups: list[Group], count: int, target: np.ndarray, extra: tuple) -> list[np.ndarray]:
+    """The ``count`` columns of ``groups`` at the nodes' fluxes ``target`` (n, n, ...; ``extra``
+    spreads a node's range over the rest), NaN outside a node's range: each value
+    ``splines.evaluate_stacked_columns``' sum, operation for operation (the same numbers)."""
+    out: list[np.ndarray] = [None] * count  # type: ignore[list-item]
+    for group in groups:
+        inside = (target >= group.low_edge[extra]) & (target <= group.high_edge[extra])
+        clipped = np.minimum(np.maximum(target, group.low[extra]), group.high[extra])  # np.clip, without its dtype checks
+        for c, values in zip(group.chosen, _evaluate(group, clipped), strict=True):
+            out[c] = np.where(inside, values * target, np.nan)
+    return out
+
+
+def _evaluate(group: Group, x: np.ndarray) -> list[np.ndarray]:
+    """``splines.evaluate_stacked_columns(group's knots, its coefficients, x)``, on the prepared arrays."""
+    knots = group.knots
+    n = knots.shape[0]
+    flat = x.reshape(n, n, -1)
+    interval = np.minimum(np.maximum(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0), group.last)
+    s = flat - np.take(knots, group.node_knots + interval)
+    coefficients = group.coefficients
+    order = coefficients.shape[0]
+    read = np.take(coefficients, group.node_coefficients + interval, axis=coefficients.ndim - 1)
+    value = np.zeros(read.shape[1:])
+    power = np.ones_like(flat)
+    for k in range(order):
+        value = value + read[order - 1 - k] * power
+        if k < order - 1:
+            power = power * s
+    return [value.reshape(x.shape)] if len(group.chosen) == 1 else [v.reshape(x.shape) for v in value]
