@@ -379,33 +379,35 @@ class FieldGrid:
         (the median over the nodes) is read from one evaluation of every node at every magnitude
         asked, which can differ from reading each magnitude alone in the last bit. NaN where a node
         is outside its grid."""
-        if metric == "e":
-            s1, e1 = self.slopes_at_nodes(band, sca, "e1", mode, magnitudes)
-            s2, e2 = self.slopes_at_nodes(band, sca, "e2", mode, magnitudes)
-            value = np.hypot(s1, s2)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                error = np.where(value > 0, np.hypot(s1 * e1, s2 * e2) / value, np.hypot(e1, e2))
-            return value, error
-        column = f"{mode}_{metric}"
+        components = ("e1", "e2") if metric == "e" else (metric,)
         n = self._entry(band, sca)[1]["grid"]
-        names = (column, f"{column}_err", f"{column}_interp")
+        names = [f"{mode}_{c}{part}" for c in components for part in ("", "_err", "_interp")]
         m = np.asarray(magnitudes, dtype=np.float64)
         if m.ndim == 0:  # one magnitude for every node (as the same n x n magnitudes are read)
-            values, statistical, interpolation = self.columns_node_values(band, sca, names, m)
-            field_term = field_interpolation(n, band)[metric] * node_median(np.abs(values))
-            return values, np.hypot(np.hypot(statistical, interpolation), field_term)
-        m = m.reshape(n, n)
-        distinct, where = np.unique(m, return_inverse=True)
-        if distinct.size == 1:  # one magnitude: every node's values there, memoised (the same numbers)
-            values, statistical, interpolation = self.columns_node_values(band, sca, names, distinct[0])
-            everywhere = values
+            read = self.columns_node_values(band, sca, names, m)
+            everywhere, where = read[::3], None
         else:
-            values, statistical, interpolation = self.columns_at_nodes(band, sca, names, m)
-            everywhere = self.node_values(band, sca, column, distinct)
-        errors = np.hypot(statistical, interpolation)
-        median = node_median(np.abs(everywhere))
-        field_term = field_interpolation(n, band)[metric] * (median if distinct.size == 1 else median[where.reshape(n, n)])
-        return values, np.hypot(errors, field_term)
+            m = m.reshape(n, n)
+            distinct, where = np.unique(m, return_inverse=True)
+            if distinct.size == 1:  # one magnitude: every node's values there, memoised (the same numbers)
+                read = self.columns_node_values(band, sca, names, distinct[0])
+                everywhere, where = read[::3], None
+            else:
+                read = self.columns_at_nodes(band, sca, names, m)
+                everywhere, where = self.columns_node_values(band, sca, names[::3], distinct), where.reshape(n, n)
+        out = []
+        for c, component in enumerate(components):  # each component's slope and error (the columns read together)
+            values, statistical, interpolation = read[3 * c : 3 * c + 3]
+            median = node_median(np.abs(everywhere[c]))
+            field_term = field_interpolation(n, band)[component] * (median if where is None else median[where])
+            out.append((values, np.hypot(np.hypot(statistical, interpolation), field_term)))
+        if metric != "e":
+            return out[0]
+        (s1, e1), (s2, e2) = out
+        value = np.hypot(s1, s2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            error = np.where(value > 0, np.hypot(s1 * e1, s2 * e2) / value, np.hypot(e1, e2))
+        return value, error
 
     def _evaluate_nodes(self, key: str, columns: list[str], m: np.ndarray) -> list[np.ndarray]:
         if m.ndim == 0:  # one magnitude: each node's scalar power, as a node at its own magnitude is read
