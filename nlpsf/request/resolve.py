@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
+from functools import lru_cache
 from typing import Any
 
 from nlpsf import defaults, roman
@@ -250,7 +251,11 @@ class SolveRequest:
         """This request for the same star at another ``position`` of its SCA (pixels): its scene
         moved there, nothing else read again (the position is checked by the scene)."""
         moved = copy.copy(self)
-        object.__setattr__(moved, "scene", replace(self.scene, position=position))
+        try:
+            scene = _scene_at(self.scene, tuple(position))
+        except TypeError:  # a scene holding something unhashable: moved afresh
+            scene = replace(self.scene, position=position)
+        object.__setattr__(moved, "scene", scene)
         return moved
 
     def table_pass(self) -> SolveRequest:
@@ -322,6 +327,12 @@ class SolveRequest:
         else:
             data["scene"] = scene
         return cls.from_mapping(data)
+
+
+@lru_cache(maxsize=4096)
+def _scene_at(scene, position: tuple) -> Any:
+    """``scene`` moved to ``position`` (checked there), kept: an SCA range moves one scene to each of its nodes."""
+    return replace(scene, position=position)
 
 
 def _preset_of(scene, preset: str | None) -> str:

@@ -282,6 +282,15 @@ class FieldGrid:
             self._splines[(key, "magnitude_range")] = cached
         return cached
 
+    def node_positions(self, band: str, sca: int) -> tuple[tuple[float, float], ...] | None:
+        """Every node's (x, y) pixels of (band, SCA), row by row (None: not held), read once."""
+        key = f"{band}_{sca:02d}"
+        cached = self._splines.get((key, "positions"))
+        if cached is None and f"{key}/positions" in self.arrays:
+            cached = tuple((float(x), float(y)) for x, y in self.arrays[f"{key}/positions"].reshape(-1, 2))
+            self._splines[(key, "positions")] = cached
+        return cached
+
     def saturation_magnitudes(self, band: str, sca: int) -> np.ndarray:
         """(n, n) [j (y), i (x)]: each node's saturation magnitude, the brightest star whose brightest
         pixel keeps the resultants a slope needs (the ramp's limit; the grid starts 1.5 mag brighter)."""

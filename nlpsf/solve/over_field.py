@@ -163,11 +163,8 @@ def range_positions(request) -> list[tuple[float, float]]:
     from nlpsf.slopes import fieldgrid
 
     grid = fieldgrid.shipped_grid()
-    key = f"{request.band}_{request.sca:02d}"
-    if grid is not None and f"{key}/positions" in grid.arrays:
-        nodes = grid.arrays[f"{key}/positions"].reshape(-1, 2)
-        return [(float(x), float(y)) for x, y in nodes]
-    return [p for _, _, p in fieldgrid.grid_positions(RANGE_GRID)]
+    nodes = None if grid is None else grid.node_positions(request.band, request.sca)
+    return list(nodes) if nodes is not None else [p for _, _, p in fieldgrid.grid_positions(RANGE_GRID)]
 
 
 def _demand(solved: str):
