@@ -21,7 +21,6 @@ from starlette.concurrency import run_in_threadpool
 
 from nlpsf import defaults
 from nlpsf.checks import InputError
-from nlpsf.serialise import json_safe
 from nlpsf.solve import batch, over_field, solver
 
 from . import budget, job_kinds, models
@@ -55,20 +54,26 @@ def units_of(request) -> tuple[str, float]:
     return budget.TABLE, 1.0
 
 
-def _answer_inline(request, kind: str, units: float) -> dict[str, Any]:
-    """``batch.answer_from_tables`` (raises ``NeedsSimulation``), metered, as the JSON it answers."""
+def _answer_inline(request, kind: str, units: float) -> bytes:
+    """``batch.answer_from_tables`` (raises ``NeedsSimulation``), metered, as the JSON body it answers
+    (rendered once: kept so, a repeated request is sent the same bytes without serialising again)."""
     with budget.metered(kind, units):
-        return json_safe(batch.answer_from_tables(request).to_dict())
+        return SafeJSONResponse(batch.answer_from_tables(request).to_dict()).body
 
 
-def _keep(key: str, answer: dict[str, Any]) -> None:
+def _keep(key: str, answer: bytes) -> None:
     if (work := budget.active()) is not None:
-        work.budget.answers.put(("solve", key), answer, len(json.dumps(answer, default=str)))
+        work.budget.answers.put(("solve", key), answer, len(answer))
 
 
-def _kept(key: str) -> dict[str, Any] | None:
+def _kept(key: str) -> bytes | None:
     work = budget.active()
     return work.budget.answers.get(("solve", key)) if work is not None else None
+
+
+def _json(body: bytes) -> Response:
+    """A kept answer's JSON body, as ``SafeJSONResponse`` rendered it."""
+    return Response(content=body, media_type=SafeJSONResponse.media_type)
 
 
 @router.post(
@@ -93,8 +98,11 @@ async def solve(
     ] = None,
 ) -> Response:
     # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
-    # The library's typed request checks every field, the ramp and the scene (and whether they combine).
     raw = body.model_dump()
+    key = answer_key(raw, body.model_fields_set) if body.over_field is None else None
+    if key is not None and (kept := _kept(key)) is not None:
+        return _json(kept)  # answered before (a valid request, kept by its fields as the library reads them)
+    # The library's typed request checks every field, the ramp and the scene (and whether they combine).
     request = job_kinds.solve_request(job_kinds.solve_body(raw, body.model_fields_set))
     # Another pupil-scale rule than the tables' is simulated: a job, like a scene or a ramp.
     tables_pupil = request.pupil_scale in (None, defaults.PUPIL_SCALE)
@@ -111,9 +119,6 @@ async def solve(
         # millisecond; a thread hop cost the service half its default throughput), one at a time per
         # worker (the turn), not a job; kept by request, and budgeted against the client's share of
         # the inline CPU.
-        key = answer_key(raw, body.model_fields_set)
-        if (kept := _kept(key)) is not None:
-            return SafeJSONResponse(kept)
         kind, units = units_of(request)
         budget.admit(kind, units)
         try:
@@ -124,7 +129,7 @@ async def solve(
         except batch.NeedsSimulation:
             pass  # it needs a fresh simulation: a job, below
         else:
-            return SafeJSONResponse(kept)
+            return _json(kept)
     over_field_tables = over_field.over_field_from_tables(request.scene, request.fidelity, request.accuracy, request.ramp)
     if tables_pupil and body.over_field is not None and over_field_tables:
         # The worst field point from the shipped field-point tables: up to 90 table solves, a few
@@ -160,7 +165,7 @@ async def solve(
     },
     summary="Many solves at table cost (the tables, the Roman default's field grid); each answered or refused on its own",
 )
-def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
+def solve_batch(body: models.BatchSolveRequest) -> Response:
     """Every entry read first (a bad one refused in its own entry), the batch's cost estimated from
     its entries' units (an entry already answered, or repeated in the batch, costs nothing) and
     admitted as one against the client's share -- more than a client's whole budget is a 422 naming
@@ -180,7 +185,19 @@ def solve_batch(body: models.BatchSolveRequest) -> SafeJSONResponse:
             entries = [_read_one(index, item) for index, item in enumerate(rows)]
         results = [_answer_one(entry) for entry in entries]
     answered = sum(1 for r in results if r["ok"])
-    return SafeJSONResponse({"results": results, "answered": answered, "failed": len(results) - answered})
+    return _json(_batch_body(results, answered))
+
+
+def _batch_body(results: list[dict[str, Any]], answered: int) -> bytes:
+    """``SafeJSONResponse``'s rendering of {"results", "answered", "failed"}, byte for byte, with each
+    answer's kept JSON body put in as it was rendered (not parsed and serialised again)."""
+    rows = [
+        b'{"index":%d,"ok":true,"solution":%s}' % (r["index"], r["solution"])
+        if isinstance(r.get("solution"), bytes)
+        else SafeJSONResponse(r).body
+        for r in results
+    ]
+    return b'{"results":[%s],"answered":%d,"failed":%d}' % (b",".join(rows), answered, len(results) - answered)
 
 
 def _sent_units(row: Any) -> tuple[str, float]:
