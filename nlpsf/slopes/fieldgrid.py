@@ -422,14 +422,12 @@ class FieldGrid:
         if m.ndim == 0:  # one magnitude: each node's scalar power, as a node at its own magnitude is read
             return self._read_at(key, columns, [float(m)] * len(self._reference_floats(key)[0]))
         first_flux, first_magnitude = self._references(key)
-        n = first_flux.shape[0]
-        # Each node's flux at m, from its own brightest row, one node at a time (numpy's scalar and
-        # array powers may differ in the last bit; the grid's answers are kept bit for bit).
-        target = np.empty((n, n, *m.shape))
-        for j in range(n):
-            for i in range(n):
-                target[j, i] = first_flux[j, i] * 10 ** (-0.4 * (m - first_magnitude[j, i]))
-        return self._read(key, columns, target, (slice(None), slice(None), *([None] * m.ndim)))
+        extra = (slice(None), slice(None), *([None] * m.ndim))
+        # Each node's flux at every m, from its own brightest row: array powers, element for element
+        # those of the node-by-node loop they replace (numpy's scalar and array powers may differ in
+        # the last bit, one array's elements and another's do not: test_shipped_field_grid.py reads each node alone).
+        target = first_flux[extra] * 10 ** (-0.4 * (m[None, None] - first_magnitude[extra]))
+        return self._read(key, columns, target, extra)
 
     def _read(self, key: str, columns, target: np.ndarray, extra: tuple) -> list[np.ndarray]:
         """Every column's values at the nodes' fluxes ``target`` (n, n, ...; ``extra`` spreads a node's
