@@ -226,6 +226,7 @@ class FieldGrid:
     _node_values: OrderedDict = field(default_factory=OrderedDict, repr=False)
     _node_values_bytes: list = field(default_factory=lambda: [0], repr=False)  # a frozen grid's one counter
     _node_values_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _saturation: dict = field(default_factory=dict, repr=False)  # saturation magnitude by position
 
     @classmethod
     def load(cls, path: Path | str) -> FieldGrid:
@@ -303,8 +304,16 @@ class FieldGrid:
         return cached
 
     def saturation_magnitude(self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange") -> float:
-        """The saturation magnitude at ``position`` (pixels), interpolated across the nodes."""
-        return float(interpolate(self.saturation_magnitudes(band, sca), position, scheme))
+        """The saturation magnitude at ``position`` (pixels), interpolated across the nodes (kept: an
+        answer asks at its position for its limits, and for whether it lies between them, again)."""
+        memo_key = (band, sca, *position, scheme)
+        cached = self._saturation.get(memo_key)
+        if cached is None:
+            cached = float(interpolate(self.saturation_magnitudes(band, sca), position, scheme))
+            if len(self._saturation) >= 4096:
+                self._saturation.clear()
+            self._saturation[memo_key] = cached
+        return cached
 
     def final_frame_saturation_magnitude(
         self, band: str, sca: int, position: tuple[float, float], scheme: str = "lagrange"
