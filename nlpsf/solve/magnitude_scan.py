@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -50,6 +51,16 @@ class ToleranceUnreachable(InputError):
         )
 
 
+class NodeScan(NamedTuple):
+    """What an SCA's nodes answered at once (``sca_nodes``) already found of one node's scan: its
+    crossing (None: not crossed inside the scan), d ln|c| / dm there (None: not found), and its c(m)
+    on the scan's magnitudes (the field grid's values at the node; None: not read)."""
+
+    root: float | None
+    log_derivative: float | None
+    values: np.ndarray | None = None
+
+
 @dataclass(frozen=True)
 class MagnitudeScan:
     """Where the NL error reaches the tolerance (None: nowhere down to the scan's bright end), the
@@ -77,16 +88,16 @@ class _Grid:
 
 
 def scan_magnitude(
-    slopes, delta_beta: float, tolerance: float, m_sat: float, field: str = "tolerance", crossing: tuple | None = None
+    slopes, delta_beta: float, tolerance: float, m_sat: float, field: str = "tolerance", crossing: NodeScan | None = None
 ) -> MagnitudeScan:
     """Magnitude where |c(m)| delta_beta = tolerance; see the module docstring. ``field``: the
     request field that sets the tolerance, named where no star meets it (:class:`ToleranceUnreachable`).
-    ``crossing``: (root, d ln|c| / dm or None) of this scan's crossing where it was found already
-    (``sca_nodes``: the same secant on every node of an SCA at once, bit for bit): not sought again."""
+    ``crossing``: what was found of this scan already (:class:`NodeScan`; ``sca_nodes``: the same
+    scan and secant on every node of an SCA at once, bit for bit): not read or sought again."""
     flags: list[Flag] = []
     required = tolerance / delta_beta
     if getattr(slopes, "grid", None) is not None:
-        grid = _field_grid_scan(slopes, m_sat)
+        grid = _field_grid_scan(slopes, m_sat, None if crossing is None else crossing.values)
     elif slopes.ramp is None:
         grid = _final_frame_grid(slopes)
     else:
@@ -114,9 +125,11 @@ def scan_magnitude(
         return MagnitudeScan(None, None, None, None, flags)
     k = int(np.argmax(above))  # first magnitude (from the faint side) where the tolerance is exceeded
     bright, faint = float(grid.magnitudes[k]), float(grid.magnitudes[k - 1])
-    m_nl = _crossing(slopes, grid, required, bright, faint) if crossing is None else crossing[0]
+    known = crossing is not None and crossing.root is not None
+    m_nl = crossing.root if known else _crossing(slopes, grid, required, bright, faint)
     slope, slope_err, _ = slopes.at(m_nl)
-    log_derivative = _log_derivative(slopes, grid, m_nl) if crossing is None or crossing[1] is None else crossing[1]
+    log_derivative = crossing.log_derivative if known and crossing.log_derivative is not None else None
+    log_derivative = _log_derivative(slopes, grid, m_nl) if log_derivative is None else log_derivative
     if any(np.diff(np.sign(grid.values[np.isfinite(grid.values)])) != 0):
         flags.append(make(FlagCode.SLOPE_CHANGES_SIGN, metric=slopes.metric, where=grid.sign_where))
     return MagnitudeScan(m_nl, slope, slope_err, log_derivative, flags)
@@ -139,7 +152,7 @@ def _falls_fainter(at_faint_end: float, brighter: float) -> bool:
     return abs(at_faint_end) < abs(brighter)
 
 
-def _field_grid_scan(slopes, m_sat: float) -> _Grid:
+def _field_grid_scan(slopes, m_sat: float, values: np.ndarray | None = None) -> _Grid:
     """The Roman default's field grid at the position: its own c(m) on a 0.05 mag grid from the
     grid's faint end to the saturation magnitude, in one vectorised look-up (the slopes the answer
     reads, so the bracket is the answer's: the paper tables' c(m) has neither the default's values
@@ -147,7 +160,8 @@ def _field_grid_scan(slopes, m_sat: float) -> _Grid:
     brightest, faintest = slopes.grid.magnitude_range(slopes.band, slopes.sca)
     magnitudes = np.arange(faintest, max(m_sat, brightest) - 1e-9, -0.05)
     grid, position = slopes.grid, slopes.scene_model.position
-    values = grid.value(slopes.band, slopes.sca, position, slopes.metric, slopes.mode, magnitudes)
+    if values is None or values.shape != magnitudes.shape:  # ``values``: the node's own, read with the others
+        values = grid.value(slopes.band, slopes.sca, position, slopes.metric, slopes.mode, magnitudes)
     slopes.ramp_bases.add("grid")
     everywhere = f"for every star from the field grid's faint end m={faintest:.2f} down to saturation m={m_sat:.2f}"
     return _Grid(magnitudes, np.asarray(values, dtype=np.float64), faintest, everywhere, m_sat, "over the scan")

@@ -37,7 +37,7 @@ class Answer:
 
 def answer_magnitude(request, slopes, limits, model_info: dict, systematic, flags: list, crossing=None) -> Answer:
     """Solve for the brightest usable star: the NL limit (a magnitude scan) against saturation.
-    ``crossing``: the scan's crossing where it is known already (``magnitude_scan.scan_magnitude``)."""
+    ``crossing``: what is known of the scan already (``magnitude_scan.NodeScan``)."""
     averaging = 1.0 / math.sqrt(request.stars)  # scatter: the PSF model averages `stars` independent draws
     precision, tolerance, beta0 = request.precision, request.target_tolerance, request.beta0
     field = "tolerance" if request.budget is None else f"shear_{request.budget.kind}"

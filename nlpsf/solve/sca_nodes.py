@@ -17,14 +17,14 @@ node by node.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from nlpsf.slopes import tables
 
 from . import model_part
-from .magnitude_scan import _H, _TREND_MAG
+from .magnitude_scan import _H, _TREND_MAG, NodeScan
 
 
 @dataclass(frozen=True)
@@ -34,9 +34,10 @@ class NodeAnswers:
     solved_for: str
     values: list[float | None]
     uncertainties: list[float | None]
-    #: Node k's crossing of a magnitude solve's scan, where it crossed inside it: (root, d ln|c| / dm,
-    #: None where saturation binds there), as ``magnitude_scan.scan_magnitude`` finds them at the node.
-    crossings: dict[int, tuple[float, float | None]] = field(default_factory=dict)
+    #: Node k's scan of a magnitude solve (``magnitude_scan.NodeScan``): its c(m) on the scan's
+    #: magnitudes, and where it crossed inside the scan, the root and d ln|c| / dm there (None where
+    #: saturation binds), as ``magnitude_scan.scan_magnitude`` finds them at the node.
+    crossings: dict[int, NodeScan] = field(default_factory=dict)
     #: The plan of the first node (``solver.plan``), which the most demanding node's answer moves there.
     plan: object | None = None
 
@@ -200,7 +201,11 @@ def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], sy
         return None
     for k, root in roots.items():
         m_nl[k] = root
-    return _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, set(brackets), log_derivatives)
+    found = _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, set(brackets), log_derivatives)
+    if found is None:
+        return None
+    scans = {k: NodeScan(*found.crossings.get(k, (None, None)), everywhere[k, : grids[k].size]) for k in range(len(grids))}
+    return replace(found, crossings=scans)
 
 
 def _scan_values(nodes: _Nodes, magnitudes: np.ndarray) -> np.ndarray:

@@ -399,8 +399,8 @@ def answer(
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
     ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
     total, message)``: told as each node of an SCA range is answered (the Roman default without a
-    position). ``crossing``: a magnitude solve's crossing at this node, found with the SCA's other
-    nodes (``sca_nodes``; ``magnitude_scan.scan_magnitude``), not sought again. ``node_plan``: the
+    position). ``crossing``: a magnitude solve's scan at this node and its crossing, found with the
+    SCA's other nodes (``sca_nodes``; ``magnitude_scan.NodeScan``), not read or sought again. ``node_plan``: the
     plan of the same request at another node of the SCA's field grid (:func:`plan_at_node`), moved
     here rather than planned again."""
     start = time.perf_counter()
