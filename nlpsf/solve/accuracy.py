@@ -60,9 +60,10 @@ ANSWER_REALIZATIONS = 25
 STATISTICAL_SHARE = 0.5
 #: The pilot's centroids there: the tables' and the field grid's own 100 (the same draws).
 BETWEEN_LIMITS_PILOT = 100
-#: The most centroids an answer simulates there (about 8x a table's cost per magnitude; the stamps
-#: alone are 59 MB at the default's 96 x 96 fine pixels). Beyond it the statistical error is stated.
-MAX_REALIZATIONS = 800
+#: The most centroids an answer simulates there, in batches of ``source.BATCH_REALIZATIONS`` (one
+#: prepared scene each, so the memory stays a batch's): ~2.4 ms of CPU each on H158's HLWAS ramp,
+#: about 30 s at the cap. Beyond it the statistical error is stated.
+MAX_REALIZATIONS = 12_800
 #: Where ``fidelity.json`` holds the Roman default's measurement (same shape as the top level:
 #: ``errors[band][mode][metric][level]``, ``date``, ``reference``; ``tradeoff(default="roman")``).
 ROMAN_ENTRY = ("roman",)
@@ -332,7 +333,7 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
 
 
 #: The values ``FlagCode.ACCURACY_CENTROIDS`` quotes from :func:`centroids_where_pixels_saturate`.
-ACCURACY_CENTROIDS_QUOTES = ("magnitude", "pilot", "pilot_error", "used", "expected_error", "target", "verdict")
+ACCURACY_CENTROIDS_QUOTES = ("magnitude", "pilot", "pilot_error", "used", "errors", "target", "verdict")
 
 
 def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, magnitude: float, accuracy: float) -> dict | None:
@@ -389,6 +390,8 @@ def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, 
         "needed": needed,
         "used": used,
         "expected_error": expected,
+        # What the answer reaches is measured over the count it simulates (``centroids.enough_centroids``).
+        "errors": f"{expected:.2g} expected over {used}",
         "target": target,
         "met": met,
         "verdict": verdict,

@@ -73,6 +73,7 @@ from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
 from . import model_part, quantity, sca_nodes
+from .centroids import enough_centroids
 from .over_field import grid_size, sca_range, worst_over_field
 from .solution import Solution
 from .validity import (
@@ -385,8 +386,9 @@ def answer(
         ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes)
         return replace(ranged, elapsed_s=time.perf_counter() - start)
     the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
-    flags: list[str] = list(the_plan.notes)
     slopes = _Slopes.for_request(request, the_plan)
+    the_plan, slopes = enough_centroids(request, the_plan, slopes, _Slopes.for_request)
+    flags: list[str] = list(the_plan.notes)
     if "relabelled_from" in slopes.table.settings:
         flags.append(_relabel_flag(request, slopes))
     limits = _limits(request, the_plan, slopes)

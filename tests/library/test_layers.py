@@ -65,6 +65,30 @@ def test_relative_imports_resolve_from_each_files_own_package():
     assert {"nlpsf.defaults", "nlpsf.slopes.tables.splines"} <= imported
 
 
+def test_every_import_of_ours_resolves():
+    # Imports inside functions run only when called: a module moved to another package must not
+    # leave one behind that names its old neighbours (``from . import x`` with no x there).
+    import importlib
+    import importlib.util
+
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.relative_to(PACKAGE).parts[0] == "data":
+            continue
+        package = _package_of(path)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom) or not (node.level or (node.module or "").startswith("nlpsf")):
+                continue
+            base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+            module = (f"{base}.{node.module}" if node.module else base) if node.level else node.module
+            assert importlib.util.find_spec(module) is not None, f"{path}: {module}"
+            imported = importlib.import_module(module)
+            for alias in node.names:
+                found = hasattr(imported, alias.name) or (
+                    hasattr(imported, "__path__") and importlib.util.find_spec(f"{module}.{alias.name}") is not None
+                )
+                assert found, f"{path}: {module}.{alias.name}"
+
+
 def test_the_library_never_imports_the_cli_or_the_web_layer():
     for path in LIBRARY:
         imported = _imports(path, _package_of(path))

@@ -14,7 +14,15 @@ from nlpsf.flags import FlagCode, make
 from nlpsf.sim import detector, moments
 from nlpsf.threads import single_blas
 
-from .config import CORRECTED_RESIDUAL, LINEARISE_STATES, METRICS, PAPER_BETA_STEP, Progress, SimulationConfig
+from .config import (
+    CORRECTED_MONTE_CARLO_STEP,
+    CORRECTED_RESIDUAL,
+    LINEARISE_STATES,
+    METRICS,
+    PAPER_BETA_STEP,
+    Progress,
+    SimulationConfig,
+)
 from .correction import RESIDUAL_DESCRIPTIONS, RESIDUAL_MODELS, check_model, corrected_effect
 from .kernels import _finite_difference_slopes, _linear_slopes, _simulate_bias, _simulate_scatter
 from .prepared import Scene, _peak_electrons, prepare, star_peak_electrons
@@ -274,12 +282,12 @@ def _monte_carlo_slopes(
 ):
     """The paper's slopes at one magnitude: the bias by finite differences over centroids, the scatter
     as the spread over per-pixel beta maps at a fixed centroid; adds their flags to ``flags``. Under the
-    per-resultant correction the difference is over Delta_beta = +-PAPER_BETA_STEP x CORRECTED_RESIDUAL x beta0
-    about a perfect calibration (the earlier corrected model's step; the image is exactly linear in Delta_beta,
-    so only the moments' curvature, (1e-4)^2 relative, separates it from the derivative)."""
+    per-resultant correction the difference is over Delta_beta = +-CORRECTED_MONTE_CARLO_STEP x beta0 about a
+    perfect calibration (the image is exactly linear in Delta_beta, so only the moments' curvature separates it
+    from the derivative; see the constant for why not smaller)."""
     config = scene.config
     settings = config.moment_settings
-    step = PAPER_BETA_STEP * CORRECTED_RESIDUAL * abs(raw) if model == "per_resultant_correction" else None
+    step = CORRECTED_MONTE_CARLO_STEP * abs(raw) if model == "per_resultant_correction" else None
     bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect, step)
     flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
     scatter_runs = simulate(
