@@ -101,8 +101,10 @@ class TableSettings:
 
     @classmethod
     def of_scene(cls, scene: str, **changes) -> TableSettings:
-        """The settings of the tables of ``scene`` ("paper" or "roman", ``nlpsf tables --scene``)."""
-        return cls.roman(**changes) if scene == "roman" else cls(**changes)
+        """The settings of the tables of ``scene`` ("paper" or "roman", ``nlpsf tables --scene``): the
+        field grid's recipe (:meth:`roman`) for the preset answered from a field grid
+        (``presets.Policy.field_grid``), the paper tables' otherwise."""
+        return cls.roman(**changes) if roman_default.policy(scene).field_grid else cls(**changes)
 
     @classmethod
     def roman(cls, **changes) -> TableSettings:
@@ -125,13 +127,10 @@ class TableSettings:
         the SCA (``roman.field_points``), ``position`` at any pixel position, neither at the centre."""
         if point:
             position = field_position(sca, point)
-        exptime, ramp = self.exptime_s, None
-        if self.scene == "roman":
-            readout = roman_default.readout(band, sca, self.exptime_s)
-            exptime, ramp = readout.exptime_s, readout.ramp
-            scene = roman_default.scene(position, readout.background_e)
-        else:
-            scene = experiment.scenes.SceneModel(position=position) if position else experiment.PAPER_SCENE
+        # The scene preset's readout, exposure and sky (``presets.fill``) and its scene at the position.
+        filled = roman_default.fill(self.scene, band, sca, self.exptime_s, None, None, None)
+        exptime, ramp = filled.exptime, filled.ramp
+        scene = roman_default.preset_scene(self.scene, position, filled.background_e or 0.0) or experiment.PAPER_SCENE
         level = fidelity.simulation_settings(self.fidelity)
         return experiment.SimulationConfig(
             band=band,
@@ -498,10 +497,12 @@ def _ramp_shifts(tables: list) -> dict[str, dict]:
     out: dict[str, dict] = {}
     for t in tables:
         key = f"{t.meta['band']}_{int(t.meta['sca']):02d}"
-        if key in out or t.meta["settings"].get("scene", "paper") != "roman":
+        if key in out:
             continue
         settings = TableSettings(**t.meta["settings"])
         config = settings.config(t.meta["band"], int(t.meta["sca"]))
+        if config.ramp is None:
+            continue
         shift = config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
         out[key] = {"ramp_shift_mag": float(shift)}
     return out

@@ -461,7 +461,7 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
         own = _roman_parts(request, full)
         parts = own["left_out"] + parts
         included += own["included"]
-        combine, stated_against, model_basis = "roman", own["stated_against"], own["basis"]
+        combine, stated_against, model_basis = own["combine"], own["stated_against"], own["basis"]
         extra = {k: own[k] for k in ("magnitude_offset",) if k in own}
         extra["accuracy_parts"] = {
             "level": "the fidelity level's measured error, in uncertainty_fidelity (as a table answer's level error is)",
