@@ -271,29 +271,7 @@ def compute_table(
         linearise_at=settings.linearise_at,
         residual_nl=settings.residual_nl,
     )
-    columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
-    for metric in COLUMN_METRICS:
-        for mode in MODES:
-            columns[f"{mode}_{metric}"] = []
-            columns[f"{mode}_{metric}_err"] = []
-    columns["failed_realizations"] = []
-    for r in results:
-        columns["flux_electrons"].append(r.flux_electrons)
-        columns["peak_electrons"].append(r.peak_electrons)
-        columns["failed_realizations"].append(r.failed_realizations)
-        for metric, name in COLUMN_METRICS.items():
-            bias = r.bias[name]
-            columns[f"bias_{metric}"].append(np.nan if bias.mean is None else bias.mean)
-            columns[f"bias_{metric}_err"].append(np.nan if bias.stderr is None else bias.stderr)
-            scatter = r.scatter[name]
-            columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
-            columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
-    flux = np.asarray(columns["flux_electrons"])
-    names = [f"{mode}_{metric}" for metric in COLUMN_METRICS for mode in MODES]
-    estimates = interpolation_error_estimate(flux, np.stack([np.asarray(columns[name]) for name in names], axis=-1))
-    for k, name in enumerate(names):
-        columns[f"{name}_interp"] = list(estimates[:, k])
-    table = Table(columns)
+    table = Table(_table_columns(magnitudes, results))
     table.add_column(band, name="band", index=0)
     table.add_column(np.int16(sca), name="sca", index=1)
     if point:
@@ -326,6 +304,34 @@ def compute_table(
         }
     )
     return table
+
+
+def _table_columns(magnitudes, results: list[experiment.SlopeResult]) -> dict[str, list]:
+    """A table's columns: per magnitude its flux, peak, failed realizations, and each metric's bias
+    and scatter slopes with their standard errors and interpolation error estimates."""
+    columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
+    for metric in COLUMN_METRICS:
+        for mode in MODES:
+            columns[f"{mode}_{metric}"] = []
+            columns[f"{mode}_{metric}_err"] = []
+    columns["failed_realizations"] = []
+    for r in results:
+        columns["flux_electrons"].append(r.flux_electrons)
+        columns["peak_electrons"].append(r.peak_electrons)
+        columns["failed_realizations"].append(r.failed_realizations)
+        for metric, name in COLUMN_METRICS.items():
+            bias = r.bias[name]
+            columns[f"bias_{metric}"].append(np.nan if bias.mean is None else bias.mean)
+            columns[f"bias_{metric}_err"].append(np.nan if bias.stderr is None else bias.stderr)
+            scatter = r.scatter[name]
+            columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
+            columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
+    flux = np.asarray(columns["flux_electrons"])
+    names = [f"{mode}_{metric}" for metric in COLUMN_METRICS for mode in MODES]
+    estimates = interpolation_error_estimate(flux, np.stack([np.asarray(columns[name]) for name in names], axis=-1))
+    for k, name in enumerate(names):
+        columns[f"{name}_interp"] = list(estimates[:, k])
+    return columns
 
 
 def _partial_path(directory: Path, band: str, sca: int, point: int | None = None, node=None) -> Path:
