@@ -186,6 +186,27 @@ def _with_band_integration(scene: scenes.SceneModel) -> scenes.SceneModel:
 # --- impacts inside the full scene --------------------------------------------------------------
 
 
+def linear_config(request, full: FullScene, table, realizations: int, scene: scenes.SceneModel):
+    """The linear-response simulation an accuracy answer measures with: the table's settings
+    (``SimulationConfig.from_table``) at the request's band and SCA, the full scene's exposure,
+    throughput and pupil rule, ``realizations`` centroids and ``scene``; with a ramp, the ramp and the
+    request's full well (a final frame keeps the table's)."""
+    from nlpsf.sim import experiment
+
+    return experiment.SimulationConfig.from_table(
+        table.settings,
+        band=request.band,
+        sca=request.sca,
+        exptime_s=full.exptime,
+        throughput=full.throughput,
+        method="linear",
+        realizations=realizations,
+        pupil_scale=full.pupil_scale,
+        scene=scene,
+        **({} if full.ramp is None else {"ramp": full.ramp, "full_well_e": request.full_well}),
+    )
+
+
 class Probe:
     """Linear-response slopes of variants of the full scene at one magnitude, on the same centroids.
 
@@ -193,21 +214,8 @@ class Probe:
     mode, with its standard error over centroid samples (:func:`impact_uncertainty`, a bound)."""
 
     def __init__(self, request, full: FullScene, table, magnitude: float, realizations: int = PROBE_REALIZATIONS):
-        from nlpsf.sim import experiment
-
         self.request, self.full, self.magnitude = request, full, float(magnitude)
-        self.base = experiment.SimulationConfig.from_table(
-            table.settings,
-            band=request.band,
-            sca=request.sca,
-            exptime_s=full.exptime,
-            throughput=full.throughput,
-            method="linear",
-            realizations=realizations,
-            pupil_scale=full.pupil_scale,
-            scene=full.scene,
-            **({} if full.ramp is None else {"ramp": full.ramp, "full_well_e": request.full_well}),
-        )
+        self.base = linear_config(request, full, table, realizations, full.scene)
         self._slopes: dict[scenes.SceneModel, tuple[float | None, float | None]] = {}
         self.runs = 0
 
@@ -350,19 +358,7 @@ def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, 
     # The paper's star is the sharpest the tables hold: no pixel of a broader star saturates fainter.
     if magnitude > table.saturation(full.exptime, request.full_well - background) + 0.5:
         return None
-    config = experiment.SimulationConfig.from_table(
-        table.settings,
-        band=request.band,
-        sca=request.sca,
-        exptime_s=full.exptime,
-        throughput=full.throughput,
-        method="linear",
-        realizations=BETWEEN_LIMITS_PILOT,
-        pupil_scale=full.pupil_scale,
-        scene=simulated,
-        ramp=full.ramp,
-        full_well_e=request.full_well,
-    )
+    config = linear_config(request, full, table, BETWEEN_LIMITS_PILOT, simulated)
     result = experiment.slopes(
         config, [magnitude], beta0=request.beta0, linearise_at=full.linearise_at, residual_nl=full.residual_nl
     )[0]
