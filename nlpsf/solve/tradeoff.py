@@ -79,7 +79,7 @@ def reference_slopes(band: str, sca: int, magnitude: float, default: str = "pape
 
 def _roman_config(band: str, sca: int, realizations: int | None = None, level: str = "linear"):
     """The Roman default's simulation at the SCA centre (``TableSettings.roman``) at a level."""
-    from . import tablebuild
+    from nlpsf.slopes import tablebuild
 
     changes = {} if realizations is None else {"realizations": realizations}
     fidelity = "polychromatic" if level == "polychromatic" else "linear"
