@@ -27,8 +27,9 @@ class Health(BaseModel):
     job_store: JobStoreStatus = Field(description="state of the simulation job store")
     http_workers: dict[str, Any] | None = Field(
         None,
-        description="the HTTP workers under the supervisor: workers, responding (counts), stalled (each worker's index and "
-        "silence in s), heartbeat_timeout_s; null when no supervisor runs the service",
+        description="the HTTP workers under the supervisor: workers, responding, starting (counts: a starting worker has "
+        "not beaten yet), stalled (each worker's index and silence in s), heartbeat_timeout_s; null when no supervisor "
+        "runs the service",
     )
 
 

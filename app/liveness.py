@@ -43,16 +43,20 @@ def silence(index: int, now: float | None = None) -> float:
 
 
 def report() -> dict[str, Any] | None:
-    """Every HTTP worker's state as /health shows it: how many there are, which are silent and for how long."""
+    """Every HTTP worker's state as /health shows it: how many there are, how many respond (have
+    beaten within the last second), how many are still starting (no beat yet: their slot holds the
+    end of their start grace, a time to come) and which are silent and for how long."""
     if BEATS is None:
         return None
     now = time.monotonic()
     silent = {index: silence(index, now) for index in range(len(BEATS))}
     threshold = min(REPORT_AFTER_S, TIMEOUT_S)
     stalled = [{"worker": index, "silent_s": round(age, 1)} for index, age in silent.items() if age > threshold]
+    starting = sum(1 for age in silent.values() if age < 0)
     return {
         "workers": len(BEATS),
-        "responding": len(BEATS) - len(stalled),
+        "responding": len(BEATS) - len(stalled) - starting,
+        "starting": starting,
         "stalled": stalled,
         "heartbeat_timeout_s": TIMEOUT_S,
         "this_worker": INDEX,

@@ -24,7 +24,8 @@ from fastapi.staticfiles import StaticFiles
 from starlette.middleware.gzip import GZipMiddleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from nlpsf import __version__, defaults
+from nlpsf import defaults
+from nlpsf._version import __version__
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import providers, tables
 from nlpsf.solve import batch
@@ -78,28 +79,33 @@ REQUEST_SCHEMAS = {
 }
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    settings = settings or Settings()
+def _load_before_serving(app: FastAPI) -> None:
+    """Everything a request reads, loaded once before any connection is accepted (uvicorn listens
+    after the lifespan), and the interpreter set up for serving."""
+    app.state.tables = tables.load_tables()
+    # The field-point tables (--over-field) too, so the first such request is as fast as the rest.
+    field = providers.field_tables()
+    if field is not None:
+        field.load_all()
+    # One default answer (the Roman default at its field grid's nodes, its readout, sky and model
+    # parts): what a first /solve would otherwise load lazily (~1.3 s, against ~40 ms after).
+    _answer_one_default_solve()
+    # What is loaded now lives as long as the process: out of the cyclic collector's sight, so a
+    # full collection (0.2-0.5 s over the ~180,000 objects loaded, holding the GIL: every request
+    # of this worker waits) never runs over it again.
+    gc.collect()
+    gc.freeze()
+    # The event loop waits at most this long for the interpreter lock a worker thread holds (a
+    # default solve, a large body's parsing) before it may answer another request: 1 ms, not 5.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+
+
+def _lifespan(settings: Settings):
+    """The service's lifespan: what it loads before serving, and its job store and dispatcher."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        # Tables first, once, before any connection is accepted (uvicorn listens after the lifespan).
-        app.state.tables = tables.load_tables()
-        # The field-point tables (--over-field) too, so the first such request is as fast as the rest.
-        field = providers.field_tables()
-        if field is not None:
-            field.load_all()
-        # One default answer (the Roman default at its field grid's nodes, its readout, sky and model
-        # parts): what a first /solve would otherwise load lazily (~1.3 s, against ~40 ms after).
-        _answer_one_default_solve()
-        # What is loaded now lives as long as the process: out of the cyclic collector's sight, so a
-        # full collection (0.2-0.5 s over the ~180,000 objects loaded, holding the GIL: every request
-        # of this worker waits) never runs over it again.
-        gc.collect()
-        gc.freeze()
-        # The event loop waits at most this long for the interpreter lock a worker thread holds (a
-        # default solve, a large body's parsing) before it may answer another request: 1 ms, not 5.
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        _load_before_serving(app)
         store = Store(settings.db_path)
         if store.state != "ok":
             log.error("starting without simulations: %s; the calculator runs, /health says why", store.reason)
@@ -114,6 +120,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await app.state.notifier.stop()
             await dispatcher.stop()
 
+    return lifespan
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
     app = FastAPI(
         title="nlpsf",
         version=__version__,
@@ -123,7 +134,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "curves for plotting, the paper's published data, and fresh simulations as jobs. "
             "Every number carries its conditions (band, SCA, exposure, beta0, fidelity) and its uncertainty."
         ),
-        lifespan=lifespan,
+        lifespan=_lifespan(settings),
         docs_url=None,  # served below from vendored Swagger UI, never a CDN
         redoc_url=None,
     )
@@ -146,6 +157,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     _problem_schema(app)
     # Synchronous endpoints' cost measured where it is spent (their thread); pure answers kept by request.
     budget.install_metering()
+    _add_middleware(app, settings)
+    return app
+
+
+def _add_middleware(app: FastAPI, settings: Settings) -> None:
+    """The middleware stack around every request."""
     # Middleware, innermost first (each add_middleware wraps the ones before it): JSON bodies checked
     # (off the loop when large); the page's pure answers kept; answers compressed for clients that
     # accept gzip (the tables come compressed); the API's methods; the body's limits; each request
@@ -162,7 +179,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.allowed_hosts != ["*"]:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=settings.allowed_hosts)
     app.add_middleware(SecurityHeaders)
-    return app
 
 
 #: The 429 every API path may answer (``budget.ClientMeter``), where a route documents no 429 of its own.

@@ -190,9 +190,9 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
     ),
     FlagCode.ACCURACY_CENTROIDS: FlagSpec(
         "pixels lose resultants at m={magnitude:.2f}: the slope's statistical error over {pilot} centroids is "
-        "{pilot_error:.2g} of it, so {used} centroids are simulated (expected statistical error {expected_error:.2g}, "
+        "{pilot_error:.2g} of it, so {used} centroids are simulated (its statistical error: {errors}; "
         "target {target:.2g}: {verdict})",
-        ("magnitude", "pilot", "pilot_error", "used", "expected_error", "target", "verdict"),
+        ("magnitude", "pilot", "pilot_error", "used", "errors", "target", "verdict"),
         "Where pixels lose resultants an accuracy answer simulates enough centroids for its statistical error to fit "
         "its target (or says it cannot).",
     ),
@@ -331,8 +331,8 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "between the saturation limits at pixel ({x:.0f}, {y:.0f}): m={magnitude:.2f} lies between the ramp's limit "
         "m={m_sat:.2f} and the final frame's m={m_sat_final:.2f}, where pixels lose resultants and the slope changes with "
         "each that does; the field grid's interpolation misses a fresh simulation there (docs/field.md), so the slope is "
-        "simulated afresh at this position with the grid's own {realizations} centroids (fidelity linear)",
-        ("x", "y", "magnitude", "m_sat", "m_sat_final", "realizations"),
+        "simulated afresh at this position with {realizations} centroids (fidelity linear): {centroids}",
+        ("x", "y", "magnitude", "m_sat", "m_sat_final", "realizations", "centroids"),
         "Between the saturation limits the Roman default's slope at a position is simulated afresh, not read from "
         "the field grid (whose interpolation misses there).",
     ),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from nlpsf.slopes.fidelity import LEVELS
+from nlpsf.sim.levels import LEVELS
 
 from .. import defaults
 from . import progress_printer
@@ -228,6 +228,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _report(solution, args: argparse.Namespace, ramp=None) -> int:
+    from nlpsf.solve.model_part import Rule
+
     payload = solution.to_dict()
     if args.json:
         print_json(payload)
@@ -290,7 +292,7 @@ def _report(solution, args: argparse.Namespace, ramp=None) -> int:
         if dropped:
             print(f"  parts not counted (the request sets or simulates them): {', '.join(e['name'] for e in dropped)}")
         # Measured at the point (accuracy): signed; from the shipped worst cases: a magnitude only.
-        measured = "accuracy" in solution.model and solution.model["combine"] != "roman"
+        measured = "accuracy" in solution.model and solution.model["combine"] != Rule.ROMAN_PARTS
         left = ", ".join(
             f"{e['name']} {_percent(e['impact'], measured or bool(e.get('measured_here')))}" for e in solution.model["left_out"]
         )

@@ -26,7 +26,8 @@ import numpy as np
 from astropy.table import Table, vstack
 from scipy.interpolate import CubicSpline
 
-from nlpsf import __version__, defaults, roman
+from nlpsf import defaults, roman
+from nlpsf._version import __version__
 from nlpsf.checks import InputError, SimulationError
 from nlpsf.request import presets as roman_default
 from nlpsf.roman import photometry
@@ -101,8 +102,10 @@ class TableSettings:
 
     @classmethod
     def of_scene(cls, scene: str, **changes) -> TableSettings:
-        """The settings of the tables of ``scene`` ("paper" or "roman", ``nlpsf tables --scene``)."""
-        return cls.roman(**changes) if scene == "roman" else cls(**changes)
+        """The settings of the tables of ``scene`` ("paper" or "roman", ``nlpsf tables --scene``): the
+        field grid's recipe (:meth:`roman`) for the preset answered from a field grid
+        (``presets.Policy.field_grid``), the paper tables' otherwise."""
+        return cls.roman(**changes) if roman_default.policy(scene).field_grid else cls(**changes)
 
     @classmethod
     def roman(cls, **changes) -> TableSettings:
@@ -125,13 +128,10 @@ class TableSettings:
         the SCA (``roman.field_points``), ``position`` at any pixel position, neither at the centre."""
         if point:
             position = field_position(sca, point)
-        exptime, ramp = self.exptime_s, None
-        if self.scene == "roman":
-            readout = roman_default.readout(band, sca, self.exptime_s)
-            exptime, ramp = readout.exptime_s, readout.ramp
-            scene = roman_default.scene(position, readout.background_e)
-        else:
-            scene = experiment.scenes.SceneModel(position=position) if position else experiment.PAPER_SCENE
+        # The scene preset's readout, exposure and sky (``presets.fill``) and its scene at the position.
+        filled = roman_default.fill(self.scene, band, sca, self.exptime_s, None, None, None)
+        exptime, ramp = filled.exptime, filled.ramp
+        scene = roman_default.preset_scene(self.scene, position, filled.background_e or 0.0) or experiment.PAPER_SCENE
         level = fidelity.simulation_settings(self.fidelity)
         return experiment.SimulationConfig(
             band=band,
@@ -272,29 +272,7 @@ def compute_table(
         linearise_at=settings.linearise_at,
         residual_nl=settings.residual_nl,
     )
-    columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
-    for metric in COLUMN_METRICS:
-        for mode in MODES:
-            columns[f"{mode}_{metric}"] = []
-            columns[f"{mode}_{metric}_err"] = []
-    columns["failed_realizations"] = []
-    for r in results:
-        columns["flux_electrons"].append(r.flux_electrons)
-        columns["peak_electrons"].append(r.peak_electrons)
-        columns["failed_realizations"].append(r.failed_realizations)
-        for metric, name in COLUMN_METRICS.items():
-            bias = r.bias[name]
-            columns[f"bias_{metric}"].append(np.nan if bias.mean is None else bias.mean)
-            columns[f"bias_{metric}_err"].append(np.nan if bias.stderr is None else bias.stderr)
-            scatter = r.scatter[name]
-            columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
-            columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
-    flux = np.asarray(columns["flux_electrons"])
-    names = [f"{mode}_{metric}" for metric in COLUMN_METRICS for mode in MODES]
-    estimates = interpolation_error_estimate(flux, np.stack([np.asarray(columns[name]) for name in names], axis=-1))
-    for k, name in enumerate(names):
-        columns[f"{name}_interp"] = list(estimates[:, k])
-    table = Table(columns)
+    table = Table(_table_columns(magnitudes, results))
     table.add_column(band, name="band", index=0)
     table.add_column(np.int16(sca), name="sca", index=1)
     if point:
@@ -327,6 +305,34 @@ def compute_table(
         }
     )
     return table
+
+
+def _table_columns(magnitudes, results: list[experiment.SlopeResult]) -> dict[str, list]:
+    """A table's columns: per magnitude its flux, peak, failed realizations, and each metric's bias
+    and scatter slopes with their standard errors and interpolation error estimates."""
+    columns: dict[str, list] = {"magnitude": list(magnitudes), "flux_electrons": [], "peak_electrons": []}
+    for metric in COLUMN_METRICS:
+        for mode in MODES:
+            columns[f"{mode}_{metric}"] = []
+            columns[f"{mode}_{metric}_err"] = []
+    columns["failed_realizations"] = []
+    for r in results:
+        columns["flux_electrons"].append(r.flux_electrons)
+        columns["peak_electrons"].append(r.peak_electrons)
+        columns["failed_realizations"].append(r.failed_realizations)
+        for metric, name in COLUMN_METRICS.items():
+            bias = r.bias[name]
+            columns[f"bias_{metric}"].append(np.nan if bias.mean is None else bias.mean)
+            columns[f"bias_{metric}_err"].append(np.nan if bias.stderr is None else bias.stderr)
+            scatter = r.scatter[name]
+            columns[f"scatter_{metric}"].append(np.nan if scatter["value"] is None else scatter["value"])
+            columns[f"scatter_{metric}_err"].append(np.nan if scatter["uncertainty"] is None else scatter["uncertainty"])
+    flux = np.asarray(columns["flux_electrons"])
+    names = [f"{mode}_{metric}" for metric in COLUMN_METRICS for mode in MODES]
+    estimates = interpolation_error_estimate(flux, np.stack([np.asarray(columns[name]) for name in names], axis=-1))
+    for k, name in enumerate(names):
+        columns[f"{name}_interp"] = list(estimates[:, k])
+    return columns
 
 
 def _partial_path(directory: Path, band: str, sca: int, point: int | None = None, node=None) -> Path:
@@ -498,10 +504,12 @@ def _ramp_shifts(tables: list) -> dict[str, dict]:
     out: dict[str, dict] = {}
     for t in tables:
         key = f"{t.meta['band']}_{int(t.meta['sca']):02d}"
-        if key in out or t.meta["settings"].get("scene", "paper") != "roman":
+        if key in out:
             continue
         settings = TableSettings(**t.meta["settings"])
         config = settings.config(t.meta["band"], int(t.meta["sca"]))
+        if config.ramp is None:
+            continue
         shift = config.ramp.saturation_shift_mag(config.exptime_s, config.full_well_e, settings.beta0, config.scene.background_e)
         out[key] = {"ramp_shift_mag": float(shift)}
     return out

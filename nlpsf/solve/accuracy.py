@@ -60,9 +60,10 @@ ANSWER_REALIZATIONS = 25
 STATISTICAL_SHARE = 0.5
 #: The pilot's centroids there: the tables' and the field grid's own 100 (the same draws).
 BETWEEN_LIMITS_PILOT = 100
-#: The most centroids an answer simulates there (about 8x a table's cost per magnitude; the stamps
-#: alone are 59 MB at the default's 96 x 96 fine pixels). Beyond it the statistical error is stated.
-MAX_REALIZATIONS = 800
+#: The most centroids an answer simulates there, in batches of ``source.BATCH_REALIZATIONS`` (one
+#: prepared scene each, so the memory stays a batch's): ~2.4 ms of CPU each on H158's HLWAS ramp,
+#: about 30 s at the cap. Beyond it the statistical error is stated.
+MAX_REALIZATIONS = 12_800
 #: Where ``fidelity.json`` holds the Roman default's measurement (same shape as the top level:
 #: ``errors[band][mode][metric][level]``, ``date``, ``reference``; ``tradeoff(default="roman")``).
 ROMAN_ENTRY = ("roman",)
@@ -186,6 +187,27 @@ def _with_band_integration(scene: scenes.SceneModel) -> scenes.SceneModel:
 # --- impacts inside the full scene --------------------------------------------------------------
 
 
+def linear_config(request, full: FullScene, table, realizations: int, scene: scenes.SceneModel):
+    """The linear-response simulation an accuracy answer measures with: the table's settings
+    (``SimulationConfig.from_table``) at the request's band and SCA, the full scene's exposure,
+    throughput and pupil rule, ``realizations`` centroids and ``scene``; with a ramp, the ramp and the
+    request's full well (a final frame keeps the table's)."""
+    from nlpsf.sim import experiment
+
+    return experiment.SimulationConfig.from_table(
+        table.settings,
+        band=request.band,
+        sca=request.sca,
+        exptime_s=full.exptime,
+        throughput=full.throughput,
+        method="linear",
+        realizations=realizations,
+        pupil_scale=full.pupil_scale,
+        scene=scene,
+        **({} if full.ramp is None else {"ramp": full.ramp, "full_well_e": request.full_well}),
+    )
+
+
 class Probe:
     """Linear-response slopes of variants of the full scene at one magnitude, on the same centroids.
 
@@ -193,21 +215,8 @@ class Probe:
     mode, with its standard error over centroid samples (:func:`impact_uncertainty`, a bound)."""
 
     def __init__(self, request, full: FullScene, table, magnitude: float, realizations: int = PROBE_REALIZATIONS):
-        from nlpsf.sim import experiment
-
         self.request, self.full, self.magnitude = request, full, float(magnitude)
-        self.base = experiment.SimulationConfig.from_table(
-            table.settings,
-            band=request.band,
-            sca=request.sca,
-            exptime_s=full.exptime,
-            throughput=full.throughput,
-            method="linear",
-            realizations=realizations,
-            pupil_scale=full.pupil_scale,
-            scene=full.scene,
-            **({} if full.ramp is None else {"ramp": full.ramp, "full_well_e": request.full_well}),
-        )
+        self.base = linear_config(request, full, table, realizations, full.scene)
         self._slopes: dict[scenes.SceneModel, tuple[float | None, float | None]] = {}
         self.runs = 0
 
@@ -332,7 +341,7 @@ def select(request, magnitude: float, tables_set: tables.TableSet | None = None,
 
 
 #: The values ``FlagCode.ACCURACY_CENTROIDS`` quotes from :func:`centroids_where_pixels_saturate`.
-ACCURACY_CENTROIDS_QUOTES = ("magnitude", "pilot", "pilot_error", "used", "expected_error", "target", "verdict")
+ACCURACY_CENTROIDS_QUOTES = ("magnitude", "pilot", "pilot_error", "used", "errors", "target", "verdict")
 
 
 def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, magnitude: float, accuracy: float) -> dict | None:
@@ -350,19 +359,7 @@ def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, 
     # The paper's star is the sharpest the tables hold: no pixel of a broader star saturates fainter.
     if magnitude > table.saturation(full.exptime, request.full_well - background) + 0.5:
         return None
-    config = experiment.SimulationConfig.from_table(
-        table.settings,
-        band=request.band,
-        sca=request.sca,
-        exptime_s=full.exptime,
-        throughput=full.throughput,
-        method="linear",
-        realizations=BETWEEN_LIMITS_PILOT,
-        pupil_scale=full.pupil_scale,
-        scene=simulated,
-        ramp=full.ramp,
-        full_well_e=request.full_well,
-    )
+    config = linear_config(request, full, table, BETWEEN_LIMITS_PILOT, simulated)
     result = experiment.slopes(
         config, [magnitude], beta0=request.beta0, linearise_at=full.linearise_at, residual_nl=full.residual_nl
     )[0]
@@ -389,6 +386,8 @@ def centroids_where_pixels_saturate(request, full: FullScene, table, simulated, 
         "needed": needed,
         "used": used,
         "expected_error": expected,
+        # What the answer reaches is measured over the count it simulates (``centroids.enough_centroids``).
+        "errors": f"{expected:.2g} expected over {used}",
         "target": target,
         "met": met,
         "verdict": verdict,
@@ -427,6 +426,51 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
 
     alone = {e["name"]: e["impact_alone"] for e in effects}
     roman = request.policy.quotes_default
+    parts = _accuracy_parts(full, left, combined, roman)
+    included = [{"name": n, "impact": alone.get(n)} for n in _removable(full.scene) if n not in left]
+    combine, stated_against, model_basis, extra = "sum", "slope", None, {}
+    if roman:
+        own = _roman_parts(request, full)
+        parts = own["left_out"] + parts
+        included += own["included"]
+        combine, stated_against, model_basis = own["combine"], own["stated_against"], own["basis"]
+        extra = {k: own[k] for k in ("magnitude_offset",) if k in own}
+        extra["accuracy_parts"] = {
+            "level": "the fidelity level's measured error, in uncertainty_fidelity (as a table answer's level error is)",
+            LEFT_OUT_PART: "the left-out set's measured impact, a shift with a fixed sign: added linearly to the "
+            "default's parts in uncertainty_model (the rule's left-out effects)",
+        }
+    return {
+        "accuracy": accuracy,
+        "magnitude_measured_at": float(magnitude),
+        "full_scene": _full_scene_info(full),
+        "level": {"name": level.name, "error": level.error, "basis": level.basis},
+        # Simulated effects, with the impact of removing each alone where the search measured it.
+        "included": included,
+        "left_out": parts,
+        "left_out_impact": combined[0] or 0.0,
+        "left_out_impact_uncertainty": combined[1] or 0.0,
+        "measured": effects,
+        "probe": None
+        if probe is None
+        else {"realizations": probe.base.realizations, "method": "linear response, same centroids", "runs": probe.runs},
+        "stated_against": stated_against,
+        "combine": combine,
+        "basis": (
+            "impacts measured inside the full scene (each effect removed from it, and the left-out set removed "
+            "together); the left-out set's impact is that of the set, not a sum"
+            if probe is not None
+            else "the full scene is simulated at a level whose measured error meets the accuracy: nothing left out"
+        )
+        + ("" if model_basis is None else f". The Roman default's own parts: {model_basis}"),
+        **extra,
+    }
+
+
+def _accuracy_parts(full: FullScene, left, combined, roman: bool) -> list[dict]:
+    """The model part's entries the accuracy search itself states: the left-out set as one entry
+    (``roman``: as the Roman default's parts name it), the position's spread where none is given,
+    and a pupil rule other than the official one."""
     parts = []
     if left:
         parts.append(
@@ -455,51 +499,19 @@ def _model_info(request, full: FullScene, magnitude, left, combined, level: Leve
                 "why": f"pupil-mask scale rule {full.pupil_scale!r}, not the official clear area: not measured here",
             }
         )
-    included = [{"name": n, "impact": alone.get(n)} for n in _removable(full.scene) if n not in left]
-    combine, stated_against, model_basis, extra = "sum", "slope", None, {}
-    if roman:
-        own = _roman_parts(request, full)
-        parts = own["left_out"] + parts
-        included += own["included"]
-        combine, stated_against, model_basis = "roman", own["stated_against"], own["basis"]
-        extra = {k: own[k] for k in ("magnitude_offset",) if k in own}
-        extra["accuracy_parts"] = {
-            "level": "the fidelity level's measured error, in uncertainty_fidelity (as a table answer's level error is)",
-            LEFT_OUT_PART: "the left-out set's measured impact, a shift with a fixed sign: added linearly to the "
-            "default's parts in uncertainty_model (the rule's left-out effects)",
-        }
+    return parts
+
+
+def _full_scene_info(full: FullScene) -> dict:
+    """What the full scene an accuracy answer simulates is, as its model part quotes it."""
     return {
-        "accuracy": accuracy,
-        "magnitude_measured_at": float(magnitude),
-        "full_scene": {
-            "source": full.source,
-            "scene": full.scene.to_dict(),
-            "description": full.scene.describe(),
-            "linearise_at": full.linearise_at,
-            "residual_nl": full.residual_nl,
-            "pupil_scale": full.pupil_scale,
-            "ramp": None if full.ramp is None else full.ramp.conditions(full.exptime),
-        },
-        "level": {"name": level.name, "error": level.error, "basis": level.basis},
-        # Simulated effects, with the impact of removing each alone where the search measured it.
-        "included": included,
-        "left_out": parts,
-        "left_out_impact": combined[0] or 0.0,
-        "left_out_impact_uncertainty": combined[1] or 0.0,
-        "measured": effects,
-        "probe": None
-        if probe is None
-        else {"realizations": probe.base.realizations, "method": "linear response, same centroids", "runs": probe.runs},
-        "stated_against": stated_against,
-        "combine": combine,
-        "basis": (
-            "impacts measured inside the full scene (each effect removed from it, and the left-out set removed "
-            "together); the left-out set's impact is that of the set, not a sum"
-            if probe is not None
-            else "the full scene is simulated at a level whose measured error meets the accuracy: nothing left out"
-        )
-        + ("" if model_basis is None else f". The Roman default's own parts: {model_basis}"),
-        **extra,
+        "source": full.source,
+        "scene": full.scene.to_dict(),
+        "description": full.scene.describe(),
+        "linearise_at": full.linearise_at,
+        "residual_nl": full.residual_nl,
+        "pupil_scale": full.pupil_scale,
+        "ramp": None if full.ramp is None else full.ramp.conditions(full.exptime),
     }
 
 

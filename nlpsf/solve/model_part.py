@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -21,9 +22,17 @@ from nlpsf.slopes import tables
 
 from . import roman_uncertainty as roman_parts
 
-#: ``shipped_model``'s ``default`` for the Roman default (``roman_default.NAME``; kept literal so
-#: that this module does not import the default's readout machinery).
-ROMAN_DEFAULT = "roman"
+
+class Rule(StrEnum):
+    """How an answer's model parts add up: its model part's ``combine`` (the value answers carry)."""
+
+    #: Measured at the point, each below the accuracy asked for (:data:`COMBINE`).
+    QUADRATURE = "quadrature"
+    #: The shipped worst cases of the paper scene's measurement, added up (:data:`COMBINE`).
+    SUM = "sum"
+    #: The Roman default's parts, read at the magnitude and combined by ``roman_uncertainty.combine``.
+    ROMAN_PARTS = "roman"
+
 
 #: The model part's two relative pieces (see :func:`model_at`).
 MODEL_PARTS = ("effects_relative", "pupil_scale_relative")
@@ -52,19 +61,25 @@ def shipped_model(
 ) -> dict:
     """The model part of an answer without ``accuracy``, from a shipped measurement.
 
-    ``default="roman"`` (``roman_default.NAME``): the Roman default's parts
-    (:func:`roman_default_model`, ``nlpsf/data/roman_model_uncertainty.json``). ``default="paper"``
-    (the paper scene, unchanged): what the paper's scene leaves out
-    (``scene.shipped_model_uncertainty``). Effects the scene (or the polychromatic level's flat-f_nu
-    band integration) simulates are not left out; the position's spread over the SCA is left out
-    unless a position is given. An SCA the measurement covers reads its own values, any other the
-    worst over those it covers. ``pupil_scale``: the rule the answer uses (None: the library's
-    default), which the pupil part's label names. ``request`` (the Roman default's only): where it
-    differs from the conditions its parts were measured at (:func:`roman_default_model`)."""
-    if default == ROMAN_DEFAULT:
-        return roman_default_model(band, sca, metric, mode, scene, pupil_scale=pupil_scale, request=request)
-    if default != "paper":
-        raise ValueError(f"default must be 'paper' or {ROMAN_DEFAULT!r}, got {default!r}")
+    ``default``: the measurement the request's preset reads (``presets.Policy.measured_as``,
+    :data:`SHIPPED`): "roman", the Roman default's parts (:func:`roman_default_model`,
+    ``nlpsf/data/roman_model_uncertainty.json``); "paper" (the paper scene, unchanged): what the
+    paper's scene leaves out (:func:`paper_scene_model`). ``pupil_scale``: the rule the answer uses
+    (None: the library's default), which the pupil part's label names. ``request`` (the Roman
+    default's only): where it differs from the conditions its parts were measured at."""
+    reader = SHIPPED.get(default)
+    if reader is None:
+        raise ValueError(f"default must be one of {', '.join(map(repr, SHIPPED))}, got {default!r}")
+    return reader(band, sca, metric, mode, scene, fidelity, pupil_scale=pupil_scale, request=request)
+
+
+def paper_scene_model(
+    band: str, sca: int, metric: str, mode: str, scene, fidelity: str, *, pupil_scale=None, request=None
+) -> dict:
+    """What the paper's scene leaves out (``scene.shipped_model_uncertainty``). Effects the scene (or
+    the polychromatic level's flat-f_nu band integration) simulates are not left out; the position's
+    spread over the SCA is left out unless a position is given. An SCA the measurement covers reads
+    its own values, any other the worst over those it covers. ``request`` is not read."""
     from nlpsf import defaults
     from nlpsf.sim import scene as scenes
 
@@ -102,7 +117,7 @@ def shipped_model(
         "included": [{"name": name, "impact": None} for name in scenes.EFFECTS if on[name]],
         "left_out": parts,
         "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
-        "combine": "sum",
+        "combine": Rule.SUM,
         "basis": (
             f"shipped measurement ({conditions['script']}, {conditions['measured_utc']}): each effect's worst |impact| on "
             f"the {mode} slope at its nominal Roman value on {where}, at m = {conditions['magnitudes']} "
@@ -116,12 +131,12 @@ def model_at(info: dict, slopes, magnitude: float) -> dict:
     relative uncertainty of the effects left out and of the pupil-scale rule (:data:`MODEL_PARTS`).
 
     A shipped e1 / e2 impact is stated against |c_e| and scaled here by |c_e| / |c_ei|, as the
-    optical model's part is. The Roman default's parts (``combine == "roman"``) are read at the
+    optical model's part is. The Roman default's parts (:attr:`Rule.ROMAN_PARTS`) are read at the
     magnitude (``roman_uncertainty.at_magnitude``) and combined by its rule; the optical model's
     vintage and the pupil rule are among them, so ``effects_relative`` holds the whole model part,
     ``pupil_scale_relative`` is 0 and ``optical_model_included`` tells the caller not to add
     ``optical_model_relative`` again."""
-    if info["combine"] == "roman":
+    if info["combine"] == Rule.ROMAN_PARTS:
         # The default's e1 / e2 parts are restated with the answer's own slopes (the grid's or the
         # simulation's), not the paper tables': their ratio |c_e| / |c_ei| differs by up to x3.5.
         own = None
@@ -264,12 +279,21 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
         "left_out": parts,
         "ranges": ranges,
         "stated_against": "modulus" if metric in ("e1", "e2") else "slope",
-        "combine": "roman",
+        "combine": Rule.ROMAN_PARTS,
         "basis": basis,
     }
     if offset:
         out["magnitude_offset"] = offset
     return out
+
+
+#: The shipped measurements a model part is read from, by name (``presets.Policy.measured_as``).
+SHIPPED = {
+    "paper": paper_scene_model,
+    "roman": lambda band, sca, metric, mode, scene, fidelity, *, pupil_scale=None, request=None: roman_default_model(
+        band, sca, metric, mode, scene, pupil_scale=pupil_scale, request=request
+    ),
+}
 
 
 def _optics_for_rule(band: str, sca: int, entry: dict, rule: str) -> dict:
@@ -327,8 +351,8 @@ def roman_measurement_differences(request) -> tuple[list[str], float]:
 
 
 def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
-    """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"] ==
-    "roman"``) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
+    """:func:`model_at`'s ``effects_relative`` of the Roman default's parts (``info["combine"]``
+    :attr:`Rule.ROMAN_PARTS`) at many (magnitude, component scale) pairs at once -- an SCA's field-grid nodes, each
     at its own answer: each part read at every magnitude in one look-up
     (``roman_uncertainty.at_magnitudes``), scaled, and combined by ``roman_uncertainty.combine``'s
     rule with numpy's sums (``combine`` adds with ``math.fsum``: the two agree to the last bits)."""

@@ -115,7 +115,7 @@ def answer_nodes(request, the_plan, saturation: list[float], systematic: float |
     plan ``the_plan`` read from the field grid; ``saturation``: each node's saturation magnitude, the
     ramp's, ``systematic``: the fidelity level's relative error), or None where a node leaves the
     common case (see the module docstring)."""
-    if the_plan.grid is None or the_plan.model.get("combine") != "roman" or request.throughput is not None:
+    if the_plan.grid is None or the_plan.model.get("combine") != model_part.Rule.ROMAN_PARTS or request.throughput is not None:
         return None
     nodes = _Nodes(request, the_plan.grid)
     if not nodes.held(saturation):

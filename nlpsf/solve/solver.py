@@ -73,6 +73,7 @@ from nlpsf.slopes.source import Slopes as _Slopes
 
 from . import conditions as answer_conditions
 from . import model_part, quantity, sca_nodes
+from .centroids import enough_centroids
 from .over_field import grid_size, sca_range, worst_over_field
 from .solution import Solution
 from .validity import (
@@ -414,8 +415,9 @@ def answer(
         the_plan = plan_at_node(node_plan, request)
     else:
         the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
-    flags: list[str] = list(the_plan.notes)
     slopes = _Slopes.for_request(request, the_plan)
+    the_plan, slopes = enough_centroids(request, the_plan, slopes, _Slopes.for_request)
+    flags: list[str] = list(the_plan.notes)
     if "relabelled_from" in slopes.table.settings:
         flags.append(_relabel_flag(request, slopes))
     limits = _limits(request, the_plan, slopes)

@@ -174,8 +174,11 @@ def between_limits(grid, band: str, sca: int, position, magnitude: float | None)
     return float(ramp), float(final)
 
 
-def between_limits_flag(position, magnitude: float, limits: tuple[float, float], realizations: int) -> Flag:
-    """The flag of a Roman-default answer simulated afresh between the saturation limits."""
+def between_limits_flag(
+    position, magnitude: float, limits: tuple[float, float], realizations: int, centroids: str = "the grid's own"
+) -> Flag:
+    """The flag of a Roman-default answer simulated afresh between the saturation limits
+    (``centroids``: why that many)."""
     return make(
         FlagCode.DEFAULT_BETWEEN_LIMITS,
         x=position[0],
@@ -184,6 +187,7 @@ def between_limits_flag(position, magnitude: float, limits: tuple[float, float],
         m_sat=limits[0],
         m_sat_final=limits[1],
         realizations=realizations,
+        centroids=centroids,
     )
 
 

@@ -16,7 +16,9 @@ from nlpsf import SolveRequest, answer
 from nlpsf.flags import FlagCode, codes
 from nlpsf.request import presets
 from nlpsf.sim import experiment
+from nlpsf.sim.experiment import results
 from nlpsf.slopes import fieldgrid, providers, tablebuild
+from nlpsf.solve import centroids, solver
 from nlpsf.solve.validity import between_limits
 
 BAND, SCA, POSITION = "Y106", 4, (2174.0, 3177.0)
@@ -50,11 +52,74 @@ def test_between_the_limits_the_answer_is_the_grids_recipe_simulated_at_the_posi
     s = answer(_request(magnitude=magnitude, precision=0.01))
     value, stderr, summary = _recipe_slope(POSITION, magnitude)
     assert summary["fitted_on_fewer"] > 0  # pixels do lose resultants here
-    assert s.slope == pytest.approx(value, rel=1e-9)
-    assert s.slope_uncertainty == pytest.approx(stderr, rel=1e-9)
     assert s.fidelity == "linear" and FlagCode.DEFAULT_BETWEEN_LIMITS in codes(s.flags)
     assert FlagCode.DEFAULT_FROM_GRID not in codes(s.flags)
-    assert s.conditions["realizations"] == grid.conditions(BAND, SCA)["settings"]["realizations"]
+    own = grid.conditions(BAND, SCA)["settings"]["realizations"]
+    if abs(stderr / value) <= centroids.STATISTICAL_SHARE * centroids.DEFAULT_TARGET["size"]:
+        # The grid's own centroids are enough: the answer is the recipe's, bit for bit.
+        assert s.slope == pytest.approx(value, rel=1e-9)
+        assert s.slope_uncertainty == pytest.approx(stderr, rel=1e-9)
+        assert s.conditions["realizations"] == own
+    else:
+        assert s.conditions["realizations"] > own
+        assert abs(s.slope - value) <= 4 * np.hypot(stderr, s.slope_uncertainty)
+
+
+def test_between_the_limits_a_default_answer_simulates_enough_centroids_for_its_target():
+    # H158, SCA 7: at m = 16.8 (the limits 14.06 and 17.48) the e slope's error over the grid's own
+    # 100 centroids is ~8 % of it, above the 5 % (half the 10 % an e answer is held to here).
+    band, sca, position, magnitude = "H158", 7, (1200.0, 2900.0), 16.8
+    scene = replace(presets.base_scene(), position=position)
+    s = answer(SolveRequest(band, sca=sca, metric="e", scene=scene, magnitude=magnitude, tolerance=1e-3))
+    settings = tablebuild.TableSettings.roman()
+    pilot = experiment.slopes(
+        settings.config(band, sca, position=position), [magnitude], beta0=settings.beta0,
+        linearise_at=settings.linearise_at, residual_nl=settings.residual_nl,
+    )[0]  # fmt: skip
+    value, error = pilot.slope("bias", ("de1", "de2"))
+    target = centroids.STATISTICAL_SHARE * centroids.DEFAULT_TARGET["e"]
+    assert abs(error / value) > target
+    used = s.conditions["realizations"]
+    flag = next(f for f in s.flags if getattr(f, "code", None) == FlagCode.DEFAULT_BETWEEN_LIMITS)
+    assert 100 < used <= centroids.DEFAULT_MAX_REALIZATIONS and f"{used} centroids" in flag
+    # A standard error falls as 1 / sqrt(N) (the spread over centroids is the pilot's, to its sampling).
+    assert s.slope_uncertainty == pytest.approx(error * (100 / used) ** 0.5, rel=0.3)
+    if used < centroids.DEFAULT_MAX_REALIZATIONS:
+        assert s.slope_uncertainty / abs(s.slope) <= target * (1 + 1e-9) and flag.endswith("within it")
+    assert abs(s.slope - value) <= 4 * np.hypot(error, s.slope_uncertainty)
+
+
+def test_batches_of_centroids_pool_to_the_statistics_of_one_sample():
+    rng = np.random.default_rng(5)
+    whole = rng.standard_cauchy(2300)  # heavy-tailed, as slopes between the limits are
+    parts = [experiment.Statistic.of(whole[a:b]) for a, b in ((0, 800), (800, 1600), (1600, 2300))]
+    one, pooled = experiment.Statistic.of(whole), results.pooled_statistic(parts)
+    assert pooled.count == one.count == 2300
+    assert pooled.mean == pytest.approx(one.mean, rel=1e-12)
+    assert pooled.std == pytest.approx(one.std, rel=1e-12) and pooled.stderr == pytest.approx(one.stderr, rel=1e-12)
+
+
+def test_a_slope_of_more_centroids_than_a_batch_is_the_batches_pooled(monkeypatch):
+    # 250 centroids in batches of 100 (seeds seed, seed + 1, seed + 2): the answer's slope is the
+    # three simulations of the grid's recipe pooled, each run here on its own.
+    from nlpsf.slopes import source
+
+    monkeypatch.setattr(source, "BATCH_REALIZATIONS", 100)
+    magnitude = 17.0
+    settings = tablebuild.TableSettings.roman()
+    config = settings.config(BAND, SCA, position=POSITION)
+    ask = {"beta0": settings.beta0, "linearise_at": settings.linearise_at, "residual_nl": settings.residual_nl}
+    runs = [
+        experiment.slopes(replace(config, realizations=n, seed=config.seed + k), [magnitude], **ask)[0]
+        for k, n in enumerate((100, 100, 50))
+    ]
+    pooled = [results.pooled_statistic([r.bias[m] for r in runs]) for m in ("dR_over_R", "de1")]
+    request = _request(magnitude=magnitude, precision=0.01, fidelity="linear")
+    the_plan = replace(solver.plan(request), realizations=250)
+    slopes = source.Slopes.for_request(request, the_plan)
+    value, error, _ = slopes.at(magnitude)
+    assert value == pytest.approx(pooled[0].mean, rel=1e-12) and error == pytest.approx(pooled[0].stderr, rel=1e-12)
+    assert slopes._results[magnitude].bias["de1"].count == 250 == pooled[1].count
 
 
 def test_outside_the_limits_and_at_a_node_the_grid_answers(grid):
@@ -124,14 +189,16 @@ def test_accuracy_between_the_limits_simulates_enough_centroids(grid):
     _, pilot_error, _ = _recipe_slope(POSITION, magnitude)
     value, _, _ = _recipe_slope(POSITION, magnitude)
     relative = abs(pilot_error / value)
-    assert used == min(accuracy.MAX_REALIZATIONS, max(100, int(np.ceil(100 * (relative / 0.005) ** 2))))
-    # Its stated statistical error is the pilot's scaled by sqrt(100 / N) (to the sampling of the
-    # error itself, 25 %), and where the count fits the rule it is within half the accuracy.
+    # The pilot's rule first; then the count is chosen again from the error it reached, so never fewer.
+    assert used >= min(accuracy.MAX_REALIZATIONS, max(100, int(np.ceil(100 * (relative / 0.005) ** 2))))
+    # A standard error falls as 1 / sqrt(N) (to the sampling of the spread itself, 30 %); where the
+    # count stays under the cap the error reached is within half the accuracy, and the flag says so.
     stated = s.slope_uncertainty / abs(s.slope)
-    assert stated == pytest.approx(relative * (100 / used) ** 0.5, rel=0.25)
+    assert s.slope_uncertainty == pytest.approx(pilot_error * (100 / used) ** 0.5, rel=0.3)
     flag = next(f for f in s.flags if getattr(f, "code", None) == FlagCode.ACCURACY_CENTROIDS)
+    assert f"{stated:.2g} over {used}" in flag
     if used < accuracy.MAX_REALIZATIONS:
-        assert stated <= 0.005 * 1.25 and "within it" in flag
+        assert stated <= 0.005 * (1 + 1e-9) and flag.endswith("within it)")
     else:
         assert "above it" in flag
     fainter = answer(_request(magnitude=final + 0.7, precision=0.01, accuracy=0.01))
@@ -139,8 +206,12 @@ def test_accuracy_between_the_limits_simulates_enough_centroids(grid):
     assert fainter.conditions["realizations"] == accuracy.ANSWER_REALIZATIONS
 
 
-def test_accuracy_says_when_no_affordable_count_fits(grid):
+def test_accuracy_says_when_no_affordable_count_fits(grid, monkeypatch):
+    from nlpsf.solve import accuracy
+
+    # The cap lowered to two batches of centroids, so that the test runs in seconds.
+    monkeypatch.setattr(accuracy, "MAX_REALIZATIONS", 1600)
     ramp, final = grid.saturation_magnitude(BAND, SCA, POSITION), grid.final_frame_saturation_magnitude(BAND, SCA, POSITION)
     s = answer(_request(metric="e2", magnitude=round(ramp + 0.33 * (final - ramp), 3), precision=0.01, accuracy=0.01))
     flag = next(f for f in s.flags if getattr(f, "code", None) == FlagCode.ACCURACY_CENTROIDS)
-    assert "above it" in flag and s.conditions["realizations"] == 800
+    assert "above it" in flag and s.conditions["realizations"] == accuracy.MAX_REALIZATIONS

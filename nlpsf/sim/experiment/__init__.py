@@ -91,6 +91,7 @@ from .results import (
     Statistic,
     _metrics,
     _reference_summary,
+    pooled,
 )
 from .validity import (
     MONTE_CARLO_SPREAD_FLOOR,

@@ -14,7 +14,15 @@ from nlpsf.flags import FlagCode, make
 from nlpsf.sim import detector, moments
 from nlpsf.threads import single_blas
 
-from .config import CORRECTED_RESIDUAL, LINEARISE_STATES, METRICS, PAPER_BETA_STEP, Progress, SimulationConfig
+from .config import (
+    CORRECTED_MONTE_CARLO_STEP,
+    CORRECTED_RESIDUAL,
+    LINEARISE_STATES,
+    METRICS,
+    PAPER_BETA_STEP,
+    Progress,
+    SimulationConfig,
+)
 from .correction import RESIDUAL_DESCRIPTIONS, RESIDUAL_MODELS, check_model, corrected_effect
 from .kernels import _finite_difference_slopes, _linear_slopes, _simulate_bias, _simulate_scatter
 from .prepared import Scene, _peak_electrons, prepare, star_peak_electrons
@@ -66,13 +74,8 @@ def simulate(
     corrected = residual_nl == "per_resultant_correction"
     if corrected and saturation_beta is None:
         saturation_beta = defaults.BETA0
-    scene = scene or prepare(config)
-    if scene.config != config:
-        raise InputError("scene", "the scene was prepared for a different configuration")
-    conditions = config.conditions()
-    if corrected:
-        conditions["residual_nl"] = residual_nl
-        conditions["raw_beta"] = saturation_beta
+    scene = _prepared_for(config, scene)
+    conditions = _simulation_conditions(config, residual_nl if corrected else None, saturation_beta)
     settings = config.moment_settings
     scene_flags = _scene_flags(scene)
     results: list[SimulationResult] = []
@@ -85,12 +88,8 @@ def simulate(
             start = time.perf_counter()
             if progress:
                 progress(m_index * len(paper_betas) + b_index, total, f"m={magnitude:g} beta={beta_given:g}")
-            if sigma_beta > 0:
-                result = _simulate_scatter(
-                    scene, charge_scale, beta, sigma_beta, settings, m_index * 7919 + b_index, saturation_beta, corrected
-                )
-            else:
-                result = _simulate_bias(scene, charge_scale, beta, settings, saturation_beta, corrected)
+            seed = m_index * 7919 + b_index
+            result = _bias_or_scatter(scene, charge_scale, beta, sigma_beta, settings, seed, saturation_beta, corrected)
             status = result.status
             results.append(
                 SimulationResult(
@@ -159,9 +158,7 @@ def slopes(
     raw, beta, sigma_beta = _slope_betas(beta0, beta_convention, linearise_at, sigma_beta)
     if corrected:
         beta = 0.0  # about a perfect calibration; the raw beta0 is corrected on every resultant
-    scene = scene or prepare(config)
-    if scene.config != config:
-        raise InputError("scene", "the scene was prepared for a different configuration")
+    scene = _prepared_for(config, scene)
     conditions = _slope_conditions(config, linearise_at, beta, raw, model)
     settings = config.moment_settings
     scene_flags = _scene_flags(scene)
@@ -175,13 +172,9 @@ def slopes(
         charge_scale = flux * config.oversampling**2
         effect, flags, extras = _readout_at(scene, charge_scale, raw, corrected)
         flags = scene_flags + flags
-        if config.method == "monte_carlo":
-            bias, scatter, status, basis = _monte_carlo_slopes(
-                scene, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags, model
-            )
-        else:
-            bias, scatter, status = _linear_slopes(scene, charge_scale, beta, settings, effect)
-            basis = "linear response at beta0: ||g . dI/dbeta|| averaged over centroid realizations"
+        bias, scatter, status, basis = _method_slopes(
+            scene, settings, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags, model
+        )
         out.append(
             SlopeResult(
                 conditions=conditions,
@@ -202,6 +195,40 @@ def slopes(
     if progress:
         progress(len(mags), len(mags), "done")
     return out
+
+
+def _prepared_for(config: SimulationConfig, scene: Scene | None) -> Scene:
+    """``scene`` (prepared now where None), checked to be ``config``'s."""
+    scene = scene or prepare(config)
+    if scene.config != config:
+        raise InputError("scene", "the scene was prepared for a different configuration")
+    return scene
+
+
+def _simulation_conditions(config: SimulationConfig, residual_nl: str | None, saturation_beta: float | None) -> dict:
+    """The configuration's conditions, with the residual model and the raw beta a corrected detector has."""
+    conditions = config.conditions()
+    if residual_nl is not None:
+        conditions["residual_nl"] = residual_nl
+        conditions["raw_beta"] = saturation_beta
+    return conditions
+
+
+def _bias_or_scatter(scene: Scene, charge_scale, beta, sigma_beta, settings, seed, saturation_beta, corrected):
+    """One (magnitude, beta) of :func:`simulate`: the bias at a uniform beta, or with ``sigma_beta`` > 0
+    the scatter over ``realizations`` draws of the beta map (``seed``: the pair's draws)."""
+    if sigma_beta > 0:
+        return _simulate_scatter(scene, charge_scale, beta, sigma_beta, settings, seed, saturation_beta, corrected)
+    return _simulate_bias(scene, charge_scale, beta, settings, saturation_beta, corrected)
+
+
+def _method_slopes(scene: Scene, settings, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags, model):
+    """(bias, scatter, status, scatter basis) of one magnitude by the configuration's method: the
+    paper's Monte Carlo, or the linear response at beta0."""
+    if scene.config.method == "monte_carlo":
+        return _monte_carlo_slopes(scene, magnitude, charge_scale, beta, raw, sigma_beta, effect, flags, model)
+    bias, scatter, status = _linear_slopes(scene, charge_scale, beta, settings, effect)
+    return bias, scatter, status, "linear response at beta0: ||g . dI/dbeta|| averaged over centroid realizations"
 
 
 def _readout_at(scene: Scene, charge_scale: float, raw: float, corrected: bool) -> tuple[RampEffect | None, list, dict]:
@@ -274,12 +301,12 @@ def _monte_carlo_slopes(
 ):
     """The paper's slopes at one magnitude: the bias by finite differences over centroids, the scatter
     as the spread over per-pixel beta maps at a fixed centroid; adds their flags to ``flags``. Under the
-    per-resultant correction the difference is over Delta_beta = +-PAPER_BETA_STEP x CORRECTED_RESIDUAL x beta0
-    about a perfect calibration (the earlier corrected model's step; the image is exactly linear in Delta_beta,
-    so only the moments' curvature, (1e-4)^2 relative, separates it from the derivative)."""
+    per-resultant correction the difference is over Delta_beta = +-CORRECTED_MONTE_CARLO_STEP x beta0 about a
+    perfect calibration (the image is exactly linear in Delta_beta, so only the moments' curvature separates it
+    from the derivative; see the constant for why not smaller)."""
     config = scene.config
     settings = config.moment_settings
-    step = PAPER_BETA_STEP * CORRECTED_RESIDUAL * abs(raw) if model == "per_resultant_correction" else None
+    step = CORRECTED_MONTE_CARLO_STEP * abs(raw) if model == "per_resultant_correction" else None
     bias, status = _finite_difference_slopes(scene, charge_scale, beta, settings, effect, step)
     flags += _cut_jump_flags(scene, charge_scale, beta, settings, bias, effect)
     scatter_runs = simulate(

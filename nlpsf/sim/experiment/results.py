@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -190,3 +190,60 @@ class SlopeResult:
             "conditions": c,
             **self.extras,
         }
+
+
+def pooled_statistic(parts: Sequence[Statistic]) -> Statistic:
+    """One statistic over the realizations of independent ``parts`` (each a mean over its own
+    centroids): the pooled mean, and the standard deviation from the within- and between-part sums
+    of squares, as if every realization had been in one sample."""
+    filled = [p for p in parts if p.mean is not None and p.count > 0]
+    count = sum(p.count for p in filled)
+    if count == 0:
+        return Statistic(None, None, None, 0)
+    mean = sum(p.count * p.mean for p in filled) / count
+    if count < 2:
+        return Statistic(float(mean), 0.0, 0.0, count)
+    squares = sum((p.count - 1) * (p.std or 0.0) ** 2 + p.count * (p.mean - mean) ** 2 for p in filled)
+    std = math.sqrt(squares / (count - 1))
+    return Statistic(float(mean), std, std / math.sqrt(count), count)
+
+
+def pooled(results: Sequence[SlopeResult]) -> SlopeResult:
+    """The slopes of several independent batches of centroids at one magnitude, as one result: a
+    linear-response answer (bias and scatter both means over centroids, ``_linear_slopes``) needs
+    more centroids than one prepared scene should hold in memory where pixels lose resultants."""
+    if len(results) == 1:
+        return results[0]
+    first = results[0]
+    if any(r.scatter_basis != first.scatter_basis or r.magnitude != first.magnitude for r in results):
+        raise ValueError("only batches of one linear-response simulation at one magnitude are pooled")
+    bias = {name: pooled_statistic([r.bias[name] for r in results]) for name in first.bias}
+    scatter = {}
+    for name in first.scatter:
+        weights = [r.bias[name].count for r in results]
+        values = [r.scatter[name]["value"] for r in results]
+        errors = [r.scatter[name]["uncertainty"] or 0.0 for r in results]
+        total = sum(w for w, v in zip(weights, values, strict=True) if v is not None)
+        if total == 0:
+            scatter[name] = {"value": None, "uncertainty": None}
+            continue
+        value = sum(w * v for w, v in zip(weights, values, strict=True) if v is not None) / total
+        error = math.sqrt(sum((w * u) ** 2 for w, v, u in zip(weights, values, errors, strict=True) if v is not None)) / total
+        scatter[name] = {"value": value, "uncertainty": error}
+    flags, seen = [], set()
+    for flag in (f for r in results for f in r.flags):
+        if str(flag) not in seen:
+            seen.add(str(flag))
+            flags.append(flag)
+    counts = [max(s.count for s in r.bias.values()) for r in results]
+    extras = {**first.extras, "batches": {"count": len(results), "realizations": counts}}
+    return replace(
+        first,
+        peak_electrons=max(r.peak_electrons for r in results),
+        bias=bias,
+        scatter=scatter,
+        failed_realizations=sum(r.failed_realizations for r in results),
+        flags=flags,
+        elapsed_s=sum(r.elapsed_s for r in results),
+        extras=extras,
+    )

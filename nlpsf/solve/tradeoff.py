@@ -26,10 +26,10 @@ import numpy as np
 
 from nlpsf import roman
 from nlpsf.sim import experiment, optics
-from nlpsf.solve import solver
+from nlpsf.sim.levels import LEVELS, simulation_settings
+from nlpsf.slopes import tables
 
-from . import tables
-from .fidelity import LEVELS, simulation_settings
+from . import solver
 
 #: (band, SCA, magnitude) where the levels are compared: bright to faint, short to long bands.
 TEST_POINTS = (
@@ -55,10 +55,19 @@ def _combine(values: list[float], errors: list[float]) -> float:
     return float(values[0]) if len(values) == 1 else float(math.hypot(*values))
 
 
+def in_own_scene(default: str) -> bool:
+    """Whether ``default``'s levels are measured inside its preset's full scene, as its field grid is
+    built (``tablebuild.TableSettings.roman``): the preset answered from a field grid
+    (``presets.Policy.field_grid``, the Roman default's); else at the paper tables' settings."""
+    from nlpsf.request import presets
+
+    return presets.policy(default).field_grid
+
+
 def reference_slopes(band: str, sca: int, magnitude: float, default: str = "paper") -> dict:
     """Most exact slopes: polychromatic (16 wavelengths), 400 centroids (the Roman default's: its
     full scene, :data:`ROMAN_REFERENCE_REALIZATIONS`), exact derivatives."""
-    if default == "roman":
+    if in_own_scene(default):
         config = replace(
             _roman_config(band, sca, ROMAN_REFERENCE_REALIZATIONS), method="linear", n_wavelengths=REFERENCE_WAVELENGTHS
         )
@@ -70,7 +79,7 @@ def reference_slopes(band: str, sca: int, magnitude: float, default: str = "pape
 
 def _roman_config(band: str, sca: int, realizations: int | None = None, level: str = "linear"):
     """The Roman default's simulation at the SCA centre (``TableSettings.roman``) at a level."""
-    from . import tablebuild
+    from nlpsf.slopes import tablebuild
 
     changes = {} if realizations is None else {"realizations": realizations}
     fidelity = "polychromatic" if level == "polychromatic" else "linear"
@@ -96,7 +105,7 @@ def level_slopes(level: str, band: str, sca: int, magnitude: float, default: str
     """Slopes from one fidelity level and the seconds it took."""
     start = time.perf_counter()
     out = {"bias": {}, "scatter": {}}
-    if default == "roman":
+    if in_own_scene(default):
         # The table level is the linear level on a grid (see the module docstring).
         config = _roman_config(band, sca, level="linear" if level == "table" else level)
         optics.clear_caches()
@@ -132,13 +141,14 @@ def tradeoff(points=TEST_POINTS, progress=None, default: str = "paper") -> dict:
     default's scene against its own most exact level; see the module docstring)."""
     if default not in DEFAULTS:
         raise ValueError(f"default must be one of {', '.join(DEFAULTS)}, got {default!r}")
+    own_scene = in_own_scene(default)
     rows = []
     for index, (band, sca, magnitude) in enumerate(points):
         if progress:
             progress(index, len(points), f"{band} SCA {sca} m={magnitude}")
         reference = reference_slopes(band, sca, magnitude, default)
         for level in LEVELS:
-            if default == "roman" and level == "table":
+            if own_scene and level == "table":
                 continue  # stated from the linear level below
             values, seconds = level_slopes(level, band, sca, magnitude, default)
             for mode in ("bias", "scatter"):
@@ -158,7 +168,7 @@ def tradeoff(points=TEST_POINTS, progress=None, default: str = "paper") -> dict:
                             "seconds": seconds,
                         }
                     )
-    if default == "roman":
+    if own_scene:
         # The Roman tables are the linear level on a grid: the same error, a table look-up's time.
         rows += [{**r, "level": "table", "seconds": None, "stated_from": "linear"} for r in rows if r["level"] == "linear"]
     if progress:
@@ -169,7 +179,7 @@ def tradeoff(points=TEST_POINTS, progress=None, default: str = "paper") -> dict:
         times = [r["seconds"] for r in rows if r["level"] == level and r["seconds"] is not None]
         seconds[level] = float(np.median(times)) if times else None
     extra = {}
-    if default == "roman":
+    if own_scene:
         extra = {
             "scene": "the Roman default (nlpsf.request.presets via tablebuild.TableSettings.roman), SCA centre",
             "table_level": "stated equal to the linear level (the Roman tables are built at it); add their interpolation error",
@@ -179,10 +189,11 @@ def tradeoff(points=TEST_POINTS, progress=None, default: str = "paper") -> dict:
         "date": time.strftime("%Y-%m-%d"),
         "machine": f"{__import__('os').cpu_count()} cores",
         "reference": (
-            f"polychromatic, {REFERENCE_WAVELENGTHS} wavelengths, {REFERENCE_REALIZATIONS} centroids, exact derivatives at beta0"
-            if default == "paper"
-            else f"the Roman default's full scene, {REFERENCE_WAVELENGTHS} wavelengths, {ROMAN_REFERENCE_REALIZATIONS} "
+            f"the Roman default's full scene, {REFERENCE_WAVELENGTHS} wavelengths, {ROMAN_REFERENCE_REALIZATIONS} "
             f"centroids, exact derivatives at the {_roman_state()} state"
+            if own_scene
+            else f"polychromatic, {REFERENCE_WAVELENGTHS} wavelengths, {REFERENCE_REALIZATIONS} centroids, "
+            "exact derivatives at beta0"
         ),
         **extra,
         "test_points": [list(p) for p in points],
