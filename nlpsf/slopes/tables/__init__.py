@@ -73,7 +73,6 @@ from .storage import (
     groups,
     load_ecsv,
     load_tables,
-    read_runtime,
     shipped_table_path,
     write_companion,
 )
@@ -106,7 +105,6 @@ __all__ = [
     "paper_data",
     "powerlaw_fit",
     "powerlaw_fits",
-    "read_runtime",
     "shipped_table_path",
     "table2_comparison",
     "table2_markdown",
