@@ -26,6 +26,7 @@ from nlpsf.checks import InputError, check_magnitude
 from nlpsf.serialise import json_safe
 
 from .calibration_models import STAR_FIELDS
+from .job_parts import JobKind, solve_body, solve_request
 
 KERNEL_KIND = "kernel"
 RESIDUAL_KIND = "residual"
@@ -40,8 +41,6 @@ PLACEHOLDER_MAGNITUDE = 20.0
 
 def _star_body(fields: dict[str, Any], given: set[str]) -> dict[str, Any]:
     """The star's fields as POST /solve's body (the exposure and ramp fit only when given)."""
-    from .job_kinds import solve_body
-
     body = {name: fields[name] for name in STAR_FIELDS if name in fields}
     return solve_body(body, given)
 
@@ -49,8 +48,6 @@ def _star_body(fields: dict[str, Any], given: set[str]) -> dict[str, Any]:
 def star_request(body: dict[str, Any]):
     """The library's typed request of the star (``SolveRequest``; the triple is the residual's, so the
     request only resolves the star, its scene and its readout, as ``nlpsf kernel`` does)."""
-    from .job_kinds import solve_request
-
     magnitude = body.get("magnitude")
     values = {**body, "precision": 0.01, "tolerance": None}
     values["magnitude"] = PLACEHOLDER_MAGNITUDE if magnitude is None else check_magnitude(magnitude)
@@ -233,9 +230,7 @@ def _steps(progress):
 
 
 def kinds() -> dict:
-    """The calibration kinds, for ``job_kinds.KINDS`` (imported here when it asks: it imports this module)."""
-    from .job_kinds import JobKind
-
+    """The calibration kinds, for ``job_kinds.KINDS``."""
     return {
         KERNEL_KIND: JobKind(KERNEL_KIND, _validate_kernel, _run_kernel, lambda _arguments: None),
         RESIDUAL_KIND: JobKind(RESIDUAL_KIND, _validate_residual, _run_residual, lambda _arguments: None),

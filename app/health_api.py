@@ -8,12 +8,13 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from nlpsf import __version__, defaults, flags, roman
+from nlpsf import defaults, flags, roman
+from nlpsf._version import __version__
 from nlpsf.request import presets as roman_default
 from nlpsf.serialise import json_safe
-from nlpsf.sim import detector
+from nlpsf.sim import detector, levels
 from nlpsf.sim import scene as scenes
-from nlpsf.slopes import fidelity, tables
+from nlpsf.slopes import tables
 from nlpsf.solve import solver
 
 from . import data_models, liveness, models
@@ -101,7 +102,7 @@ def meta(settings: SettingsDep) -> SafeJSONResponse:
             "metrics": list(solver.METRICS),
             "modes": list(solver.MODES),
             "fidelities": list(solver.FIDELITIES),
-            "simulation_fidelities": list(fidelity.SIMULATION_LEVELS),
+            "simulation_fidelities": list(levels.SIMULATION_LEVELS),
             "beta_conventions": list(detector.BETA_CONVENTIONS),
             "ramp_fits": list(defaults.RAMP_FITS),
             "ma_tables": [_ma_table_summary(name) for name in models.SHIPPED_MA_TABLES],

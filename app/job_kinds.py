@@ -17,18 +17,18 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-from nlpsf import __version__, roman
+from nlpsf import roman
+from nlpsf._version import __version__
 from nlpsf.checks import InputError
 from nlpsf.request.resolve import RAMP_REQUEST_FIELDS, SolveRequest
 from nlpsf.serialise import json_safe
-from nlpsf.sim import detector, experiment
+from nlpsf.sim import detector, experiment, levels
 from nlpsf.sim import scene as scenes
-from nlpsf.slopes import fidelity
 
+from . import calibration_jobs
+from .job_parts import JobKind, Progress, solve_body, solve_request
 from .settings import JOB_BYTES_PER_STAMP_PIXEL, Limits
 
 #: Library argument names -> request field names, so a 422 names what the user typed.
@@ -77,29 +77,6 @@ def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
 
 
-#: Fields of POST /solve that are the service's, not the library request's.
-SOLVE_SERVICE_FIELDS = ("over_field",)
-
-
-def solve_body(fields: dict[str, Any], given: set[str]) -> dict[str, Any]:
-    """A solve's JSON fields as the library's request reads them: the service's own fields left out
-    (every published default is the library's: ``exptime`` and ``ramp_fit`` null, the scene's)."""
-    return {k: v for k, v in fields.items() if k not in SOLVE_SERVICE_FIELDS}
-
-
-def solve_request(body: dict[str, Any]) -> SolveRequest:
-    """The library's typed request for a solve's JSON fields (:func:`solve_body`); a shipped MA
-    table's name becomes the table before the library sees it (no client string reaches a file call)."""
-    from .models import shipped_ma_table
-
-    if isinstance(body.get("ma_table"), str):
-        body = {**body, "ma_table": shipped_ma_table(body["ma_table"])}
-    request = SolveRequest.from_json(body)
-    if request.scene is not None:
-        scenes.check_first_order(request.scene, request.full_well)
-    return request
-
-
 def request_arguments(request: SolveRequest) -> dict[str, Any]:
     """``request``'s fields as keyword arguments (for ``solver.solve_over_field``, which takes them)."""
     from dataclasses import fields
@@ -111,7 +88,7 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     """The library's configuration for a (pydantic-validated) request; raises InputError."""
     from .models import build_ramp
 
-    level = fidelity.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
+    level = levels.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
     scene = build_scene(request.get("scene"))  # SimulationConfig refuses one beyond first order (scene.check_first_order)
     ramp, exptime = build_ramp(
         request.get("ramp"),
@@ -154,7 +131,7 @@ def capped_defaults(payload: dict[str, Any], given: set[str], limits: Limits) ->
         if name not in given and name in out:
             out[name] = min(out[name], getattr(limits, limit))
     if out.get("fidelity") == "polychromatic" and out.get("n_wavelengths") is None:
-        default = fidelity.simulation_settings("polychromatic").n_wavelengths
+        default = levels.simulation_settings("polychromatic").n_wavelengths
         out["n_wavelengths"] = min(default, limits.max_wavelengths) if default > limits.max_wavelengths else None
     return out
 
@@ -256,22 +233,6 @@ def estimate_seconds(normalised: dict[str, Any]) -> float:
     config = build_config(normalised)
     cells = len(normalised["magnitudes"]) * len(normalised["betas"]) * len(normalised["sigma_betas"])
     return 1e-7 * work_of(config, cells)
-
-
-Progress = Callable[[float, str], None]
-
-
-@dataclass(frozen=True)
-class JobKind:
-    """One kind of job. ``validate(fields, given, settings)`` runs in the web process at table cost,
-    before anything is queued: from the request's fields (``given``: those the client sent) to the
-    job request, or InputError/LimitError naming the field. ``run(arguments, progress)`` runs in the
-    job process; ``estimate(arguments)`` (s on one core, None when not priced) sets the wall-time limit."""
-
-    name: str
-    validate: Callable[[dict[str, Any], set[str], Any], dict[str, Any]]
-    run: Callable[[dict[str, Any], Progress | None], dict[str, Any]]
-    estimate: Callable[[dict[str, Any]], float | None]
 
 
 #: A job that is a solve at a simulating fidelity (POST /solve), not a simulation grid.
@@ -444,14 +405,8 @@ KINDS: dict[str, JobKind] = {
 }
 
 
-def _calibration_kinds() -> dict[str, JobKind]:
-    """The calibration capability's kinds (kernel, residual, requirement: ``calibration_jobs``)."""
-    from . import calibration_jobs
-
-    return calibration_jobs.kinds()
-
-
-KINDS.update(_calibration_kinds())
+#: The calibration capability's kinds (kernel, residual, requirement).
+KINDS.update(calibration_jobs.kinds())
 
 
 def _entry(request: dict[str, Any]) -> tuple[JobKind, dict[str, Any]]:

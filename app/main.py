@@ -24,7 +24,8 @@ from fastapi.staticfiles import StaticFiles
 from starlette.middleware.gzip import GZipMiddleware
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from nlpsf import __version__, defaults
+from nlpsf import defaults
+from nlpsf._version import __version__
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.slopes import providers, tables
 from nlpsf.solve import batch

@@ -15,9 +15,8 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 from nlpsf import defaults, roman
 from nlpsf.request import shear
 from nlpsf.request.resolve import MAX_STARS
-from nlpsf.sim import detector, ramps
+from nlpsf.sim import detector, levels, ramps
 from nlpsf.sim import scene as scenes
-from nlpsf.slopes import fidelity
 from nlpsf.solve import solver
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
@@ -102,7 +101,7 @@ Band = Annotated[Literal[roman.BANDS], BeforeValidator(_band_name)]  # type: ign
 Metric = Literal[solver.METRICS]  # type: ignore[valid-type]
 Mode = Literal[solver.MODES]  # type: ignore[valid-type]
 Fidelity = Literal[solver.FIDELITIES]  # type: ignore[valid-type]
-SimulationFidelity = Literal[fidelity.SIMULATION_LEVELS]  # type: ignore[valid-type]
+SimulationFidelity = Literal[levels.SIMULATION_LEVELS]  # type: ignore[valid-type]
 BetaConvention = Literal[detector.BETA_CONVENTIONS]  # type: ignore[valid-type]
 PupilScale = Literal[roman.PUPIL_SCALE_RULES]  # type: ignore[valid-type]
 Throughput = Literal[roman.THROUGHPUTS]  # type: ignore[valid-type]

@@ -28,7 +28,7 @@ from nlpsf.slopes import tables
 from nlpsf.solve import curves as requirement_curves
 from nlpsf.solve import relation
 
-from . import job_kinds, models, solve_api
+from . import job_parts, models, solve_api
 from .errors import SafeJSONResponse, json_safe
 
 # The page's own endpoints: outside the versioned public schema (/openapi.json), which they would
@@ -46,8 +46,8 @@ Overlay = Annotated[
 
 
 def _request(body: models.SolveRequest) -> SolveRequest:
-    """The library's typed request for a solve body: the one POST /solve builds (job_kinds.solve_request)."""
-    return job_kinds.solve_request(job_kinds.solve_body(body.model_dump(), body.model_fields_set))
+    """The library's typed request for a solve body: the one POST /solve builds (job_parts.solve_request)."""
+    return job_parts.solve_request(job_parts.solve_body(body.model_dump(), body.model_fields_set))
 
 
 def _no_curve(body: models.SolveRequest) -> str | None:

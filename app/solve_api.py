@@ -24,7 +24,7 @@ from nlpsf.checks import InputError
 from nlpsf.serialise import json_safe
 from nlpsf.solve import batch, over_field, solver
 
-from . import budget, job_kinds, models
+from . import budget, job_kinds, job_parts, models
 from .deps import CallerDep, ServicesDep
 from .errors import SafeJSONResponse
 from .params import ERRORS, JOB_ANSWER_RESPONSES
@@ -40,7 +40,7 @@ OVER_FIELD_POINTS = 5
 def answer_key(fields: dict[str, Any], given: set[str]) -> str:
     """A request's answer is a pure function of this (for the tables and the field grid: the shipped
     data and the code are the process's own): its fields as the library reads them, canonically."""
-    return json.dumps(job_kinds.solve_body(fields, given), sort_keys=True, separators=(",", ":"), default=str)
+    return json.dumps(job_parts.solve_body(fields, given), sort_keys=True, separators=(",", ":"), default=str)
 
 
 def units_of(request) -> tuple[str, float]:
@@ -95,7 +95,7 @@ async def solve(
     # A table solve takes microseconds and runs on the event loop (a thread hop would cost more).
     # The library's typed request checks every field, the ramp and the scene (and whether they combine).
     raw = body.model_dump()
-    request = job_kinds.solve_request(job_kinds.solve_body(raw, body.model_fields_set))
+    request = job_parts.solve_request(job_parts.solve_body(raw, body.model_fields_set))
     # Another pupil-scale rule than the tables' is simulated: a job, like a scene or a ramp.
     tables_pupil = request.pupil_scale in (None, defaults.PUPIL_SCALE)
     plain = request.ramp is None and request.scene is None and body.over_field is None and tables_pupil
@@ -227,7 +227,7 @@ def _read_one(index: int, item: dict[str, Any]) -> dict[str, Any]:
         if model.over_field is not None:
             raise InputError("over_field", "a batch solves one position at a time: send over-field solves to POST /solve")
         raw = model.model_dump()
-        request = job_kinds.solve_request(job_kinds.solve_body(raw, model.model_fields_set))
+        request = job_parts.solve_request(job_parts.solve_body(raw, model.model_fields_set))
         return {"index": index, "request": request, "key": answer_key(raw, model.model_fields_set), "units": units_of(request)}
     except InputError as error:
         return {"result": {"index": index, "ok": False, "error": input_error_body(error)}}

@@ -17,7 +17,7 @@ from typing import Any
 from fastapi import APIRouter, Request
 from fastapi.responses import Response
 
-from nlpsf import __version__
+from nlpsf._version import __version__
 from nlpsf.serialise import json_safe
 from nlpsf.slopes import tables
 

@@ -9,7 +9,7 @@ The shipped optical_model_uncertainty.json (the paper scene's optical-model part
 own star, the vendored Pickles K0V.
 
 1. For SCA 1 and 18 in every band, nlpsf's FWHM, N_eff and peak fraction under the official
-   conditions (``nlpsf.roman.psfstats``: the K0V star over the band (``--sed``), 8 mas FWHM jitter, pixel-corner and
+   conditions (``nlpsf.sim.psfstats``: the K0V star over the band (``--sed``), 8 mas FWHM jitter, pixel-corner and
    pixel-centre centring, 64-pixel = 7.04" image) beside the official summary table.
 2. The slopes' sensitivity to the PSF's width, measured: the linear-response bias slopes at m = 20
    (table settings: achromatic, 100 realizations) for nlpsf's PSF and for it blurred by a Gaussian
@@ -37,8 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from nlpsf import __version__, roman
-from nlpsf.roman import psfstats
-from nlpsf.sim import experiment, moments, optics, render
+from nlpsf.sim import experiment, moments, optics, psfstats, render
 
 OUTPUT = Path(__file__).resolve().parent.parent / "nlpsf" / "data" / "optical_model_uncertainty.json"
 METRICS = {"size": "dR_over_R", "e1": "de1", "e2": "de2"}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from nlpsf.slopes.fidelity import LEVELS
+from nlpsf.sim.levels import LEVELS
 
 from .. import defaults
 from . import progress_printer

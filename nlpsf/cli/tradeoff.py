@@ -21,7 +21,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nlpsf.slopes import fidelity, tradeoff
+    from nlpsf.slopes import fidelity
+    from nlpsf.solve import tradeoff
 
     result = tradeoff.tradeoff(progress=progress_printer(not args.quiet and not args.json), default=args.scene)
     if args.write:

@@ -24,8 +24,7 @@ from nlpsf.checks import (
     check_magnitude,
     check_number,
 )
-from nlpsf.sim import ramps
-from nlpsf.slopes import fidelity as levels
+from nlpsf.sim import levels, ramps
 
 from . import shear
 

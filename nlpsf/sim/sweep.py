@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 from astropy.table import Table, vstack
 
-from nlpsf import __version__, defaults, roman
+from nlpsf import defaults, roman
+from nlpsf._version import __version__
 from nlpsf.checks import InputError, SimulationError, check_numbers
 
 from . import cluster, detector, experiment

@@ -1,24 +1,14 @@
-"""Speed versus accuracy: the fidelity levels, what each one simulates, and their measured errors.
-
-The one owner of "fidelity level -> simulation settings". Levels, cheapest first:
-
-- ``table``: the shipped slope tables (achromatic PSF at the band's effective wavelength,
-  100 centroids, linear response at beta0, cubic interpolation);
-- ``linear``: a fresh linear-response simulation at the request's conditions (achromatic);
-- ``monte_carlo``: a fresh Monte Carlo, the paper's finite differences over beta0 * (1 +- 1%) and
-  per-pixel beta maps for the scatter (achromatic);
-- ``polychromatic``: the Monte Carlo with the PSF integrated over the band (8 wavelengths,
-  flat f_nu star), which the paper did not have.
+"""Speed versus accuracy: the fidelity levels' measured errors (the levels and what each one
+simulates are ``nlpsf.sim.levels``'s).
 
 Each level's relative error against a more exact reference is measured by ``nlpsf tradeoff``
-(``nlpsf.slopes.tradeoff``) and shipped in ``nlpsf/data/fidelity.json``; ``accuracy`` in the solver
+(``nlpsf.solve.tradeoff``) and shipped in ``nlpsf/data/fidelity.json``; ``accuracy`` in the solver
 picks the cheapest level whose measured error meets it. This module is light (json only).
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -27,46 +17,16 @@ from nlpsf.checks import InputError, SimulationError, check_number
 from nlpsf.defaults import ACCURACY_RANGE
 from nlpsf.flags import FlagCode, make
 
-LEVELS: tuple[str, ...] = ("table", "linear", "monte_carlo", "polychromatic")
-#: Levels that run a simulation (everything but the table look-up).
-SIMULATION_LEVELS: tuple[str, ...] = LEVELS[1:]
-#: Wavelengths across the band of the polychromatic level.
-POLYCHROMATIC_WAVELENGTHS = 8
-
-
-@dataclass(frozen=True)
-class LevelSettings:
-    """What a simulating level runs: the experiment's method and the wavelengths of the PSF."""
-
-    method: str
-    n_wavelengths: int
-
-
-def check_level(level: str, name: str = "fidelity") -> str:
-    if level not in LEVELS:
-        raise InputError(name, f"must be one of {', '.join(LEVELS)}, got {level!r}")
-    return level
-
-
-def simulation_settings(level: str, n_wavelengths: int | None = None) -> LevelSettings:
-    """The simulation a level runs. ``n_wavelengths`` overrides the polychromatic default and is
-    refused for the achromatic levels (they are defined by one wavelength)."""
-    check_level(level)
-    if level == "table":
-        raise InputError("fidelity", "the table level runs no simulation; choose linear, monte_carlo or polychromatic")
-    if level == "polychromatic":
-        waves = POLYCHROMATIC_WAVELENGTHS if n_wavelengths is None else int(n_wavelengths)
-        if waves < 2:
-            raise InputError("n_wavelengths", f"a polychromatic PSF needs at least 2 wavelengths, got {waves}")
-        return LevelSettings("monte_carlo", waves)
-    if n_wavelengths not in (None, 1):
-        raise InputError("n_wavelengths", f"only the polychromatic fidelity integrates over wavelengths; got {n_wavelengths}")
-    return LevelSettings("linear" if level == "linear" else "monte_carlo", 1)
-
-
-def level_name(method: str, n_wavelengths: int) -> str:
-    """How a simulation's own settings are reported (``monte_carlo+polychromatic``, ...)."""
-    return f"{method}{'+polychromatic' if n_wavelengths > 1 else ''}"
+# The levels are the simulator's (``nlpsf.sim.levels``); the calculator reads them with their errors here.
+from nlpsf.sim.levels import (  # noqa: F401
+    LEVELS,
+    POLYCHROMATIC_WAVELENGTHS,
+    SIMULATION_LEVELS,
+    LevelSettings,
+    check_level,
+    level_name,
+    simulation_settings,
+)
 
 
 def _fidelity_path() -> Path:

@@ -10,9 +10,8 @@ from nlpsf import defaults
 from nlpsf.checks import SimulationError
 from nlpsf.flags import FlagCode
 from nlpsf.request.resolve import SolveRequest
-from nlpsf.sim import ramps
+from nlpsf.sim import levels, ramps
 
-from . import fidelity as levels
 from . import tables
 from .providers import REFUSAL, NeedsSimulation, Refusal, RefusalCode
 

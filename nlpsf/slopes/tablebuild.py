@@ -26,7 +26,8 @@ import numpy as np
 from astropy.table import Table, vstack
 from scipy.interpolate import CubicSpline
 
-from nlpsf import __version__, defaults, roman
+from nlpsf import defaults, roman
+from nlpsf._version import __version__
 from nlpsf.checks import InputError, SimulationError
 from nlpsf.request import presets as roman_default
 from nlpsf.roman import photometry

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Protocol
 
-from nlpsf import __version__
+from nlpsf._version import __version__
 from nlpsf.request import presets as roman_default
 from nlpsf.slopes import fidelity as levels
 from nlpsf.slopes import fieldgrid, tables

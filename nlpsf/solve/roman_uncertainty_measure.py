@@ -216,7 +216,7 @@ def measure_point(band: str, sca: int, magnitudes, realizations: int = 50, seed:
 
 def _official_data(band: str, sca: int) -> list[tuple[str, str, float]]:
     """(statistic, centring, official value) of one (band, SCA); the FWHM once (centring-free)."""
-    from nlpsf.roman import psfstats
+    from nlpsf.sim import psfstats
 
     official = psfstats.official_statistics()
     rows = [("fwhm_arcsec", "center", official[(sca, band, "center")].fwhm_arcsec)]
@@ -258,7 +258,7 @@ def fit_optics(band: str, scas=OPTICS_SCAS) -> dict:
     docstring): theta = (v [arcsec^2], ln s), its covariance, the intrinsic scatter, chi^2 and the
     data with their residuals. Linear: each statistic's log is linear in v (a probing blur of
     :data:`OPTICS_BLUR_PROBE_ARCSEC2`) and in ln s (the ``header`` rule against the ``official``)."""
-    from nlpsf.roman import psfstats
+    from nlpsf.sim import psfstats
     from nlpsf.sim import scene as scenes
 
     rows, y, jacobian, rounding = [], [], [], []

@@ -72,6 +72,37 @@ def test_the_library_never_imports_the_cli_or_the_web_layer():
         assert not bad, f"{path.name} imports {bad}"
 
 
+#: The library's layers, lowest first: a module imports its own layer or a lower one, never a higher
+#: one (docs/contributing.md's flow: the Roman data, the simulator, the request, the slopes, the
+#: calculator, the calibration capability). Top-level modules (defaults, checks, flags, ...) sit below
+#: them all; the package's ``__init__`` (the public API, lazily) above.
+LAYERS = ("roman", "sim", "request", "slopes", "solve", "calibration")
+
+
+def _layer(module: str) -> int:
+    """A module's rank in :data:`LAYERS`; -1 for the top-level modules, len(LAYERS) for ``nlpsf`` itself."""
+    parts = module.split(".")
+    if module == "nlpsf":
+        return len(LAYERS)
+    if len(parts) > 1 and parts[1] in LAYERS:
+        return LAYERS.index(parts[1])
+    return -1
+
+
+def test_the_library_layers_import_downwards_only():
+    modules = {_module_name(p) for p in LIBRARY}
+    upward = []
+    for path in LIBRARY:
+        name = _module_name(path)
+        if name == "nlpsf":
+            continue
+        for imported in _imports(path, _package_of(path)):
+            # ``from nlpsf import defaults`` names the package too: its modules are the edges.
+            if imported != "nlpsf" and imported in modules and _layer(imported) > _layer(name):
+                upward.append(f"{name} -> {imported}")
+    assert not upward, sorted(upward)
+
+
 def test_library_modules_import_without_cycles():
     modules = {_module_name(p) for p in LIBRARY}
     graph = {}

@@ -191,7 +191,7 @@ def test_rendered_psf_matches_galsim_at_converged_pupil_sampling(band, sca):
 
 
 def test_polychromatic_weights_follow_the_sca_s_own_throughput_and_the_sed():
-    from nlpsf.roman import psfstats
+    from nlpsf.sim import psfstats
 
     def mean_wavelength(wavelengths, weights):
         return float(np.sum(wavelengths * weights))

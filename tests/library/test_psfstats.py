@@ -6,8 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from nlpsf.roman import psfstats
-from nlpsf.sim import optics, render
+from nlpsf.sim import optics, psfstats, render
 
 
 def test_fwhm_fit_returns_a_gaussian_s_fwhm():

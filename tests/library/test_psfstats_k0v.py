@@ -10,8 +10,7 @@ import pytest
 
 from nlpsf import roman
 from nlpsf.checks import InputError
-from nlpsf.roman import psfstats
-from nlpsf.sim import optics
+from nlpsf.sim import optics, psfstats
 
 # Planck's law by hand (h c / k in nm K), f_lambda up to a constant.
 HC_OVER_K_NM_K = 1.438777e7

@@ -4,7 +4,7 @@ likelihood fit, as the CLI does. (They were once dropped: the schema's "ols" rea
 given, and a fit or read noise without a ramp was ignored, the answer silently the default's.)"""
 
 import pytest
-from nlpsf.web import job_kinds, models
+from nlpsf.web import job_parts, models
 
 from nlpsf.request import presets as roman_default
 from nlpsf.request.resolve import SolveRequest
@@ -16,7 +16,7 @@ BODY = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
 def _api_request(body: dict) -> SolveRequest:
     """The library request the API builds for a /solve or batch body (the same call both make)."""
     model = models.SolveRequest.model_validate(body)
-    return job_kinds.solve_request(job_kinds.solve_body(model.model_dump(), model.model_fields_set))
+    return job_parts.solve_request(job_parts.solve_body(model.model_dump(), model.model_fields_set))
 
 
 def test_a_fit_or_read_noise_alone_changes_the_defaults_own_readout():

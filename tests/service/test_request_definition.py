@@ -8,7 +8,7 @@ import dataclasses
 import inspect
 
 import pytest
-from nlpsf.web import job_kinds, models
+from nlpsf.web import job_parts, models
 
 from nlpsf import SolveRequest
 from nlpsf.cli import build_parser
@@ -24,7 +24,7 @@ API = set(models.SolveRequest.model_fields)
 def test_the_api_body_is_the_library_request():
     for name in LIBRARY:
         assert name in API or set(READ_AS.get(name, ())) <= API, name
-    extra = API - LIBRARY - set(RAMP_REQUEST_FIELDS) - set(job_kinds.SOLVE_SERVICE_FIELDS)
+    extra = API - LIBRARY - set(RAMP_REQUEST_FIELDS) - set(job_parts.SOLVE_SERVICE_FIELDS)
     assert not extra, extra
 
 
@@ -32,16 +32,16 @@ def test_the_api_body_is_the_library_request():
 def test_every_published_default_is_the_one_used(client, scene):
     schema = client.get("/openapi.json").json()["components"]["schemas"]["SolveRequest"]["properties"]
     body = {"band": "H158", "precision": 0.01, "magnitude": 19.0} | ({} if scene is None else {"scene": scene})
-    resolved = job_kinds.solve_request(job_kinds.solve_body(body, set(body)))
+    resolved = job_parts.solve_request(job_parts.solve_body(body, set(body)))
     published = {name: spec["default"] for name, spec in schema.items() if "default" in spec}
     assert {"sca", "metric", "mode", "beta0", "full_well", "stars"} <= set(published)
     # What depends on the scene is published as no default (null): the scene's.
     assert published.get("exptime") is None and published.get("ramp_fit") is None
     for name, default in published.items():
-        if name in job_kinds.SOLVE_SERVICE_FIELDS or name in body:
+        if name in job_parts.SOLVE_SERVICE_FIELDS or name in body:
             continue
         given = {**body, name: default}
-        assert job_kinds.solve_request(job_kinds.solve_body(given, set(given))) == resolved, (name, default)
+        assert job_parts.solve_request(job_parts.solve_body(given, set(given))) == resolved, (name, default)
 
 
 def test_the_command_lines_defaults_are_the_librarys():

@@ -9,11 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from nlpsf import __version__, defaults, roman
+from nlpsf import defaults, roman
+from nlpsf._version import __version__
 from nlpsf.checks import InputError, check_choice, check_exptime, check_full_well, check_integer
 from nlpsf.roman import photometry
 from nlpsf.sim import moments, optics, ramps, render
-from nlpsf.slopes.fidelity import level_name
+from nlpsf.sim.levels import level_name
 
 from .. import scene as scenes
 

@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from nlpsf import __version__, defaults, roman
+from nlpsf import defaults, roman
+from nlpsf._version import __version__
 from nlpsf.checks import InputError, check_beta0, check_choice, check_exptime, check_full_well
 
 from .model import METRICS, MODES, SlopeTable, TableSet

@@ -26,10 +26,10 @@ import numpy as np
 
 from nlpsf import roman
 from nlpsf.sim import experiment, optics
-from nlpsf.solve import solver
+from nlpsf.sim.levels import LEVELS, simulation_settings
+from nlpsf.slopes import tables
 
-from . import tables
-from .fidelity import LEVELS, simulation_settings
+from . import solver
 
 #: (band, SCA, magnitude) where the levels are compared: bright to faint, short to long bands.
 TEST_POINTS = (

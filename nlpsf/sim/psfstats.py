@@ -31,10 +31,9 @@ from scipy.optimize import curve_fit
 
 from nlpsf import roman
 from nlpsf.checks import InputError
+from nlpsf.roman import seds
 from nlpsf.sim import optics, render
 from nlpsf.sim import scene as scenes
-
-from . import seds
 
 #: K0V effective temperature [K] (Pecaut & Mamajek 2013) for the blackbody stand-in SED.
 K0V_TEMPERATURE_K = 5270.0
