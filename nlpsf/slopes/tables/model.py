@@ -170,7 +170,9 @@ class TableSet:
         table = self._tables.get((band, sca) + ((point,) if point else ()))  # a request's band and SCA, checked once
         if table is not None:
             return table
-        key = (roman.check_band(band), roman.check_sca(sca)) + ((int(point),) if point else ())
+        # A band already in its checked form (a request's) is not checked again; another is (a caller's own).
+        checked = band if band in defaults.BANDS else roman.check_band(band)
+        key = (checked, roman.check_sca(sca)) + ((int(point),) if point else ())
         table = self._tables.get(key)
         if table is None:
             if key not in self._keys:
