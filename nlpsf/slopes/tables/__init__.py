@@ -75,6 +75,7 @@ from .storage import (
     load_tables,
     shipped_table_path,
     write_companion,
+    write_ecsv,
 )
 
 __all__ = [
@@ -112,4 +113,5 @@ __all__ = [
     "table_rows",
     "with_throughput",
     "write_companion",
+    "write_ecsv",
 ]

@@ -267,11 +267,17 @@ def export_ecsv(destination: Path | str, path: Path | str | None = None) -> Path
     types = dict(meta["ecsv_columns"])
     columns = [np.concatenate(blocks[name]).astype(types[name]) for name in blocks]
     table = Table(columns, names=list(blocks), meta={k: meta[k] for k in _EXPORTED_META if k in meta})
+    return write_ecsv(table, destination)
+
+
+def write_ecsv(table, destination: Path | str) -> Path:
+    """``table`` (astropy) written as ECSV, gzipped where the name ends in ``.gz`` (astropy reads it
+    as it is) with no time stamp, so that equal tables give equal bytes."""
+    import io
+
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)
     if destination.name.endswith(".gz"):
-        import io
-
         text = io.StringIO()
         table.write(text, format="ascii.ecsv")
         with open(destination, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as packed:
