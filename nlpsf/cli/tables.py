@@ -1,4 +1,4 @@
-"""``nlpsf tables``: build the slope tables, show one, fit the paper's power laws."""
+"""``nlpsf tables``: build the slope tables, show one, export them as ECSV, fit the paper's power laws."""
 
 from __future__ import annotations
 
@@ -66,6 +66,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     show.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
     show.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA}")
     show.add_argument("--format", choices=("text", "json", "csv"), default="text", help="output format")
+    export = sub.add_parser(
+        "export", help="write the shipped tables as ECSV (units and metadata)", formatter_class=parser.formatter_class
+    )
+    export.add_argument("--output", required=True, metavar="FILE.ecsv", help="the ECSV to write (gzipped if it ends in .gz)")
+    export.add_argument("--field", action="store_true", help="the tables at each SCA's four corner field points")
     fits = sub.add_parser("fits", help="power-law fits, the paper's Table 2 form", formatter_class=parser.formatter_class)
     fits.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA}")
     fits.add_argument("--markdown", action="store_true", help="the side-by-side with the paper's Table 2")
@@ -77,7 +82,17 @@ def run(args: argparse.Namespace) -> int:
         return _build(args)
     if args.tables_command == "show":
         return _show(args)
+    if args.tables_command == "export":
+        return _export(args)
     return _fits(args)
+
+
+def _export(args) -> int:
+    from nlpsf.slopes import tables
+
+    path = tables.export_ecsv(args.output, tables.field_table_path() if args.field else tables.shipped_table_path())
+    print(f"written to {path}", file=sys.stderr)
+    return 0
 
 
 def _build(args) -> int:

@@ -259,10 +259,10 @@ def fill(preset: str, band: str, sca: int, exptime: float | None, ramp, pupil_sc
         return Filled(exptime, ramp, pupil_scale, linearise_at or "beta0", None)
     if ramp is None:
         chosen = readout(band, sca, exptime)
-        ramp, exptime = chosen.ramp, chosen.exptime_s
-    elif exptime is None:
-        exptime = float(ramp.table.duration_s)
-    background = backgrounds.background_electrons(BACKGROUND, band, sca, exptime)
+        ramp, exptime, background = chosen.ramp, chosen.exptime_s, chosen.background_e
+    else:
+        exptime = float(ramp.table.duration_s) if exptime is None else exptime
+        background = backgrounds.background_electrons(BACKGROUND, band, sca, exptime)
     return Filled(float(exptime), ramp, pupil_scale or PUPIL_SCALE, linearise_at or LINEARISE_AT, background)
 
 

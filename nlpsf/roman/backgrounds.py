@@ -32,7 +32,7 @@ from __future__ import annotations
 import csv
 import math
 from dataclasses import asdict, dataclass
-from functools import cache
+from functools import cache, lru_cache
 
 import numpy as np
 
@@ -73,14 +73,20 @@ def _per_sca(name: str, column: str) -> tuple[float, ...]:
 
 def zodiacal_rate(band: str, factor: float = 2.0) -> float:
     """Zodiacal light [e-/s per native pixel] at ``factor`` times its minimum."""
-    band = roman.check_band(band)
-    factor = check_number(factor, "zodiacal_factor", 0.0, 100.0)
-    return factor * _rate_by_filter("zodiacal_light.ecsv")[roman.OFFICIAL_FILTER_NAMES[band]]
+    return _zodiacal_rate(roman.check_band(band), check_number(factor, "zodiacal_factor", 0.0, 100.0))
 
 
 def thermal_rate(band: str) -> float:
     """Internal thermal background [e-/s per native pixel] of ``band``'s filter."""
-    band = roman.check_band(band)
+    return _thermal_rate(roman.check_band(band))
+
+
+# The rates of a band already checked (``background`` checks its arguments once, then reads these).
+def _zodiacal_rate(band: str, factor: float) -> float:
+    return factor * _rate_by_filter("zodiacal_light.ecsv")[roman.OFFICIAL_FILTER_NAMES[band]]
+
+
+def _thermal_rate(band: str) -> float:
     return _rate_by_filter("internal_thermal_backgrounds.ecsv")[roman.OFFICIAL_FILTER_NAMES[band]]
 
 
@@ -142,20 +148,23 @@ def background(preset: str, band: str, sca: int, exptime_s: float, zodiacal_fact
     band, sca = roman.check_band(band), roman.check_sca(sca)
     exptime_s = check_exptime(exptime_s)
     factor = spec["zodiacal_factor"] if zodiacal_factor is None else zodiacal_factor
+    factor = check_number(factor, "zodiacal_factor", 0.0, 100.0)
     return Background(
         preset=preset,
         band=band,
         sca=sca,
         exptime_s=exptime_s,
         zodiacal_factor=float(factor),
-        zodiacal_e=zodiacal_rate(band, factor) * exptime_s,
-        thermal_e=thermal_rate(band) * exptime_s if spec["thermal"] else 0.0,
+        zodiacal_e=_zodiacal_rate(band, factor) * exptime_s,
+        thermal_e=_thermal_rate(band) * exptime_s if spec["thermal"] else 0.0,
         dark_e=dark_rate(sca) * exptime_s if spec["dark"] else 0.0,
     )
 
 
+@lru_cache(maxsize=4096)
 def background_electrons(preset: str, band: str, sca: int, exptime_s: float) -> float:
-    """Total background [e- per native pixel over the exposure] of a preset: what a scene adds."""
+    """Total background [e- per native pixel over the exposure] of a preset: what a scene adds
+    (kept per arguments: every request of an SCA and exposure reads the same)."""
     return background(preset, band, sca, exptime_s).total_e
 
 

@@ -242,7 +242,8 @@ class FieldGrid:
 
     @staticmethod
     def key(band: str, sca: int) -> str:
-        return f"{roman.check_band(band)}_{int(roman.check_sca(sca)):02d}"
+        # A key, not a check: the request was validated where it came in; an unknown band is no entry.
+        return f"{str(band).upper()}_{int(sca):02d}"
 
     def covers(self, band: str, sca: int) -> bool:
         """Whether this file holds the grid of (band, SCA)."""

@@ -12,9 +12,7 @@ reading side's fast path, ``tables.write_companion``).
 
 from __future__ import annotations
 
-import gzip
 import hashlib
-import io
 import json
 import math
 import time
@@ -34,7 +32,7 @@ from nlpsf.roman import photometry
 from nlpsf.sim import cluster, experiment
 
 from . import fidelity, fieldgrid, gridfile
-from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion
+from .tables import BRIGHT_MARGIN_MAG, COLUMN_METRICS, MODES, ecsv_fingerprint, table_key, write_companion, write_ecsv
 
 FAINT_LIMIT = defaults.TABLE_FAINT_LIMIT
 MAGNITUDE_STEP = defaults.TABLE_MAGNITUDE_STEP
@@ -438,16 +436,7 @@ def merge_tables(paths: Iterable[Path], destination: Path | str) -> Table:
             },
         }
     )
-    destination = Path(destination)
-    destination.parent.mkdir(parents=True, exist_ok=True)
-    if destination.name.endswith(".gz"):
-        # Gzipped text (astropy reads it as it is); no time stamp, so equal tables give equal bytes.
-        text = io.StringIO()
-        merged.write(text, format="ascii.ecsv")
-        with open(destination, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as packed:
-            packed.write(text.getvalue().encode())
-    else:
-        merged.write(destination, format="ascii.ecsv", overwrite=True)
+    destination = write_ecsv(merged, destination)
     write_companion(merged, destination)
     return merged
 

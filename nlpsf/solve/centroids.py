@@ -8,7 +8,8 @@ judged there) and an ``--accuracy`` answer (flag ``accuracy_centroids``; held to
 choose their count from a pilot's relative error r: n (r / t)^2 centroids for a target t. Where the
 slope is small against its spread a pilot's mean is far off, so r is measured again over the count
 chosen and the count chosen again from it, :data:`ROUNDS` times at most, with a margin; the flag then
-states each error reached. The simulations run in batches (``slopes.source.BATCH_REALIZATIONS``), so
+states each error reached. An e component small against |c_e| is held to its share of |c_e|
+(:func:`_scale`), as its model uncertainty is. The simulations run in batches (``slopes.source.BATCH_REALIZATIONS``), so
 the memory stays a batch's.
 """
 
@@ -19,7 +20,7 @@ import math
 
 from nlpsf.flags import FlagCode, make
 
-from .validity import between_limits_flag
+from .validity import COMPONENT_SMALL_FRACTION, between_limits_flag
 
 #: What a Roman-default answer between the saturation limits is held to against a fresh full
 #: simulation there (5 % in size, 10 % in e); its statistical error is kept within
@@ -44,6 +45,8 @@ class Reached:
     tried: tuple[tuple[int, float], ...]
     relative: float
     needed: float
+    #: What the errors are relative to (:func:`_scale`).
+    against: str = "the slope"
 
     def met(self, target: float) -> bool:
         return self.relative <= target * (1 + 1e-9)
@@ -58,7 +61,9 @@ def _rounds(request, the_plan, slopes, slopes_for, target: float, cap: int):
     used, tried = int(the_plan.realizations), []
     for round_ in range(ROUNDS + 1):
         value, error, _ = slopes.at(float(request.magnitude))
-        relative = abs(error / value) if value else math.inf
+        scale = _scale(request, slopes, value)
+        relative = abs(error / scale) if scale else math.inf
+        against = "the slope" if scale == abs(value) else f"{COMPONENT_SMALL_FRACTION:g} |c_e|, the component being small"
         tried.append((used, relative))
         needed = used * (relative / target) ** 2 if math.isfinite(relative) else math.inf
         following = min(cap, math.ceil(MARGIN * needed)) if math.isfinite(needed) else cap
@@ -67,7 +72,18 @@ def _rounds(request, the_plan, slopes, slopes_for, target: float, cap: int):
         used = int(following)
         the_plan = dataclasses.replace(the_plan, realizations=used)
         slopes = slopes_for(request, the_plan)
-    return the_plan, slopes, Reached(used, tuple(tried), relative, needed)
+    return the_plan, slopes, Reached(used, tuple(tried), relative, needed, against)
+
+
+def _scale(request, slopes, value: float) -> float:
+    """What an answer's statistical error is relative to: its slope; for an e component small
+    against |c_e| (``validity.COMPONENT_SMALL_FRACTION``), that fraction of |c_e|: the model's parts
+    move a component by a fraction of |c_e| (its answer is flagged ``e_component_small``), and pinning
+    a slope near zero to 10 % of itself would take centroids without end."""
+    ratio = slopes.modulus_over_component(float(request.magnitude)) if request.metric in ("e1", "e2") else None
+    if not ratio:
+        return abs(value)
+    return max(abs(value), COMPONENT_SMALL_FRACTION * ratio * abs(value))
 
 
 def _note(the_plan, code: FlagCode):
@@ -98,7 +114,8 @@ def _default_between_limits(request, the_plan, slopes, slopes_for, index: int):
     target = STATISTICAL_SHARE * held
     the_plan, slopes, reached = _rounds(request, the_plan, slopes, slopes_for, target, DEFAULT_MAX_REALIZATIONS)
     why = (
-        f"the slope's statistical error is {reached.errors()} centroids, against {target:.2g} (half the "
+        f"the slope's statistical error, relative to {reached.against}, is {reached.errors()} centroids, "
+        f"against {target:.2g} (half the "
         f"{held:.0%} a default answer in {request.metric} is held to here), "
         + (
             "within it"
@@ -125,6 +142,7 @@ def _accuracy(request, the_plan, slopes, slopes_for, index: int):
         else f"above it: {reached.needed:.3g} centroids would be needed, more than the {reached.used} an answer simulates"
     )
     centroids = {**the_plan.model.get("centroids", {}), **values}
-    centroids.update(used=reached.used, reached_error=reached.relative, met=met, verdict=verdict, errors=reached.errors())
+    errors = reached.errors() + ("" if reached.against == "the slope" else f", relative to {reached.against}")
+    centroids.update(used=reached.used, reached_error=reached.relative, met=met, verdict=verdict, errors=errors)
     flag = make(FlagCode.ACCURACY_CENTROIDS, **{k: centroids[k] for k in ACCURACY_CENTROIDS_QUOTES})
     return _with_note(the_plan, index, flag, model={**the_plan.model, "centroids": centroids}), slopes

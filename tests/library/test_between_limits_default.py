@@ -215,3 +215,18 @@ def test_accuracy_says_when_no_affordable_count_fits(grid, monkeypatch):
     s = answer(_request(metric="e2", magnitude=round(ramp + 0.33 * (final - ramp), 3), precision=0.01, accuracy=0.01))
     flag = next(f for f in s.flags if getattr(f, "code", None) == FlagCode.ACCURACY_CENTROIDS)
     assert "above it" in flag and s.conditions["realizations"] == accuracy.MAX_REALIZATIONS
+
+
+def test_a_small_e_component_is_held_to_its_share_of_the_modulus():
+    # F184 SCA 15 at m = 16.1: |c_e1| is small against |c_e| (flagged); its error is held to 5 % of
+    # 0.3 |c_e|, the scale its model uncertainty has, not to 5 % of a slope near zero.
+    position = (254.43815456037626, 687.7238603629428)
+    scene = replace(presets.base_scene(), position=position)
+    ask = {"sca": 15, "scene": scene, "magnitude": 16.099, "tolerance": 1e-3}
+    s = answer(SolveRequest("F184", metric="e1", **ask))
+    modulus = answer(SolveRequest("F184", metric="e", **ask))
+    flag = next(f for f in s.flags if getattr(f, "code", None) == FlagCode.DEFAULT_BETWEEN_LIMITS)
+    assert FlagCode.E_COMPONENT_SMALL in codes(s.flags) and "relative to 0.3 |c_e|" in flag
+    target = centroids.STATISTICAL_SHARE * centroids.DEFAULT_TARGET["e1"]
+    assert s.conditions["realizations"] < centroids.DEFAULT_MAX_REALIZATIONS and flag.endswith("within it")
+    assert s.slope_uncertainty <= target * 0.3 * abs(modulus.slope) * 1.25

@@ -1,15 +1,21 @@
-"""The not-a-knot cubics built with numpy (``nlpsf.slopes.tables.splines``) are scipy's
-``CubicSpline`` to the last bit: on analytic data of every shape the shipped files hold (uneven
-knots, steep and flat stretches) and on every series of the shipped field grid."""
+"""The cubics of ``nlpsf.slopes.tables.splines``: the field grid's, built with numpy, are the public
+``CubicSpline`` to the last bit, on analytic data of every shape the shipped files hold (uneven
+knots, steep and flat stretches) and on every series of the shipped field grid; a table's are that
+spline's public ``x`` and ``c``; and no module of the project uses a private name of scipy."""
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicSpline, PPoly
 
 from nlpsf.slopes import fieldgrid
-from nlpsf.slopes.tables.splines import hermite_coefficients, knot_derivatives, not_a_knot_coefficients
+from nlpsf.slopes.tables.splines import evaluate_cubic, not_a_knot_coefficients, not_a_knot_spline
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_random_series_give_scipys_coefficients_bit_for_bit():
@@ -22,11 +28,35 @@ def test_random_series_give_scipys_coefficients_bit_for_bit():
             assert np.array_equal(ours[:, row], CubicSpline(x[row], y[row]).c), (length, row)
 
 
-def test_a_tables_knot_derivatives_rebuild_scipys_spline():
+def test_a_tables_spline_is_scipys_public_ppoly():
     flux = np.geomspace(10.0, 1e7, 23)
     values = 3e-4 * flux * (1 + 0.2 * np.sin(np.log(flux)))
-    derivatives = knot_derivatives(flux, values)
-    assert np.array_equal(hermite_coefficients(flux, values, derivatives), CubicSpline(flux, values / flux).c)
+    breaks, coefficients = not_a_knot_spline(flux, values)
+    truth = CubicSpline(flux, values / flux)
+    assert np.array_equal(breaks, truth.x) and np.array_equal(coefficients, truth.c)
+    probe = np.concatenate([np.geomspace(flux[0], flux[-1], 501), flux])
+    np.testing.assert_allclose(evaluate_cubic(breaks, coefficients, probe), PPoly(coefficients, breaks)(probe), rtol=1e-13)
+
+
+#: Where the project's code lives (the web layer, scripts and benchmarks included).
+CODE = [ROOT / "nlpsf", ROOT / "app", ROOT / "scripts", ROOT / "benchmarks"]
+#: A private name of scipy: a module or attribute path with a part starting with "_" (scipy.x._y,
+#: ``from scipy.x import _y``, ``from scipy.x._y import z``), dunders aside.
+PRIVATE = re.compile(r"scipy(\.\w+)*\._(?!_)\w*|from\s+scipy[\w.]*\s+import\s+\(?\s*(\w+\s*,\s*)*_(?!_)")
+
+
+def test_no_module_uses_scipys_private_names():
+    found = [
+        f"{path.relative_to(ROOT)}:{number}: {line.strip()}"
+        for folder in CODE
+        if folder.is_dir()
+        for path in sorted(folder.rglob("*.py"))
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if PRIVATE.search(line)
+    ]
+    assert not found, found
+    assert PRIVATE.search("from scipy.interpolate._ppoly import evaluate") and PRIVATE.search("scipy.linalg._flapack")
+    assert PRIVATE.search("from scipy.interpolate import _ppoly") and not PRIVATE.search("scipy.interpolate.CubicSpline")
 
 
 @pytest.mark.skipif(fieldgrid.shipped_grid() is None, reason="no shipped field grid")

@@ -233,63 +233,93 @@ def test_build_fans_out_over_dask(tmp_path):
     assert tablebuild.merge_tables(paths, tmp_path / "m.ecsv")["band"][0] == "F184"
 
 
-@pytest.mark.parametrize("which", ["centre", "field"])
-def test_binary_companion_matches_the_ecsv_and_scipys_spline(which):
-    """The shipped .npz holds the ECSV's numbers, and evaluating its stored cubics gives scipy's
-    CubicSpline (the interpolant the tables are defined by), for the centre and the field-point
-    tables (gzipped ECSV)."""
+#: The ECSVs the shipped runtime files were derived from: sources in the repository, not installed.
+SOURCES = {"centre": "slopes.ecsv", "field": "field_slopes.ecsv.gz"}
+
+
+def _source(which: str):
     from astropy.table import Table
+
+    runtime = tables.shipped_table_path() if which == "centre" else tables.field_table_path()
+    return runtime, Table.read(runtime.with_name(SOURCES[which]), format="ascii.ecsv")
+
+
+@pytest.mark.parametrize("which", ["centre", "field"])
+def test_the_runtime_file_holds_its_sources_rows_and_scipys_splines(which):
+    """Every table of the shipped runtime file holds its source ECSV's rows (read by astropy) and, per
+    slope column, the breakpoints and coefficients of the public CubicSpline built here from the
+    ECSV's points (slope / flux in flux), bit for bit; and evaluating them gives that spline's values."""
     from scipy.interpolate import CubicSpline
 
-    path = tables.shipped_table_path() if which == "centre" else tables.field_table_path()
-    fast = tables.load_tables(str(path))
-    assert fast.meta["fingerprint"] == Table.read(path, format="ascii.ecsv").meta["fingerprint"]
-    slow = tables.load_ecsv(path)
-    keys = [("H158", 18), ("R062", 1), ("K213", 17), ("W146", 6)]
-    for key in keys if which == "centre" else [(b, s, p) for (b, s), p in zip(keys, (1, 2, 3, 4), strict=True)]:
-        a, b = fast.get(*key), slow.get(*key)
-        assert (a.field_point, a.position) == (b.field_point, b.position)
-        np.testing.assert_array_equal(a.magnitudes, b.magnitudes)
+    runtime, source = _source(which)
+    read = tables.load_tables(str(runtime))
+    assert read.meta["fingerprint"] == source.meta["fingerprint"] and read.meta["source"] == runtime.name
+    keys = ["band", "sca"] + (["field_point"] if which == "field" else [])
+    checked = 0
+    for group in source.group_by(keys).groups:
+        key = tuple(group[k][0] for k in keys)
+        table = read.get(str(key[0]), int(key[1]), *(int(k) for k in key[2:]))
+        group.sort("flux_electrons")
+        flux = np.asarray(group["flux_electrons"], dtype=np.float64)
+        np.testing.assert_array_equal(table.flux_electrons[::-1], flux)
+        np.testing.assert_array_equal(table.magnitudes[::-1], group["magnitude"])
         for name in tables.SLOPE_COLUMNS:
-            np.testing.assert_array_equal(a.columns[name], b.columns[name])
-            order = np.argsort(a.flux_electrons)
-            flux = a.flux_electrons[order]
-            spline = CubicSpline(flux, a.columns[name][order] / flux)
-            probe = np.geomspace(flux[0], flux[-1], 997)
-            _, evaluate, _, _ = a._interpolant(name)
-            np.testing.assert_allclose(evaluate(probe), spline(probe), rtol=1e-12, atol=1e-300)
+            values = np.asarray(group[name], dtype=np.float64)
+            np.testing.assert_array_equal(table.columns[name][::-1], values)
+            for suffix in ("_err", "_interp"):
+                np.testing.assert_array_equal(table.columns[name + suffix][::-1], group[name + suffix])
+            truth = CubicSpline(flux, values / flux)
+            breaks, coefficients = table.splines[name]
+            assert np.array_equal(breaks, truth.x) and np.array_equal(coefficients, truth.c), (key, name)
+            if checked % 37 == 0:
+                probe = np.geomspace(flux[0], flux[-1], 301)
+                _, evaluate, _, _ = table._interpolant(name)
+                np.testing.assert_allclose(evaluate(probe), truth(probe), rtol=1e-12, atol=1e-300)
+            checked += 1
+    assert checked == len(read.tables) * len(tables.SLOPE_COLUMNS)
 
 
-def test_a_stale_companion_is_ignored(tmp_path):
-    """A companion whose fingerprint differs from its ECSV is not trusted: the ECSV is read."""
+@pytest.mark.parametrize("which", ["centre", "field"])
+def test_the_export_gives_the_source_ecsv_back_byte_for_byte(which, tmp_path):
+    """``nlpsf tables export`` writes the runtime file as the ECSV it was derived from: the same
+    bytes (rows, types, units and metadata), so a user of the wheel, which ships the runtime file
+    alone, gets the readable tables."""
+    import gzip
+
+    from nlpsf.cli import main
+
+    runtime, _ = _source(which)
+    out = tmp_path / SOURCES[which]
+    assert main(["tables", "export", "--output", str(out), *(["--field"] if which == "field" else [])]) == 0
+    source = runtime.with_name(SOURCES[which])
+    if which == "field":
+        assert gzip.decompress(out.read_bytes()) == gzip.decompress(source.read_bytes())
+    assert out.read_bytes() == source.read_bytes()
+
+
+def test_a_table_file_is_read_through_its_runtime_file_or_its_ecsv(tmp_path):
+    """A table file a user has (an ECSV and the runtime file written beside it) is read through the
+    runtime file while its fingerprint matches the ECSV's, and from the ECSV when it does not: the
+    same numbers either way, the splines then built from the ECSV."""
     import shutil
 
-    source = tables.shipped_table_path()
+    runtime, _ = _source("centre")
     copy = tmp_path / "slopes.ecsv"
-    shutil.copy(source, copy)
-    shutil.copy(tables.companion_path(source), tables.companion_path(copy))
-    text = copy.read_text()
-    fingerprint = tables.ecsv_fingerprint(copy)
-    copy.write_text(text.replace(fingerprint, "feedfacefeedface", 1))
-    loaded = tables.load_tables(str(copy))
+    shutil.copy(runtime.with_name("slopes.ecsv"), copy)
+    shutil.copy(runtime, tables.companion_path(copy))
+    fast = tables.load_tables(str(copy)).get("J129", 4)
+    assert fast.splines
+    stale = tmp_path / "stale" / "slopes.ecsv"  # another file (load_tables caches by path)
+    stale.parent.mkdir()
+    stale.write_text(copy.read_text().replace(tables.ecsv_fingerprint(copy), "feedfacefeedface", 1))
+    shutil.copy(runtime, tables.companion_path(stale))
+    loaded = tables.load_tables(str(stale))
     assert loaded.meta["fingerprint"] == "feedfacefeedface"
-    assert loaded.get("H158", 18).magnitudes.size > 10
-
-
-def test_the_companion_rebuilds_scipys_spline_coefficients_bit_for_bit():
-    """The companion stores each spline's knot derivatives, not its coefficients; the coefficients
-    numpy builds from them are scipy's CubicSpline coefficients exactly (so answers are unchanged)."""
-    from scipy.interpolate import CubicSpline
-
-    centre, field = tables.load_tables(), tables.load_tables(str(tables.field_table_path()))
-    for table in (centre.get("H158", 18), centre.get("R062", 3), field.get("W146", 6, 2), field.get("K213", 17, 4)):
-        assert set(table.knot_derivatives) == set(tables.SLOPE_COLUMNS)
-        order = np.argsort(table.flux_electrons)
-        flux = table.flux_electrons[order]
-        for name in tables.SLOPE_COLUMNS:
-            values = table.columns[name][order]
-            built = tables.hermite_coefficients(flux, values, table.knot_derivatives[name])
-            np.testing.assert_array_equal(built, CubicSpline(flux, values / flux).c)
+    slow = loaded.get("J129", 4)
+    assert not slow.splines
+    magnitudes = np.linspace(slow.magnitudes[0], slow.magnitudes[-1], 57)
+    for metric in ("size", "e1", "e2"):
+        np.testing.assert_array_equal(fast.slope(metric, "bias", magnitudes)[0], slow.slope(metric, "bias", magnitudes)[0])
 
 
 def test_byte_shuffling_is_lossless():

@@ -25,7 +25,8 @@ the faint end); the interpolation error, estimated by leaving each grid point ou
 uncertainty. Fainter than the grid the slopes follow the linear regime exactly (slope
 proportional to flux); brighter than the grid there is no answer.
 
-A second file (``field_slopes.ecsv.gz``, ``nlpsf tables build --field``) holds the same tables at
+The shipped tables are one runtime file, ``slopes.npz`` (``nlpsf tables export`` writes them as
+ECSV). A second file (``field_slopes.npz``, ``nlpsf tables build --field``) holds the same tables at
 each SCA's four corner field points, keyed (band, SCA, field point): ``TableSet.at_point`` gives the
 tables at one corner keyed like the centre's, which is how ``solver.solve`` reads them for a star at
 a corner (``solve_over_field`` asks for every corner).
@@ -34,10 +35,10 @@ The package, by what each module holds (everything is importable from ``nlpsf.sl
 
 - ``model``: ``SlopeTable`` (one table, its lookups and rescaling), ``TableSet``, relabelling to
   another throughput (``with_throughput``), the column names;
-- ``splines``: the cubic splines' knot derivatives (scipy, at write time), their coefficients and
-  evaluation (numpy);
-- ``storage``: where the shipped files are, the binary companion (written and read) and the ECSV
-  read by astropy when there is no matching companion;
+- ``splines``: the cubic splines in scipy's public ``PPoly`` layout (built with ``CubicSpline`` where
+  a table is written), evaluated with numpy;
+- ``storage``: where the shipped files are, the runtime file (written and read: rows and spline
+  coefficients), the ECSV read by astropy when there is no matching runtime file, the ECSV export;
 - ``curves``: slope curves and flat rows for plotting and download, with their conditions;
 - ``paper``: the paper's power-law fits (Table 2) and its published figure data.
 
@@ -60,19 +61,21 @@ from .model import (
     with_throughput,
 )
 from .paper import PAPER_FIT_RANGE, paper_data, powerlaw_fit, powerlaw_fits, table2_comparison, table2_markdown
-from .splines import evaluate_cubic, hermite_coefficients, knot_derivatives
+from .splines import evaluate_cubic, not_a_knot_spline
 from .storage import (
     COMPANION_FORMAT,
     KEY_COLUMNS,
     META_KEYS,
     companion_path,
     ecsv_fingerprint,
+    export_ecsv,
     field_table_path,
     groups,
     load_ecsv,
     load_tables,
     shipped_table_path,
     write_companion,
+    write_ecsv,
 )
 
 __all__ = [
@@ -94,12 +97,12 @@ __all__ = [
     "curve",
     "ecsv_fingerprint",
     "evaluate_cubic",
+    "export_ecsv",
     "field_table_path",
     "groups",
-    "hermite_coefficients",
-    "knot_derivatives",
     "load_ecsv",
     "load_tables",
+    "not_a_knot_spline",
     "paper_data",
     "powerlaw_fit",
     "powerlaw_fits",
@@ -110,4 +113,5 @@ __all__ = [
     "table_rows",
     "with_throughput",
     "write_companion",
+    "write_ecsv",
 ]

@@ -16,7 +16,7 @@ import numpy as np
 from nlpsf import defaults, roman
 from nlpsf.checks import InputError
 
-from .splines import evaluate_cubic, hermite_coefficients, knot_derivatives
+from .splines import evaluate_cubic, not_a_knot_spline
 
 METRICS = defaults.METRICS
 MODES = defaults.MODES
@@ -46,10 +46,10 @@ class SlopeTable:
     settings: dict
     saturation_magnitude: float
     peak_fraction: float
-    #: Per slope column, the spline's derivatives at the knots (flux ascending; ``splines``): its
-    #: coefficients are built from them with numpy when the column is first read. A column without
-    #: them (a table read from the ECSV) has them solved then, with scipy.
-    knot_derivatives: dict[str, np.ndarray] = field(default_factory=dict)
+    #: Per slope column, its spline as scipy's public ``PPoly`` holds it, (breakpoints x: the flux
+    #: ascending, coefficients c (4, rows - 1)), read from the runtime file and evaluated with numpy. A
+    #: column without one (a table read from its ECSV) has it built with scipy when first read.
+    splines: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     #: Corner field point (1-4, ``roman.field_points``) and its pixel position; None: the SCA centre.
     field_point: int | None = None
     position: tuple[float, float] | None = None
@@ -81,13 +81,11 @@ class SlopeTable:
             value = self.columns[name][order]
             relative = np.abs(self.columns[f"{name}_err"][order] / np.where(value != 0, value, np.inf))
             interp = self.columns[f"{name}_interp"][order] / flux
-            derivatives = self.knot_derivatives.get(name)
-            if derivatives is None:
-                derivatives = knot_derivatives(flux, self.columns[name][order])
-            coefficients = hermite_coefficients(flux, self.columns[name][order], derivatives)
+            stored = self.splines.get(name)
+            breaks, coefficients = stored if stored is not None else not_a_knot_spline(flux, self.columns[name][order])
 
-            def spline(x, flux=flux, coefficients=coefficients):
-                return evaluate_cubic(flux, coefficients, np.asarray(x, dtype=np.float64))
+            def spline(x, breaks=breaks, coefficients=coefficients):
+                return evaluate_cubic(breaks, coefficients, np.asarray(x, dtype=np.float64))
 
             self._interpolants[name] = (flux, spline, relative, interp)
         return self._interpolants[name]
@@ -172,7 +170,9 @@ class TableSet:
         table = self._tables.get((band, sca) + ((point,) if point else ()))  # a request's band and SCA, checked once
         if table is not None:
             return table
-        key = (roman.check_band(band), roman.check_sca(sca)) + ((int(point),) if point else ())
+        # A band already in its checked form (a request's) is not checked again; another is (a caller's own).
+        checked = band if band in defaults.BANDS else roman.check_band(band)
+        key = (checked, roman.check_sca(sca)) + ((int(point),) if point else ())
         table = self._tables.get(key)
         if table is None:
             if key not in self._keys:

@@ -1,17 +1,18 @@
-"""Piecewise cubics: knot derivatives solved with scipy when a table is written, the cubics built
-and evaluated with numpy.
+"""Piecewise cubics in scipy's public ``PPoly`` layout (breakpoints x, coefficients c (4, x.size - 1),
+highest power first), evaluated with numpy.
 
-The slopes are interpolated with scipy's not-a-knot ``CubicSpline`` of slope / flux in flux. That
-spline is a cubic Hermite interpolant: once its derivatives at the knots are known (one
-tridiagonal solve), its coefficients are four elementwise expressions of them and the data (scipy's
-own ``CubicHermiteSpline``, repeated in :func:`hermite_coefficients`). The solve is done here with
-numpy as scipy does it (its system, LAPACK ``gtsv``'s elimination: :func:`not_a_knot_derivatives`),
-many splines at once and bit for bit scipy's public ``CubicSpline(...).c`` (checked where a table is
-written, and by the tests on every shipped series) -- no scipy at run time and nothing of scipy but
-its public results. A paper table's file stores the knot derivatives (``knot_derivatives``), a
-quarter of what the coefficients took; the field grid (``nlpsf.slopes.fieldgrid``) builds its
-nodes' cubics from its values when a (band, SCA) is first read (:func:`not_a_knot_coefficients`)
-and evaluates them all at once, bit for bit as scipy evaluates each (:func:`evaluate_stacked_cubics`).
+The slopes are interpolated with scipy's not-a-knot ``CubicSpline`` of slope / flux in flux. A
+paper table's runtime file stores each spline's ``x`` and ``c`` as ``CubicSpline`` returned them
+when it was written (:func:`not_a_knot_spline`), and :func:`evaluate_cubic` reads them (Horner's
+form, the order the tables' readers have always used: the answers are bit for bit what they were;
+scipy's ``PPoly.__call__`` sums the powers in another order and can differ in the last bit).
+
+The field grid (``nlpsf.slopes.fieldgrid``) stores its nodes' values, not their coefficients (every
+node's 18 columns as float64 coefficients would make its file about twelve times larger), and builds
+its nodes' not-a-knot cubics when a (band, SCA) is first read, every node at once, with numpy
+(:func:`not_a_knot_coefficients`: the spline's tridiagonal system, solved by Gaussian elimination
+with partial pivoting), and evaluates them all at once (:func:`evaluate_stacked_cubics`). The tests
+check both against the public ``CubicSpline`` built from the same points, on every shipped series.
 """
 
 from __future__ import annotations
@@ -19,33 +20,15 @@ from __future__ import annotations
 import numpy as np
 
 
-def knot_derivatives(flux: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """d(values / flux)/d flux at each knot of scipy's not-a-knot CubicSpline (flux ascending).
-
-    Solved with numpy as scipy solves them (:func:`not_a_knot_derivatives`) and checked against
-    scipy's public coefficients: :func:`hermite_coefficients` of them must equal
-    ``CubicSpline(flux, values / flux).c`` bit for bit (scipy only where a table is written)."""
+def not_a_knot_spline(flux: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, c): scipy's not-a-knot ``CubicSpline`` of values / flux in flux (flux ascending), its
+    public breakpoints and coefficients -- how a table's runtime file stores a slope column's
+    interpolant (scipy where a table is written, or read from an ECSV alone)."""
     from scipy.interpolate import CubicSpline
 
     flux = np.asarray(flux, dtype=np.float64)
-    values = np.asarray(values, dtype=np.float64)
-    derivatives = not_a_knot_derivatives(flux[None], (values / flux)[None])[0]
-    if not np.array_equal(hermite_coefficients(flux, values, derivatives), CubicSpline(flux, values / flux).c):
-        raise ArithmeticError("the cubic's coefficients from its knot derivatives differ from scipy's")
-    return derivatives
-
-
-def hermite_coefficients(flux: np.ndarray, values: np.ndarray, derivatives: np.ndarray) -> np.ndarray:
-    """Coefficients (4, n - 1) of the cubic Hermite interpolant of values / flux in flux with these
-    knot derivatives: scipy's ``CubicHermiteSpline`` arithmetic, operation for operation, so the
-    result is bit for bit scipy's ``CubicSpline(flux, values / flux).c``."""
-    x = np.asarray(flux, dtype=np.float64)
-    y = np.asarray(values / flux, dtype=np.float64)
-    dydx = np.asarray(derivatives, dtype=np.float64)
-    dx = np.diff(x)
-    slope = np.diff(y, axis=0) / dx
-    t = (dydx[:-1] + dydx[1:] - 2 * slope) / dx
-    return np.stack((t / dx, (slope - dydx[:-1]) / dx - t, dydx[:-1], y[:-1]))
+    spline = CubicSpline(flux, np.asarray(values, dtype=np.float64) / flux)
+    return spline.x, spline.c
 
 
 def evaluate_cubic(breaks: np.ndarray, coefficients: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -58,12 +41,13 @@ def evaluate_cubic(breaks: np.ndarray, coefficients: np.ndarray, x: np.ndarray) 
 
 def evaluate_stacked_cubics(knots: np.ndarray, coefficients: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Every node's polynomial at its own ``x`` (n, n, ...), at once (a field grid's nodes have
-    different knots, so scipy cannot evaluate them as one object, and calling them one by one cost
-    most of a default solve over an SCA). The interval k with knot_k <= x < knot_(k+1) (the last at
-    a node's last knot and beyond, the first below its first) and the sum scipy's PPoly forms
-    (``_ppoly.pyx`` ``evaluate_poly1``: c_last + c_(last-1) s + c_(last-2) s^2 + ..., in that order,
-    s = x - knot), so a node's value is bit for bit its CubicSpline's -- unlike
-    :func:`evaluate_cubic`'s Horner form, which the paper tables' readers have always used."""
+    different knots, so one ``PPoly`` cannot hold them, and calling them one by one cost most of a
+    default solve over an SCA). The interval k with knot_k <= x < knot_(k+1) (the last at a node's
+    last knot and beyond, the first below its first) and the sum of the powers c_last + c_(last-1) s
+    + c_(last-2) s^2 + ..., in that order, s = x - knot (the grid's answers have been this sum since
+    it shipped; ``tests/library/test_shipped_field_grid.py`` finds it equal to each node's public
+    ``CubicSpline`` called at the same points, bit for bit) -- unlike :func:`evaluate_cubic`'s
+    Horner form, which the paper tables' readers have always used."""
     return evaluate_stacked_columns(knots, [coefficients], x)[0]
 
 
@@ -99,12 +83,11 @@ def not_a_knot_coefficients(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     the abscissae ``x`` (S, M) of the same row (ascending, M >= 4), in scipy's PPoly layout: every
     row at once, with numpy alone (:func:`not_a_knot_derivatives`, then the Hermite form).
 
-    The knot derivatives solve scipy's ``CubicSpline`` system (its right-hand side, operation for
-    operation) by LAPACK ``gtsv``'s elimination with its row interchanges, and the coefficients are
-    :func:`hermite_coefficients`' arithmetic; so a row's coefficients are scipy's
-    ``CubicSpline(x, y).c`` to the last bit wherever scipy's LAPACK computes without fused
-    multiply-adds, and within a few units of the last place otherwise
-    (``tests/library/test_tables.py`` checks them against scipy)."""
+    The knot derivatives solve the not-a-knot system (:func:`not_a_knot_derivatives`), and the
+    coefficients are the cubic Hermite form of them and the data. A row's coefficients equal the
+    public ``CubicSpline(x, y).c`` built from the same points on every shipped series
+    (``tests/library/test_splines.py``; to the last bit where the LAPACK scipy calls computes without
+    fused multiply-adds, within a few units of the last place otherwise)."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     dx = np.diff(x, axis=1)
@@ -114,7 +97,8 @@ def not_a_knot_coefficients(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def not_a_knot_derivatives(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(S, M) knot derivatives of the not-a-knot cubic spline through each row of ``y`` at ``x``
-    (ascending, M >= 4): scipy's ``CubicSpline`` system, solved as its LAPACK ``gtsv`` solves it."""
+    (ascending, M >= 4): the tridiagonal system of the derivatives (the first and last rows the
+    not-a-knot conditions), solved by :func:`_tridiagonal_solve`."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     if x.ndim != 2 or x.shape != y.shape or x.shape[1] < 4:
@@ -137,12 +121,13 @@ def not_a_knot_derivatives(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     end = x[:, -1] - x[:, -3]
     d[:, -1], dl[:, -1] = dx[:, -2], end
     b[:, -1] = (dx[:, -1] ** 2 * slope[:, -2] + (2 * end + dx[:, -1]) * dx[:, -2] * slope[:, -1]) / end
-    return _gtsv(dl, d, du, b)
+    return _tridiagonal_solve(dl, d, du, b)
 
 
-def _gtsv(dl: np.ndarray, d: np.ndarray, du: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve each row's tridiagonal system as LAPACK ``dgtsv`` does (one right-hand side): Gaussian
-    elimination with partial pivoting by row interchanges, then back substitution."""
+def _tridiagonal_solve(dl: np.ndarray, d: np.ndarray, du: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve each row's tridiagonal system (one right-hand side): Gaussian elimination with partial
+    pivoting by row interchanges, then back substitution (the textbook algorithm, as LAPACK's
+    ``dgtsv`` states it)."""
     dl, d, du, b = (np.array(a, dtype=np.float64) for a in (dl, d, du, b))
     n = d.shape[1]
     du2 = np.zeros_like(dl)  # the second super-diagonal the interchanges fill
@@ -176,6 +161,7 @@ def _gtsv(dl: np.ndarray, d: np.ndarray, du: np.ndarray, b: np.ndarray) -> np.nd
 
 
 def _hermite_rows(y: np.ndarray, dydx: np.ndarray, dx: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    """:func:`hermite_coefficients` of every row: (4, S, M - 1)."""
+    """(4, S, M - 1) coefficients of every row's cubic Hermite interpolant with knot derivatives ``dydx``
+    (highest power first, each interval's own origin)."""
     t = (dydx[:, :-1] + dydx[:, 1:] - 2 * slope) / dx
     return np.stack((t / dx, (slope - dydx[:, :-1]) / dx - t, dydx[:, :-1], y[:, :-1]))

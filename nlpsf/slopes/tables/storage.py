@@ -1,16 +1,19 @@
-"""The tables on disk: the ECSV (astropy, with units and metadata) and its binary companion (numpy).
+"""The tables on disk: one runtime file per table set (``.npz``, numpy alone), derived from an ECSV.
 
-``load_tables`` reads the companion (``slopes.npz``: the same numbers, read in milliseconds with
-numpy alone) when its fingerprint matches the ECSV's, found by a regular expression over the ECSV's
-YAML header so that astropy is not imported; otherwise it parses the ECSV with astropy. The
-companion holds each spline's knot derivatives, not its coefficients (which doubled the file):
-``SlopeTable`` builds the coefficients from them with numpy, bit for bit scipy's (``splines``).
-``write_companion`` writes the companion of a merged table (``tablebuild`` writes the ECSV beside it).
+The runtime file holds every table's rows (float64) and, per slope column, its cubic spline as
+scipy's public ``PPoly`` holds it: breakpoints ``x`` (flux ascending) and coefficients ``c`` (4,
+rows - 1; highest power first), as ``CubicSpline(x, slope / x)`` returns them when the file is
+written. Reading it needs numpy alone, and the splines are evaluated with numpy on those
+coefficients (``splines.evaluate_cubic``): nothing of scipy at run time, public or private.
 
-Why both files ship: the ECSV is the published, human-readable copy (units, metadata), the one the
-API serves (``tables.ecsv``) and the one the tests read as independent truth (``tests/shipped.py``),
-and the companion is trusted only while its fingerprint matches it; the runtime reads one format,
-the companion.
+The shipped files are ``slopes.npz`` and ``field_slopes.npz``. The ECSVs they were derived from
+(units and metadata, human-readable) are their sources in the repository and are not installed: a
+user gets the same tables readable from ``nlpsf tables export`` (:func:`export_ecsv`) or the API's
+``tables.ecsv`` / ``tables.csv``. A table file a user builds (``nlpsf tables build --merge-to
+FILE.ecsv``) is written as both, the ECSV and its runtime file beside it; ``load_tables`` reads the
+runtime file when its fingerprint matches the ECSV's (found by a regular expression over the
+ECSV's YAML header, so that astropy is not imported), and otherwise parses the ECSV with astropy
+(its splines then built with scipy's ``CubicSpline`` when first read).
 """
 
 from __future__ import annotations
@@ -28,11 +31,12 @@ import numpy as np
 from nlpsf.checks import InputError
 
 from .model import SLOPE_COLUMNS, SlopeTable, TableSet, table_key
-from .splines import knot_derivatives
+from .splines import not_a_knot_spline
 
-#: Version of the binary companion's layout (2: knot derivatives instead of spline coefficients,
-#: byte-shuffled columns).
-COMPANION_FORMAT = 2
+#: Version of the runtime file's layout (3: each slope column's spline as PPoly breakpoints and
+#: coefficients; 2, knot derivatives, and 1, unshuffled coefficients, are no longer read: a table file
+#: with such a companion is read from its ECSV).
+COMPANION_FORMAT = 3
 
 
 def shuffle_bytes(array: np.ndarray) -> np.ndarray:
@@ -48,33 +52,41 @@ def unshuffle_bytes(packed: np.ndarray, dtype: str) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(packed, 0, -1)).view(np.dtype(dtype))[..., 0]
 
 
+def _tables_folder() -> Path:
+    return Path(str(resources.files("nlpsf") / "data" / "tables"))
+
+
 def shipped_table_path() -> Path:
-    return Path(str(resources.files("nlpsf") / "data" / "tables" / "slopes.ecsv"))
+    """The shipped tables at each SCA's centre: the runtime file (its source ECSV is not installed)."""
+    return _tables_folder() / "slopes.npz"
 
 
 def field_table_path() -> Path:
     """The shipped tables at each SCA's four corner field points (``nlpsf solve --over-field``)."""
-    return Path(str(resources.files("nlpsf") / "data" / "tables" / "field_slopes.ecsv.gz"))
+    return _tables_folder() / "field_slopes.npz"
 
 
 def companion_path(path: Path) -> Path:
-    """The binary companion of an ECSV table file (``.ecsv`` or gzipped ``.ecsv.gz``): the same
-    numbers, read without astropy/scipy."""
+    """The runtime file of an ECSV table file (``.ecsv`` or gzipped ``.ecsv.gz``): the same
+    numbers and their splines, read without astropy/scipy."""
     name = path.name.removesuffix(".gz").removesuffix(".ecsv")
     return path.with_name(name + ".npz")
 
 
+#: The ECSV metadata a runtime file keeps (with ``per_table``), so that an export gives it back.
 META_KEYS = ("settings", "fingerprint", "method", "data_version", "code_version")
+_EXPORTED_META = ("description", *META_KEYS, "per_table", "units")
 
 
 def write_companion(table, path: Path) -> Path:
-    """Write the binary companion of a merged astropy table (written as ECSV to ``path``).
+    """Write the runtime file of a merged astropy table (written, or to be exported, as ECSV to ``path``).
 
     Layout: ``meta`` (JSON text: the ECSV's metadata, column names, the data's dtype), and per
-    (band, SCA) ``{band}_{sca}``: the float64 rows x columns (magnitude ascending), and
-    ``{band}_{sca}_knots``: per slope column (``SLOPE_COLUMNS``) the spline's knot derivatives (flux
-    ascending, ``splines.knot_derivatives``), each stored column by column through
-    ``shuffle_bytes``; in a field-point file ``{band}_{sca}_p{point}``. The fingerprint ties it to
+    (band, SCA) ``{band}_{sca}`` (in a field-point file ``{band}_{sca}_p{point}``): the float64 rows
+    x columns (magnitude ascending); ``{band}_{sca}_x``: the splines' breakpoints, the flux ascending
+    (rows,); ``{band}_{sca}_c``: per slope column (``SLOPE_COLUMNS``, in ``meta["spline_columns"]``'s
+    order) the coefficients of scipy's ``CubicSpline(x, column / x)``, (columns, 4, rows - 1) -- a
+    ``PPoly(c[k], x)``. Every array is stored through ``shuffle_bytes``. The fingerprint ties it to
     the ECSV it came from.
     """
     names = [n for n in table.colnames if n not in KEY_COLUMNS]
@@ -85,17 +97,22 @@ def write_companion(table, path: Path) -> Path:
         data = data[np.argsort(data[:, names.index("magnitude")])]
         flux = data[:, names.index("flux_electrons")]
         order = np.argsort(flux)
-        knots = np.stack([knot_derivatives(flux[order], data[order, names.index(c)]) for c in SLOPE_COLUMNS])
+        splines = [not_a_knot_spline(flux[order], data[order, names.index(c)]) for c in SLOPE_COLUMNS]
+        if not all(np.array_equal(x, flux[order]) for x, _ in splines):
+            raise ArithmeticError(f"{key}: a spline's breakpoints are not the table's flux")
         arrays[array_name(key)] = shuffle_bytes(data.T)
-        arrays[f"{array_name(key)}_knots"] = shuffle_bytes(knots)
+        arrays[f"{array_name(key)}_x"] = shuffle_bytes(splines[0][0])
+        arrays[f"{array_name(key)}_c"] = shuffle_bytes(np.stack([c for _, c in splines]))
         keys.append(list(key))
-    meta = {k: table.meta[k] for k in (*META_KEYS, "per_table") if k in table.meta}
+    meta = {k: table.meta[k] for k in _EXPORTED_META if k in table.meta}
     meta.update(
         columns=names,
         spline_columns=list(SLOPE_COLUMNS),
         keys=keys,
         companion_format=COMPANION_FORMAT,
         dtype=np.dtype(np.float64).str,
+        source=Path(path).name,
+        ecsv_columns=[[n, table[n].dtype.str] for n in table.colnames],
     )
     destination = companion_path(Path(path))
     temporary = destination.with_name(destination.name + ".tmp.npz")
@@ -123,10 +140,13 @@ def array_name(key: tuple) -> str:
     return "_".join(str(part) if k < 2 else f"p{part}" for k, part in enumerate(key))
 
 
-def table_from_arrays(key: tuple, data: np.ndarray, meta: dict, knots: np.ndarray | None = None) -> SlopeTable:
+def table_from_arrays(
+    key: tuple, data: np.ndarray, meta: dict, breaks: np.ndarray | None = None, coefficients: np.ndarray | None = None
+) -> SlopeTable:
     names = meta["columns"]
     column = {name: data[:, k].copy() for k, name in enumerate(names) if name not in KEY_COLUMNS}
     info = meta["per_table"][table_key(*key)]
+    splines = {} if coefficients is None else {n: (breaks, c) for n, c in zip(meta["spline_columns"], coefficients, strict=True)}
     return SlopeTable(
         band=key[0],
         sca=key[1],
@@ -137,7 +157,7 @@ def table_from_arrays(key: tuple, data: np.ndarray, meta: dict, knots: np.ndarra
         settings=dict(meta["settings"]),
         saturation_magnitude=float(info["saturation_magnitude"]),
         peak_fraction=float(info["peak_fraction"]),
-        knot_derivatives={} if knots is None else dict(zip(meta["spline_columns"], knots, strict=True)),
+        splines=splines,
         field_point=int(key[2]) if len(key) > 2 else None,
         position=tuple(float(v) for v in info["position"]) if "position" in info else None,
     )
@@ -154,27 +174,43 @@ def public_meta(meta: dict, source: Path) -> dict:
 def load_tables(path: str | None = None) -> TableSet:
     """Open a table file (the shipped one by default). Cached: the calculator never re-reads.
 
-    Reads the binary companion (numpy alone, milliseconds) when it is there and matches the ECSV's
-    fingerprint; otherwise parses the ECSV with astropy (and a table's splines are then solved with
-    scipy when a column is first read).
+    ``path``: a runtime file (``.npz``, numpy alone, milliseconds), or an ECSV, read through its
+    runtime file when that is beside it and matches the ECSV's fingerprint, and otherwise parsed
+    with astropy (a table's splines are then built with scipy when a column is first read).
     """
     source = Path(path) if path is not None else shipped_table_path()
     if not source.exists():
         raise InputError("tables", f"no table file named {source.name}; build one with `nlpsf tables build`")
+    if source.suffix == ".npz":
+        tableset = read_runtime(source)
+        if tableset is None:
+            raise InputError("tables", f"{source.name} is not a slope-table file of format {COMPANION_FORMAT}")
+        return tableset
     companion = companion_path(source)
     if companion.exists():
-        archive = np.load(companion, allow_pickle=False)
-        meta = json.loads(str(archive["meta"]))
-        if meta.get("companion_format") == COMPANION_FORMAT and ecsv_fingerprint(source) == meta.get("fingerprint"):
-            keys = [(str(k[0]), *map(int, k[1:])) for k in meta["keys"]]
-
-            def read(key: tuple) -> SlopeTable:
-                name, dtype = array_name(key), meta["dtype"]
-                data, knots = (unshuffle_bytes(archive[n], dtype) for n in (name, f"{name}_knots"))
-                return table_from_arrays(key, data.T, meta, knots)
-
-            return TableSet(keys, public_meta(meta, source), read)
+        tableset = read_runtime(companion, ecsv_fingerprint(source), source)
+        if tableset is not None:
+            return tableset
     return load_ecsv(source)
+
+
+def read_runtime(path: Path, fingerprint: str | None = None, source: Path | None = None) -> TableSet | None:
+    """The tables of a runtime file; None if it is of another format or (``fingerprint`` given)
+    was not derived from that ECSV. ``source``: the file named in the tables' metadata."""
+    archive = np.load(path, allow_pickle=False)
+    meta = json.loads(str(archive["meta"]))
+    if meta.get("companion_format") != COMPANION_FORMAT:
+        return None
+    if fingerprint is not None and fingerprint != meta.get("fingerprint"):
+        return None
+    keys = [(str(k[0]), *map(int, k[1:])) for k in meta["keys"]]
+
+    def read(key: tuple) -> SlopeTable:
+        name, dtype = array_name(key), meta["dtype"]
+        data, breaks, coefficients = (unshuffle_bytes(archive[n], dtype) for n in (name, f"{name}_x", f"{name}_c"))
+        return table_from_arrays(key, data.T, meta, breaks, coefficients)
+
+    return TableSet(keys, public_meta(meta, source or path), read)
 
 
 def ecsv_fingerprint(path: Path) -> str | None:
@@ -206,3 +242,46 @@ def load_ecsv(source: Path) -> TableSet:
         data = data[np.argsort(data[:, names.index("magnitude")])]
         out[key] = table_from_arrays(key, data, meta)
     return TableSet(list(out), public_meta(meta, source), out.__getitem__)
+
+
+def export_ecsv(destination: Path | str, path: Path | str | None = None) -> Path:
+    """Write a runtime table file (the shipped centre tables by default) as the ECSV it was derived
+    from: the same rows, columns, types and metadata (astropy; gzipped when ``destination`` ends in
+    ``.gz``, with no time stamp). ``nlpsf tables export``."""
+    from astropy.table import Table
+
+    runtime = Path(path) if path is not None else shipped_table_path()
+    archive = np.load(runtime, allow_pickle=False)
+    meta = json.loads(str(archive["meta"]))
+    if meta.get("companion_format") != COMPANION_FORMAT or "ecsv_columns" not in meta:
+        raise InputError("tables", f"{runtime.name} is not a slope-table file of format {COMPANION_FORMAT}")
+    blocks: dict[str, list[np.ndarray]] = {name: [] for name, _ in meta["ecsv_columns"]}
+    for key in meta["keys"]:
+        data = unshuffle_bytes(archive[array_name(key)], meta["dtype"]).T
+        named = {"band": np.full(len(data), key[0]), "sca": np.full(len(data), key[1])}
+        if len(key) > 2:
+            named["field_point"] = np.full(len(data), key[2])
+        named.update((name, data[:, k]) for k, name in enumerate(meta["columns"]))
+        for name in blocks:
+            blocks[name].append(named[name])
+    types = dict(meta["ecsv_columns"])
+    columns = [np.concatenate(blocks[name]).astype(types[name]) for name in blocks]
+    table = Table(columns, names=list(blocks), meta={k: meta[k] for k in _EXPORTED_META if k in meta})
+    return write_ecsv(table, destination)
+
+
+def write_ecsv(table, destination: Path | str) -> Path:
+    """``table`` (astropy) written as ECSV, gzipped where the name ends in ``.gz`` (astropy reads it
+    as it is) with no time stamp, so that equal tables give equal bytes."""
+    import io
+
+    destination = Path(destination)
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    if destination.name.endswith(".gz"):
+        text = io.StringIO()
+        table.write(text, format="ascii.ecsv")
+        with open(destination, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as packed:
+            packed.write(text.getvalue().encode())
+    else:
+        table.write(destination, format="ascii.ecsv", overwrite=True)
+    return destination
