@@ -359,13 +359,20 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
     offset = info.get("magnitude_offset", 0.0)
     shifted = np.array([m + offset for m in magnitudes], dtype=np.float64)
     count = shifted.size
+    # One magnitude at every node: each part looked up once (``at_magnitude``, the same neighbours).
+    one = float(shifted[0]) if count and (shifted == shifted[0]).all() else None
     standard, left_out = np.zeros(count), np.zeros(count)
     for part in info["left_out"]:
         name = part["name"]
         if part.get("measured_here"):
             read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
         elif "by_magnitude" in part:
-            read = np.abs(roman_parts.at_magnitudes(part["by_magnitude"], shifted) * np.asarray(scales, dtype=np.float64))
+            value = None if one is None else roman_parts.at_magnitude(part["by_magnitude"], one)
+            if value is None:  # many magnitudes, or nothing finite measured there (at_magnitudes' NaN or inf)
+                looked = roman_parts.at_magnitudes(part["by_magnitude"], shifted if one is None else shifted[:1])
+            else:
+                looked = np.array([value])
+            read = np.abs(looked * np.asarray(scales, dtype=np.float64))
         else:
             continue  # named, not measured: counts zero
         read = np.where(np.isnan(read), 0.0, read)
