@@ -91,6 +91,12 @@ BENCHMARKS = (
         ("benchmarks/bench_service.py", "--only-throughput", "--duration", "5"),
         r"RATIO",
     ),
+    Benchmark(
+        "service_cpu",
+        "The Roman default's mix against the paper tables' solves through the service app: CPU per request, one process",
+        ("benchmarks/bench_service_cpu.py",),
+        r"RATIO|ms",
+    ),
 )
 
 
