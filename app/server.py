@@ -3,11 +3,12 @@
 ``nlpsf serve`` (``nlpsf.cli.serve``) calls :func:`serve`; uvicorn and the app are imported only
 then, so the command line stays light.
 
-Each worker has a listening socket of its own on the one port (SO_REUSEPORT: the kernel spreads
-connections over the workers) and a heartbeat slot (``liveness``) its event loop writes ten times a
-second. The supervisor checks every worker five times a second: one that exited is started again;
-one silent for ``heartbeat_timeout_s`` (stopped with SIGSTOP, or its loop blocked) is killed with
-SIGKILL -- which also closes its socket, so the kernel stops handing it connections -- and replaced.
+The workers accept from one listening socket the supervisor opens (``shared_socket``, the default: a
+stopped worker then takes no new connections; or, with it off, one SO_REUSEPORT socket per worker,
+the kernel spreading connections over them), and each has a heartbeat slot (``liveness``) its event
+loop writes ten times a second. The supervisor checks every worker five times a second: one that
+exited is started again; one silent for ``heartbeat_timeout_s`` (stopped with SIGSTOP, or its loop
+blocked) is killed with SIGKILL -- which also closes its own socket, if it has one -- and replaced.
 Meanwhile ``/health``, answered by any other worker, reports it as stalled. (gunicorn's arbiter does
 the same with heartbeat files; measured against this supervisor in benchmarks/bench_liveness.py:
 see docs/service.md for why this one is kept.)

@@ -1,6 +1,7 @@
 """A simulated answer carries its slope's quality flags: where the Monte Carlo finite difference is
 jumpy (a pixel crosses the moments' hard weight cut between the two beta values, K213 SCA 6 at
-(701, 1403), m = 17.72: the stated slope error 6.3 against 0.0044 exact; the case moves with the
+(701, 1403), m = 17.72: the stated slope error 0.060 against 0.0042 exact, 14x; it was 6.3, 1500x, while
+the difference was taken over +-1e-4 beta0 rather than today's +-0.1 beta0; the case moves with the
 physics: it was m = 17.9 before the sky was removed as a local sky estimate removes it, m = 17.84
 before the calibration residual was modelled per resultant),
 the answer says so, as the simulation does; the exact derivative (linear) raises no such flag."""
@@ -25,4 +26,4 @@ def test_a_jumpy_monte_carlo_slope_is_flagged_in_the_answer():
     # The flag's reason: the slope's stated error is far above the exact derivative's.
     exact = _answer("linear")
     assert FlagCode.JUMPY_FINITE_DIFFERENCE.value not in codes(exact.flags)
-    assert answer.slope_uncertainty > 100 * exact.slope_uncertainty
+    assert answer.slope_uncertainty > 10 * exact.slope_uncertainty

@@ -1,5 +1,6 @@
 """The shipped slope tables: coverage, provenance, interpolation, the exact exposure/beta0 scaling."""
 
+import json
 import math
 
 import numpy as np
@@ -281,10 +282,15 @@ def test_the_runtime_file_holds_its_sources_rows_and_scipys_splines(which):
 
 @pytest.mark.parametrize("which", ["centre", "field"])
 def test_the_export_gives_the_source_ecsv_back_byte_for_byte(which, tmp_path):
-    """``nlpsf tables export`` writes the runtime file as the ECSV it was derived from: the same
-    bytes (rows, types, units and metadata), so a user of the wheel, which ships the runtime file
-    alone, gets the readable tables."""
+    """``nlpsf tables export`` writes the runtime file as the ECSV it was derived from: the same rows,
+    byte for byte, and the same header (types, units and metadata), so a user of the wheel, which
+    ships the runtime file alone, gets the readable tables. The header's YAML is compared as read:
+    astropy's writer wraps its lines differently from one version to another (6.1, the declared
+    minimum, against the one that wrote the source); with the writing version the file is the same
+    bytes."""
     import gzip
+
+    from astropy.table import Table
 
     from nlpsf.cli import main
 
@@ -292,9 +298,15 @@ def test_the_export_gives_the_source_ecsv_back_byte_for_byte(which, tmp_path):
     out = tmp_path / SOURCES[which]
     assert main(["tables", "export", "--output", str(out), *(["--field"] if which == "field" else [])]) == 0
     source = runtime.with_name(SOURCES[which])
-    if which == "field":
-        assert gzip.decompress(out.read_bytes()) == gzip.decompress(source.read_bytes())
-    assert out.read_bytes() == source.read_bytes()
+    texts = [gzip.decompress(p.read_bytes()) if which == "field" else p.read_bytes() for p in (out, source)]
+    rows = [[line for line in text.splitlines() if not line.startswith(b"#")] for text in texts]
+    assert rows[0] == rows[1]
+    exported, original = (Table.read(p, format="ascii.ecsv") for p in (out, source))
+    # As plain dicts: the order of keys the YAML reader hands back is no part of the metadata.
+    assert json.loads(json.dumps(exported.meta)) == json.loads(json.dumps(original.meta))
+    assert [(c.name, c.dtype, c.unit, c.description) for c in exported.itercols()] == [
+        (c.name, c.dtype, c.unit, c.description) for c in original.itercols()
+    ]
 
 
 def test_a_table_file_is_read_through_its_runtime_file_or_its_ecsv(tmp_path):
