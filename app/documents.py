@@ -29,6 +29,7 @@ from starlette.concurrency import run_in_threadpool
 
 from . import budget
 from .errors import Throttled
+from .security import replay_first
 
 #: Slices a large document is sent in: the worker waits for the client to take one before the next.
 CHUNK_BYTES = 64 * 1024
@@ -274,7 +275,7 @@ class CachedAnswers:
         if scope["method"] != "GET":
             event = await receive()  # the whole body, as BodyLimit hands it on
             body = event.get("body", b"")
-            receive = _replay(event, receive)
+            receive = replay_first(event, receive)
         path = scope["path"]
         key = (scope["method"], path, _canonical_query(scope.get("query_string", b"")), body)
         if await self._send_kept(key, scope, send):
@@ -319,16 +320,3 @@ class CachedAnswers:
                 self.budget.answers.put(key, made, made.size)
             else:
                 self.documents.put(key, made)
-
-
-def _replay(event: Any, receive: Any) -> Any:
-    replayed = False
-
-    async def replay() -> Any:
-        nonlocal replayed
-        if not replayed:
-            replayed = True
-            return event
-        return await receive()
-
-    return replay

@@ -239,16 +239,7 @@ class JsonBodies:
             if problem is not None:
                 await send_problem(send, 422, problem["detail"], body=problem)
                 return
-        replayed = False
-
-        async def replay() -> Message:
-            nonlocal replayed
-            if not replayed:
-                replayed = True
-                return event
-            return await receive()
-
-        await self.app(scope, replay, send)
+        await self.app(scope, replay_first(event, receive), send)
 
     def _check_metered(self, body: bytes, adapter: Any, kib: float) -> dict | None:
         from . import budget
@@ -367,3 +358,18 @@ class ApiMethods:
             await self.app({**scope, "method": "GET", "nlpsf.head": True}, receive, headers_only)
             return
         await self.app(scope, receive, send)
+
+
+def replay_first(event: Any, receive: Any) -> Any:
+    """An ASGI ``receive`` that hands ``event`` (one already read, to look at it) back first, then
+    reads on from ``receive``."""
+    replayed = False
+
+    async def replay() -> Any:
+        nonlocal replayed
+        if not replayed:
+            replayed = True
+            return event
+        return await receive()
+
+    return replay

@@ -9,7 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .tables.splines import not_a_knot_coefficients
+from .tables.splines import not_a_knot_coefficients, sum_of_powers
 
 
 def node_series(grid, key: str, index: int, j: int, i: int) -> tuple[np.ndarray, np.ndarray]:
@@ -130,12 +130,6 @@ def _evaluate(group: Group, x: np.ndarray) -> list[np.ndarray]:
     interval = np.minimum(np.maximum(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0), group.last)
     s = flat - np.take(knots, group.node_knots + interval)
     coefficients = group.coefficients
-    order = coefficients.shape[0]
     read = np.take(coefficients, group.node_coefficients + interval, axis=coefficients.ndim - 1)
-    value = np.zeros(read.shape[1:])
-    power = np.ones_like(flat)
-    for k in range(order):
-        value = value + read[order - 1 - k] * power
-        if k < order - 1:
-            power = power * s
+    value = sum_of_powers(read, s)
     return [value.reshape(x.shape)] if len(group.chosen) == 1 else [v.reshape(x.shape) for v in value]

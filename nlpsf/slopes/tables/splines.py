@@ -69,13 +69,22 @@ def evaluate_stacked_columns(knots: np.ndarray, coefficients: list[np.ndarray], 
         read = np.take(coefficients[0].reshape(order, -1), at, axis=1)
     else:
         read = np.take(np.stack(coefficients, axis=1).reshape(order, len(coefficients), -1), at, axis=2)
+    value = sum_of_powers(read, s)
+    return [value.reshape(x.shape)] if len(coefficients) == 1 else [v.reshape(x.shape) for v in value]
+
+
+def sum_of_powers(read: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """c_last + c_(last-1) s + c_(last-2) s^2 + ..., in that order, of the coefficients ``read``
+    (order first, highest power first) at ``s``: the stacked evaluators' sum (:func:`evaluate_stacked_cubics`),
+    kept in one place so that every reader of the field grid adds in the same order, bit for bit."""
+    order = read.shape[0]
     value = np.zeros(read.shape[1:])
-    power = np.ones_like(flat)
+    power = np.ones_like(s)
     for k in range(order):
         value = value + read[order - 1 - k] * power
         if k < order - 1:
             power = power * s
-    return [value.reshape(x.shape)] if len(coefficients) == 1 else [v.reshape(x.shape) for v in value]
+    return value
 
 
 def not_a_knot_coefficients(x: np.ndarray, y: np.ndarray) -> np.ndarray:
