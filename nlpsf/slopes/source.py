@@ -72,6 +72,9 @@ class Slopes:
         #: The simulated star's peak fraction where the answer's limits are its own (else the tables').
         self.own_peak_fraction: float | None = None
         self._results: dict[float, object] = {}  # experiment.SlopeResult of each simulated magnitude
+        #: Each batch of centroids simulated, by (magnitude, its configuration): shared with the Slopes
+        #: that asks for more centroids of the same request (:meth:`reuse_batches`).
+        self._batches: dict[tuple, object] = {}
         #: beta_eff / beta0 where the ramp maps exactly onto the tables (OLS), else None.
         self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
         #: How the ramp's slopes were obtained in this request ("table", "simulation").
@@ -235,20 +238,35 @@ class Slopes:
 
         scene = self.prepare()
         config = scene.config
-        ask = {"beta0": self.beta0, "linearise_at": self.linearise_at, "residual_nl": self.residual_nl}
-        batches = [experiment.slopes(config, [magnitude], scene=scene, **ask)[0]]
+        batches = [self._batch(magnitude, config, scene)]
         for k, size in enumerate(self._more_batches(config.realizations), start=1):
-            batch = replace(config, realizations=size, seed=config.seed + k)
-            batches.append(experiment.slopes(batch, [magnitude], **ask)[0])
-            # A batch's prepared scene holds reference cycles: freed now, not after several batches
-            # have piled up (H158, 6,400 centroids: 0.85 GB at the peak instead of 2.5 GB).
-            gc.collect()
+            batches.append(self._batch(magnitude, replace(config, realizations=size, seed=config.seed + k)))
         result = experiment.pooled(batches)
         self._results[round(magnitude, 9)] = result
         value, error = result.slope(self.mode, defaults.METRIC_COLUMNS[self.metric])
         if value is None:
             raise SimulationError(f"the simulation at m={magnitude:g} failed: {'; '.join(result.flags)}")
         return value, error
+
+    def _batch(self, magnitude: float, config, scene=None):
+        """One batch's slopes at ``magnitude`` (``scene``: its prepared scene, else prepared here),
+        simulated once for this request however many times its centroids are counted again."""
+        from nlpsf.sim import experiment
+
+        key = (round(magnitude, 9), config)
+        if key not in self._batches:
+            ask = {"beta0": self.beta0, "linearise_at": self.linearise_at, "residual_nl": self.residual_nl}
+            self._batches[key] = experiment.slopes(config, [magnitude], scene=scene, **ask)[0]
+            if scene is None:
+                # A batch's prepared scene holds reference cycles: freed now, not after several batches
+                # have piled up (H158, 6,400 centroids: 0.85 GB at the peak instead of 2.5 GB).
+                gc.collect()
+        return self._batches[key]
+
+    def reuse_batches(self, earlier: Slopes) -> None:
+        """Take the batches ``earlier`` (the same request with fewer centroids) simulated: the
+        batches of 800 both count are not simulated again."""
+        self._batches = earlier._batches
 
     def _more_batches(self, first: int) -> list[int]:
         """The sizes of the batches after the first (of ``first`` centroids) that make up the request's

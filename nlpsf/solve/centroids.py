@@ -71,7 +71,8 @@ def _rounds(request, the_plan, slopes, slopes_for, target: float, cap: int):
             break
         used = int(following)
         the_plan = dataclasses.replace(the_plan, realizations=used)
-        slopes = slopes_for(request, the_plan)
+        slopes, earlier = slopes_for(request, the_plan), slopes
+        slopes.reuse_batches(earlier)
     return the_plan, slopes, Reached(used, tuple(tried), relative, needed, against)
 
 

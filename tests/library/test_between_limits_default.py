@@ -120,6 +120,15 @@ def test_a_slope_of_more_centroids_than_a_batch_is_the_batches_pooled(monkeypatc
     value, error, _ = slopes.at(magnitude)
     assert value == pytest.approx(pooled[0].mean, rel=1e-12) and error == pytest.approx(pooled[0].stderr, rel=1e-12)
     assert slopes._results[magnitude].bias["de1"].count == 250 == pooled[1].count
+    # 350 centroids of the same request, reusing those batches (100, 100 and 50): only the two it
+    # does not hold (100 at seed + 2, 50 at seed + 3) are simulated, and the answer is the four pooled.
+    more = source.Slopes.for_request(request, replace(the_plan, realizations=350))
+    more.reuse_batches(slopes)
+    value, _, _ = more.at(magnitude)
+    assert len(more._batches) == 5
+    rest = [replace(config, realizations=n, seed=config.seed + k) for k, n in ((2, 100), (3, 50))]
+    four = [*runs[:2], *(experiment.slopes(c, [magnitude], **ask)[0] for c in rest)]
+    assert value == pytest.approx(results.pooled_statistic([r.bias["dR_over_R"] for r in four]).mean, rel=1e-12)
 
 
 def test_outside_the_limits_and_at_a_node_the_grid_answers(grid):
