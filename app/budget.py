@@ -357,6 +357,12 @@ class Turns:
         :data:`TURN_WAIT_S`."""
         if self._shared is None:
             self._shared = asyncio.Semaphore(1)
+        if client not in self._lines and not self._shared.locked():
+            # Nobody to wait for (the common case): both taken at once, without arming the timeout
+            # (a timer scheduled and cancelled per inline answer); the line is born held by this request.
+            self._lines[client] = (asyncio.Semaphore(0), [1])
+            await self._shared.acquire()  # free: returns without suspending
+            return
         line, users = self._lines.setdefault(client, (asyncio.Semaphore(1), [0]))
         users[0] += 1
         try:

@@ -25,7 +25,7 @@ from nlpsf.solve import batch, over_field, solver
 
 from . import budget, job_kinds, job_parts, models
 from .deps import CallerDep, ServicesDep
-from .errors import SafeJSONResponse
+from .errors import SafeJSONResponse, render_json
 from .params import ERRORS, JOB_ANSWER_RESPONSES
 from .simulations import job_answer
 
@@ -58,7 +58,7 @@ def _answer_inline(request, kind: str, units: float) -> bytes:
     """``batch.answer_from_tables`` (raises ``NeedsSimulation``), metered, as the JSON body it answers
     (rendered once: kept so, a repeated request is sent the same bytes without serialising again)."""
     with budget.metered(kind, units):
-        return SafeJSONResponse(batch.answer_from_tables(request).to_dict()).body
+        return render_json(batch.answer_from_tables(request).to_dict())
 
 
 def _keep(key: str, answer: bytes) -> None:

@@ -289,6 +289,34 @@ def test_buckets_refill_at_the_share_and_cap_at_the_burst():
     assert 0.01 < model.per_unit("node") < 0.02
 
 
+def test_turns_go_one_at_a_time_round_the_clients_and_leave_nothing_behind():
+    # The documented order: one turn at a time per worker, each client's requests in its own line
+    # first -- a second request of a client holding the turn waits behind another client's first.
+    import asyncio
+
+    async def run() -> tuple[list[str], int]:
+        turns, held, order = budget.Turns(), [], []
+
+        async def request(client: str, name: str) -> None:
+            async with turns.turn(client):
+                held.append(name)
+                assert len(held) == 1  # nobody else holds a turn
+                order.append(name)
+                await asyncio.sleep(0.01)
+                held.remove(name)
+
+        first = asyncio.create_task(request("a", "a1"))
+        await asyncio.sleep(0)  # a1 takes the free turn
+        rest = [asyncio.create_task(request(c, n)) for c, n in (("a", "a2"), ("b", "b1"))]
+        await asyncio.gather(first, *rest)
+        async with turns.turn("c"):  # free again: taken at once
+            order.append("c1")
+        return order, len(turns._lines)
+
+    order, lines = asyncio.run(run())
+    assert order == ["a1", "b1", "a2", "c1"] and lines == 0
+
+
 # --- keys guard the schema and the docs ----------------------------------------------------------------
 
 

@@ -4,6 +4,8 @@ still a job. And extreme tolerances: an answer or a 422 naming the field, never 
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from nlpsf.web import job_kinds
 
@@ -44,6 +46,24 @@ def test_a_field_grid_answer_is_inline_and_is_the_jobs_answer(client, body):
     # The job process's own run of the same request (what a 202 used to lead to).
     job = job_kinds.run(job_kinds.solve_job({"request": body, "over_field": None}))
     assert _without_elapsed(inline) == _without_elapsed(job)
+
+
+@pytest.mark.parametrize(
+    "body",
+    [*GRID_BODIES, {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4, "scene": "paper"}],
+    ids=["position", "e1-position", "sca-range", "preset-roman", "paper"],
+)
+def test_an_answer_is_sent_as_the_standard_librarys_compact_json_of_the_jobs_answer(client, body):
+    # The bytes on the wire, first answer and kept one alike, are json.dumps of the job process's
+    # answer with the service's documented spelling (compact, UTF-8 text as is, no NaN): the key
+    # order, every number's spelling and every string as the standard library writes them.
+    job = job_kinds.run(job_kinds.solve_job({"request": body, "over_field": None}))
+    for _ in range(2):  # the second: a field-grid answer kept by request
+        response = client.post("/api/v1/solve", json=body, headers={"accept-encoding": "identity"})
+        assert response.status_code == 200, response.text
+        served = {**job, "elapsed_s": response.json()["elapsed_s"]}  # a timing: the one value of its own
+        expected = json.dumps(served, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode()
+        assert response.content == expected
 
 
 def test_a_request_the_grid_does_not_hold_is_still_a_job(client):
