@@ -399,41 +399,27 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
     count = shifted.size
     # One magnitude at every node: each part looked up once (``at_magnitude``, the same neighbours).
     one = float(shifted[0]) if count and (shifted == shifted[0]).all() else None
-    rows, standard_rows = _part_rows(info["left_out"], shifted, one)
-    if not rows:
-        return np.zeros(count)
+    counted = [part for part in info["left_out"] if part.get("measured_here") or "by_magnitude" in part]
+    if not counted:
+        return np.zeros(count)  # parts named, not measured, count zero
     # Parts x nodes: each part's |value x the node's component scale| (a part measured at the point
     # is not scaled), NaN (nothing measured there) counting zero; the standard parts in quadrature,
     # the left-out shifts added, in the parts' order (numpy reduces axis 0 row after row).
-    values = np.array([row for row, _ in rows], dtype=np.float64).reshape(len(rows), -1)
-    scaled = np.array([scale for _, scale in rows])
+    looked = [part for part in counted if not part.get("measured_here")]
+    at = roman_parts.at_magnitudes_of([part["by_magnitude"] for part in looked], shifted[:1] if one is not None else shifted)
+    values = np.empty((len(counted), at.shape[1]))
+    scaled = np.array([not part.get("measured_here") for part in counted])
+    values[scaled] = at
+    if not scaled.all():
+        here = [math.nan if part["impact"] is None else abs(part["impact"]) for part in counted if part.get("measured_here")]
+        values[~scaled] = np.array(here)[:, None]
     read = np.abs(np.where(scaled[:, None], values * np.asarray(scales, dtype=np.float64)[None, :], values))
-    read = np.broadcast_to(np.where(np.isnan(read), 0.0, read), (len(rows), count))
+    read = np.broadcast_to(np.where(np.isnan(read), 0.0, read), (len(counted), count))
+    kinds = [part.get("kind", roman_parts.KINDS.get(part["name"], roman_parts.STANDARD)) for part in counted]
+    standard_rows = np.array([kind != roman_parts.LEFT_OUT for kind in kinds])
     standard, left_out = read[standard_rows], read[~standard_rows]
     root = np.sqrt(np.add.reduce(standard * standard, axis=0)) if standard.size else np.zeros(count)
     return root + (np.add.reduce(left_out, axis=0) if left_out.size else np.zeros(count))
-
-
-def _part_rows(parts: list[dict], shifted: np.ndarray, one: float | None) -> tuple[list, np.ndarray]:
-    """Each counted part's values at ``shifted`` (one value where ``one`` magnitude serves every
-    node) and whether the component scale applies, and which of them are standard parts."""
-    rows, standard = [], []
-    width = 1 if one is not None else shifted.size
-    for part in parts:
-        name = part["name"]
-        if part.get("measured_here"):
-            rows.append(([np.nan if part["impact"] is None else abs(part["impact"])] * width, False))
-        elif "by_magnitude" in part:
-            value = None if one is None else roman_parts.at_magnitude(part["by_magnitude"], one)
-            if value is None:  # many magnitudes, or nothing finite measured there (at_magnitudes' NaN or inf)
-                looked = roman_parts.at_magnitudes(part["by_magnitude"], shifted if one is None else shifted[:1])
-                rows.append((looked, True))
-            else:
-                rows.append(([value] * width, True))
-        else:
-            continue  # named, not measured: counts zero
-        standard.append(part.get("kind", roman_parts.KINDS.get(name, roman_parts.STANDARD)) != roman_parts.LEFT_OUT)
-    return rows, np.array(standard, dtype=bool)
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:

@@ -306,6 +306,25 @@ def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, colum
     return np.maximum(values[lower], values[upper])
 
 
+def at_magnitudes_of(parts_rows: list[list[list[float]]], magnitudes: np.ndarray) -> np.ndarray:
+    """(parts, magnitudes): :func:`at_magnitudes` of each part's rows, the parts measured at the
+    same magnitudes looked up together (the same neighbours, the same numbers)."""
+    m = np.asarray(magnitudes, dtype=np.float64)
+    out = np.full((len(parts_rows), m.size), np.nan)
+    groups: dict[tuple[float, ...], list[int]] = {}
+    for p, rows in enumerate(parts_rows):
+        groups.setdefault(tuple(_sorted_rows(rows)[0]), []).append(p)
+    for knots_of, members in groups.items():
+        if not knots_of:
+            continue  # nothing measured: NaN
+        knots = np.array(knots_of)
+        upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
+        lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
+        values = np.array([_sorted_rows(parts_rows[p])[1] for p in members])
+        out[members] = np.maximum(values[:, lower], values[:, upper])
+    return out
+
+
 def optics_value(fit: dict, sensitivity: np.ndarray, log_scale_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(the optics part, its offset) from the band's joint fit and the slope's sensitivities
     ``sensitivity`` [..., 2] = (d slope / d v [per arcsec^2], d slope / d ln s), relative: the offset
