@@ -13,15 +13,19 @@ from typing import Any
 
 from .. import defaults
 
+#: The weight cuts ``--weight-cut`` takes by name.
+WEIGHT_CUTS = {
+    "paper": defaults.PAPER_WEIGHT_CUT_RHO2,
+    "galsim": defaults.GALSIM_WEIGHT_CUT_RHO2,
+    "none": math.inf,
+    "inf": math.inf,
+}
+
 
 def weight_cut(text: str) -> float:
     lowered = text.strip().lower()
-    if lowered == "paper":
-        return defaults.PAPER_WEIGHT_CUT_RHO2
-    if lowered == "galsim":
-        return defaults.GALSIM_WEIGHT_CUT_RHO2
-    if lowered in ("none", "inf"):
-        return math.inf
+    if lowered in WEIGHT_CUTS:
+        return WEIGHT_CUTS[lowered]
     try:
         return float(text)
     except ValueError:

@@ -39,11 +39,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nlpsf.sim import experiment
+    from nlpsf.sim import detector, experiment
 
     config = config_from(args, roman_default_applies=True)
     magnitudes = args.magnitude or [defaults.MAGNITUDE]
-    betas = args.beta or [defaults.BETA0 if args.beta_convention == "paper" else -defaults.BETA0]
+    betas = args.beta or [detector.to_paper_beta(defaults.BETA0, args.beta_convention)]
     b2 = scene_from(args)[1]
     if b2 is not None:
         betas = [beta_from_coefficients(b, b2, b2) for b in args.beta] if args.beta else [b2]

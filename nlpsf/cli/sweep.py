@@ -44,7 +44,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nlpsf.sim import sweep
+    from nlpsf.sim import detector, sweep
 
     bands = args.band or [defaults.BAND]
     scas = args.sca or [defaults.SCA]
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         bands=tuple(bands),
         scas=tuple(scas),
         magnitudes=tuple(args.magnitude or defaults.PAPER_MAGNITUDES),
-        betas=tuple(args.beta or [defaults.BETA0 if args.beta_convention == "paper" else -defaults.BETA0]),
+        betas=tuple(args.beta or [detector.to_paper_beta(defaults.BETA0, args.beta_convention)]),
         sigma_betas=tuple(args.sigma_beta or [0.0]),
         beta_convention=args.beta_convention,
         settings=config_from(args),

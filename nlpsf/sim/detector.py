@@ -24,16 +24,22 @@ BETA_CONVENTIONS = defaults.BETA_CONVENTIONS
 MAX_ABS_BETA = defaults.MAX_ABS_BETA
 
 
+#: The sign of the paper's beta in each convention, and each convention's law.
+_SIGN = {"paper": 1.0, "galsim": -1.0}
+_LAW = {"paper": "S = Q - beta Q^2 (paper)", "galsim": "S = Q + beta Q^2 (GalSim/romanisim)"}
+
+
 def to_paper_beta(beta: float, convention: str = "paper") -> float:
-    """The paper's beta (S = Q - beta Q^2) for a value given in ``convention``."""
+    """The paper's beta (S = Q - beta Q^2) for a value given in ``convention`` (and, the sign being
+    its own inverse, a paper beta stated in ``convention``)."""
     if convention not in BETA_CONVENTIONS:
         raise InputError("beta_convention", f"must be one of {', '.join(BETA_CONVENTIONS)}, got {shown(convention)}")
     value = check_number(beta, "beta", -MAX_ABS_BETA, MAX_ABS_BETA)
-    return value if convention == "paper" else -value
+    return value if _SIGN[convention] > 0 else -value
 
 
 def describe(convention: str) -> str:
-    return "S = Q - beta Q^2 (paper)" if convention == "paper" else "S = Q + beta Q^2 (GalSim/romanisim)"
+    return _LAW[convention]
 
 
 def nonlinearity_perturbation(charge: np.ndarray, beta) -> np.ndarray:

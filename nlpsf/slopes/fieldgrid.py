@@ -379,22 +379,34 @@ class FieldGrid:
         return self.columns_at_nodes(band, sca, (column,), magnitudes)[0]
 
     def columns_at_nodes(self, band: str, sca: int, columns, magnitudes) -> list[np.ndarray]:
-        """:meth:`values_at_nodes` of several columns at once (each node's flux at its magnitude found once)."""
+        """:meth:`values_at_nodes` of several columns at once (each node's flux at its magnitude found
+        once). ``magnitudes`` of n x n x k numbers (node by node, k each): every node at its own k
+        magnitudes, (n, n, k) each, in one read (the numbers of k reads)."""
         key, _ = self._entry(band, sca)
-        return self._read_at(key, columns, np.asarray(magnitudes, dtype=np.float64).reshape(-1).tolist())
+        m = np.asarray(magnitudes, dtype=np.float64)
+        n = self._reference_floats(key)[2]
+        return self._read_at(key, columns, m.reshape(-1).tolist(), m.size // (n * n))
 
-    def _read_at(self, key: str, columns, magnitudes: list[float]) -> list[np.ndarray]:
-        """Node k's columns at its own ``magnitudes[k]``: its flux there from its own brightest row by a
-        scalar power (Python's float power is C's ``pow``, as numpy's scalar one: the same numbers)."""
+    def _read_at(self, key: str, columns, magnitudes: list[float], per_node: int = 1) -> list[np.ndarray]:
+        """Node k's columns at its own ``magnitudes[k]`` (``per_node`` > 1: at its own ``per_node``
+        magnitudes from ``magnitudes[k * per_node]`` on): its flux there from its own brightest row
+        by a scalar power (Python's float power is C's ``pow``, as numpy's scalar one: the same numbers)."""
         flux, reference, n = self._reference_floats(key)
-        target = np.array([f * 10 ** (-0.4 * (m - r)) for f, m, r in zip(flux, magnitudes, reference, strict=True)])
-        return self._read(key, columns, target.reshape(n, n), (slice(None), slice(None)))
+        if per_node == 1:
+            target = np.array([f * 10 ** (-0.4 * (m - r)) for f, m, r in zip(flux, magnitudes, reference, strict=True)])
+            return self._read(key, columns, target.reshape(n, n), (slice(None), slice(None)))
+        if len(magnitudes) != per_node * len(flux):
+            raise ValueError(f"{len(magnitudes)} magnitudes for {len(flux)} nodes")
+        nodes = enumerate(zip(flux, reference, strict=True))
+        target = np.array([f * 10 ** (-0.4 * (magnitudes[k * per_node + j] - r)) for k, (f, r) in nodes for j in range(per_node)])
+        return self._read(key, columns, target.reshape(n, n, per_node), (slice(None), slice(None), None))
 
     def slopes_at_nodes(self, band: str, sca: int, metric: str, mode: str, magnitudes) -> tuple[np.ndarray, np.ndarray]:
         """(slope, standard error), each (n, n): node k's at its own magnitude ``magnitudes[k]`` as
         :meth:`slope` gives them at that node's position for that one magnitude (the nodes'
         interpolation weights are 0 and 1 there), every node at once (a number: every node at that
-        one magnitude). The field-interpolation term
+        one magnitude; n x n x k numbers: each node at its own k magnitudes, (n, n, k) each, as k
+        reads give them, read together). The field-interpolation term
         (the median over the nodes) is read from one evaluation of every node at every magnitude
         asked, which can differ from reading each magnitude alone in the last bit. NaN where a node
         is outside its grid."""
@@ -406,14 +418,14 @@ class FieldGrid:
             read = self.columns_node_values(band, sca, names, m)
             everywhere, where = read[::3], None
         else:
-            m = m.reshape(n, n)
+            m = m.reshape(n, n, -1) if m.size > n * n else m.reshape(n, n)  # (n, n, k): k magnitudes at each node
             distinct, where = np.unique(m, return_inverse=True)
-            if distinct.size == 1:  # one magnitude: every node's values there, memoised (the same numbers)
+            if distinct.size == 1 and m.ndim == 2:  # one magnitude: every node's values there, memoised (the same numbers)
                 read = self.columns_node_values(band, sca, names, distinct[0])
                 everywhere, where = read[::3], None
             else:
                 read = self.columns_at_nodes(band, sca, names, m)
-                everywhere, where = self.columns_node_values(band, sca, names[::3], distinct), where.reshape(n, n)
+                everywhere, where = self.columns_node_values(band, sca, names[::3], distinct), where.reshape(m.shape)
         out = []
         for c, component in enumerate(components):  # each component's slope and error (the columns read together)
             values, statistical, interpolation = read[3 * c : 3 * c + 3]

@@ -117,13 +117,16 @@ def read(groups: list[Group], count: int, target: np.ndarray, extra: tuple) -> l
     for group in groups:
         inside = (target >= group.low_edge[extra]) & (target <= group.high_edge[extra])
         clipped = np.minimum(np.maximum(target, group.low[extra]), group.high[extra])  # np.clip, without its dtype checks
-        for c, values in zip(group.chosen, _evaluate(group, clipped), strict=True):
-            out[c] = np.where(inside, values * target, np.nan)
+        # Every column of the group at once: (columns, n, n, ...), the same operations element by element.
+        values = np.where(inside, _evaluate(group, clipped) * target, np.nan)
+        for k, c in enumerate(group.chosen):
+            out[c] = values[k]
     return out
 
 
-def _evaluate(group: Group, x: np.ndarray) -> list[np.ndarray]:
-    """``splines.evaluate_stacked_columns(group's knots, its coefficients, x)``, on the prepared arrays."""
+def _evaluate(group: Group, x: np.ndarray) -> np.ndarray:
+    """``splines.evaluate_stacked_columns(group's knots, its coefficients, x)``, on the prepared
+    arrays: (columns, *x.shape)."""
     knots = group.knots
     n = knots.shape[0]
     flat = x.reshape(n, n, -1)
@@ -131,5 +134,4 @@ def _evaluate(group: Group, x: np.ndarray) -> list[np.ndarray]:
     s = flat - np.take(knots, group.node_knots + interval)
     coefficients = group.coefficients
     read = np.take(coefficients, group.node_coefficients + interval, axis=coefficients.ndim - 1)
-    value = sum_of_powers(read, s)
-    return [value.reshape(x.shape)] if len(group.chosen) == 1 else [v.reshape(x.shape) for v in value]
+    return sum_of_powers(read, s).reshape(len(group.chosen), *x.shape)

@@ -11,6 +11,7 @@ solver's c(m) at the request (``band``, ``metric``, ``mode``, ``table``, ``expti
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import replace
 from enum import StrEnum
 
@@ -209,6 +210,43 @@ _SET_BY_REQUEST_WHY = {
 
 
 def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupil_scale: str | None = None, request=None) -> dict:
+    """:func:`_roman_default_model`, built once for each set of what decides it and kept: each call
+    gets its own dicts and lists of parts, whose rows (``by_magnitude``, ``ends``) are shared and
+    read-only (the parts' look-ups, ``roman_uncertainty.at_magnitude``, keep their sorted rows by them)."""
+    from nlpsf.request import presets as roman_default
+
+    defaults_scene = roman_default.base_scene()
+    chosen = tuple(
+        scene is not None and getattr(scene, field) != getattr(defaults_scene, field) for field in _CHOSEN_BY_REQUEST.values()
+    )
+    simulated = scene is not None and (scene.bfe_coefficient != 0, any(c != 0 for c in scene.nl_coefficients))
+    differences = None if request is None else roman_measurement_differences(request)
+    measured = None if differences is None else (tuple(differences[0]), differences[1])
+    key = (band, sca, metric, mode, pupil_scale, chosen, simulated, measured)
+    with _ROMAN_MODELS_LOCK:
+        built = _ROMAN_MODELS.get(key)
+    if built is None:
+        built = _roman_default_model(band, sca, metric, mode, scene, pupil_scale, differences)
+        with _ROMAN_MODELS_LOCK:
+            if len(_ROMAN_MODELS) >= 4096:
+                _ROMAN_MODELS.clear()
+            _ROMAN_MODELS[key] = built
+    return {
+        **built,
+        "included": [dict(part) for part in built["included"]],
+        "left_out": [dict(part) for part in built["left_out"]],
+        "ranges": {name: dict(shipped) for name, shipped in built["ranges"].items()},
+    }
+
+
+#: The Roman default's model parts by what decides them (:func:`roman_default_model`).
+_ROMAN_MODELS: dict[tuple, dict] = {}
+_ROMAN_MODELS_LOCK = threading.Lock()
+
+
+def _roman_default_model(
+    band: str, sca: int, metric: str, mode: str, scene, pupil_scale: str | None, differences: tuple[list[str], float] | None
+) -> dict:
     """The Roman default's model part: its parts (``nlpsf.solve.roman_uncertainty``) for this band, SCA,
     mode and metric, each by name with its value over the measured magnitudes, and the star-to-star
     ranges (the SED's) beside them.
@@ -219,7 +257,7 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
     from the official rule's PSF, so another rule moves that distance by its own log scale (read
     from the shipped pupil scales). ``request`` (a ``SolveRequest``): where its readout, exposure,
     beta0, full well or state differ from those the parts were measured at
-    (:func:`roman_measurement_differences`), the basis says so and the parts are read at the
+    (``differences``: :func:`roman_measurement_differences` of it), the basis says so and the parts are read at the
     magnitude of equal charge in the measured exposure."""
     from nlpsf.request import presets as roman_default
 
@@ -261,7 +299,7 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
             continue
         shipped = entry["ranges"][name]
         ranges[name] = {"ends": list(shipped["ends"]), "by_magnitude": [list(r) for r in shipped["by_magnitude"]]}
-    differences, offset = ([], 0.0) if request is None else roman_measurement_differences(request)
+    differences, offset = ([], 0.0) if differences is None else differences
     basis = (
         f"shipped measurement of the Roman default's parts ({conditions['script']}, {conditions['measured_utc']}, "
         f"code {conditions['code_version']}) on {where}, SCA centre, m = {conditions['magnitudes']}, "
@@ -361,26 +399,27 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
     count = shifted.size
     # One magnitude at every node: each part looked up once (``at_magnitude``, the same neighbours).
     one = float(shifted[0]) if count and (shifted == shifted[0]).all() else None
-    standard, left_out = np.zeros(count), np.zeros(count)
-    for part in info["left_out"]:
-        name = part["name"]
-        if part.get("measured_here"):
-            read = np.full(count, np.nan if part["impact"] is None else abs(part["impact"]))
-        elif "by_magnitude" in part:
-            value = None if one is None else roman_parts.at_magnitude(part["by_magnitude"], one)
-            if value is None:  # many magnitudes, or nothing finite measured there (at_magnitudes' NaN or inf)
-                looked = roman_parts.at_magnitudes(part["by_magnitude"], shifted if one is None else shifted[:1])
-            else:
-                looked = np.array([value])
-            read = np.abs(looked * np.asarray(scales, dtype=np.float64))
-        else:
-            continue  # named, not measured: counts zero
-        read = np.where(np.isnan(read), 0.0, read)
-        if part.get("kind", roman_parts.KINDS.get(name, roman_parts.STANDARD)) == roman_parts.LEFT_OUT:
-            left_out = left_out + read
-        else:
-            standard = standard + read * read
-    return np.sqrt(standard) + left_out
+    counted = [part for part in info["left_out"] if part.get("measured_here") or "by_magnitude" in part]
+    if not counted:
+        return np.zeros(count)  # parts named, not measured, count zero
+    # Parts x nodes: each part's |value x the node's component scale| (a part measured at the point
+    # is not scaled), NaN (nothing measured there) counting zero; the standard parts in quadrature,
+    # the left-out shifts added, in the parts' order (numpy reduces axis 0 row after row).
+    looked = [part for part in counted if not part.get("measured_here")]
+    at = roman_parts.at_magnitudes_of([part["by_magnitude"] for part in looked], shifted[:1] if one is not None else shifted)
+    values = np.empty((len(counted), at.shape[1]))
+    scaled = np.array([not part.get("measured_here") for part in counted])
+    values[scaled] = at
+    if not scaled.all():
+        here = [math.nan if part["impact"] is None else abs(part["impact"]) for part in counted if part.get("measured_here")]
+        values[~scaled] = np.array(here)[:, None]
+    read = np.abs(np.where(scaled[:, None], values * np.asarray(scales, dtype=np.float64)[None, :], values))
+    read = np.broadcast_to(np.where(np.isnan(read), 0.0, read), (len(counted), count))
+    kinds = [part.get("kind", roman_parts.KINDS.get(part["name"], roman_parts.STANDARD)) for part in counted]
+    standard_rows = np.array([kind != roman_parts.LEFT_OUT for kind in kinds])
+    standard, left_out = read[standard_rows], read[~standard_rows]
+    root = np.sqrt(np.add.reduce(standard * standard, axis=0)) if standard.size else np.zeros(count)
+    return root + (np.add.reduce(left_out, axis=0) if left_out.size else np.zeros(count))
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:

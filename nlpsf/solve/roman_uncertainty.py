@@ -256,32 +256,73 @@ def entry(band: str, sca: int, mode: str, metric: str) -> tuple[dict, str]:
     return per_band["worst"], f"the worst over SCA {scas} (SCA {sca} is not measured)"
 
 
+#: Each part's measured rows sorted for a look-up, by the rows' list (``id``, the list kept with
+#: them so that the id is not reused): the Roman default's model parts share their rows between
+#: answers (``model_part.roman_default_model``), read-only, and an answer looks each up several times.
+_SORTED: dict[int, tuple[list, list[float], list[float]]] = {}
+
+
+def _sorted_rows(by_magnitude: list[list[float]]) -> tuple[list[float], list[float]]:
+    """(measured magnitudes ascending, |value| at each) of a part's rows with a value."""
+    kept = _SORTED.get(id(by_magnitude))
+    if kept is not None and kept[0] is by_magnitude:
+        return kept[1], kept[2]
+    rows = sorted((r[0], abs(r[1])) for r in by_magnitude if r[1] is not None)
+    knots, values = [r[0] for r in rows], [r[1] for r in rows]
+    if len(_SORTED) >= 4096:
+        _SORTED.clear()
+    _SORTED[id(by_magnitude)] = (by_magnitude, knots, values)
+    return knots, values
+
+
 def at_magnitude(by_magnitude: list[list[float]], magnitude: float | None) -> float | None:
     """A part's |value| at ``magnitude`` from its measured [[m, value, ...], ...]: the larger of
     the two measured magnitudes around it (the nearest end outside them); None: the worst of all."""
-    rows = sorted((r[0], abs(r[1])) for r in by_magnitude if r[1] is not None)
+    knots, values = _sorted_rows(by_magnitude)
     if magnitude is None:
-        return max((value for _, value in rows), default=None)
-    if not rows or not math.isfinite(magnitude):
+        return max(values, default=None)
+    if not knots or not math.isfinite(magnitude):
         value = at_magnitudes(by_magnitude, np.asarray([magnitude], dtype=np.float64))[0]
         return None if not np.isfinite(value) else float(value)
-    knots = [r[0] for r in rows]  # at_magnitudes' look-up in plain Python: the same two neighbours
-    upper, lower = min(bisect.bisect_left(knots, magnitude), len(rows) - 1), max(bisect.bisect_right(knots, magnitude) - 1, 0)
-    pair = (float(rows[lower][1]), float(rows[upper][1]))
+    # at_magnitudes' look-up in plain Python: the same two neighbours
+    upper, lower = min(bisect.bisect_left(knots, magnitude), len(knots) - 1), max(bisect.bisect_right(knots, magnitude) - 1, 0)
+    pair = (float(values[lower]), float(values[upper]))
     return max(pair) if all(math.isfinite(v) for v in pair) else None
 
 
 def at_magnitudes(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int = 1) -> np.ndarray:
     """:func:`at_magnitude` for an array of magnitudes (NaN where nothing is measured)."""
-    rows = sorted((r[0], abs(r[column])) for r in by_magnitude if r[column] is not None)
+    if column == 1:
+        knots_of, values_of = _sorted_rows(by_magnitude)
+    else:
+        rows = sorted((r[0], abs(r[column])) for r in by_magnitude if r[column] is not None)
+        knots_of, values_of = [r[0] for r in rows], [r[1] for r in rows]
     m = np.asarray(magnitudes, dtype=np.float64)
-    if not rows:
+    if not knots_of:
         return np.full(m.shape, np.nan)
-    knots = np.array([r[0] for r in rows])
-    values = np.array([r[1] for r in rows])
+    knots, values = np.array(knots_of), np.array(values_of)
     upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
     lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
     return np.maximum(values[lower], values[upper])
+
+
+def at_magnitudes_of(parts_rows: list[list[list[float]]], magnitudes: np.ndarray) -> np.ndarray:
+    """(parts, magnitudes): :func:`at_magnitudes` of each part's rows, the parts measured at the
+    same magnitudes looked up together (the same neighbours, the same numbers)."""
+    m = np.asarray(magnitudes, dtype=np.float64)
+    out = np.full((len(parts_rows), m.size), np.nan)
+    groups: dict[tuple[float, ...], list[int]] = {}
+    for p, rows in enumerate(parts_rows):
+        groups.setdefault(tuple(_sorted_rows(rows)[0]), []).append(p)
+    for knots_of, members in groups.items():
+        if not knots_of:
+            continue  # nothing measured: NaN
+        knots = np.array(knots_of)
+        upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
+        lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
+        values = np.array([_sorted_rows(parts_rows[p])[1] for p in members])
+        out[members] = np.maximum(values[:, lower], values[:, upper])
+    return out
 
 
 def optics_value(fit: dict, sensitivity: np.ndarray, log_scale_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -61,8 +61,25 @@ class _Nodes:
         inside = [min(m, self.faintest) for m in magnitudes]
         one = inside[0] if all(m == inside[0] for m in inside) else None  # one magnitude: read (and kept) once
         at = np.reshape(inside, (self.n, self.n)) if one is None else one
+        if one is not None and self.metric in ("e1", "e2"):
+            # The other component in the same read (kept): the modulus over the component reads it next.
+            other = "e2" if self.metric == "e1" else "e1"
+            names = [f"{self.mode}_{self.metric}{part}" for part in ("", "_err", "_interp")] + [f"{self.mode}_{other}"]
+            self.grid.columns_node_values(self.band, self.sca, names, one)
         value, error = self.grid.slopes_at_nodes(self.band, self.sca, self.metric, self.mode, at)
-        values, errors = [float(v) for v in value.reshape(-1)], [float(e) for e in error.reshape(-1)]
+        return self._faint_law(magnitudes, value.reshape(-1).tolist(), error.reshape(-1).tolist())
+
+    def at_sets(self, sets: list[list[float]]) -> list[tuple[list[float], list[float]]]:
+        """:meth:`at` of each list of node magnitudes in ``sets``, read together (the same numbers)."""
+        if len(sets) == 1:
+            return [self.at(sets[0])]
+        inside = np.minimum(np.array(sets, dtype=np.float64).T, self.faintest).reshape(self.n, self.n, len(sets))
+        value, error = self.grid.slopes_at_nodes(self.band, self.sca, self.metric, self.mode, inside)
+        value, error = value.reshape(-1, len(sets)), error.reshape(-1, len(sets))
+        return [self._faint_law(m, value[:, j].tolist(), error[:, j].tolist()) for j, m in enumerate(sets)]
+
+    def _faint_law(self, magnitudes, values: list[float], errors: list[float]) -> tuple[list[float], list[float]]:
+        """Slopes and |errors| read at the faint end moved to a fainter node magnitude by the flux law."""
         for k, m in enumerate(magnitudes):
             if m > self.faintest:
                 scale = 10 ** (-0.4 * (m - self.faintest))
@@ -74,8 +91,14 @@ class _Nodes:
     def held_values(self, magnitudes: list[float]) -> list[float] | None:
         """Node k's slope at ``magnitudes[k]`` (each within the grid), None where ``Slopes.at`` would
         not read it from the grid (a value or an error not stated there)."""
+        found = self.held_value_sets([magnitudes])
+        return None if found is None else found[0]
+
+    def held_value_sets(self, sets: list[list[float]]) -> list[list[float]] | None:
+        """:meth:`held_values` of each list of node magnitudes in ``sets``, read together; None where
+        any is not held."""
         column = f"{self.mode}_{self.metric}"
-        m = np.reshape(magnitudes, (self.n, self.n))
+        m = np.array(sets, dtype=np.float64).T.reshape(self.n, self.n, len(sets))
         if self.metric == "e":
             names = [f"{self.mode}_{c}{s}" for c in ("e1", "e2") for s in ("", "_err", "_interp")]
             e1, e1_err, e1_interp, e2, e2_err, e2_interp = self.grid.columns_at_nodes(self.band, self.sca, names, m)
@@ -85,7 +108,8 @@ class _Nodes:
             values, *checks = self.grid.columns_at_nodes(self.band, self.sca, names, m)
         if not all(np.isfinite(c).all() for c in checks):
             return None
-        return [float(v) for v in values.reshape(-1)]
+        values = values.reshape(-1, len(sets))
+        return [values[:, j].tolist() for j in range(len(sets))]
 
     def modulus_over_component(self, magnitudes: list[float]) -> list[float | None]:
         """``Slopes.modulus_over_component`` at every node (e1 / e2 answers; 1 otherwise)."""
@@ -226,23 +250,26 @@ def _secant_roots(nodes: _Nodes, brackets: dict[int, tuple[float, float]], requi
     node-by-node answer widens it) or a slope is not held."""
     count = len(nodes.grid.arrays[f"{nodes.band}_{nodes.sca:02d}/positions"].reshape(-1, 2))
 
-    def excess(points: dict[int, float]) -> dict[int, float] | None:
-        magnitudes = [points.get(k, nodes.faintest) for k in range(count)]
-        if not nodes.held(magnitudes) or max(magnitudes) > nodes.faintest:
-            return None
-        slopes = nodes.held_values(magnitudes)
-        if slopes is None:
-            return None
-        out = {}
-        for k in points:
-            if not math.isfinite(slopes[k]) or slopes[k] == 0:
-                return None
-            out[k] = math.log(abs(slopes[k]) / required)
+    def excesses(*points: dict[int, float]) -> list[dict[int, float] | None]:
+        sets = [[p.get(k, nodes.faintest) for k in range(count)] for p in points]
+        if any(not nodes.held(m) or max(m) > nodes.faintest for m in sets):
+            return [None] * len(points)
+        read = nodes.held_value_sets(sets)
+        if read is None:
+            return [None] * len(points)
+        out: list[dict[int, float] | None] = []
+        for p, slopes in zip(points, read, strict=True):
+            if any(not math.isfinite(slopes[k]) or slopes[k] == 0 for k in p):
+                return [None] * len(points)
+            out.append({k: math.log(abs(slopes[k]) / required) for k in p})
         return out
+
+    def excess(points: dict[int, float]) -> dict[int, float] | None:
+        return excesses(points)[0]
 
     a = {k: bright for k, (bright, _) in brackets.items()}
     b = {k: faint for k, (_, faint) in brackets.items()}
-    fa, fb = excess(a), excess(b)
+    fa, fb = excesses(a, b)  # both ends of every bracket in one read
     if fa is None or fb is None or any(fa[k] * fb[k] > 0 for k in brackets):
         return None
     roots: dict[int, float] = {}
@@ -272,9 +299,12 @@ def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, cros
     count = len(saturation)
     binds = [m is None or m < m_sat for m, m_sat in zip(m_nl, saturation, strict=True)]
     at_root = [nodes.faintest if bound else m for m, bound in zip(m_nl, binds, strict=True)]
-    slopes, errors = nodes.at(at_root)
+    if crossed:  # the root and the step fainter in one read
+        plus_points = [m + _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
+        (slopes, errors), (plus, plus_errors) = nodes.at_sets([at_root, plus_points])
+    else:
+        slopes, errors = nodes.at(at_root)
     if crossed:
-        plus, plus_errors = nodes.at([m + _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)])
         minus_points = [m - _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
         if not nodes.held(minus_points) or max(minus_points) > nodes.faintest:
             return None

@@ -159,3 +159,18 @@ def test_a_table_answers_uncertainty_covers_the_full_roman_scene():
             assert abs(full.tolerance - table.tolerance) <= spread, (where, table.tolerance, full.tolerance, spread)
             checked += 1
     assert checked == 8
+
+
+def test_the_roman_default_model_part_is_kept_and_each_answer_gets_its_own_parts():
+    """The Roman default's model part is built once per set of what decides it (kept between
+    answers); an answer that changes its own parts' lists changes no other answer's."""
+    from nlpsf.solve import model_part
+
+    first = model_part.roman_default_model("H158", 7, "e1", "bias", None)
+    again = model_part.roman_default_model("H158", 7, "e1", "bias", None)
+    assert first == again and first is not again and first["left_out"] is not again["left_out"]
+    first["left_out"].clear()
+    first["included"].append({"name": "changed"})
+    first["ranges"].clear()
+    assert model_part.roman_default_model("H158", 7, "e1", "bias", None) == again
+    assert again["left_out"]

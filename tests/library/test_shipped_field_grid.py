@@ -167,3 +167,34 @@ def test_every_node_reads_as_its_own_cubic_spline(band, sca):
             expected = np.where(inside, CubicSpline(f, q)(np.clip(target, f[0], f[-1])) * target, np.nan)
             assert inside.any() and (~inside).any()
             np.testing.assert_array_equal(got[j, i], expected)
+
+
+@pytest.mark.parametrize(("band", "sca"), [("W146", 6), ("H158", 18)])
+def test_every_node_at_its_own_magnitudes_reads_as_its_own_cubic_spline(band, sca):
+    """A magnitude solve reads every node at its own few magnitudes at once (``columns_at_nodes`` of
+    n x n x k magnitudes): each value must be scipy's CubicSpline of that node's own table at that
+    node's flux for that magnitude (from its brightest row, a scalar power), bit for bit, as one node
+    read alone gives it."""
+    from scipy.interpolate import CubicSpline
+
+    key = GRID.key(band, sca)
+    flux = GRID.arrays[f"{key}/flux"]
+    magnitudes = GRID.arrays[f"{key}/magnitude"]
+    columns = ("bias_size", "bias_e2_err")
+    n, k = flux.shape[0], 3
+    asked = np.random.default_rng(11).uniform(np.nanmin(magnitudes) - 0.3, np.nanmax(magnitudes) + 0.3, (n, n, k))
+    got = GRID.columns_at_nodes(band, sca, columns, asked)
+    assert all(g.shape == (n, n, k) for g in got)
+    for c, column in enumerate(columns):
+        values = GRID.arrays[f"{key}/values"][..., GRID.meta["columns"].index(column)].astype(np.float64)
+        for j in range(n):
+            for i in range(n):
+                ok = np.isfinite(flux[j, i]) & np.isfinite(values[j, i])
+                order = np.argsort(flux[j, i][ok])
+                f, q = flux[j, i][ok][order], (values[j, i][ok] / flux[j, i][ok])[order]
+                brightest = int(np.nanargmax(flux[j, i]))
+                top, top_m = float(flux[j, i, brightest]), float(magnitudes[j, i, brightest])
+                target = np.array([top * 10 ** (-0.4 * (float(m) - top_m)) for m in asked[j, i]])
+                inside = (target >= f[0] * (1 - 1e-12)) & (target <= f[-1] * (1 + 1e-12))
+                expected = np.where(inside, CubicSpline(f, q)(np.clip(target, f[0], f[-1])) * target, np.nan)
+                np.testing.assert_array_equal(got[c][j, i], expected)

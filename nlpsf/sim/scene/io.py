@@ -18,6 +18,11 @@ from nlpsf.roman import seds
 from .model import SED_NAMES, SceneModel, check_kernel
 from .registry import MAX_IPC_ALPHA, REGISTRY, ROMAN_IPC_KERNEL
 
+#: The IPC kernels ``ipc`` takes by name.
+NAMED_IPC_KERNELS = {"roman": ROMAN_IPC_KERNEL}
+#: Preset names a scene file may not use here, and where they live.
+_ELSEWHERE = {"roman": "; the Roman default's scene is nlpsf.request.presets.preset_base('roman')"}
+
 
 def preset(name: str) -> SceneModel:
     """A named scene of this module: "paper", the paper's idealised scene; "galsim-roman", GalSim's
@@ -28,7 +33,7 @@ def preset(name: str) -> SceneModel:
     galsim_values = {k: v for e in REGISTRY.values() if e.in_roman_preset for k, v in e.nominal.items()}
     presets = {"paper": SceneModel(name="paper"), "galsim-roman": SceneModel(name="galsim-roman", **galsim_values)}
     if name not in presets:
-        hint = "; the Roman default's scene is nlpsf.request.presets.preset_base('roman')" if name == "roman" else ""
+        hint = _ELSEWHERE.get(name, "")
         raise InputError("scene", f"unknown scene preset {name!r}; presets: {', '.join(PRESETS)}, or a JSON file{hint}")
     return presets[name]
 
@@ -101,8 +106,8 @@ def parse_ipc(text) -> tuple[tuple[tuple[float, ...], ...] | None, str | None]:
     lowered = text.strip().lower()
     if lowered in ("", "none", "off"):
         return None, None
-    if lowered == "roman":
-        return ROMAN_IPC_KERNEL, "roman"
+    if lowered in NAMED_IPC_KERNELS:
+        return NAMED_IPC_KERNELS[lowered], lowered
     try:
         alpha = float(lowered)
     except ValueError:
@@ -231,7 +236,7 @@ def from_request(fields_: dict | None, base: SceneModel | None = None) -> SceneM
         value = data.pop("ipc")
         if isinstance(value, (list, tuple)):
             changes["ipc"], changes["ipc_label"] = check_kernel(value), "kernel"
-        elif isinstance(value, str) and value.strip().lower() not in ("roman", "none", "off"):
+        elif isinstance(value, str) and value.strip().lower() not in (*NAMED_IPC_KERNELS, "none", "off"):
             raise InputError("ipc", f"must be roman, a coupling alpha or 3x3 rows, got {value!r}")
         else:
             changes["ipc"], changes["ipc_label"] = parse_ipc(value)
