@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -197,28 +198,31 @@ def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], sy
     grid's c(m) of each node, then the binding limit."""
     averaging = 1.0 / math.sqrt(request.stars)
     required = request.target_tolerance / (request.precision * request.beta0 * averaging)
-    faintest, brightest = nodes.faintest, nodes.brightest
-    grids = [np.arange(faintest, max(m_sat, brightest) - 1e-9, -0.05) for m_sat in saturation]
-    longest = max(grids, key=len)
+    faintest = nodes.faintest
+    longest, sizes, within = _scan_grid(faintest, nodes.brightest, tuple(saturation))
     everywhere = _scan_values(nodes, longest)
+    # Each node's scan is the first sizes[k] magnitudes of the longest (every scan steps from the
+    # faint end alike): where its c(m) first exceeds what the tolerance allows, all nodes at once.
+    above = np.abs(everywhere) > required
+    above_inside = above & within
+    at_faint_end, crossed = above[:, 0].tolist(), above_inside.any(axis=1).tolist()
+    first_above = np.argmax(above_inside, axis=1).tolist()
+    step = float(longest[0] - longest[1])
     m_nl: list[float | None] = []
     brackets: dict[int, tuple[float, float]] = {}
     log_derivatives: dict[int, float] = {}
-    for k, magnitudes in enumerate(grids):
-        values = everywhere[k, : magnitudes.size]
-        above = np.abs(values) > required
-        if above[0]:
-            step = float(magnitudes[0] - magnitudes[1])
-            at_faint, brighter = float(values[0]), float(values[min(round(_TREND_MAG / step), values.size - 1)])
+    for k, size in enumerate(sizes):
+        if at_faint_end[k]:
+            at_faint, brighter = float(everywhere[k, 0]), float(everywhere[k, min(round(_TREND_MAG / step), size - 1)])
             if not abs(at_faint) < abs(brighter):
                 return None  # no star meets the tolerance: the node-by-node answer refuses
             m_nl.append(float(faintest + 2.5 * math.log10(abs(at_faint) / required)))
             log_derivatives[k] = -0.4 * math.log(10)
-        elif not above.any():
+        elif not crossed[k]:
             m_nl.append(None)
         else:
-            first = int(np.argmax(above))
-            brackets[k] = (float(magnitudes[first]), float(magnitudes[first - 1]))
+            first = first_above[k]
+            brackets[k] = (float(longest[first]), float(longest[first - 1]))
             m_nl.append(math.nan)
     roots = _secant_roots(nodes, brackets, required)
     if roots is None:
@@ -228,8 +232,22 @@ def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], sy
     found = _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, set(brackets), log_derivatives)
     if found is None:
         return None
-    scans = {k: NodeScan(*found.crossings.get(k, (None, None)), everywhere[k, : grids[k].size]) for k in range(len(grids))}
+    scans = {k: NodeScan(*found.crossings.get(k, (None, None)), everywhere[k, :size]) for k, size in enumerate(sizes)}
     return replace(found, crossings=scans)
+
+
+@lru_cache(maxsize=1024)
+def _scan_grid(faintest: float, brightest: float, saturation: tuple[float, ...]) -> tuple[np.ndarray, list[int], np.ndarray]:
+    """The longest of the nodes' scans (``magnitude_scan``'s: from the grid's faint end in steps
+    of 0.05 mag to the node's saturation magnitude or the grid's bright end), each node's length
+    of it, and (nodes, magnitudes) whether a magnitude is within the node's scan; kept per SCA."""
+    grids = [np.arange(faintest, max(m_sat, brightest) - 1e-9, -0.05) for m_sat in saturation]
+    longest = max(grids, key=len)
+    longest.flags.writeable = False
+    sizes = [g.size for g in grids]
+    within = np.arange(longest.size)[None, :] < np.array(sizes)[:, None]
+    within.flags.writeable = False
+    return longest, sizes, within
 
 
 def _scan_values(nodes: _Nodes, magnitudes: np.ndarray) -> np.ndarray:
