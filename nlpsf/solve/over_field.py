@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, replace
 
 from nlpsf import roman
@@ -185,7 +186,7 @@ def _node(position, value: float | None, error: float | None, fidelity: str, sol
     return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
 
 
-def sca_range(answer, request, tables_set=None, progress=None, nodes=None) -> Solution:
+def sca_range(answer, request, tables_set=None, progress=None, nodes=None, start: float | None = None) -> Solution:
     """The Roman default without a position: the answer at every node of the SCA's field grid, the
     most demanding one returned (it holds everywhere on the SCA: the smallest precision, the largest
     tolerance, the faintest brightest-usable star), the least demanding and every node's value in
@@ -194,7 +195,7 @@ def sca_range(answer, request, tables_set=None, progress=None, nodes=None) -> So
     ``progress(done, total, message)``, if given, is told as the nodes are answered. ``nodes(request,
     positions)``: every node's value and uncertainty at once (``sca_nodes``), or None; then only the
     most demanding node is answered in full (its value checked against the one found for it), else
-    every node is."""
+    every node is. ``start``: the ``time.perf_counter()`` the answer began at (its ``elapsed_s``)."""
     positions = range_positions(request)
     found = nodes(request, positions) if nodes is not None else None
     ranged = _ranged_at_once(answer, request, tables_set, positions, found, progress) if found is not None else None
@@ -222,7 +223,8 @@ def sca_range(answer, request, tables_set=None, progress=None, nodes=None) -> So
         ly=least_at[1],
         most=getattr(most, solved),
     )
-    return replace(most, flags=[flag, *most.flags], conditions=conditions)
+    elapsed = most.elapsed_s if start is None else time.perf_counter() - start
+    return replace(most, flags=[flag, *most.flags], conditions=conditions, elapsed_s=elapsed)
 
 
 def _at(request, position):

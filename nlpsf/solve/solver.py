@@ -409,8 +409,7 @@ def answer(
         # The Roman default depends on the position: without one, the range over the SCA. (With an
         # accuracy, the answer is for the SCA centre: nlpsf.solve.accuracy measures inside that full scene.)
         nodes = partial(_node_answers, tables_set=tables_set, simulate=simulate)
-        ranged = sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes)
-        return replace(ranged, elapsed_s=time.perf_counter() - start)
+        return sca_range(partial(answer, simulate=simulate), request, tables_set, progress, nodes=nodes, start=start)
     if node_plan is not None:
         the_plan = plan_at_node(node_plan, request)
     else:

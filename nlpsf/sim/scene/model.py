@@ -105,7 +105,13 @@ class SceneModel:
 
     # --- which effects are on -------------------------------------------------------------
     def effects_on(self) -> dict[str, bool]:
-        return {name: effect.is_on(self) for name, effect in REGISTRY.items()}
+        """Each effect of the registry, on or off in this scene: worked out once (the scene is
+        frozen; an answer asks several times) and handed out as a dict of its own."""
+        found = self.__dict__.get("_effects_on")
+        if found is None:
+            found = tuple((name, effect.is_on(self)) for name, effect in REGISTRY.items())
+            object.__setattr__(self, "_effects_on", found)
+        return dict(found)
 
     @property
     def no_effects(self) -> bool:
