@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 from functools import cache, partial
+from typing import Any
 
 import numpy as np
 from scipy.optimize import curve_fit
@@ -125,18 +126,10 @@ def fwhm_gaussian_fit(image: np.ndarray, scale_arcsec: float, threshold: float =
     return float(2.0 * math.sqrt(2.0 * math.log(2.0)) * abs(sigma))
 
 
-def psf_statistics(
-    band: str,
-    sca: int,
-    sed: str = "K0V",
-    n_wavelengths: int = 10,
-    jitter_fwhm_arcsec: float = OFFICIAL_JITTER_FWHM_ARCSEC,
-    throughput: str = roman.DEFAULT_THROUGHPUT,
-    pupil_scale: str = "galsim",
-) -> dict[str, PSFStatistics]:
-    """nlpsf's PSF statistics under the official conditions, for both centrings."""
-    optical = official_condition_psf(band, sca, sed, n_wavelengths, jitter_fwhm_arcsec, throughput, pupil_scale)
-    return statistics_of(optical, band, sca)
+def psf_statistics(band: str, sca: int, sed: str = "K0V", **conditions: Any) -> dict[str, PSFStatistics]:
+    """nlpsf's PSF statistics under the official conditions, for both centrings (``conditions``:
+    :func:`official_condition_psf`'s wavelengths, jitter, throughput and pupil rule)."""
+    return statistics_of(official_condition_psf(band, sca, sed, **conditions), band, sca)
 
 
 def official_condition_psf(

@@ -145,8 +145,6 @@ def test_every_node_reads_as_its_own_cubic_spline(band, sca):
     value must be scipy's CubicSpline of that node's own table (column / flux in flux, as
     nlpsf.slopes.tables reads a table), bit for bit, and NaN outside the node's magnitude range. The truth
     is built here from the file's arrays."""
-    from scipy.interpolate import CubicSpline
-
     key = GRID.key(band, sca)
     flux = GRID.arrays[f"{key}/flux"]
     magnitudes = GRID.arrays[f"{key}/magnitude"]
@@ -158,15 +156,25 @@ def test_every_node_reads_as_its_own_cubic_spline(band, sca):
     n = flux.shape[0]
     for j in range(n):
         for i in range(n):
-            ok = np.isfinite(flux[j, i]) & np.isfinite(values[j, i])
-            order = np.argsort(flux[j, i][ok])
-            f, q = flux[j, i][ok][order], (values[j, i][ok] / flux[j, i][ok])[order]
-            brightest = int(np.nanargmax(flux[j, i]))
-            target = flux[j, i, brightest] * 10 ** (-0.4 * (draws - magnitudes[j, i, brightest]))
-            inside = (target >= f[0] * (1 - 1e-12)) & (target <= f[-1] * (1 + 1e-12))
-            expected = np.where(inside, CubicSpline(f, q)(np.clip(target, f[0], f[-1])) * target, np.nan)
+            spline, (low, high), (top, top_m) = _node_spline(flux[j, i], magnitudes[j, i], values[j, i])
+            target = top * 10 ** (-0.4 * (draws - top_m))
+            inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
+            expected = np.where(inside, spline(np.clip(target, low, high)) * target, np.nan)
             assert inside.any() and (~inside).any()
             np.testing.assert_array_equal(got[j, i], expected)
+
+
+def _node_spline(flux: np.ndarray, magnitudes: np.ndarray, values: np.ndarray):
+    """The truth of one node, built here from the file's arrays: scipy's CubicSpline of its column /
+    flux in flux (as ``nlpsf.slopes.tables`` reads a table), its flux range, and its brightest row's
+    (flux, magnitude) that a magnitude's flux is reckoned from."""
+    from scipy.interpolate import CubicSpline
+
+    ok = np.isfinite(flux) & np.isfinite(values)
+    order = np.argsort(flux[ok])
+    f, q = flux[ok][order], (values[ok] / flux[ok])[order]
+    brightest = int(np.nanargmax(flux))
+    return CubicSpline(f, q), (f[0], f[-1]), (float(flux[brightest]), float(magnitudes[brightest]))
 
 
 @pytest.mark.parametrize(("band", "sca"), [("W146", 6), ("H158", 18)])
@@ -175,8 +183,6 @@ def test_every_node_at_its_own_magnitudes_reads_as_its_own_cubic_spline(band, sc
     n x n x k magnitudes): each value must be scipy's CubicSpline of that node's own table at that
     node's flux for that magnitude (from its brightest row, a scalar power), bit for bit, as one node
     read alone gives it."""
-    from scipy.interpolate import CubicSpline
-
     key = GRID.key(band, sca)
     flux = GRID.arrays[f"{key}/flux"]
     magnitudes = GRID.arrays[f"{key}/magnitude"]
@@ -189,12 +195,8 @@ def test_every_node_at_its_own_magnitudes_reads_as_its_own_cubic_spline(band, sc
         values = GRID.arrays[f"{key}/values"][..., GRID.meta["columns"].index(column)].astype(np.float64)
         for j in range(n):
             for i in range(n):
-                ok = np.isfinite(flux[j, i]) & np.isfinite(values[j, i])
-                order = np.argsort(flux[j, i][ok])
-                f, q = flux[j, i][ok][order], (values[j, i][ok] / flux[j, i][ok])[order]
-                brightest = int(np.nanargmax(flux[j, i]))
-                top, top_m = float(flux[j, i, brightest]), float(magnitudes[j, i, brightest])
-                target = np.array([top * 10 ** (-0.4 * (float(m) - top_m)) for m in asked[j, i]])
-                inside = (target >= f[0] * (1 - 1e-12)) & (target <= f[-1] * (1 + 1e-12))
-                expected = np.where(inside, CubicSpline(f, q)(np.clip(target, f[0], f[-1])) * target, np.nan)
+                spline, (low, high), (top, top_m) = _node_spline(flux[j, i], magnitudes[j, i], values[j, i])
+                target = np.array([top * 10 ** (-0.4 * (float(m) - top_m)) for m in asked[j, i]])  # scalar powers
+                inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
+                expected = np.where(inside, spline(np.clip(target, low, high)) * target, np.nan)
                 np.testing.assert_array_equal(got[c][j, i], expected)
