@@ -130,7 +130,7 @@ def _evaluate(group: Group, x: np.ndarray) -> np.ndarray:
     knots = group.knots
     n = knots.shape[0]
     flat = x.reshape(n, n, -1)
-    interval = np.minimum(np.maximum(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0), group.last)
+    interval = np.minimum(np.maximum((knots[:, :, None, :] <= flat[..., None]).sum(axis=-1) - 1, 0), group.last)
     s = flat - np.take(knots, group.node_knots + interval)
     coefficients = group.coefficients
     read = np.take(coefficients, group.node_coefficients + interval, axis=coefficients.ndim - 1)

@@ -397,29 +397,58 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
     offset = info.get("magnitude_offset", 0.0)
     shifted = np.array([m + offset for m in magnitudes], dtype=np.float64)
     count = shifted.size
-    # One magnitude at every node: each part looked up once (``at_magnitude``, the same neighbours).
-    one = float(shifted[0]) if count and (shifted == shifted[0]).all() else None
-    counted = [part for part in info["left_out"] if part.get("measured_here") or "by_magnitude" in part]
-    if not counted:
+    layout = _effects_layout(info["left_out"])
+    if layout is None:
         return np.zeros(count)  # parts named, not measured, count zero
+    looked_rows, scaled, here, standard_rows, left_out_rows = layout
+    # One magnitude at every node: each part looked up once (``at_magnitude``, the same neighbours).
+    one = count and (shifted == shifted[0]).all()
+    at = roman_parts.at_magnitudes_of(looked_rows, shifted[:1] if one else shifted)
     # Parts x nodes: each part's |value x the node's component scale| (a part measured at the point
     # is not scaled), NaN (nothing measured there) counting zero; the standard parts in quadrature,
     # the left-out shifts added, in the parts' order (numpy reduces axis 0 row after row).
-    looked = [part for part in counted if not part.get("measured_here")]
-    at = roman_parts.at_magnitudes_of([part["by_magnitude"] for part in looked], shifted[:1] if one is not None else shifted)
-    values = np.empty((len(counted), at.shape[1]))
-    scaled = np.array([not part.get("measured_here") for part in counted])
-    values[scaled] = at
-    if not scaled.all():
-        here = [math.nan if part["impact"] is None else abs(part["impact"]) for part in counted if part.get("measured_here")]
-        values[~scaled] = np.array(here)[:, None]
-    read = np.abs(np.where(scaled[:, None], values * np.asarray(scales, dtype=np.float64)[None, :], values))
-    read = np.broadcast_to(np.where(np.isnan(read), 0.0, read), (len(counted), count))
-    kinds = [part.get("kind", roman_parts.KINDS.get(part["name"], roman_parts.STANDARD)) for part in counted]
-    standard_rows = np.array([kind != roman_parts.LEFT_OUT for kind in kinds])
-    standard, left_out = read[standard_rows], read[~standard_rows]
+    if here is None:
+        read = np.abs(at * np.asarray(scales, dtype=np.float64)[None, :])
+    else:
+        values = np.empty((scaled.size, at.shape[1]))
+        values[scaled] = at
+        values[~scaled] = here[:, None]
+        read = np.abs(np.where(scaled[:, None], values * np.asarray(scales, dtype=np.float64)[None, :], values))
+    read[np.isnan(read)] = 0.0
+    read = np.broadcast_to(read, (scaled.size, count))
+    standard, left_out = read[standard_rows], read[left_out_rows]
     root = np.sqrt(np.add.reduce(standard * standard, axis=0)) if standard.size else np.zeros(count)
     return root + (np.add.reduce(left_out, axis=0) if left_out.size else np.zeros(count))
+
+
+#: :func:`_effects_layout` by the parts' rows, measured flags, values and kinds (the rows kept with it).
+_LAYOUTS: dict[tuple, tuple] = {}
+
+
+def _effects_layout(parts: list[dict]) -> tuple | None:
+    """What :func:`roman_effects_at` reads of the parts that count (measured by magnitude or at the
+    point), built once for each such set: the looked-up parts' rows, which parts are scaled, the
+    values measured at the point (None: none), and the standard and left-out parts' rows."""
+    counted = [part for part in parts if part.get("measured_here") or "by_magnitude" in part]
+    if not counted:
+        return None
+    kinds = tuple(part.get("kind", roman_parts.KINDS.get(part["name"], roman_parts.STANDARD)) for part in counted)
+    here_values = tuple(
+        (math.nan if part["impact"] is None else abs(part["impact"])) if part.get("measured_here") else None for part in counted
+    )
+    looked_rows = [part["by_magnitude"] for part in counted if not part.get("measured_here")]
+    key = (tuple(id(rows) for rows in looked_rows), kinds, here_values)
+    kept = _LAYOUTS.get(key)
+    if kept is not None and all(a is b for a, b in zip(kept[0], looked_rows, strict=True)):
+        return kept
+    scaled = np.array([value is None for value in here_values])
+    here = None if scaled.all() else np.array([value for value in here_values if value is not None])
+    standard = np.array([kind != roman_parts.LEFT_OUT for kind in kinds])
+    built = (looked_rows, scaled, here, np.flatnonzero(standard), np.flatnonzero(~standard))
+    if len(_LAYOUTS) >= 4096:
+        _LAYOUTS.clear()
+    _LAYOUTS[key] = built
+    return built
 
 
 def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:

@@ -311,18 +311,46 @@ def at_magnitudes_of(parts_rows: list[list[list[float]]], magnitudes: np.ndarray
     same magnitudes looked up together (the same neighbours, the same numbers)."""
     m = np.asarray(magnitudes, dtype=np.float64)
     out = np.full((len(parts_rows), m.size), np.nan)
+    one = float(m.reshape(-1)[0]) if m.size == 1 else math.nan
+    for knots, knots_of, members, values in _lookup_groups(parts_rows):
+        if math.isfinite(one):  # one magnitude: searchsorted's neighbours found by bisect (the same two)
+            upper = min(bisect.bisect_left(knots_of, one), len(knots_of) - 1)
+            lower = max(bisect.bisect_right(knots_of, one) - 1, 0)
+            out[members] = np.maximum(values[:, lower : lower + 1], values[:, upper : upper + 1])
+            continue
+        upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
+        lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
+        out[members] = np.maximum(values[:, lower], values[:, upper])
+    return out
+
+
+#: :func:`_lookup_groups` of a list of parts' rows, by their identities (the lists kept with them, as
+#: in ``_SORTED``): the Roman default's parts share their rows between answers.
+_GROUPS: dict[tuple[int, ...], tuple[tuple, list]] = {}
+
+
+def _lookup_groups(parts_rows: list[list[list[float]]]) -> list[tuple[np.ndarray, list[float], list[int], np.ndarray]]:
+    """(knots, the same as a list, the parts measured at them, their |values| (parts, knots)) of each set of measured
+    magnitudes the parts share (a part with nothing measured is in none: NaN), built once."""
+    key = tuple(id(rows) for rows in parts_rows)
+    kept = _GROUPS.get(key)
+    if kept is not None and all(a is b for a, b in zip(kept[0], parts_rows, strict=True)):
+        return kept[1]
     groups: dict[tuple[float, ...], list[int]] = {}
     for p, rows in enumerate(parts_rows):
         groups.setdefault(tuple(_sorted_rows(rows)[0]), []).append(p)
+    built = []
     for knots_of, members in groups.items():
         if not knots_of:
             continue  # nothing measured: NaN
-        knots = np.array(knots_of)
-        upper = np.minimum(np.searchsorted(knots, m, side="left"), len(knots) - 1)
-        lower = np.maximum(np.searchsorted(knots, m, side="right") - 1, 0)
         values = np.array([_sorted_rows(parts_rows[p])[1] for p in members])
-        out[members] = np.maximum(values[:, lower], values[:, upper])
-    return out
+        knots = np.array(knots_of)
+        knots.flags.writeable = values.flags.writeable = False
+        built.append((knots, list(knots_of), members, values))
+    if len(_GROUPS) >= 4096:
+        _GROUPS.clear()
+    _GROUPS[key] = (tuple(parts_rows), built)
+    return built
 
 
 def optics_value(fit: dict, sensitivity: np.ndarray, log_scale_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

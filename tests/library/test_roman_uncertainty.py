@@ -210,6 +210,23 @@ def test_the_vectorised_reader_is_the_scalar_one_at_every_magnitude():
         assert out["model"][index] == pytest.approx(ru.combine(values), rel=1e-12)
 
 
+def test_parts_read_together_at_one_magnitude_are_each_parts_own_look_up():
+    # The parts read together (kept look-up groups; one magnitude found by bisect) against each
+    # part's rows read alone with numpy's searchsorted: at the measured magnitudes, between and outside.
+    entry, _ = ru.entry("W146", 3, "bias", "e1")
+    rows = [entry["parts"][name]["by_magnitude"] for name in ru.PART_NAMES if "by_magnitude" in entry["parts"][name]]
+    knots = sorted({r[0] for part in rows for r in part})
+    probes = [knots[0] - 2.0, *knots, *(np.array(knots[:-1]) + np.diff(knots) / 3), knots[-1] + 1.5]
+    for m in probes:
+        together = ru.at_magnitudes_of(rows, np.array([m]))
+        alone = np.array([ru.at_magnitudes(part, np.array([m])) for part in rows])
+        assert np.array_equal(together, alone, equal_nan=True), m
+    many = ru.at_magnitudes_of(rows, np.array(probes))
+    assert np.array_equal(many, np.array([ru.at_magnitudes(part, np.array(probes)) for part in rows]), equal_nan=True)
+    copies = [[list(r) for r in part] for part in rows]  # other lists, the same rows: the same numbers
+    assert np.array_equal(ru.at_magnitudes_of(copies, np.array(probes)), many, equal_nan=True)
+
+
 def test_a_request_that_fixes_the_star_or_the_jitter_drops_that_spread():
     scene = replace(roman_default.base_scene(), sed="blackbody:4000", jitter_arcsec=0.01)
     info = model_part.shipped_model("H158", 18, "size", "bias", scene, "linear", default="roman")

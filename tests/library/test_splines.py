@@ -13,7 +13,7 @@ import pytest
 from scipy.interpolate import CubicSpline, PPoly
 
 from nlpsf.slopes import fieldgrid
-from nlpsf.slopes.tables.splines import evaluate_cubic, not_a_knot_coefficients, not_a_knot_spline
+from nlpsf.slopes.tables.splines import evaluate_cubic, not_a_knot_coefficients, not_a_knot_spline, sum_of_powers
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -36,6 +36,22 @@ def test_a_tables_spline_is_scipys_public_ppoly():
     assert np.array_equal(breaks, truth.x) and np.array_equal(coefficients, truth.c)
     probe = np.concatenate([np.geomspace(flux[0], flux[-1], 501), flux])
     np.testing.assert_allclose(evaluate_cubic(breaks, coefficients, probe), PPoly(coefficients, breaks)(probe), rtol=1e-13)
+
+
+def test_the_sum_of_powers_is_the_sum_written_out_from_zero():
+    # c3 + c2 s + c1 s^2 + c0 s^3 added from 0 with the powers from 1, in that order: the sum the
+    # stacked readers share, its first operations (0 + c * 1, 1 * s) left out without changing a bit.
+    rng = np.random.default_rng(7)
+    read = rng.normal(size=(4, 6, 5)) * np.geomspace(1e-6, 1e3, 5)
+    read[3, 0, :] = -0.0  # a constant -0.0: the sum from 0 makes it +0.0
+    s = rng.uniform(-2e5, 2e5, size=(6, 5))
+    s[0, :] = 0.0
+    value, power = np.zeros((6, 5)), np.ones((6, 5))
+    for k in range(4):
+        value = value + read[3 - k] * power
+        power = power * s
+    ours = sum_of_powers(read, s)
+    assert np.array_equal(ours, value) and np.array_equal(np.signbit(ours), np.signbit(value))
 
 
 #: Where the project's code lives (the web layer, scripts and benchmarks included).

@@ -57,7 +57,7 @@ def evaluate_stacked_columns(knots: np.ndarray, coefficients: list[np.ndarray], 
     n = knots.shape[0]
     flat = x.reshape(n, n, -1)
     last = np.sum(np.isfinite(knots), axis=-1)[..., None] - 2
-    interval = np.minimum(np.maximum(np.sum(knots[:, :, None, :] <= flat[..., None], axis=-1) - 1, 0), last)
+    interval = np.minimum(np.maximum((knots[:, :, None, :] <= flat[..., None]).sum(axis=-1) - 1, 0), last)
     node = np.arange(n * n).reshape(n, n, 1)  # each x's node, then its interval there, as flat indices
     s = flat - np.take(knots, node * knots.shape[-1] + interval)
     if len({c.shape for c in coefficients}) > 1:
@@ -78,9 +78,11 @@ def sum_of_powers(read: np.ndarray, s: np.ndarray) -> np.ndarray:
     (order first, highest power first) at ``s``: the stacked evaluators' sum (:func:`evaluate_stacked_cubics`),
     kept in one place so that every reader of the field grid adds in the same order, bit for bit."""
     order = read.shape[0]
-    value = np.zeros(read.shape[1:])
-    power = np.ones_like(s)
-    for k in range(order):
+    # The sum from 0 with the first power 1: 0 + c_last * 1 is c_last + 0.0 (a -0.0 made +0.0, as
+    # that sum makes it) and 1 * s is s, so those operations are left out (the same numbers).
+    value = read[order - 1] + 0.0
+    power = s
+    for k in range(1, order):
         value = value + read[order - 1 - k] * power
         if k < order - 1:
             power = power * s
