@@ -328,9 +328,15 @@ class SolveRequest:
         return cls.from_mapping(data)
 
 
-@lru_cache(maxsize=4096)
 def _scene_at(scene, position: tuple) -> Any:
-    """``scene`` moved to ``position`` (checked there), kept: an SCA range moves one scene to each of its nodes."""
+    """``scene`` moved to ``position`` (checked there), kept: an SCA range moves one scene to each of
+    its nodes. Kept by the scene's name too: scenes compare without it (a named preset and the same
+    values given by hand are equal), and the moved scene states it."""
+    return _named_scene_at(scene, getattr(scene, "name", None), position)
+
+
+@lru_cache(maxsize=4096)
+def _named_scene_at(scene, name: str | None, position: tuple) -> Any:
     return replace(scene, position=position)
 
 

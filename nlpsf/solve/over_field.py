@@ -13,7 +13,7 @@ from nlpsf.flags import FlagCode, make
 from nlpsf.serialise import json_number
 from nlpsf.slopes.providers import field_tables
 
-from .solution import Solution
+from .solution import Solution, replaced
 
 
 @dataclass(frozen=True)
@@ -182,6 +182,12 @@ def _demand_of(solved: str, value: float | None) -> float:
     return {"precision": -value, "tolerance": value, "magnitude": value}[solved]
 
 
+def _demands_of(solved: str, values: list[float | None]) -> list[float]:
+    """:func:`_demand_of` of each value (the same numbers, the sign chosen once)."""
+    sign = -1.0 if solved == "precision" else 1.0
+    return [-math.inf if value is None or not math.isfinite(value) else sign * value for value in values]
+
+
 def _node(position, value: float | None, error: float | None, fidelity: str, solved: str) -> dict:
     return {"position": list(position), solved: json_number(value), "uncertainty": json_number(error), "fidelity": fidelity}
 
@@ -224,7 +230,7 @@ def sca_range(answer, request, tables_set=None, progress=None, nodes=None, start
         most=getattr(most, solved),
     )
     elapsed = most.elapsed_s if start is None else time.perf_counter() - start
-    return replace(most, flags=[flag, *most.flags], conditions=conditions, elapsed_s=elapsed)
+    return replaced(most, flags=[flag, *most.flags], conditions=conditions, elapsed_s=elapsed)
 
 
 def _at(request, position):
@@ -236,7 +242,8 @@ def _ranged_at_once(answer, request, tables_set, positions, found, progress):
     rows, where their slopes came from) from every node's value found at once; None where the most
     demanding node's own answer is not the one found for it (never expected)."""
     solved = found.solved_for
-    ranked = sorted(range(len(positions)), key=lambda k: _demand_of(solved, found.values[k]))
+    demands = _demands_of(solved, found.values)
+    ranked = sorted(range(len(positions)), key=demands.__getitem__)
     if progress:
         progress(
             len(positions) - 1, len(positions), f"the SCA's {len(positions)} field-grid nodes at once, the most demanding in full"

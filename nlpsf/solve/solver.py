@@ -75,7 +75,7 @@ from . import conditions as answer_conditions
 from . import model_part, quantity, sca_nodes
 from .centroids import enough_centroids
 from .over_field import grid_size, sca_range, worst_over_field
-from .solution import Solution
+from .solution import Solution, replaced
 from .validity import (
     _validity_flags,
     between_limits_note,
@@ -322,7 +322,7 @@ def plan_at_node(base: SolvePlan, request: SolveRequest) -> SolvePlan:
         else note
         for note in base.notes
     )
-    return replace(base, scene=request.scene, notes=notes)
+    return replaced(base, scene=request.scene, notes=notes)
 
 
 def _measured_default(request: SolveRequest) -> str:
@@ -507,7 +507,8 @@ def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: b
     """Every node's value and uncertainty of the Roman default without a position, at once
     (``sca_nodes.answer_nodes``), where its field grid covers it; None: answer node by node."""
     first = request.at_position(positions[0])
-    the_plan = plan(first, tables_set) if simulate else table_plan(first, tables_set)
+    # A node is never between the saturation limits (``validity.between_limits``): not asked.
+    the_plan = plan(first, tables_set, fresh_between_limits=False) if simulate else table_plan(first, tables_set)
     grid = the_plan.grid
     if grid is None or tables_set is not None or the_plan.scene.background_e >= request.full_well:
         return None

@@ -637,3 +637,18 @@ def test_a_ramp_keeps_the_raw_saturation_flags_in_the_corrected_state(h158):
     # Flagging at the residual instead (what the raw detector does not do) keeps more resultants.
     residual = simulate(cfg, [magnitude], [1e-2 * BETA], scene=prepared)[0]
     assert residual.extras["ramp"]["pixels_by_resultants"] != paper.extras["ramp"]["pixels_by_resultants"]
+
+
+def test_a_ramps_conditions_are_its_own_and_its_own_copy():
+    # Two ramps equal but for where their read noise came from (ramps compare without it) each
+    # state their own source; changing one answer's conditions changes no other's.
+    table = ramps.MATable(((1,), (2, 3), (4, 5, 6)), 3.04, name="test-table")
+    one = ramps.Ramp(table, read_noise_e=8.0, read_noise_source="SCA 14")
+    other = ramps.Ramp(table, read_noise_e=8.0, read_noise_source="SCA 15")
+    assert one == other
+    first, second = one.conditions(30.0), other.conditions(30.0)
+    assert (first["read_noise_source"], second["read_noise_source"]) == ("SCA 14", "SCA 15")
+    first["read_pattern"][0].append(99)
+    first["fit"] = "changed"
+    again = one.conditions(30.0)
+    assert again["read_pattern"] == [[1], [2, 3], [4, 5, 6]] and again["fit"] == "ols"

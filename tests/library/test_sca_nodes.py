@@ -91,3 +91,17 @@ def test_a_nodes_plan_moved_from_another_node_is_its_own_plan():
             assert [getattr(n, "values", None) for n in solver.plan_at_node(first, at).notes] == [
                 getattr(n, "values", None) for n in solver.plan(at).notes
             ]
+
+
+def test_a_range_states_its_own_scenes_name_after_an_equal_scene_without_one():
+    # Scenes compare without their names: the Roman default's scene given by hand, unnamed, is equal
+    # to the preset's. Each answer over the SCA states its own scene, whichever came first.
+    from dataclasses import replace
+
+    named = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0)
+    unnamed = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0, scene=replace(named.scene, name=None))
+    assert unnamed.scene == named.scene
+    first = solver.answer(unnamed)
+    second = solver.answer(named)
+    assert first.conditions["scene"]["name"] is None and not first.conditions["scene_description"].startswith("roman:")
+    assert second.conditions["scene"]["name"] == "roman" and second.conditions["scene_description"].startswith("roman:")

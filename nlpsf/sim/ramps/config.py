@@ -190,6 +190,19 @@ class Ramp:
             )
 
     def conditions(self, exptime_s: float) -> dict:
+        """What an answer states of its readout at ``exptime_s``: worked out once for each (ramp,
+        exposure) -- the ramp is frozen, its description a pure function of it -- and handed out as
+        a dict of its own (its read pattern's lists too)."""
+        try:  # keyed by what the ramp compares by and by its read noise's source, which it does not
+            kept = _conditions(self, self.read_noise_source, exptime_s)
+        except TypeError:  # a ramp holding something unhashable: worked out afresh
+            return self._conditions(exptime_s)
+        out = dict(kept)
+        if "read_pattern" in kept:
+            out["read_pattern"] = [list(r) for r in kept["read_pattern"]]
+        return out
+
+    def _conditions(self, exptime_s: float) -> dict:
         out = {
             "ma_table": self.table.name,
             "source": self.table.source,
@@ -217,6 +230,13 @@ class Ramp:
         if self.table.name not in {"custom"} and not self.table.name.startswith("uniform-"):
             out["read_pattern"] = [list(r) for r in self.table.resultants]
         return out
+
+
+@lru_cache(maxsize=1024)
+def _conditions(ramp: Ramp, read_noise_source: str, exptime_s: float) -> dict:
+    """:meth:`Ramp.conditions`, kept (read-only: each caller gets its own copy). ``read_noise_source``:
+    the ramp's own, in the key (equal ramps of two SCAs with the same read noise differ there)."""
+    return ramp._conditions(exptime_s)
 
 
 @lru_cache(maxsize=1024)

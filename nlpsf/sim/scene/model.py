@@ -178,11 +178,19 @@ class SceneModel:
     def to_dict(self) -> dict:
         # Every field is a number, a string, None or a tuple of numbers (``__post_init__`` makes them
         # so): ``dataclasses.asdict``'s dict without its deep copy of each (most of what an answer's conditions cost).
-        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {name: getattr(self, name) for name in _field_names()}
         out["effects_on"] = self.effects_on()
         return out
 
     def describe(self) -> str:
+        """The scene in a line (worked out once: the scene is frozen, a string is shared safely)."""
+        found = self.__dict__.get("_description")
+        if found is None:
+            found = self._description()
+            object.__setattr__(self, "_description", found)
+        return found
+
+    def _description(self) -> str:
         if self.no_effects:
             return "paper scene (SCA centre, one wavelength, quadratic NL only)"
         parts = []
@@ -203,6 +211,12 @@ class SceneModel:
         if self.background_e:
             parts.append(f"background {self.background_e:g} e-")
         return (f"{self.name}: " if self.name else "") + ", ".join(parts)
+
+
+@lru_cache(maxsize=1)
+def _field_names() -> tuple[str, ...]:
+    """The scene's field names, in order (``dataclasses.fields`` looked up once)."""
+    return tuple(f.name for f in fields(SceneModel))
 
 
 def _check_sed(sed: str, table) -> str:
