@@ -358,10 +358,10 @@ class Flag(str):
     values: dict
 
     def __new__(cls, code: FlagCode | str, **values) -> Flag:
-        code = FlagCode(code)
+        code = code if type(code) is FlagCode else FlagCode(code)  # the enum's look-up only for a string
         spec = CATALOGUE[code]
-        missing = set(spec.quotes) - set(values)
-        if missing:
+        if not all(name in values for name in spec.quotes):
+            missing = set(spec.quotes) - set(values)
             raise TypeError(f"flag {code.value} needs {', '.join(sorted(missing))}")
         self = super().__new__(cls, spec.template.format(**values))
         self.code = code

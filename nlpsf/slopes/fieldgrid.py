@@ -258,9 +258,13 @@ class FieldGrid:
 
     def _entry(self, band: str, sca: int) -> tuple[str, dict]:
         # A request's band and SCA were checked where it was read: look up first, check only on a miss.
+        found = self._splines.get(("entry", band, sca))
+        if found is not None:
+            return found
         key = f"{band}_{sca:02d}" if isinstance(band, str) and isinstance(sca, int) else None
         entry = self.meta["tables"].get(key)
         if entry is not None:
+            self._splines[("entry", band, sca)] = key, entry
             return key, entry
         key = self.key(band, sca)
         if key not in self.meta["tables"]:
@@ -347,9 +351,6 @@ class FieldGrid:
         """:meth:`node_values` of several columns (a slope and its errors: each node's flux at the
         magnitude found once, the columns that share their knots read together; the same numbers)."""
         key, _ = self._entry(band, sca)
-        for column in columns:
-            if column not in self.meta["columns"]:
-                raise InputError("column", f"no column {column!r} in this field grid")
         m = np.asarray(magnitude, dtype=np.float64)
         memo_keys = [(key, column, m.shape, m.tobytes()) for column in columns]
         with self._node_values_lock:  # the service answers from threads
@@ -359,7 +360,10 @@ class FieldGrid:
                     self._node_values.move_to_end(memo_key)
         missing = [k for k, cached in enumerate(found) if cached is None]
         if not missing:
-            return found
+            return found  # a column is kept only once read: each is one of the grid's
+        for k in missing:
+            if columns[k] not in self.meta["columns"]:
+                raise InputError("column", f"no column {columns[k]!r} in this field grid")
         computed = self._evaluate_nodes(key, [columns[k] for k in missing], m)
         with self._node_values_lock:
             for k, out in zip(missing, computed, strict=True):

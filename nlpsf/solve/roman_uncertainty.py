@@ -398,11 +398,28 @@ def relative(band: str, sca: int, mode: str, metric: str, magnitude, pupil_log_s
 def at_signed(by_magnitude: list[list[float]], magnitudes: np.ndarray, column: int) -> np.ndarray:
     """A signed column of [[m, ...], ...] at ``magnitudes``, linear between the measured ones and
     constant outside them (the ranges' ends and the optics' sensitivities are smooth in m)."""
-    rows = sorted((r[0], r[column]) for r in by_magnitude if r[column] is not None)
+    knots, values = _signed_rows(by_magnitude, column)
     m = np.asarray(magnitudes, dtype=np.float64)
-    if not rows:
+    if not knots:
         return np.full(m.shape, np.nan)
-    return np.interp(m, [r[0] for r in rows], [r[1] for r in rows])
+    return np.interp(m, knots, values)
+
+
+#: :func:`_signed_rows` by the rows' identity and the column (the rows kept with them, as in ``_SORTED``).
+_SIGNED: dict[tuple[int, int], tuple[list, list[float], list[float]]] = {}
+
+
+def _signed_rows(by_magnitude: list[list[float]], column: int) -> tuple[list[float], list[float]]:
+    """(measured magnitudes ascending, the signed ``column`` at each) of the rows stating it, sorted once."""
+    kept = _SIGNED.get((id(by_magnitude), column))
+    if kept is not None and kept[0] is by_magnitude:
+        return kept[1], kept[2]
+    rows = sorted((r[0], r[column]) for r in by_magnitude if r[column] is not None)
+    knots, values = [r[0] for r in rows], [r[1] for r in rows]
+    if len(_SIGNED) >= 4096:
+        _SIGNED.clear()
+    _SIGNED[(id(by_magnitude), column)] = (by_magnitude, knots, values)
+    return knots, values
 
 
 def pupil_log_scale(band: str, sca: int, rule: str, reference: str = "official") -> float:

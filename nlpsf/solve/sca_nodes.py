@@ -285,6 +285,8 @@ def _secant_roots(nodes: _Nodes, brackets: dict[int, tuple[float, float]], requi
     def excess(points: dict[int, float]) -> dict[int, float] | None:
         return excesses(points)[0]
 
+    if not brackets:
+        return {}  # no node crossed inside its scan: nothing to read
     a = {k: bright for k, (bright, _) in brackets.items()}
     b = {k: faint for k, (_, faint) in brackets.items()}
     fa, fb = excesses(a, b)  # both ends of every bracket in one read
@@ -317,6 +319,13 @@ def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, cros
     count = len(saturation)
     binds = [m is None or m < m_sat for m, m_sat in zip(m_nl, saturation, strict=True)]
     at_root = [nodes.faintest if bound else m for m, bound in zip(m_nl, binds, strict=True)]
+    if not crossed and all(binds):
+        # Saturation binds at every node: each answer is its saturation magnitude, whose parts are 0
+        # (no slope is read for them). A component's ratio is still asked where the parts are stated
+        # against the modulus: where a node has none, the node-by-node answer says so.
+        if model["stated_against"] == "modulus" and any(s is None for s in nodes.modulus_over_component(at_root)):
+            return None
+        return NodeAnswers("magnitude", list(saturation), [0.0] * count, {})
     if crossed:  # the root and the step fainter in one read
         plus_points = [m + _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
         (slopes, errors), (plus, plus_errors) = nodes.at_sets([at_root, plus_points])

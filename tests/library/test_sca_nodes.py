@@ -105,3 +105,20 @@ def test_a_range_states_its_own_scenes_name_after_an_equal_scene_without_one():
     second = solver.answer(named)
     assert first.conditions["scene"]["name"] is None and not first.conditions["scene_description"].startswith("roman:")
     assert second.conditions["scene"]["name"] == "roman" and second.conditions["scene_description"].startswith("roman:")
+
+
+def test_where_saturation_binds_at_every_node_each_node_is_its_own_answer():
+    # A tolerance no star on the SCA reaches: every node's answer is its saturation magnitude (read
+    # at once without a slope), as answering the node alone gives it, uncertainty and all.
+    checked = 0
+    for band, sca, metric in (("H158", 7, "size"), ("W146", 3, "e1"), ("K213", 12, "e")):
+        request = SolveRequest.from_json({"band": band, "sca": sca, "metric": metric, "precision": 1e-3, "tolerance": 0.05})
+        positions = over_field.range_positions(request)
+        found = solver._node_answers(request, positions)
+        assert found is not None
+        for position, value, uncertainty in zip(positions, found.values, found.uncertainties, strict=True):
+            own = solver.answer(request.at_position(position))
+            assert own.binding_limit == "saturation" and value == own.magnitude == own.saturation_magnitude
+            assert uncertainty == own.uncertainty, (request, position)
+            checked += 1
+    assert checked >= 27

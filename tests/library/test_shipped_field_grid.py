@@ -200,3 +200,15 @@ def test_every_node_at_its_own_magnitudes_reads_as_its_own_cubic_spline(band, sc
                 inside = (target >= low * (1 - 1e-12)) & (target <= high * (1 + 1e-12))
                 expected = np.where(inside, spline(np.clip(target, low, high)) * target, np.nan)
                 np.testing.assert_array_equal(got[c][j, i], expected)
+
+
+def test_a_column_the_grid_does_not_hold_is_refused_whatever_was_read_before():
+    from nlpsf.checks import InputError
+
+    grid = fieldgrid.shipped_grid()
+    for _ in range(2):  # before and after the held column is kept
+        with pytest.raises(InputError, match="no column 'bias_nothing'"):
+            grid.columns_node_values("H158", 7, ["bias_size", "bias_nothing"], 20.25)
+        grid.columns_node_values("H158", 7, ["bias_size"], 20.25)
+    with pytest.raises(InputError, match="no field grid for H158 SCA 19"):
+        grid.node_values("H158", 19, "bias_size", 20.25)
