@@ -11,7 +11,9 @@ it alone gives, bit for bit, and its uncertainty agrees to the last bits (the fi
 term read once for all nodes, the parts added with numpy's sums). Where a node leaves the common
 case (a magnitude the grid does not hold, a refusal, an answer extrapolated past the scan, a
 crossing the secant does not bracket), :func:`answer_nodes` returns None and the caller answers
-node by node.
+node by node. A magnitude solve reads only what its answers use: no secant where no node crosses
+inside its scan, and no slope where saturation binds at every node (each answer is then its
+saturation magnitude, its parts 0).
 """
 
 from __future__ import annotations
@@ -314,6 +316,29 @@ def _secant_roots(nodes: _Nodes, brackets: dict[int, tuple[float, float]], requi
     return roots
 
 
+def _crossed_slopes(nodes, crossed, binds, at_root, log_derivatives) -> tuple[list[float], list[float]] | None:
+    """Every node's slope and |error| at its root (``at_root``), and d ln|c| / dm at each crossed
+    node's root from the step fainter and brighter (put in ``log_derivatives``), as
+    ``magnitude_scan`` finds them; the root and the step fainter in one read. None where a step
+    is not held (the node-by-node answer says why)."""
+    plus_points = [m + _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
+    (slopes, errors), (plus, plus_errors) = nodes.at_sets([at_root, plus_points])
+    minus_points = [m - _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
+    if not nodes.held(minus_points) or max(minus_points) > nodes.faintest:
+        return None
+    minus = nodes.held_values(minus_points)
+    if minus is None:
+        return None
+    for k in crossed:
+        if binds[k]:
+            continue
+        read = (plus[k], plus_errors[k], minus[k])
+        if not all(math.isfinite(v) for v in read) or plus[k] == 0 or minus[k] == 0:
+            return None
+        log_derivatives[k] = (math.log(abs(plus[k])) - math.log(abs(minus[k]))) / (2 * _H)
+    return slopes, errors
+
+
 def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, crossed, log_derivatives) -> NodeAnswers | None:
     """The binding limit and the uncertainty of every node's magnitude answer (``quantity.answer_magnitude``)."""
     count = len(saturation)
@@ -326,25 +351,13 @@ def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, cros
         if model["stated_against"] == "modulus" and any(s is None for s in nodes.modulus_over_component(at_root)):
             return None
         return NodeAnswers("magnitude", list(saturation), [0.0] * count, {})
-    if crossed:  # the root and the step fainter in one read
-        plus_points = [m + _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
-        (slopes, errors), (plus, plus_errors) = nodes.at_sets([at_root, plus_points])
+    if crossed:
+        read = _crossed_slopes(nodes, crossed, binds, at_root, log_derivatives)
+        if read is None:
+            return None
+        slopes, errors = read
     else:
         slopes, errors = nodes.at(at_root)
-    if crossed:
-        minus_points = [m - _H if k in crossed and not binds[k] else nodes.faintest for k, m in enumerate(at_root)]
-        if not nodes.held(minus_points) or max(minus_points) > nodes.faintest:
-            return None
-        minus = nodes.held_values(minus_points)
-        if minus is None:
-            return None
-        for k in crossed:
-            if binds[k]:
-                continue
-            read = (plus[k], plus_errors[k], minus[k])
-            if not all(math.isfinite(v) for v in read) or plus[k] == 0 or minus[k] == 0:
-                return None
-            log_derivatives[k] = (math.log(abs(plus[k])) - math.log(abs(minus[k]))) / (2 * _H)
     effects = _effects(model, nodes, at_root)
     if effects is None:
         return None
