@@ -1982,6 +1982,34 @@ function paperOn() {
   return document.getElementById("paper-overlay").checked && state.paper;
 }
 
+// The words of every band's slopes: the question's band's, and where a band's own differ (each band
+// has its own sky background and, without a position, its own count of field-grid nodes), each band's
+// own values, so that no band's numbers are stated for all.
+function slopesWords(curves, own) {
+  const wordsOf = (c) => curveWords({ curves: { conditions: c.conditions, where: c.where } });
+  const words = wordsOf(own);
+  if (curves.every((c) => wordsOf(c) === words)) return words;
+  const BACKGROUND = /background [^,;)]* e-/;
+  const background = (c) => (c.conditions.scene && c.conditions.scene.background_e) || 0;
+  const nodes = (c) => (c.where.kind === "envelope" ? c.where.positions.length : 1);
+  const byBackground = curves.some((c) => background(c) !== background(own));
+  const byNodes = curves.some((c) => nodes(c) !== nodes(own));
+  // A band whose words are the question's band's but for those two values is said by them; any
+  // other difference, in its own words.
+  const asOwn = (c) => {
+    const described = (c.conditions.scene_description || "").replace(BACKGROUND, ((own.conditions.scene_description || "").match(BACKGROUND) || [""])[0]);
+    return wordsOf({ conditions: { ...c.conditions, scene_description: described }, where: own.where }) === words;
+  };
+  const each = curves.map((c) => {
+    if (!asOwn(c)) return `${c.band}: ${wordsOf(c)}`;
+    const values = [];
+    if (byBackground) values.push(`background ${fmt(background(c), 3)} e⁻`);
+    if (byNodes) values.push(nodes(c) === 1 ? "one position" : `${nodes(c)} nodes`);
+    return `${c.band} ${values.join(", ")}`;
+  });
+  return `${words} (as stated for ${own.band}; each band at its own — ${each.join("; ")})`;
+}
+
 // Every band's slope for the calculator's question (the answer's, once there is one).
 async function drawSlopes() {
   const metric = document.getElementById("slopes-metric").value;
@@ -2008,11 +2036,11 @@ async function drawSlopes() {
         series: pointSeries(`${band} (paper)`, BAND_COLORS[band] || "#333", 7) });
     }
   }
-  const first = data.curves[0];
-  const words = curveWords({ curves: { conditions: first.conditions, where: first.where } });
+  const own = data.curves.find((c) => c.band === question.band) || data.curves[0];
+  const words = slopesWords(data.curves, own);
   const missing = data.curves.filter((c) => c.needs_simulation).map((c) => c.band);
   const title = `${mode} slope of ${METRIC_LABEL[metric]} vs magnitude (absolute values), every band\n${words}\n` +
-    conditionsText({ ...first.conditions, band: "all bands", exptime_s: first.conditions.exptime, full_well_e: first.conditions.full_well });
+    conditionsText({ ...own.conditions, band: "all bands", exptime_s: own.conditions.exptime, full_well_e: own.conditions.full_well });
   document.getElementById("curves-scene-text").textContent = `The slopes of every band are for the ${state.lastRequest ? "answer's" : "calculator's"} ` +
     `question: ${words}.`;
   document.getElementById("slopes-caption").textContent =
@@ -2067,6 +2095,21 @@ function freshNote(drawn, band, magnitude, metric) {
   return parts.join("; ") + ".";
 }
 
+// Fresh points drawn on a table line of the paper's idealised scene come from the simulation's own
+// scene and readout (the Roman default unless the scene box is ticked): said, so that points off the
+// line are not read as a disagreement of the same question.
+function freshSceneNote(drawn) {
+  const sim = state.lastSimulation;
+  if (!sim || drawn.length === 0) return "";
+  const c = sim.conditions || {};
+  const scene = sceneName(sim);
+  const readout = c.ramp ? `up the ramp (${c.ramp.description})` : "a single final frame";
+  const exposure = c.exptime_s != null ? `, ${fmt(c.exptime_s)} s` : "";
+  if (scene === PAPER_SCENE && !c.ramp) return "";
+  return ` The points are the simulation's own question (scene: ${scene}; ${readout}${exposure}), not the line's (the paper's ` +
+    "idealised scene): they need not lie on it.";
+}
+
 function flagsText(flags) {
   return flags.length ? ` Notes: ${flags.map(plainWords).join("; ")}` : "";
 }
@@ -2087,7 +2130,8 @@ async function drawBeta() {
     columns.push({ label: `${band} paper, m = 18.3`, x: fig.beta, y: fig[METRIC_KEY[metric]],
       series: pointSeries(`${band} paper, m = 18.3`, "#555", 7) });
   }
-  columns.push(...simulationPoints("beta", band, metric, Number(magnitude)));
+  const fresh = simulationPoints("beta", band, metric, Number(magnitude));
+  columns.push(...fresh);
   if (log) {
     for (const column of columns) column.y = column.y.map((v) => (v === null ? null : Math.abs(v)));
   }
@@ -2095,7 +2139,7 @@ async function drawBeta() {
   document.getElementById("beta-caption").textContent = `The paper's idealised scene: its tables, to first order in β. ${conditionsText(data.conditions)}. ` +
     `Slope c = ${fmt(data.slope)} per unit β (relative uncertainty: statistical ${fmt(data.uncertainty.at(-1) / Math.abs(data.values.at(-1)), 2)}` +
     `${data.fidelity_relative_uncertainty != null ? `, method ${fmt(data.fidelity_relative_uncertainty, 2)}` : ""}). ` +
-    "A fresh simulation with several β gives the full, nonlinear response." + flagsText(data.flags);
+    "A fresh simulation with several β gives the full, nonlinear response." + flagsText(data.flags) + freshSceneNote(fresh);
   const yLabel = log ? `|${METRIC_LABEL[metric]}|` : METRIC_LABEL[metric];
   drawPlot("beta", { title, xLabel: "β [1/e⁻]", yLabel, columns, logX: log, logY: log });
 }
@@ -2115,7 +2159,7 @@ async function drawSigma() {
   const title = `σ(${METRIC_LABEL[metric]}) vs σβ at m = ${fmt(data.magnitude)}: the paper's idealised scene (shipped tables, first order)\n${conditionsText(data.conditions)}`;
   document.getElementById("sigma-caption").textContent = `The paper's idealised scene: its tables, to first order in σβ. ${conditionsText(data.conditions)}. ` +
     `Scatter slope = ${fmt(data.slope)} per unit σβ. A fresh simulation with σβ values gives Monte Carlo points.` +
-    flagsText(data.flags) + freshNote(fresh, band, Number(magnitude), metric);
+    flagsText(data.flags) + freshNote(fresh, band, Number(magnitude), metric) + freshSceneNote(fresh);
   drawPlot("sigma", { title, xLabel: "σβ [1/e⁻]", yLabel: `σ(${METRIC_LABEL[metric]})`, columns, logX: log, logY: log });
 }
 

@@ -124,6 +124,12 @@ def test_simulation_progress_reaches_100_percent(page):
     assert "fresh simulation" in page.inner_text("#sim-conditions")
     # Fresh points join the metric-vs-beta plot.
     page.wait_for_function("() => document.querySelector('#plot-beta').innerText.includes('fresh simulation')")
+    # The points are the simulation's own question (no scene ticked: the Roman default, up its ramp),
+    # not the paper's table line they are drawn on: the captions say so.
+    for caption in ("#beta-caption", "#sigma-caption"):
+        text = page.inner_text(caption)
+        if "fresh simulation" in page.inner_text(f"#plot-{caption[1:].split('-')[0]}"):
+            assert "the simulation's own question (scene: " in text and "SED k0v" in text and "up the ramp" in text, text
     page.locator("#simulation").screenshot(path=str(ARTIFACTS / "e2e-simulation.png"))
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import pytest
 
 from nlpsf.request import presets as roman_default
+from nlpsf.slopes import tables
 from nlpsf.solve import solver
 
 from .browser import ARTIFACTS
@@ -36,6 +37,12 @@ def test_the_scene_choice_is_sent_shown_and_shared(page, server):
     # The slopes of every band are the calculator's question's: the Roman default, over the SCA.
     note = page.inner_text("[data-testid=curves-scene-note]")
     assert "Roman default" in note and "anywhere on the SCA" in note
+    # Each band has its own sky and field-grid nodes: each band's are said, none stated for all.
+    page.wait_for_function("() => document.getElementById('curves-scene-text').textContent.includes('each band at its own')")
+    note = page.inner_text("[data-testid=curves-scene-note]")
+    for band in tables.load_tables().bands:
+        own = solver.solve(band, tolerance=1e-4, magnitude=18.3).to_dict()["conditions"]
+        assert f"{band} background {own['scene']['background_e']:.3g} e⁻, {len(own['sca_range']['nodes'])} nodes" in note, band
     sent, answer = solve_sent(page)
     assert "scene" not in sent and "exptime" not in sent
     truth = solver.solve("H158", tolerance=1e-4, magnitude=18.3)
