@@ -110,6 +110,7 @@ class SolveRequest:
             if not isinstance(self.ramp, ramps.Ramp):
                 raise InputError("ramp", f"must be a ramps.Ramp, got {type(self.ramp).__name__}")
             self.ramp.check_exposure(self.exptime)
+            self.ramp.check_saturates(self.full_well, self.beta0)
         self._check_triple()
         if self.accuracy is None:
             levels.check_level(self.fidelity or "table")

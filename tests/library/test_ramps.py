@@ -547,6 +547,28 @@ def test_the_exact_saturation_limit_of_the_signal_rule_is_the_quadratics_root(be
     assert charge_rule.saturation_shift_mag(T, FULL_WELL, beta) == pytest.approx(2.5 * math.log10(n / 2), rel=1e-12)
 
 
+@pytest.mark.parametrize("over", [1.0001, 1.3, 100.0])
+def test_a_quadratic_whose_signal_never_reaches_the_well_is_refused_not_searched(over, make_client):
+    # S = Q - beta Q^2 peaks at 1 / (4 beta): past 4 beta W = 1 the root above has no real value, no
+    # charge is ever flagged by the signal rule, and the limit (the search for it) does not exist.
+    n = 8
+    ramp, tau2 = uniform(n), 2 / n
+    edge = 1 / (4 * FULL_WELL)
+    x = (1 - math.sqrt(1 - 4 * (0.999 * edge) * FULL_WELL)) / (2 * 0.999 * edge)
+    assert ramp.limit_charge(T, FULL_WELL, 0.999 * edge) == pytest.approx(x / tau2, rel=1e-9)
+    with pytest.raises(InputError) as refused:
+        ramp.limit_charge(T, FULL_WELL, over * edge)
+    assert refused.value.argument == "beta0" and "1/(4 beta)" in refused.value.reason
+    # The charge rule judges the charge, not the signal: its limit stands whatever beta is.
+    assert uniform(n, saturation="charge").limit_charge(T, FULL_WELL, over * edge) == pytest.approx(FULL_WELL / tau2, rel=1e-9)
+    # Every entry point refuses it before any work (the service had searched forever).
+    body = {"band": "H158", "magnitude": 25.0, "tolerance": 1e-4, "scene": "paper", "ramp": 2, "beta0": over * edge}
+    with make_client() as client:
+        for path in ("/api/v1/solve", "/api/v1/page/limits", "/api/v1/page/requirement"):
+            answer = client.post(path, json=body)
+            assert answer.status_code == 422 and "beta0" in answer.text, (path, answer.text)
+
+
 # --- the ramp's rules and the linearisation state from every entry point -------------------------
 
 

@@ -175,6 +175,21 @@ class Ramp:
         """Fewest usable resultants that give a slope."""
         return 1 if self.single_resultant == "through_zero" else 2
 
+    def check_saturates(self, full_well_e: float, beta: float, field: str = "beta0") -> None:
+        """Refuse a quadratic NL under which no pixel's signal ever reaches the saturation step's
+        threshold (the "signal" rule): S = Q - beta Q^2 peaks at 1 / (4 beta), so with 4 beta (full
+        well) > 1 no charge is flagged, and the quadratic model is invalid past its turnover anyway."""
+        beta = self.saturation_beta if self.saturation_beta is not None else beta
+        if self.saturation != "signal" or beta <= 0 or 4.0 * beta * full_well_e <= 1.0:
+            return
+        raise InputError(
+            field,
+            f"up the ramp a resultant is flagged saturated when its signal reaches the full well ({full_well_e:g} e-), but "
+            f"with beta {beta:g} /e- the quadratic response Q - beta Q^2 peaks at 1/(4 beta) = {0.25 / beta:.4g} e-, below "
+            f"it: no charge ever saturates and the quadratic model is invalid past its peak; give beta0 at most "
+            f"{0.25 / full_well_e:.4g} /e- for this full well (or a lower full well)",
+        )
+
     def check_gives_slopes(self) -> None:
         """Refuse a table that gives no pixel a slope under its one-resultant rule: one resultant
         under ``single_resultant="unusable"`` (romancal's: stcal's fits need two resultants), where
@@ -239,10 +254,15 @@ def _conditions(ramp: Ramp, read_noise_source: str, exptime_s: float) -> dict:
     return ramp._conditions(exptime_s)
 
 
+#: Doublings of the bracket of :func:`_limit_charge` from its first guess (2^64: far past any well).
+_MAX_DOUBLINGS = 64
+
+
 @lru_cache(maxsize=1024)
 def _limit_charge(ramp: Ramp, exptime_s: float, full_well_e: float, beta: float, background_e: float) -> float:
     """:meth:`Ramp.limit_charge` (a pure function of a frozen ramp and four numbers)."""
     ramp.check_gives_slopes()  # else no charge keeps a slope and the limit would be 0
+    ramp.check_saturates(full_well_e, beta)  # else every charge keeps its resultants: no limit to find
     needed = ramp.min_usable
 
     def keeps(q: float) -> bool:
@@ -250,8 +270,12 @@ def _limit_charge(ramp: Ramp, exptime_s: float, full_well_e: float, beta: float,
 
     low = 0.0
     high = max(full_well_e, 1.0) / ramp.first_usable_fraction(exptime_s)
-    while keeps(high):
+    for _ in range(_MAX_DOUBLINGS):
+        if not keeps(high):
+            break
         low, high = high, 2 * high
+    else:  # every rule above loses resultants well before this (a guard, never an answer)
+        raise RuntimeError(f"no final-frame charge up to {high:.3g} e- loses a resultant under {ramp.describe()}")
     for _ in range(200):
         middle = 0.5 * (low + high)
         if middle in (low, high):
