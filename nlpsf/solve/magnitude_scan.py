@@ -255,6 +255,14 @@ def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iteratio
         # widen it by a magnitude each side, once.
         lo, hi = a - 1.0, b + 1.0
         f_lo, f_hi = function(lo), function(hi)
+        if not (math.isfinite(f_lo) and math.isfinite(f_hi)):
+            # Widened past where the simulated star has a slope (it saturates): no bracket to search.
+            raise SimulationError(
+                f"the simulated NL error does not cross the tolerance between m={a:.2f} and m={b:.2f}, where the tables' "
+                f"scan put the crossing (log of |c| over the required slope: {fa:.3g} and {fb:.3g}), and a magnitude "
+                f"further has no slope to search (m={lo:.2f}: {f_lo:.3g}, m={hi:.2f}: {f_hi:.3g}; the star saturates); "
+                "this scene's crossing is not where the tables put it"
+            )
         if f_lo * f_hi > 0:
             raise SimulationError(
                 f"the simulated NL error does not cross the tolerance between m={lo:.2f} and m={hi:.2f}, around where "

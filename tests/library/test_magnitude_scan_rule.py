@@ -85,3 +85,18 @@ def test_an_error_growing_toward_faint_stars_makes_a_tolerance_unreachable():
     assert raised.value.argument == "tolerance"
     assert raised.value.smallest == pytest.approx(at_faint_end, rel=1e-12)
     assert raised.value.faintest == FAINT
+
+
+def test_a_fresh_scan_whose_widened_bracket_reaches_a_saturated_star_says_so():
+    # The tables' bracket [16.8, 17.05] does not hold the simulated crossing and a magnitude brighter
+    # the star has no slope (NaN, saturated): a SimulationError naming both, not scipy's ValueError.
+    from nlpsf.checks import SimulationError
+    from nlpsf.solve.magnitude_scan import _secant_root
+
+    def excess(m: float) -> float:  # below the tolerance down to m = 16.5, saturated brighter
+        return float("nan") if m < 16.5 else -0.2 - (m - 16.5)
+
+    with pytest.raises(SimulationError, match="saturates"):
+        _secant_root(excess, 16.8, 17.05)
+    # Where the widened bracket holds the crossing, it is found (the root of m - 16.0 at 16.0).
+    assert _secant_root(lambda m: m - 16.0, 16.8, 17.05) == pytest.approx(16.0, abs=1e-4)

@@ -75,6 +75,19 @@ def test_a_request_the_grid_does_not_hold_is_still_a_job(client):
     client.delete(f"/api/v1/simulations/{queued.json()['id']}")
 
 
+@pytest.mark.parametrize("state", [{"linearise_at": "corrected"}, {"linearise_at": "corrected", "residual_nl": "per_read_beta"}])
+def test_the_paper_scene_in_another_linearisation_state_is_a_job_not_seconds_inline(client, state):
+    # The paper's tables hold the state at beta0 only: another is simulated (the batch refuses it),
+    # so the single solve queues it too instead of simulating inside the HTTP worker.
+    body = {"band": "Z087", "sca": 3, "tolerance": 1e-3, "precision": 0.01, "scene": "paper", **state}
+    queued = client.post("/api/v1/solve", json=body)
+    assert queued.status_code == 202, queued.text
+    assert queued.json()["request"]["kind"] == "solve"
+    client.delete(f"/api/v1/simulations/{queued.json()['id']}")
+    refused = client.post("/api/v1/solve/batch", json={"requests": [body]}).json()
+    assert refused["results"][0]["ok"] is False
+
+
 def test_an_accuracy_is_still_a_job(client):
     body = {"band": "H158", "magnitude": 19.0, "precision": 0.01, "accuracy": 0.05, "scene": {"position": [1000, 3000]}}
     queued = client.post("/api/v1/solve", json=body)
