@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from nlpsf import defaults
-from nlpsf.checks import InputError, check_number
+from nlpsf.checks import InputError, SimulationError, check_number
 from nlpsf.sim import detector
 
 from .tables import MATable, _ols_factors, load_ma_table, shipped_table_names
@@ -275,7 +275,7 @@ def _limit_charge(ramp: Ramp, exptime_s: float, full_well_e: float, beta: float,
             break
         low, high = high, 2 * high
     else:  # every rule above loses resultants well before this (a guard, never an answer)
-        raise RuntimeError(f"no final-frame charge up to {high:.3g} e- loses a resultant under {ramp.describe()}")
+        raise SimulationError(f"no final-frame charge up to {high:.3g} e- loses a resultant under {ramp.describe()}")
     for _ in range(200):
         middle = 0.5 * (low + high)
         if middle in (low, high):
