@@ -107,6 +107,7 @@ async def solve(
     # Another pupil-scale rule than the tables' is simulated: a job, like a scene or a ramp.
     tables_pupil = request.pupil_scale in (None, defaults.PUPIL_SCALE)
     plain = request.ramp is None and request.scene is None and body.over_field is None and tables_pupil
+    refused = False
     if plain and request.fidelity in (None, "table") and request.accuracy is None:
         # Microseconds: charged, never refused (a client past its share keeps its table solves). The
         # batch's answer, which refuses what the tables do not hold (another linearisation state is
@@ -115,8 +116,8 @@ async def solve(
             with budget.metered(budget.TABLE, 1.0):
                 return SafeJSONResponse(batch.answer_from_tables(request).to_dict())
         except batch.NeedsSimulation:
-            pass
-    if body.over_field is None:
+            refused = True  # not asked again below
+    if body.over_field is None and not refused:
         # Whatever the tables or the Roman default's field grid answer is answered here, whatever the
         # scene: the cost of the answer decides, not its name. The batch's own check and answer
         # (``batch.answer_from_tables``: the plan read first, a simulation refused before it starts),

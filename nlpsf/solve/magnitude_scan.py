@@ -248,6 +248,11 @@ def _log_derivative(slopes, grid: _Grid, m_nl: float) -> float:
 
 def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iterations: int = 12) -> float:
     fa, fb = function(a), function(b)
+    if not (math.isfinite(fa) and math.isfinite(fb)):
+        raise SimulationError(
+            f"the simulated star has no slope to search at the tables' bracket of the crossing (m={a:.2f}: {fa:.3g}, "
+            f"m={b:.2f}: {fb:.3g}; it saturates there): this scene's crossing is not where the tables put it"
+        )
     if fa * fb > 0:
         from scipy.optimize import brentq
 

@@ -98,5 +98,8 @@ def test_a_fresh_scan_whose_widened_bracket_reaches_a_saturated_star_says_so():
 
     with pytest.raises(SimulationError, match="saturates"):
         _secant_root(excess, 16.8, 17.05)
+    # Saturated at the bracket itself: said too, never a NaN root from the secant.
+    with pytest.raises(SimulationError, match="saturates"):
+        _secant_root(excess, 16.4, 17.05)
     # Where the widened bracket holds the crossing, it is found (the root of m - 16.0 at 16.0).
     assert _secant_root(lambda m: m - 16.0, 16.8, 17.05) == pytest.approx(16.0, abs=1e-4)
