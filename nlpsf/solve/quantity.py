@@ -14,7 +14,13 @@ from nlpsf.request import shear
 from . import model_part
 from .magnitude_scan import scan_magnitude
 from .solution import Uncertainty
-from .validity import _between_limits_flag, _binding, _magnitude_flags, _ramp_magnitude_flags
+from .validity import (
+    _between_limits_flag,
+    _binding,
+    _magnitude_flags,
+    _ramp_magnitude_flags,
+    refuse_saturation_past_tables,
+)
 
 
 @dataclass
@@ -60,7 +66,9 @@ def answer_magnitude(request, slopes, limits, model_info: dict, systematic, flag
     else:
         # Saturation sets the answer: it does not depend on the slope. Report the NL error there.
         parts = Uncertainty(0.0, 0.0, 0.0, 0.0, 0.0)
-        slope, slope_err, _ = slopes.at(limits.saturation)  # first: the model part reads the slopes there
+        slope, slope_err, region = slopes.at(limits.saturation)  # first: the model part reads the slopes there
+        if region < 0 and request.ramp is None:
+            refuse_saturation_past_tables(slopes, limits.saturation, beta0)
         model_info = model_part.model_at(model_info, slopes, limits.saturation)
         error = abs(slope) * precision * beta0 * averaging
         flags.append(

@@ -64,6 +64,29 @@ def _magnitude_flags(slopes, magnitude: float, region: int, m_sat: float, beta0:
     return flags
 
 
+def refuse_saturation_past_tables(slopes, m_sat: float, beta0: float) -> None:
+    """Refuse a brightest-usable-star answer the tables cannot give: the NL error stays below the
+    tolerance at every star they hold, but at this beta0 they stop (in beta0 x flux) fainter than the
+    saturation magnitude, so whether the stars between meet it -- and the slope at saturation -- is
+    unknown. Answered as the saturation magnitude, it carried no slope and flags that contradicted it;
+    a given magnitude there is refused by :func:`_magnitude_flags` alike."""
+    lo = slopes.range()[0]
+    at_end, at_sat = _peak_electrons(slopes, lo), _peak_electrons(slopes, m_sat)
+    monotonic = (
+        f"; there the quadratic is not even monotonic (2 beta0 Q_peak = {2 * beta0 * at_sat:.3g} >= 1)"
+        if 2 * beta0 * at_sat >= 1
+        else ""
+    )
+    raise InputError(
+        "beta0",
+        f"at beta0={beta0:g} the tables hold the NL strength beta0 x Q_peak only down to m={lo:.2f}, and the NL error "
+        f"stays below the tolerance for every star they hold; stars saturate only at m={m_sat:.2f}, past them, so the "
+        f"brightest usable star and the slope there are not known{monotonic}. Give beta0 at most "
+        f"{beta0 * at_end / at_sat:.3g} /e- (the tables then reach saturation), a tighter tolerance, or ask for the "
+        f"precision or the tolerance at a magnitude fainter than m={lo:.2f}",
+    )
+
+
 def _validity_flags(slopes, magnitude: float | None, precision: float | None, beta0: float, full_well: float) -> list[str]:
     if magnitude is None or not math.isfinite(magnitude):
         return []

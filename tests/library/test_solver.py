@@ -115,6 +115,24 @@ def test_magnitudes_brighter_than_saturation_and_fainter_than_30():
     assert "too bright" in str(error.value) or "past the tables" in str(error.value)
 
 
+@pytest.mark.parametrize(("band", "sca"), [("H158", 18), ("Z087", 1)])
+def test_a_brightest_star_past_the_tables_is_refused(band, sca):
+    # The tables hold the NL strength beta0 x Q_peak up to their own beta0 times their brightest row's
+    # peak charge (read from the ECSV here). Where the error stays below the tolerance everywhere, the
+    # answer is the saturation magnitude, whose strength is beta0 x the full well: past that reach its
+    # slope is not known (it was answered with a null slope and flags that said both things), so it
+    # is refused, as a given magnitude past the tables is; inside it, it is answered with its slope.
+    settings = shipped._table().meta["settings"]
+    reach = settings["beta0"] * shipped._rows(band, sca)["peak_electrons"].max()
+    limit = reach / settings["full_well_e"]
+    inside = paper_solve(band, sca, precision=0.5, tolerance=0.5, beta0=0.98 * limit)
+    assert inside.binding_limit == "saturation" and math.isfinite(inside.slope)
+    for beta0 in (1.02 * limit, 1e-4):
+        with pytest.raises(InputError) as error:
+            paper_solve(band, sca, precision=0.5, tolerance=0.5, beta0=beta0)
+        assert error.value.argument == "beta0" and f"{limit:.3g}" in str(error.value)
+
+
 @pytest.mark.parametrize("beta0", [1e-9, 1e-8, 5e-7, 2e-6, 1e-5])
 def test_beta0_range(beta0):
     s = paper_solve("H158", precision=0.01, magnitude=21.0, beta0=beta0)
