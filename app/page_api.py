@@ -246,15 +246,19 @@ def _cell(name: str, text: str) -> Any:
         return text
     if name == "precision" and text.endswith("%"):
         # Percent in, as on the page's precision field ("1 %" = 0.01).
-        text = text[:-1].strip()
-        try:
-            return float(text) / 100.0
-        except ValueError:
-            return text
+        number = _number(text[:-1].strip(), float)
+        return number / 100.0 if isinstance(number, float) else text
+    return _number(text, int if name in _INTEGER_COLUMNS else float)
+
+
+def _number(text: str, kind: type) -> Any:
+    """The cell as a finite number, else its text: the solve request names the field it cannot read,
+    and the answer's echo of the row shows what was sent ("nan", "inf"), not a JSON null."""
     try:
-        return int(text) if name in _INTEGER_COLUMNS else float(text)
+        number = kind(text)
     except ValueError:
-        return text  # the solve request names the field it cannot read
+        return text
+    return number if math.isfinite(number) else text
 
 
 def _with_position(row: dict[str, Any]) -> dict[str, Any]:
@@ -264,10 +268,10 @@ def _with_position(row: dict[str, Any]) -> dict[str, Any]:
     row = dict(row)
     text = str(row.pop("position"))
     parts = text.replace(";", " ").split()
-    try:
-        position: Any = [float(p) for p in parts]
-    except ValueError:
-        position = text  # the solve request names scene.position and what it expects
+    numbers = [_number(p, float) for p in parts]
+    # Not numbers (or NaN, infinity): the text, so that the solve request names scene.position and
+    # what it expects, and the echo shows what was sent.
+    position: Any = numbers if all(isinstance(n, float) for n in numbers) else text
     scene = row.get("scene")
     row["scene"] = {"position": position, **({"preset": scene} if isinstance(scene, str) and scene else {})}
     return row

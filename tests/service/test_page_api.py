@@ -217,6 +217,18 @@ def test_batch_csv_reads_percents_and_reports_each_row(client):
         assert refused.status_code == 422 and refused.json()["field"] == "csv", bad
 
 
+def test_batch_csv_echoes_a_cell_that_is_no_finite_number_as_sent(client):
+    # "nan", "inf" cells (and a position holding one) are refused by their own field, and the
+    # answer's echo of the rows shows what was sent: JSON has no NaN, and a null would read as a
+    # cell left empty (which asks for that quantity to be solved).
+    text = "band,tolerance,magnitude,precision,position\nH158,nan,19,,\nH158,1e-4,inf,,\nH158,1e-4,,-inf%,\nH158,1e-4,19,,nan 3\n"
+    answer = client.post("/api/v1/page/batch", content=text, headers={"Content-Type": "text/csv"}).json()
+    assert [r["ok"] for r in answer["results"]] == [False] * 4
+    assert [r["error"]["field"].split(".")[0] for r in answer["results"]] == ["tolerance", "magnitude", "precision", "scene"]
+    sent = [answer["requests"][0]["tolerance"], answer["requests"][1]["magnitude"], answer["requests"][2]["precision"]]
+    assert sent == ["nan", "inf", "-inf%"] and answer["requests"][3]["scene"]["position"] == "nan 3"
+
+
 def test_the_guide_is_served_as_shipped_and_nothing_else(client):
     assert "guide" in client.get("/api/v1/page/docs").json()["pages"]
     guide = client.get("/api/v1/page/docs/guide")
