@@ -247,6 +247,23 @@ def main(argv: list[str] | None = None) -> int:
     bands = args.bands.split(",")
     scas = [int(s) for s in args.scas.split(",")]
     start = time.perf_counter()
+    fits, points = _measure_points(bands, scas, start)
+    summary = summarise(points, fits)
+    elapsed = time.perf_counter() - start
+    if args.save_points:
+        Path(args.save_points).write_text(json.dumps({"points": points, "fits": fits}, default=_finite))
+    payload = _payload(points, fits, summary, _conditions(scas, elapsed))
+    print(report(json.loads(json.dumps(_rounded(payload), default=_finite))))
+    print(f"\n{len(points)} points in {elapsed:.0f} s")
+    if args.write:
+        payload = {**_rounded(payload), "per_band": _rounded(payload["per_band"], PART_DIGITS)}
+        OUTPUT.write_text(json.dumps(payload, sort_keys=True, separators=(",", ":"), default=_finite) + "\n")
+        print(f"wrote {OUTPUT}")
+    return 0
+
+
+def _measure_points(bands: list[str], scas: list[int], start: float) -> tuple[dict, list[dict]]:
+    """The joint optics fit per band, then every (band, SCA) point's measurement, with progress."""
     fits = {band: measure.fit_optics(band) for band in bands}
     print(f"optics fits in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     points = []
@@ -256,11 +273,54 @@ def main(argv: list[str] | None = None) -> int:
             points.append(point)
             elapsed = time.perf_counter() - start
             print(f"{band} SCA {sca:2d} {elapsed:6.1f} s {point['errors'] or ''}", file=sys.stderr, flush=True)
-    summary = summarise(points, fits)
-    elapsed = time.perf_counter() - start
-    if args.save_points:
-        Path(args.save_points).write_text(json.dumps({"points": points, "fits": fits}, default=_finite))
-    payload = {
+    return fits, points
+
+
+def _conditions(scas: list[int], elapsed: float) -> dict:
+    """What the file's numbers were measured under: versions, the default's values, each part's probe."""
+    return {
+        "code_version": code_version(),
+        "data_version": roman.DATA_VERSION,
+        "measured_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "elapsed_s": round(elapsed, 1),
+        "script": "scripts/model_uncertainty_roman.py",
+        "scene": "the Roman default (nlpsf.request.presets, TableSettings.roman().config), SCA centre",
+        "default_values": roman_default.conditions(),
+        "method": "linear response, slopes at the corrected state, the same centroid draws for every variant",
+        "residual_nl": roman_default.RESIDUAL_NL,
+        "realizations": REALIZATIONS,
+        "seed": SEED,
+        "scas": scas,
+        "magnitudes": list(MAGNITUDES),
+        "jitter": {
+            "nominal_arcsec": ru.JITTER_ARCSEC,
+            "sigma_arcsec": ru.JITTER_SIGMA_ARCSEC,
+            "requirement_arcsec": ru.JITTER_REQUIREMENT_ARCSEC,
+            "exceeded_fraction": ru.JITTER_EXCEEDED_FRACTION,
+            "probe_arcsec": ru.JITTER_PROBE_ARCSEC,
+        },
+        "charge_diffusion": {"nominal_px": ru.DIFFUSION_PX, **ru.diffusion_uncertainty()},
+        "sed_range": list(ru.SED_RANGE),
+        "bfe": {
+            "published_per_e": ru.BFE_COEFFICIENT_PUBLISHED,
+            "ipc_smoothing": ru.BFE_IPC_SMOOTHING,
+            "used_per_e": ru.BFE_COEFFICIENT,
+            "source": "Freudenburg et al. 2020, PASP 132, 074504 (arXiv:2003.05978), SCA 20829, not IPC-deconvolved",
+        },
+        "nl_shape_coefficients": list(ru.NL_SHAPE_COEFFICIENTS),
+        "optics": {
+            "blur_probe_arcsec2": ru.OPTICS_BLUR_PROBE_ARCSEC2,
+            "pupil_probe": ru.OPTICS_PUPIL_PROBE,
+            "scas": list(ru.OPTICS_SCAS),
+            "sed": ru.OFFICIAL_SED,
+            "rounding": ru.OFFICIAL_ROUNDING,
+        },
+    }
+
+
+def _payload(points: list[dict], fits: dict, summary: dict, conditions: dict) -> dict:
+    """The shipped file's content (before rounding)."""
+    return {
         "description": (
             "The Roman default's model uncertainty by part (nlpsf.solve.roman_uncertainty): each part's signed relative "
             "value (a standard uncertainty, or a left-out shift) of the NL slope inside the full default scene, per band, "
@@ -273,57 +333,13 @@ def main(argv: list[str] | None = None) -> int:
         "combination": ru.COMBINATION,
         "parts": [{"name": p.name, "kind": p.kind, "measured_as": p.measured_as, "source": p.source} for p in ru.PARTS],
         "ranges": list(ru.RANGES),
-        "conditions": {
-            "code_version": code_version(),
-            "data_version": roman.DATA_VERSION,
-            "measured_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "elapsed_s": round(elapsed, 1),
-            "script": "scripts/model_uncertainty_roman.py",
-            "scene": "the Roman default (nlpsf.request.presets, TableSettings.roman().config), SCA centre",
-            "default_values": roman_default.conditions(),
-            "method": "linear response, slopes at the corrected state, the same centroid draws for every variant",
-            "residual_nl": roman_default.RESIDUAL_NL,
-            "realizations": REALIZATIONS,
-            "seed": SEED,
-            "scas": scas,
-            "magnitudes": list(MAGNITUDES),
-            "jitter": {
-                "nominal_arcsec": ru.JITTER_ARCSEC,
-                "sigma_arcsec": ru.JITTER_SIGMA_ARCSEC,
-                "requirement_arcsec": ru.JITTER_REQUIREMENT_ARCSEC,
-                "exceeded_fraction": ru.JITTER_EXCEEDED_FRACTION,
-                "probe_arcsec": ru.JITTER_PROBE_ARCSEC,
-            },
-            "charge_diffusion": {"nominal_px": ru.DIFFUSION_PX, **ru.diffusion_uncertainty()},
-            "sed_range": list(ru.SED_RANGE),
-            "bfe": {
-                "published_per_e": ru.BFE_COEFFICIENT_PUBLISHED,
-                "ipc_smoothing": ru.BFE_IPC_SMOOTHING,
-                "used_per_e": ru.BFE_COEFFICIENT,
-                "source": "Freudenburg et al. 2020, PASP 132, 074504 (arXiv:2003.05978), SCA 20829, not IPC-deconvolved",
-            },
-            "nl_shape_coefficients": list(ru.NL_SHAPE_COEFFICIENTS),
-            "optics": {
-                "blur_probe_arcsec2": ru.OPTICS_BLUR_PROBE_ARCSEC2,
-                "pupil_probe": ru.OPTICS_PUPIL_PROBE,
-                "scas": list(ru.OPTICS_SCAS),
-                "sed": ru.OFFICIAL_SED,
-                "rounding": ru.OFFICIAL_ROUNDING,
-            },
-        },
+        "conditions": conditions,
         "optics_fit": fits,
         "pupil_log_scale": {f"{p['band']} {p['sca']}": p["pupil_log_scale"] for p in points},
         "per_band": summary,
         # The default's own slopes at each point (the parts above are relative to them).
         "base_slopes": {f"{p['band']} {p['sca']}": p["base"] for p in points},
     }
-    print(report(json.loads(json.dumps(_rounded(payload), default=_finite))))
-    print(f"\n{len(points)} points in {elapsed:.0f} s")
-    if args.write:
-        payload = {**_rounded(payload), "per_band": _rounded(payload["per_band"], PART_DIGITS)}
-        OUTPUT.write_text(json.dumps(payload, sort_keys=True, separators=(",", ":"), default=_finite) + "\n")
-        print(f"wrote {OUTPUT}")
-    return 0
 
 
 #: Significant digits of the parts, ranges and sensitivities in the file: a part is a fraction of a

@@ -89,33 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     for band in roman.BANDS:
         entry = per_band.setdefault(band, {"size": 0.0, "e": 0.0, "scas": {}})
         for sca in (1, 18):
-            ours = psfstats.psf_statistics(band, sca, sed=args.sed)
-            theirs = {c: official[(sca, band, c)] for c in psfstats.CENTRINGS}
-            log_width_gap = 0.5 * sum(math.log(theirs[c].n_eff_pixels / ours[c].n_eff_pixels) for c in psfstats.CENTRINGS)
-            base, n0 = slopes_and_width(band, sca, 0.0, args.realizations)
-            blurred, n1 = slopes_and_width(band, sca, args.blur * theirs["corner"].fwhm_arcsec, args.realizations)
-            # Linear in the width gap: the slope change the blur causes per unit ln N_eff, times the gap.
-            step = log_width_gap / math.log(n1 / n0)
-            delta = {m: (blurred[m] - base[m]) * step for m in METRICS}
-            # Ellipticity slopes can pass through zero across SCAs: measure their change against the
-            # modulus of the e slope, |c_e| = hypot(c_e1, c_e2), not against each small component.
-            modulus = math.hypot(base["e1"], base["e2"])
-            change = {"size": delta["size"] / abs(base["size"]), "e": math.hypot(delta["e1"], delta["e2"]) / modulus}
-            for metric in change:
-                entry[metric] = max(entry[metric], abs(change[metric]))
-            entry["scas"][str(sca)] = {
-                "fwhm_ratio": ours["corner"].fwhm_arcsec / theirs["corner"].fwhm_arcsec,
-                "n_eff_ratio": {c: ours[c].n_eff_pixels / theirs[c].n_eff_pixels for c in psfstats.CENTRINGS},
-                "peak_ratio": {c: ours[c].peak_fraction / theirs[c].peak_fraction for c in psfstats.CENTRINGS},
-                "slope_change_to_official_width": change,
-            }
-            lines.append(
-                f"| {band} | {sca} | {ours['corner'].fwhm_arcsec:.3f} / {theirs['corner'].fwhm_arcsec:.3f} "
-                + "".join(f"| {ours[c].n_eff_pixels:.2f} / {theirs[c].n_eff_pixels:.2f} " for c in ("corner", "center"))
-                + "".join(f"| {ours[c].peak_fraction:.3f} / {theirs[c].peak_fraction:.3f} " for c in ("corner", "center"))
-                + f"| {100 * change['size']:+.1f} % | {100 * change['e']:.1f} % "
-                + "|"
-            )
+            lines.append(_compare_point(band, sca, official, args, entry))
             print(f"{band} SCA {sca} done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     print("\n".join(lines))
     print()
@@ -123,31 +97,67 @@ def main(argv: list[str] | None = None) -> int:
     for band, entry in per_band.items():
         print(f"  {band}: size {100 * entry['size']:.1f} %, e {100 * entry['e']:.1f} % of |c_e|")
     if args.write:
-        payload = {
-            "description": (
-                "Relative uncertainty of the NL bias slopes from nlpsf's optical model (GalSim Cycle-9 Zernikes, pupil "
-                "masks) against the official post-CDR PSFs: the slope change that widening or narrowing nlpsf's PSF "
-                "to the official N_eff would cause (measured sensitivity d ln|slope| / d ln N_eff times the N_eff gap), "
-                "largest over SCA 1 and 18. 'size': relative to the size slope; 'e': the change of (c_e1, c_e2) relative to "
-                "|c_e| = hypot(c_e1, c_e2). For e1 and e2 this covers only the width part of the model difference."
-            ),
-            "source": "roman-technical-information 1.5.0 SummaryPSFstats_{center,corner}.ecsv (2024-06-03)",
-            "conditions": {
-                "sed": SED_TEXT[args.sed],
-                "jitter_fwhm_arcsec": psfstats.OFFICIAL_JITTER_FWHM_ARCSEC,
-                "image_pixels": psfstats.OFFICIAL_IMAGE_PIXELS,
-                "probe_blur_fwhm_over_official_fwhm": args.blur,
-                "slope_magnitude": 20.0,
-                "realizations": args.realizations,
-                "throughput": roman.DEFAULT_THROUGHPUT,
-                "data_version": roman.DATA_VERSION,
-                "code_version": __version__,
-            },
-            "per_band": per_band,
-        }
-        OUTPUT.write_text(json.dumps(payload, indent=1, sort_keys=True) + "\n")
+        OUTPUT.write_text(json.dumps(_payload(args, per_band), indent=1, sort_keys=True) + "\n")
         print(f"wrote {OUTPUT}", file=sys.stderr)
     return 0
+
+
+def _compare_point(band: str, sca: int, official: dict, args: argparse.Namespace, entry: dict) -> str:
+    """nlpsf's PSF statistics at (band, SCA) against the official ones, and the slope change its width
+    gap causes; ``entry`` (the band's worst changes, per SCA) is updated; the table's row is returned."""
+    ours = psfstats.psf_statistics(band, sca, sed=args.sed)
+    theirs = {c: official[(sca, band, c)] for c in psfstats.CENTRINGS}
+    log_width_gap = 0.5 * sum(math.log(theirs[c].n_eff_pixels / ours[c].n_eff_pixels) for c in psfstats.CENTRINGS)
+    base, n0 = slopes_and_width(band, sca, 0.0, args.realizations)
+    blurred, n1 = slopes_and_width(band, sca, args.blur * theirs["corner"].fwhm_arcsec, args.realizations)
+    # Linear in the width gap: the slope change the blur causes per unit ln N_eff, times the gap.
+    step = log_width_gap / math.log(n1 / n0)
+    delta = {m: (blurred[m] - base[m]) * step for m in METRICS}
+    # Ellipticity slopes can pass through zero across SCAs: measure their change against the
+    # modulus of the e slope, |c_e| = hypot(c_e1, c_e2), not against each small component.
+    modulus = math.hypot(base["e1"], base["e2"])
+    change = {"size": delta["size"] / abs(base["size"]), "e": math.hypot(delta["e1"], delta["e2"]) / modulus}
+    for metric in change:
+        entry[metric] = max(entry[metric], abs(change[metric]))
+    entry["scas"][str(sca)] = {
+        "fwhm_ratio": ours["corner"].fwhm_arcsec / theirs["corner"].fwhm_arcsec,
+        "n_eff_ratio": {c: ours[c].n_eff_pixels / theirs[c].n_eff_pixels for c in psfstats.CENTRINGS},
+        "peak_ratio": {c: ours[c].peak_fraction / theirs[c].peak_fraction for c in psfstats.CENTRINGS},
+        "slope_change_to_official_width": change,
+    }
+    return (
+        f"| {band} | {sca} | {ours['corner'].fwhm_arcsec:.3f} / {theirs['corner'].fwhm_arcsec:.3f} "
+        + "".join(f"| {ours[c].n_eff_pixels:.2f} / {theirs[c].n_eff_pixels:.2f} " for c in ("corner", "center"))
+        + "".join(f"| {ours[c].peak_fraction:.3f} / {theirs[c].peak_fraction:.3f} " for c in ("corner", "center"))
+        + f"| {100 * change['size']:+.1f} % | {100 * change['e']:.1f} % "
+        + "|"
+    )
+
+
+def _payload(args: argparse.Namespace, per_band: dict) -> dict:
+    """The shipped file's content."""
+    return {
+        "description": (
+            "Relative uncertainty of the NL bias slopes from nlpsf's optical model (GalSim Cycle-9 Zernikes, pupil "
+            "masks) against the official post-CDR PSFs: the slope change that widening or narrowing nlpsf's PSF "
+            "to the official N_eff would cause (measured sensitivity d ln|slope| / d ln N_eff times the N_eff gap), "
+            "largest over SCA 1 and 18. 'size': relative to the size slope; 'e': the change of (c_e1, c_e2) relative to "
+            "|c_e| = hypot(c_e1, c_e2). For e1 and e2 this covers only the width part of the model difference."
+        ),
+        "source": "roman-technical-information 1.5.0 SummaryPSFstats_{center,corner}.ecsv (2024-06-03)",
+        "conditions": {
+            "sed": SED_TEXT[args.sed],
+            "jitter_fwhm_arcsec": psfstats.OFFICIAL_JITTER_FWHM_ARCSEC,
+            "image_pixels": psfstats.OFFICIAL_IMAGE_PIXELS,
+            "probe_blur_fwhm_over_official_fwhm": args.blur,
+            "slope_magnitude": 20.0,
+            "realizations": args.realizations,
+            "throughput": roman.DEFAULT_THROUGHPUT,
+            "data_version": roman.DATA_VERSION,
+            "code_version": __version__,
+        },
+        "per_band": per_band,
+    }
 
 
 if __name__ == "__main__":
