@@ -126,7 +126,15 @@ def scan_magnitude(
     k = int(np.argmax(above))  # first magnitude (from the faint side) where the tolerance is exceeded
     bright, faint = float(grid.magnitudes[k]), float(grid.magnitudes[k - 1])
     known = crossing is not None and crossing.root is not None
-    m_nl = crossing.root if known else _crossing(slopes, grid, required, bright, faint)
+    m_nl = crossing.root if known else _crossing(slopes, grid, required, bright, faint, m_sat)
+    if m_nl is None:
+        # The fresh simulation stays below the tolerance from the tables' bracket down to saturation.
+        where = (
+            f"for the simulated star down to saturation m={m_sat:.2f} (the tables' c(m) at beta0 crosses it at "
+            f"m={bright:.2f}-{faint:.2f}; this scene's own slopes stay below it there and at saturation)"
+        )
+        flags.append(make(FlagCode.BELOW_TOLERANCE_EVERYWHERE, where=where, down_to=m_sat))
+        return MagnitudeScan(None, None, None, None, flags)
     slope, slope_err, _ = slopes.at(m_nl)
     log_derivative = crossing.log_derivative if known and crossing.log_derivative is not None else None
     log_derivative = _log_derivative(slopes, grid, m_nl) if log_derivative is None else log_derivative
@@ -215,8 +223,9 @@ def _ramp_grid(slopes, required: float, m_sat: float) -> _Grid:
     return _Grid(magnitudes, values, hi, everywhere, m_sat, "over the scan")
 
 
-def _crossing(slopes, grid: _Grid, required: float, bright: float, faint: float) -> float:
-    """The crossing inside the bracket [bright, faint], refined on the slopes the answer uses."""
+def _crossing(slopes, grid: _Grid, required: float, bright: float, faint: float, m_sat: float) -> float | None:
+    """The crossing inside the bracket [bright, faint], refined on the slopes the answer uses; None
+    where fresh simulations stay below the tolerance down to saturation ``m_sat``."""
 
     def excess(m: float) -> float:
         return math.log(abs(slopes.at(m)[0]) / required)
@@ -230,7 +239,7 @@ def _crossing(slopes, grid: _Grid, required: float, bright: float, faint: float)
         return float(sub[j - 1] + (sub[j] - sub[j - 1]) * (0.0 - log_c[j - 1]) / (log_c[j] - log_c[j - 1]))
     if slopes.ramp is None:
         # Fresh simulations: few evaluations, starting from the table's bracket widened a little.
-        return _secant_root(excess, bright - 0.1, faint + 0.1)
+        return _secant_root(excess, bright - 0.1, faint + 0.1, saturation=m_sat)
     if slopes.fidelity == "table" and slopes.ramp_factor is not None and bright >= slopes.exact_from():
         from scipy.optimize import brentq  # table look-ups are cheap: bracket to 1e-6 mag
 
@@ -246,7 +255,13 @@ def _log_derivative(slopes, grid: _Grid, m_nl: float) -> float:
     return (math.log(abs(slopes.at(m_nl + _H)[0])) - math.log(abs(slopes.at(m_nl - _H)[0]))) / (2 * _H)
 
 
-def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iterations: int = 12) -> float:
+def _secant_root(
+    function, a: float, b: float, tolerance: float = 1e-4, iterations: int = 12, saturation: float | None = None
+) -> float | None:
+    """The root of ``function`` (log of |c| over the required slope) in [a, b], widened once by a
+    magnitude each side where it does not change sign there. With ``saturation`` (the final frame),
+    a widened end past where the star has a slope is taken back to the saturation magnitude, and None
+    is returned where the function stays below zero (the error below the tolerance) down to it."""
     fa, fb = function(a), function(b)
     if not (math.isfinite(fa) and math.isfinite(fb)):
         raise SimulationError(
@@ -260,6 +275,14 @@ def _secant_root(function, a: float, b: float, tolerance: float = 1e-4, iteratio
         # widen it by a magnitude each side, once.
         lo, hi = a - 1.0, b + 1.0
         f_lo, f_hi = function(lo), function(hi)
+        if not math.isfinite(f_lo) and saturation is not None and lo < saturation:
+            # A magnitude brighter the star has no slope (2 beta0 Q_peak >= 1): the brightest usable
+            # star is at most the saturation magnitude, so the search ends there.
+            lo, f_lo = saturation, function(saturation)
+            if f_lo < 0 and (f_hi < 0 or hi < saturation):
+                return None  # below the tolerance down to saturation (fainter: the tables' scan): saturation binds
+            if hi < saturation:  # the whole bracket is of saturated stars and saturation misses: search fainter
+                hi, f_hi = saturation + 1.0, function(saturation + 1.0)
         if not (math.isfinite(f_lo) and math.isfinite(f_hi)):
             # Widened past where the simulated star has a slope (it saturates): no bracket to search.
             raise SimulationError(

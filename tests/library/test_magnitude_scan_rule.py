@@ -103,3 +103,47 @@ def test_a_fresh_scan_whose_widened_bracket_reaches_a_saturated_star_says_so():
         _secant_root(excess, 16.4, 17.05)
     # Where the widened bracket holds the crossing, it is found (the root of m - 16.0 at 16.0).
     assert _secant_root(lambda m: m - 16.0, 16.8, 17.05) == pytest.approx(16.0, abs=1e-4)
+
+
+def test_a_fresh_final_frame_scan_stops_at_the_saturation_magnitude():
+    # The paper scene simulated in another state (linearise_at="corrected", Z087 SCA 3 at precision
+    # 0.01, tolerance 1e-3) had its job fail: the tables' bracket of the crossing lies brighter than
+    # saturation (m = 18.45), the simulated error stays below the tolerance there, and a magnitude
+    # brighter the quadratic is not monotonic (NaN). With the saturation magnitude the search ends
+    # there: below the tolerance at saturation is "saturation binds" (None), not a failure.
+    from nlpsf.solve.magnitude_scan import _secant_root
+
+    saturation = 18.45
+
+    def below(m: float) -> float:  # the error below the tolerance everywhere it is defined
+        return float("nan") if m < 16.5 else -0.2 - 0.1 * (m - 16.5)
+
+    assert _secant_root(below, 16.8, 17.05, saturation=saturation) is None
+
+    # The error reaching the tolerance fainter than saturation (at 18.6: log excess 18.6 - m): found
+    # there, although the tables' bracket was all brighter than saturation.
+    def fainter(m: float) -> float:
+        return float("nan") if m < 16.5 else 18.6 - m
+
+    assert _secant_root(fainter, 16.8, 17.05, saturation=saturation) == pytest.approx(18.6, abs=1e-4)
+
+    # Between saturation and the widened faint end (root at 17.9 < saturation: a saturated star's
+    # crossing is not the answer; above it the error exceeds the tolerance at saturation): 18.0 here.
+    def crossing(m: float) -> float:
+        return float("nan") if m < 16.5 else 18.0 - m
+
+    assert _secant_root(crossing, 16.8, 17.05, saturation=17.5) == pytest.approx(18.0, abs=1e-4)
+
+
+def test_the_corrected_state_paper_solve_is_answered_with_saturation_binding():
+    from nlpsf.flags import FlagCode, codes
+    from nlpsf.solve import solver
+
+    answer = solver.solve("Z087", 3, tolerance=1e-3, precision=0.01, scene="paper", linearise_at="corrected")
+    paper = solver.solve("Z087", 3, tolerance=1e-3, precision=0.01, scene="paper")
+    # The same saturation magnitude as the tables' (the final frame's rule does not depend on the
+    # state), bound by it, with the simulated error there below the tolerance and said.
+    assert answer.binding_limit == "saturation" and answer.magnitude == paper.saturation_magnitude
+    error = abs(answer.slope) * 0.01 * answer.conditions["beta0"]
+    assert 0 < error < 1e-3
+    assert FlagCode.BELOW_TOLERANCE_EVERYWHERE in codes(answer.flags)
