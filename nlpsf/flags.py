@@ -17,6 +17,8 @@ where it is raised.
 
 from __future__ import annotations
 
+import math
+import string
 from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import StrEnum
@@ -351,6 +353,19 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
 }
 
 
+class _Words(string.Formatter):
+    """The catalogue's templates filled with a number that is not finite as a word, not Python's
+    "inf" / "nan": a precision no slope limits (the slope consistent with zero) is "unbounded", an
+    error no slope gives is "undefined". The flag's ``values`` keep the numbers."""
+
+    def format_field(self, value, format_spec):
+        if isinstance(value, float) and not math.isfinite(value):
+            return "undefined" if math.isnan(value) else "unbounded" if value > 0 else "-unbounded"
+        return super().format_field(value, format_spec)
+
+
+_WORDS = _Words()
+
 class Flag(str):
     """A flag: its message (the string itself), its ``code`` and the ``values`` the message quotes."""
 
@@ -363,7 +378,9 @@ class Flag(str):
         if not all(name in values for name in spec.quotes):
             missing = set(spec.quotes) - set(values)
             raise TypeError(f"flag {code.value} needs {', '.join(sorted(missing))}")
-        self = super().__new__(cls, spec.template.format(**values))
+        finite = all(not isinstance(v, float) or math.isfinite(v) for v in values.values())
+        text = spec.template.format(**values) if finite else _WORDS.vformat(spec.template, (), values)
+        self = super().__new__(cls, text)
         self.code = code
         self.values = values
         return self

@@ -32,6 +32,19 @@ def test_a_flag_is_its_message_with_code_and_values():
     assert flag.to_dict()["code"] == "star_saturated"
 
 
+def test_a_number_that_is_not_finite_reads_as_a_word():
+    # JSON has no infinity: a precision no slope limits is null in the answer, and its flag says
+    # "unbounded", not Python's "inf" (which a reader may take for a bug); NaN says "undefined".
+    flag = flags.make(FlagCode.STAR_SATURATED, magnitude=float("inf"), m_sat=float("nan"))
+    assert "m=unbounded" in flag and "m=undefined" in flag and flag.values["m_sat"] != flag.values["m_sat"]
+    # An answer whose least demanding node needs no precision (its e2 slope consistent with zero):
+    from nlpsf import SolveRequest, answer
+
+    solution = answer(SolveRequest.from_json({"band": "J129", "magnitude": 30, "tolerance": 1e-4, "metric": "e2"}))
+    assert solution.conditions["sca_range"]["least_demanding"]["precision"] is None
+    words = " ".join(solution.flags)
+    assert "unbounded" in words and not re.search(r"\b(inf|nan)\b", words, re.IGNORECASE)
+
 def test_a_flag_needs_every_value_its_message_quotes():
     with pytest.raises(TypeError, match="m_sat"):
         Flag(FlagCode.STAR_SATURATED, magnitude=16.5)
