@@ -366,6 +366,7 @@ class _Words(string.Formatter):
 
 _WORDS = _Words()
 
+
 class Flag(str):
     """A flag: its message (the string itself), its ``code`` and the ``values`` the message quotes."""
 

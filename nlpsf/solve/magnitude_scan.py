@@ -250,7 +250,10 @@ def _crossing(slopes, grid: _Grid, required: float, bright: float, faint: float,
 def _log_derivative(slopes, grid: _Grid, m_nl: float) -> float:
     """d ln|c| / dm at the crossing: from the tables for the final frame, from the slopes in use up the ramp."""
     if slopes.ramp is None:
-        ends = np.abs(slopes.table.values(slopes.metric, slopes.mode, np.array([m_nl + _H, m_nl - _H]) - grid.shift))
+        at = np.array([m_nl + _H, m_nl - _H, m_nl])
+        ends = np.abs(slopes.table.values(slopes.metric, slopes.mode, at - grid.shift))
+        if not math.isfinite(ends[1]):  # within _H of the tables' bright end: one-sided, from the crossing
+            return float(np.log(ends[0] / ends[2]) / _H)
         return float(np.log(ends[0] / ends[1]) / (2 * _H))
     return (math.log(abs(slopes.at(m_nl + _H)[0])) - math.log(abs(slopes.at(m_nl - _H)[0]))) / (2 * _H)
 

@@ -527,6 +527,8 @@ def answer_extras(solved_for: str, result, log_derivative: float | None = None) 
     value = {"precision": result.precision, "tolerance": result.tolerance, "magnitude": result.magnitude}[solved_for]
     if value is None or not math.isfinite(value):
         return None, None
+    if log_derivative is not None and not math.isfinite(log_derivative):
+        log_derivative = None  # an NL limit past the tables' bright end (saturation binds): no slope there
     if solved_for == "magnitude":
         scale = abs(log_derivative) if log_derivative else None
         statistical = (result.slope_error or 0.0) / abs(slope)

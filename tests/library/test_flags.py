@@ -45,6 +45,7 @@ def test_a_number_that_is_not_finite_reads_as_a_word():
     words = " ".join(solution.flags)
     assert "unbounded" in words and not re.search(r"\b(inf|nan)\b", words, re.IGNORECASE)
 
+
 def test_a_flag_needs_every_value_its_message_quotes():
     with pytest.raises(TypeError, match="m_sat"):
         Flag(FlagCode.STAR_SATURATED, magnitude=16.5)

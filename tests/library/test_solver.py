@@ -133,6 +133,22 @@ def test_a_brightest_star_past_the_tables_is_refused(band, sca):
         assert error.value.argument == "beta0" and f"{limit:.3g}" in str(error.value)
 
 
+def test_every_brightest_star_answer_has_a_finite_uncertainty_and_conservative_bound():
+    # A crossing within d ln|c|/dm's step of the tables' bright end (R062 SCA 10, e2, tolerance 1e-6,
+    # precision 1e-3: at m = 17.26, 0.04 mag from it) had a NaN log derivative and so a NaN
+    # conservative bound (null in JSON). Over bands, SCAs, metrics and demands, every answer's
+    # numbers are finite.
+    for band in roman.BANDS:
+        for sca in (1, 10, 18):
+            for metric in ("size", "e1", "e2", "e"):
+                for tolerance, precision in ((1e-6, 1e-3), (1e-4, 1e-2), (1e-3, 0.5)):
+                    s = paper_solve(band, sca, metric=metric, tolerance=tolerance, precision=precision)
+                    where = (band, sca, metric, tolerance, precision)
+                    assert math.isfinite(s.magnitude) and math.isfinite(s.uncertainty), where
+                    assert math.isfinite(s.conservative["relative_slope_bound"]), where
+                    assert s.conservative["magnitude"] is not None and math.isfinite(s.conservative["magnitude"]), where
+
+
 @pytest.mark.parametrize("beta0", [1e-9, 1e-8, 5e-7, 2e-6, 1e-5])
 def test_beta0_range(beta0):
     s = paper_solve("H158", precision=0.01, magnitude=21.0, beta0=beta0)
