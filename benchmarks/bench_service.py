@@ -20,6 +20,11 @@ request when the previous answer arrives, so the latencies include queueing in t
 
 ``--only-throughput`` measures only the Roman default's mix against the paper tables' solves, idle,
 alternating on one server (issue 25's target: the default >= 0.8x the paper's req/s in the same run).
+That server has one HTTP worker whatever ``--workers`` says: with several, the kernel's SO_REUSEPORT
+hashes each measurement's new connections to the workers anew, so that 8 connections may land 4/4
+in one measurement and 8/0 in the next, and a round's ratio moved between 0.3x and 1.0x with the
+split alone (2026-12-05, wrk); one worker measures each kind's whole cost per request, the HTTP
+server's share included, alike.
 
 Usage: python benchmarks/bench_service.py [--workers N] [--connections 8] [--duration 10]
        [--generator wrk|python] [--job-realizations 2000] [--process-models] [--only-throughput]
@@ -408,7 +413,8 @@ def throughput(args, directory: Path, env: dict) -> list[tuple[dict, dict]]:
     Roman default's mix (:func:`default_bodies`: half without a position, half at one; every request
     of a measurement a body not sent before, so that each is answered, not looked up)."""
     port = free_port()
-    server = start_server(directory / "jobs.sqlite3", port, env={**env, **THROUGHPUT_SHARES}, log=directory / "server.log")
+    one_worker = {**env, **THROUGHPUT_SHARES, "NLPSF_WORKERS": "1"}  # see the module docstring
+    server = start_server(directory / "jobs.sqlite3", port, env=one_worker, log=directory / "server.log")
     base = f"http://127.0.0.1:{port}/api/v1"
     # Every default request new (the service keeps answers by request: a repeated one is a look-up):
     # each measurement its own slice, enough for DISTINCT_PER_S requests a second.
@@ -471,7 +477,8 @@ def main() -> int:
     # answers, not its fair share of it (a second client's share under load: bench_abuse.py).
     env.update(THROUGHPUT_SHARES)
     generator = {"wrk": "wrk 1 thread (C, epoll)", "python": "asyncio raw sockets, 1 process"}[args.generator]
-    print(f"nlpsf service load test: {os.cpu_count()} cores, server: nlpsf serve --workers {args.workers}")
+    workers = 1 if args.only_throughput else args.workers  # the comparison's server: one worker (module docstring)
+    print(f"nlpsf service load test: {os.cpu_count()} cores, server: nlpsf serve --workers {workers}")
     print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
     print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
     results: dict[str, dict] = {}
