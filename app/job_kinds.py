@@ -64,14 +64,20 @@ def request_field(argument: str, request: dict[str, Any] | None = None) -> str:
     return FIELD_FOR_ARGUMENT.get(argument, argument)
 
 
-def build_scene(fields: dict[str, Any] | None) -> scenes.SceneModel:
-    """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``."""
+def build_scene(fields: dict[str, Any] | None, sky_of: tuple | None = None) -> scenes.SceneModel:
+    """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``.
+    ``sky_of``: (band, sca, exptime, ramp) of a simulation, whose preset's own sky over that exposure
+    (``presets.sky_base``) is then the base, so that the sky ``fill_simulation`` filled in is no
+    change and the scene keeps its preset's name (a sky the client gave otherwise is one)."""
     from nlpsf.request import presets as roman_default
 
     data = dict(fields or {})
     named = data.pop("preset", None)
     try:
-        base = roman_default.preset_base(named) if named is not None else None
+        if named is not None and sky_of is not None:
+            base = roman_default.sky_base(named, *sky_of)
+        else:
+            base = roman_default.preset_base(named) if named is not None else None
         return scenes.from_request(data, base=base)
     except InputError as error:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
@@ -89,7 +95,6 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
     from .models import build_ramp
 
     level = levels.simulation_settings(request["fidelity"], request.get("n_wavelengths"))
-    scene = build_scene(request.get("scene"))  # SimulationConfig refuses one beyond first order (scene.check_first_order)
     ramp, exptime = build_ramp(
         request.get("ramp"),
         request.get("ma_table"),
@@ -98,6 +103,8 @@ def build_config(request: dict[str, Any]) -> experiment.SimulationConfig:
         request.get("exptime"),
         request["sca"],
     )
+    # SimulationConfig refuses a scene beyond first order (scene.check_first_order).
+    scene = build_scene(request.get("scene"), (request["band"], request["sca"], exptime, ramp))
     return experiment.SimulationConfig(
         band=request["band"],
         sca=request["sca"],

@@ -48,3 +48,17 @@ def test_the_default_is_the_roman_defaults_readout_and_the_paper_keeps_its_final
     assert default["pupil_scale"] == roman_default.PUPIL_SCALE
     paper = served(client, {**BODY, "scene": "paper"})["conditions"]
     assert paper["exptime_s"] == 168.1 and paper["pupil_scale"] == "galsim"
+
+
+def test_a_default_simulation_names_its_scene_as_a_default_solve_does(client):
+    # The sky fill_simulation fills in is the default's own: the scene stays the preset "roman", as a
+    # solve's does (it was unnamed, so the result read as a custom scene); a sky the client gives is a
+    # change from it, and the scene is then unnamed (described by its values).
+    solve = client.post("/api/v1/solve", json={"band": "J129", "sca": 7, "magnitude": 20.0, "precision": 0.01}).json()
+    assert solve["conditions"]["scene_name"] == "roman"
+    for extra in ({}, {"scene": {"position": [500, 3000]}}):
+        conditions = served(client, {**BODY, **extra})["conditions"]
+        assert conditions["scene"]["name"] == "roman" and conditions["scene_description"].startswith("roman:")
+        assert conditions["scene"]["background_e"] == pytest.approx(roman_default.readout("J129", 7).background_e, rel=1e-12)
+    own_sky = served(client, {**BODY, "scene": {"background": 500.0}})["conditions"]
+    assert own_sky["scene"]["name"] is None and own_sky["scene"]["background_e"] == 500.0
