@@ -216,12 +216,30 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
     return ProblemResponse(validation_problem_body(exc.errors()), status_code=422)
 
 
+def _the_meant_member(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each member of a union reports its own error: a scene object with a bad position was also
+    "not a preset's name". Where some error lies inside a field (``scene.position``), the errors at
+    that field itself (the members the input did not take: a name, a number) are dropped, so that
+    the message names what is wrong in what was sent. A string sent where an object may go keeps
+    the name's error first, as before."""
+    fields = [_field_of(e.get("loc", ())) for e in errors]
+    nested = {f.rsplit(".", 1)[0] for f in fields if f and "." in f}
+    parents = {p for f in nested for p in _ancestors(f)} | nested
+    kept = [e for e, f in zip(errors, fields, strict=True) if f not in parents]
+    return kept or errors
+
+
+def _ancestors(field: str) -> list[str]:
+    parts = field.split(".")
+    return [".".join(parts[:k]) for k in range(1, len(parts))]
+
+
 def validation_problem_body(errors: Any, prefix: tuple = ()) -> dict:
     """Pydantic's errors as one problem: every bad field (up to ten) in ``errors``."""
     detail = []
     # At most a few entries, each location cut short: a body of a million unknown keys must not
     # come back as a million errors.
-    errors = [{**e, "loc": (*prefix, *e.get("loc", ()))} for e in errors]
+    errors = _the_meant_member([{**e, "loc": (*prefix, *e.get("loc", ()))} for e in errors])
     for error in errors[:10]:
         loc = [short(p) if isinstance(p, str) else p if isinstance(p, int) else short(p) for p in error.get("loc", ())]
         detail.append({"loc": loc, "field": _field_of(loc), "msg": _readable(error), "type": str(error.get("type", ""))})

@@ -40,6 +40,28 @@ def test_api_bad_scene_is_422_naming_the_field(client, scene, field):
         assert response.json()["field"] == field
 
 
+@pytest.mark.parametrize(
+    ("scene", "field"),
+    [
+        ({"position": [0, 100]}, "scene.position"),
+        ({"position": "a b"}, "scene.position"),
+        ({"jitter": "x"}, "scene.jitter"),
+        ({"preset": "hubble"}, "scene.preset"),
+        ({"colour": "red"}, "scene.colour"),
+        ("hubble", "scene"),
+    ],
+)
+def test_a_solves_bad_scene_names_what_is_wrong_in_it(client, scene, field):
+    # A solve's scene is a preset's name or an object: an object with a bad field is named by that
+    # field, not answered with the names' error ("Input should be 'roman', 'paper' or ...").
+    body = {"band": "H158", "magnitude": 20.0, "precision": 0.01, "scene": scene}
+    response = client.post("/api/v1/solve", json=body)
+    assert response.status_code == 422 and response.json()["field"] == field, response.text
+    assert response.json()["detail"].startswith(f"{field}: ")
+    row = client.post("/api/v1/solve/batch", json={"requests": [body]}).json()["results"][0]
+    assert row["ok"] is False and row["error"]["field"] == field
+
+
 def test_api_nan_in_scene_is_422(client):
     response = client.post("/api/v1/impact", content='{"scene": {"jitter": NaN}}', headers={"content-type": "application/json"})
     assert response.status_code == 422 and response.json()["field"] == "scene.jitter"
