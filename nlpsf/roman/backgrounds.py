@@ -149,12 +149,6 @@ def background(preset: str, band: str, sca: int, exptime_s: float, zodiacal_fact
     exptime_s = check_exptime(exptime_s)
     factor = spec["zodiacal_factor"] if zodiacal_factor is None else zodiacal_factor
     factor = check_number(factor, "zodiacal_factor", 0.0, 100.0)
-    return _background(preset, band, sca, exptime_s, float(factor))
-
-
-def _background(preset: str, band: str, sca: int, exptime_s: float, factor: float) -> Background:
-    """:func:`background` of checked arguments."""
-    spec = PRESETS[preset]
     return Background(
         preset=preset,
         band=band,
@@ -170,10 +164,8 @@ def _background(preset: str, band: str, sca: int, exptime_s: float, factor: floa
 @lru_cache(maxsize=4096)
 def background_electrons(preset: str, band: str, sca: int, exptime_s: float) -> float:
     """Total background [e- per native pixel over the exposure] of a preset: what a scene adds
-    (kept per arguments: every request of an SCA and exposure reads the same). For the values of a
-    resolved request, checked once where it was resolved: not checked again here (a user's values go
-    through :func:`background` or :func:`resolve`)."""
-    return _background(preset, band, sca, exptime_s, float(PRESETS[preset]["zodiacal_factor"])).total_e
+    (kept per arguments: every request of an SCA and exposure reads the same)."""
+    return background(preset, band, sca, exptime_s).total_e
 
 
 def saturation_shift_mag(background_e: float, full_well_e: float) -> float:
@@ -196,7 +188,7 @@ def resolve(spec: str | float, band: str, sca: int, exptime_s: float) -> float:
     "roman-typical", "none", or "120" / 120.0 electrons.
     """
     if isinstance(spec, str) and spec in PRESETS:
-        return background(spec, band, sca, exptime_s).total_e
+        return background_electrons(spec, band, sca, exptime_s)
     if isinstance(spec, str):
         try:
             spec = float(spec)
