@@ -127,8 +127,8 @@ def test_a_fresh_final_frame_scan_stops_at_the_saturation_magnitude():
 
     assert _secant_root(fainter, 16.8, 17.05, saturation=saturation) == pytest.approx(18.6, abs=1e-4)
 
-    # Between saturation and the widened faint end (root at 17.9 < saturation: a saturated star's
-    # crossing is not the answer; above it the error exceeds the tolerance at saturation): 18.0 here.
+    # The error above the tolerance at saturation (17.5 here) and below it at the widened faint end:
+    # the crossing between them, at 18.0.
     def crossing(m: float) -> float:
         return float("nan") if m < 16.5 else 18.0 - m
 

@@ -135,7 +135,7 @@ def test_a_brightest_star_past_the_tables_is_refused(band, sca):
 
 def test_every_brightest_star_answer_has_a_finite_uncertainty_and_conservative_bound():
     # A crossing within d ln|c|/dm's step of the tables' bright end (R062 SCA 10, e2, tolerance 1e-6,
-    # precision 1e-3: at m = 17.26, 0.04 mag from it) had a NaN log derivative and so a NaN
+    # precision 1e-3: at m = 17.259, 0.009 mag from its end at 17.25) had a NaN log derivative and so a NaN
     # conservative bound (null in JSON). Over bands, SCAs, metrics and demands, every answer's
     # numbers are finite.
     for band in roman.BANDS:
