@@ -192,7 +192,7 @@ def _rss_mb(pids: list[int]) -> list[float]:
     return out
 
 
-def main() -> int:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--phase-s", type=float, default=20.0, help="seconds per attack and per baseline (default 20)")
@@ -200,10 +200,13 @@ def main() -> int:
     parser.add_argument("--attacker-address", default="127.0.0.2", help="the attacker's source address (default 127.0.0.2)")
     parser.add_argument("--env", action="append", default=[], help="NLPSF_X=value for the server (repeatable)")
     parser.add_argument("--samples", help="write the victim's samples and the phases' windows to this JSON file")
-    args = parser.parse_args()
-    phases = [p for p in args.phases.split(",") if p]
-    assert all(p in PHASES for p in phases), phases
+    return parser.parse_args()
 
+
+def run_phases(args, phases: list[str]) -> dict:
+    """One server, the victim throughout, a baseline, then each attack followed by a baseline: the
+    victim's samples, the windows (name, start, end, the attacker's answers, the workers' RSS), the
+    server's CPU over the run, the workers' RSS at start and the server's log."""
     directory = Path(tempfile.mkdtemp(prefix="nlpsf-abuse-"))
     port = free_port()
     log = directory / "server.log"
@@ -246,15 +249,20 @@ def main() -> int:
     finally:
         stop.set()
         victim.join(VICTIM_TIMEOUT_S + 1)
-        cpu_after = _cpu_s([server.pid, *http_workers(server.pid)])
+        cpu_s = _cpu_s([server.pid, *http_workers(server.pid)]) - cpu_before
         server.send_signal(signal.SIGTERM)
         try:
             server.wait(30)
         except subprocess.TimeoutExpired:
             server.kill()
-    if args.samples:
-        Path(args.samples).write_text(json.dumps({"samples": samples, "windows": [w[:4] for w in windows]}))
-    text = log.read_text(errors="replace")
+    return {"samples": samples, "windows": windows, "cpu_s": cpu_s, "rss_at_start": rss_at_start,
+            "log": log.read_text(errors="replace")}  # fmt: skip
+
+
+def report(args, run: dict) -> None:
+    """The victim's latency in each window against its baselines, the attackers' answers, the
+    workers' memory, kills and restarts, and each attack's verdict."""
+    samples, windows, text = run["samples"], run["windows"], run["log"]
     kills = len(re.findall(r"silent for .* killing it", text))
     restarts = len(re.findall(r"exited \(", text))
     fives = sum(1 for _, _, status in samples if status >= 500)
@@ -287,12 +295,22 @@ def main() -> int:
     attack_fives = sum(int(v) for _, _, _, statuses, _ in windows for k, v in statuses.items() if k.startswith("5"))
     print()
     print(f"victim p99 over all baselines: {base_p99:.1f} ms ({len(base)} requests)")
-    print(f"HTTP workers' RSS at start: {'/'.join(f'{m:.0f}' for m in rss_at_start)} MB (after each phase: the table)")
+    print(f"HTTP workers' RSS at start: {'/'.join(f'{m:.0f}' for m in run['rss_at_start'])} MB (after each phase: the table)")
     print(f"5xx: victim {fives}, attackers {attack_fives}; workers killed (silent): {kills}, restarted: {restarts}")
-    print(f"server CPU over the run (supervisor and HTTP workers): {cpu_after - cpu_before:.1f} s")
+    print(f"server CPU over the run (supervisor and HTTP workers): {run['cpu_s']:.1f} s")
     for name, ok in verdicts:
         print(f"target ({name}): victim p99 within {TARGET_RATIO:g}x its baseline and under {TARGET_P99_MS:g} ms: "
               f"{'met' if ok else 'NOT met'}")  # fmt: skip
+
+
+def main() -> int:
+    args = parse_args()
+    phases = [p for p in args.phases.split(",") if p]
+    assert all(p in PHASES for p in phases), phases
+    run = run_phases(args, phases)
+    if args.samples:
+        Path(args.samples).write_text(json.dumps({"samples": run["samples"], "windows": [w[:4] for w in run["windows"]]}))
+    report(args, run)
     return 0
 
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import multiprocessing
 import os
 import re
 import shutil
@@ -52,6 +51,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from tests.servers import free_port, start_server, wait_for  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from load_generators import run_python, run_wrk  # noqa: E402
 
 #: Solves of every unknown, band, metric and mode.
 SOLVES = [
@@ -92,149 +94,6 @@ def default_bodies(count: int = 1000, seed: int = 1) -> list[dict]:
 
 
 TARGET_RPS, TARGET_P99_MS, TARGET_P99_JOB_MS = 2000.0, 20.0, 50.0
-
-
-# --- wrk -----------------------------------------------------------------------------------------
-
-
-def wrk_script(bodies: list[dict]) -> str:
-    bodies = ",\n".join("  [[" + json.dumps(b) + "]]" for b in bodies)
-    return f"""
-local bodies = {{
-{bodies}
-}}
-local i = 0
-request = function()
-  i = i % #bodies + 1
-  return wrk.format("POST", "/api/v1/solve", {{["Content-Type"] = "application/json"}}, bodies[i])
-end
-response = function(status, headers, body)
-  if status ~= 200 then io.stderr:write("status " .. status .. ": " .. body .. "\\n") end
-end
-done = function(summary, latency, requests)
-  io.write(string.format("RESULT %d %f %f %f %f %f %d\\n", summary.requests, summary.duration / 1e6,
-    latency:percentile(50) / 1000, latency:percentile(90) / 1000, latency:percentile(99) / 1000, latency.max / 1000,
-    summary.errors.status + summary.errors.connect + summary.errors.read + summary.errors.write + summary.errors.timeout))
-end
-"""
-
-
-def run_wrk(url: str, connections: int, duration: float, bodies: list[dict]) -> dict:
-    with tempfile.NamedTemporaryFile("w", suffix=".lua", delete=False) as handle:
-        handle.write(wrk_script(bodies))
-        script = handle.name
-    try:
-        output = subprocess.run(
-            ["wrk", "-t1", f"-c{connections}", f"-d{int(duration)}s", "--timeout", "5s", "-s", script, url],
-            capture_output=True,
-            text=True,
-            timeout=duration + 30,
-            check=True,
-        )
-    finally:
-        os.unlink(script)
-    match = re.search(r"RESULT (\d+) (\S+) (\S+) (\S+) (\S+) (\S+) (\d+)", output.stdout)
-    if not match:
-        raise RuntimeError(f"could not read wrk's output:\n{output.stdout}\n{output.stderr}")
-    requests, seconds, p50, p90, p99, worst, errors = match.groups()
-    return {
-        "requests": int(requests),
-        "seconds": float(seconds),
-        "rps": int(requests) / float(seconds),
-        "p50_ms": float(p50),
-        "p90_ms": float(p90),
-        "p99_ms": float(p99),
-        "max_ms": float(worst),
-        "errors": int(errors),
-    }
-
-
-# --- the asyncio fallback ------------------------------------------------------------------------
-
-
-async def _connection(
-    host: str,
-    port: int,
-    deadline: float,
-    latencies: list[float],
-    errors: list[int],
-    offset: int,
-    bodies: list[dict],
-    stride: int = 1,
-) -> None:
-    """One keep-alive connection's closed loop: bodies ``offset``, ``offset + 1``, ... (``stride`` > 1:
-    ``offset``, ``offset + stride``, ...: the connections send different bodies, none twice while the
-    list lasts)."""
-    try:
-        reader, writer = await asyncio.open_connection(host, port)
-    except OSError:
-        errors.append(1)  # refused: nothing listening yet
-        return
-    payloads = [
-        (
-            f"POST /api/v1/solve HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n"
-            f"Content-Length: {len(json.dumps(b))}\r\n\r\n{json.dumps(b)}"
-        ).encode()
-        for b in (bodies if stride == 1 else bodies[offset::stride])
-    ]
-    i = offset if stride == 1 else 0
-    try:
-        while time.perf_counter() < deadline:
-            start = time.perf_counter()
-            writer.write(payloads[i % len(payloads)])
-            i += 1
-            head = await reader.readuntil(b"\r\n\r\n")
-            length = int(re.search(rb"content-length: (\d+)", head.lower()).group(1))
-            await reader.readexactly(length)
-            latencies.append(time.perf_counter() - start)
-            if not head.startswith(b"HTTP/1.1 200"):
-                errors.append(1)
-    except (OSError, asyncio.IncompleteReadError):
-        errors.append(1)
-    writer.close()
-
-
-def _python_child(host: str, port: int, connections: int, duration: float, queue, bodies: list[dict], stride: int) -> None:
-    latencies: list[float] = []
-    errors: list[int] = []
-
-    async def main() -> float:
-        start = time.perf_counter()
-        deadline = start + duration
-        await asyncio.gather(
-            *(_connection(host, port, deadline, latencies, errors, k, bodies, stride) for k in range(connections))
-        )
-        return time.perf_counter() - start
-
-    seconds = asyncio.run(main())
-    queue.put((latencies, seconds, len(errors)))
-
-
-def run_python(url: str, connections: int, duration: float, bodies: list[dict], distinct: bool = False) -> dict:
-    parsed = httpx.URL(url)
-    queue = multiprocessing.get_context("spawn").Queue()
-    child = multiprocessing.get_context("spawn").Process(
-        target=_python_child,
-        args=(parsed.host, parsed.port, connections, duration, queue, bodies, connections if distinct else 1),
-    )
-    child.start()
-    latencies, seconds, errors = queue.get(timeout=duration + 60)
-    child.join()
-    latencies.sort()
-
-    def pick(q: float) -> float:
-        return 1000 * latencies[min(len(latencies) - 1, int(q * len(latencies)))]
-
-    return {
-        "requests": len(latencies),
-        "seconds": seconds,
-        "rps": len(latencies) / seconds,
-        "p50_ms": pick(0.50),
-        "p90_ms": pick(0.90),
-        "p99_ms": pick(0.99),
-        "max_ms": 1000 * latencies[-1],
-        "errors": errors,
-    }
 
 
 # --- the run -------------------------------------------------------------------------------------
@@ -405,6 +264,8 @@ TARGET_DEFAULT_RATIO = 0.8
 THROUGHPUT_SHARES = {"NLPSF_INLINE_CPU_SHARE": "1", "NLPSF_INLINE_CPU_TOTAL_SHARE": "1", "NLPSF_INLINE_CPU_BURST_S": "3600"}
 #: Distinct default bodies per second of a measurement (more than the service answers a second).
 DISTINCT_PER_S = 2000
+#: Magnitudes of the maximal simulation (0.1 mag apart from 18).
+MAXIMAL_MAGNITUDES = 60
 
 
 def throughput(args, directory: Path, env: dict) -> list[tuple[dict, dict]]:
@@ -455,7 +316,7 @@ def report_throughput(rounds: list[tuple[dict, dict]]) -> int:
     return 0 if ratio >= TARGET_DEFAULT_RATIO and errors == 0 else 1
 
 
-def main() -> int:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=min(os.cpu_count() or 1, 8), help="HTTP workers (default: one per core)")
     parser.add_argument("--connections", type=int, default=8, help="keep-alive connections of the load generator (default 8)")
@@ -469,88 +330,83 @@ def main() -> int:
     parser.add_argument(
         "--only-throughput", action="store_true", help="only the default mix against the paper's, idle, in --rounds rounds"
     )
-    args = parser.parse_args()
+    return parser.parse_args()
 
-    directory = Path(tempfile.mkdtemp(prefix="nlpsf-bench-"))
-    env = {"NLPSF_WORKERS": str(args.workers), "NLPSF_JOB_WORKERS": "1", "NLPSF_MAX_QUEUE": "64", "NLPSF_SOLVE_WAIT_S": "0"}
-    # The load generator is one client: given the whole inline share, it measures what the service
-    # answers, not its fair share of it (a second client's share under load: bench_abuse.py).
-    env.update(THROUGHPUT_SHARES)
-    generator = {"wrk": "wrk 1 thread (C, epoll)", "python": "asyncio raw sockets, 1 process"}[args.generator]
-    workers = 1 if args.only_throughput else args.workers  # the comparison's server: one worker (module docstring)
-    print(f"nlpsf service load test: {os.cpu_count()} cores, server: nlpsf serve --workers {workers}")
-    print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
-    print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
+
+def load_phases(args, directory: Path, env: dict) -> dict:
+    """Every phase of the full load test on one server (the paper tables' solves idle, with the
+    maximal simulation running and with simulating solves queued; the default mix idle), the two
+    cold starts, and what the simulations were doing at the end of their phases."""
     results: dict[str, dict] = {}
-    if args.only_throughput:
-        try:
-            return report_throughput(throughput(args, directory, env))
-        finally:
-            shutil.rmtree(directory, ignore_errors=True)
-    if args.only_process_models:
-        try:
-            report_process_models(args, process_models(args, directory, env))
-        finally:
-            shutil.rmtree(directory, ignore_errors=True)
-        return 0
+    results["solve, cold start, burst of 200 connections"] = cold_start(args, directory, env, BODIES[0])
+    default_start = cold_start(args, directory, env, {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}, "cold-default")
+    port = free_port()
+    server = start_server(directory / "jobs.sqlite3", port, env=env, log=directory / "server.log")
+    base = f"http://127.0.0.1:{port}/api/v1"
     try:
-        results["solve, cold start, burst of 200 connections"] = cold_start(args, directory, env, BODIES[0])
-        default_start = cold_start(args, directory, env, {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}, "cold-default")
-        port = free_port()
-        server = start_server(directory / "jobs.sqlite3", port, env=env, log=directory / "server.log")
-        base = f"http://127.0.0.1:{port}/api/v1"
-        try:
-            for body in BODIES:  # every request must be a valid solve, or the figures mean nothing
-                response = httpx.post(f"{base}/solve", json=body, timeout=30)
-                assert response.status_code == 200, (body, response.text)
-            measure(args.generator, f"{base}/solve", args.connections, 3.0)  # warm-up
-            results["solve, idle"] = measure(args.generator, f"{base}/solve", args.connections, args.duration)
-            roman = default_bodies()
-            for body in roman[: 2 * len(BODIES)]:
-                response = httpx.post(f"{base}/solve", json=body, timeout=30)
-                assert response.status_code == 200, (body, response.text)  # answered from the grid, not a job
-            default_idle = measure(args.generator, f"{base}/solve", args.connections, args.duration, roman)
-
-            job_body = {
-                "band": "H158",
-                "realizations": args.job_realizations,
-                "magnitudes": [18.0 + 0.1 * k for k in range(60)],
-                "betas": [5e-7],
-                "seed": int(time.time()),  # never answered from stored results
-            }
-            job = httpx.post(f"{base}/simulations", json=job_body, timeout=30).json()
-            wait_for(lambda: httpx.get(f"{base}/simulations/{job['id']}").json()["status"] == "running", timeout=60)
-            time.sleep(1.0)  # past the worker's start-up
-            url = f"{base}/solve"
-            results["solve, maximal simulation running"] = measure(args.generator, url, args.connections, args.duration)
-            during = httpx.get(f"{base}/simulations/{job['id']}").json()
-            httpx.delete(f"{base}/simulations/{job['id']}", timeout=30)
-
-            solves = []
-            for k in range(args.simulating_solves):
-                body = {"band": "J129", "magnitude": 18.5 + 0.25 * k, "precision": 0.01, "fidelity": "monte_carlo"}
-                answer = httpx.post(f"{base}/solve", json=body, timeout=30)
-                assert answer.status_code == 202, answer.text
-                solves.append(answer.json()["id"])
-            time.sleep(1.0)
-            results[f"solve, {args.simulating_solves} simulating solves queued"] = measure(
-                args.generator, f"{base}/solve", args.connections, args.duration
-            )
-            states = [httpx.get(f"{base}/simulations/{t}").json()["status"] for t in solves]
-            for ticket in solves:
-                httpx.delete(f"{base}/simulations/{ticket}", timeout=30)
-        finally:
-            stop(server)
-        models = process_models(args, directory, env) if args.process_models else {}
+        for body in BODIES:  # every request must be a valid solve, or the figures mean nothing
+            response = httpx.post(f"{base}/solve", json=body, timeout=30)
+            assert response.status_code == 200, (body, response.text)
+        measure(args.generator, f"{base}/solve", args.connections, 3.0)  # warm-up
+        results["solve, idle"] = measure(args.generator, f"{base}/solve", args.connections, args.duration)
+        roman = default_bodies()
+        for body in roman[: 2 * len(BODIES)]:
+            response = httpx.post(f"{base}/solve", json=body, timeout=30)
+            assert response.status_code == 200, (body, response.text)  # answered from the grid, not a job
+        default_idle = measure(args.generator, f"{base}/solve", args.connections, args.duration, roman)
+        during = _with_maximal_simulation(args, base, results)
+        states = _with_simulating_solves(args, base, results)
     finally:
-        shutil.rmtree(directory, ignore_errors=True)
+        stop(server)
+    return {"results": results, "default_start": default_start, "default_idle": default_idle, "defaults": len(roman),
+            "during": during, "states": states}  # fmt: skip
 
+
+def _with_maximal_simulation(args, base: str, results: dict) -> dict:
+    """The paper tables' solves while the maximal simulation runs; the job's state at the end."""
+    job_body = {
+        "band": "H158",
+        "realizations": args.job_realizations,
+        "magnitudes": [18.0 + 0.1 * k for k in range(MAXIMAL_MAGNITUDES)],
+        "betas": [5e-7],
+        "seed": int(time.time()),  # never answered from stored results
+    }
+    job = httpx.post(f"{base}/simulations", json=job_body, timeout=30).json()
+    wait_for(lambda: httpx.get(f"{base}/simulations/{job['id']}").json()["status"] == "running", timeout=60)
+    time.sleep(1.0)  # past the worker's start-up
+    results["solve, maximal simulation running"] = measure(args.generator, f"{base}/solve", args.connections, args.duration)
+    during = httpx.get(f"{base}/simulations/{job['id']}").json()
+    httpx.delete(f"{base}/simulations/{job['id']}", timeout=30)
+    return during
+
+
+def _with_simulating_solves(args, base: str, results: dict) -> list[str]:
+    """The paper tables' solves while ``args.simulating_solves`` monte-carlo solves are queued; their states then."""
+    solves = []
+    for k in range(args.simulating_solves):
+        body = {"band": "J129", "magnitude": 18.5 + 0.25 * k, "precision": 0.01, "fidelity": "monte_carlo"}
+        answer = httpx.post(f"{base}/solve", json=body, timeout=30)
+        assert answer.status_code == 202, answer.text
+        solves.append(answer.json()["id"])
+    time.sleep(1.0)
+    results[f"solve, {args.simulating_solves} simulating solves queued"] = measure(
+        args.generator, f"{base}/solve", args.connections, args.duration
+    )
+    states = [httpx.get(f"{base}/simulations/{t}").json()["status"] for t in solves]
+    for ticket in solves:
+        httpx.delete(f"{base}/simulations/{ticket}", timeout=30)
+    return states
+
+
+def report_load(args, phases: dict, models: dict) -> int:
+    """The full load test's table and verdicts; 0 where every target is met."""
+    results, during, states = phases["results"], phases["during"], phases["states"]
     print()
     print(f"{'phase':<44} {'req/s':>9} {'p50 ms':>8} {'p90 ms':>8} {'p99 ms':>8} {'max ms':>8} {'requests':>9} {'errors':>7}")
     for name, result in results.items():
         print(row(name, result))
     print(
-        f"\nmaximal simulation: {args.job_realizations} realizations x {len(job_body['magnitudes'])} magnitudes, "
+        f"\nmaximal simulation: {args.job_realizations} realizations x {MAXIMAL_MAGNITUDES} magnitudes, "
         f"still {during['status']} at the end of the measurement (progress {during['progress']:.0%})"
     )
     print(f"simulating solves at the end of their phase: {', '.join(f'{states.count(s)} {s}' for s in sorted(set(states)))}")
@@ -575,14 +431,40 @@ def main() -> int:
         "\nThe Roman default (no scene option: the field grid; the targets above were set for the paper"
         " tables' microsecond solves), same server and generator:"
     )
-    print(row("default solve, cold start, 200 connections", default_start))
-    print(row(f"default solve, idle ({len(roman)} distinct, repeated)", default_idle))
+    default_idle, count = phases["default_idle"], phases["defaults"]
+    print(row("default solve, cold start, 200 connections", phases["default_start"]))
+    print(row(f"default solve, idle ({count} distinct, repeated)", default_idle))
     print(
         f"  default / paper-table solves, idle: {default_idle['rps'] / idle['rps']:.3f}x the req/s,"
-        f" {default_idle['p99_ms'] / idle['p99_ms']:.0f}x the p99 (the {len(roman)} bodies go round: after the first"
+        f" {default_idle['p99_ms'] / idle['p99_ms']:.0f}x the p99 (the {count} bodies go round: after the first"
         " round the service answers each from the answers it keeps; every body new: --only-throughput)"
     )
     return 0 if all(ok for _, ok in checks) else 1
+
+
+def main() -> int:
+    args = parse_args()
+    directory = Path(tempfile.mkdtemp(prefix="nlpsf-bench-"))
+    env = {"NLPSF_WORKERS": str(args.workers), "NLPSF_JOB_WORKERS": "1", "NLPSF_MAX_QUEUE": "64", "NLPSF_SOLVE_WAIT_S": "0"}
+    # The load generator is one client: given the whole inline share, it measures what the service
+    # answers, not its fair share of it (a second client's share under load: bench_abuse.py).
+    env.update(THROUGHPUT_SHARES)
+    generator = {"wrk": "wrk 1 thread (C, epoll)", "python": "asyncio raw sockets, 1 process"}[args.generator]
+    workers = 1 if args.only_throughput else args.workers  # the comparison's server: one worker (module docstring)
+    print(f"nlpsf service load test: {os.cpu_count()} cores, server: nlpsf serve --workers {workers}")
+    print(f"load generator: {generator}, {args.connections} keep-alive connections, {args.duration:g} s per phase,")
+    print(f"closed loop over {len(BODIES)} different solve requests (all unknowns, bands, metrics, modes)")
+    try:
+        if args.only_throughput:
+            return report_throughput(throughput(args, directory, env))
+        if args.only_process_models:
+            report_process_models(args, process_models(args, directory, env))
+            return 0
+        phases = load_phases(args, directory, env)
+        models = process_models(args, directory, env) if args.process_models else {}
+    finally:
+        shutil.rmtree(directory, ignore_errors=True)
+    return report_load(args, phases, models)
 
 
 if __name__ == "__main__":
