@@ -313,15 +313,18 @@ class SolveRequest:
             data["exptime"], data["ramp"] = exptime, ramp
         if isinstance(scene, Mapping) and scene:
             fields_ = {k: v for k, v in scene.items() if k != "preset"}
-            model = _scene_from_json({**fields_, "preset": preset})
-            if preset == roman_default.NAME and fields_.get("background") is None:
-                # The user's changes to the default keep its sky over this request's exposure.
-                filled = roman_default.fill(
-                    preset, roman.check_band(data.get("band", "")), roman.check_sca(sca), data.get("exptime"),
-                    data.get("ramp"), None, None,
-                )  # fmt: skip
-                model = replace(model, background_e=filled.background_e)
-            data["scene"] = model
+            base = None
+            if roman_default.policy(preset).sky:
+                # The caller's changes change the default's scene with its sky over this request's
+                # exposure: a background left out is that sky, one given (0 too) is the caller's.
+                # The band and SCA are checked where the request is made (below); the sky, kept by them,
+                # checks values it has not met (one of another type is refused here, before it is looked up).
+                if "band" not in data:
+                    raise InputError("band", "missing")
+                band = data["band"] if type(data["band"]) is str else roman.check_band(data["band"])
+                sky_sca = sca if type(sca) is int else roman.check_sca(sca)
+                base = roman_default.sky_base(preset, band, sky_sca, data.get("exptime"), data.get("ramp"))
+            data["scene"] = _scene_from_json(fields_, preset, base)
         elif isinstance(scene, Mapping) or scene is None or isinstance(scene, str):
             data["scene"] = None if isinstance(scene, Mapping) else scene
         else:
@@ -351,17 +354,14 @@ def _preset_of(scene, preset: str | None) -> str:
     return roman_default.check_preset(named or preset or roman_default.NAME)
 
 
-def _scene_from_json(fields_: Mapping[str, Any] | None):
-    if not fields_:
-        return None
+def _scene_from_json(fields_: Mapping[str, Any], preset: str, base=None):
+    """The scene a request's JSON ``scene`` object describes: ``base`` (else the preset's scene
+    effects) with the fields it gives; errors name ``scene.FIELD``."""
     from nlpsf.sim import scene as scenes
 
     from . import presets as roman_default
 
-    data = dict(fields_)
-    named = data.pop("preset", None)
     try:
-        base = roman_default.preset_base(named) if named is not None else None
-        return scenes.from_request(data, base=base)
+        return scenes.from_request(dict(fields_), base=roman_default.preset_base(preset) if base is None else base)
     except InputError as error:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None

@@ -77,3 +77,24 @@ def test_a_json_body_builds_the_same_request_as_the_python_call():
     with pytest.raises(InputError) as both:
         SolveRequest.from_json({**body, "scene": {"bfe": 1e-7}})
     assert both.value.argument == "scene" and "brighter_fatter" in both.value.reason
+
+
+@pytest.mark.parametrize("scene", [{"background": 0}, {"position": [300, 3500], "background": 0.0}, {"background": 12.5}])
+def test_a_background_given_to_the_default_is_the_callers_own(scene):
+    # The Roman default's scene object: a background left out is the sky over the exposure, one given
+    # (0 included: no sky) is what the caller asked for, and it is not the scene the field grid holds.
+    from nlpsf.request import presets
+    from nlpsf.roman import backgrounds
+    from nlpsf.slopes.providers import NeedsSimulation
+
+    body = {"band": "J129", "sca": 5, "magnitude": 19.0, "tolerance": 1e-3}
+    sky = backgrounds.background(presets.BACKGROUND, "J129", 5, presets.exptime_s()).total_e
+    assert sky > 10  # zodiacal light, thermal and dark over the HLWAS exposure: not a small number
+    left_out = SolveRequest.from_json(
+        {**body, "scene": {k: v for k, v in scene.items() if k != "background"} or {"preset": "roman"}}
+    )
+    assert left_out.scene.background_e == pytest.approx(sky, rel=1e-12)
+    given = SolveRequest.from_json({**body, "scene": scene})
+    assert given.scene.background_e == scene["background"]
+    with pytest.raises(NeedsSimulation):
+        solver.table_plan(given)  # another sky than the default's: simulated, as the CLI's --background is

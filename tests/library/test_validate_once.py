@@ -12,6 +12,9 @@ from nlpsf import SolveRequest, answer, roman
         {"band": "W146", "sca": 7, "magnitude": 20.0, "tolerance": 1e-3},  # the SCA's 25 nodes
         {"band": "H158", "sca": 3, "precision": 0.01, "tolerance": 1e-3, "metric": "e"},  # a magnitude solve
         {"band": "Y106", "sca": 4, "magnitude": 19.0, "precision": 0.01, "scene": "paper"},
+        # at a position: the scene object over the default's sky
+        {"band": "J129", "sca": 5, "magnitude": 19.0, "tolerance": 1e-3, "scene": {"position": [300, 3500]}},
+        {"band": "Z087", "sca": 9, "precision": 0.02, "tolerance": 1e-3, "scene": {"position": [2000, 100]}},
     ],
 )
 def test_one_answer_checks_its_band_once(body, monkeypatch):

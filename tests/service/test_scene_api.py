@@ -136,3 +136,17 @@ def test_api_solve_with_another_pupil_scale_is_a_job_and_a_batch_refuses_it(make
         assert plain.status_code == 200 and plain.json()["conditions"]["fidelity"] == "table"
         batch = test_client.post("/api/v1/solve/batch", json={"requests": [body]})
         assert batch.status_code == 200 and batch.json()["results"][0]["ok"] is False
+
+
+def test_a_solves_background_given_is_not_replaced_by_the_sky(client):
+    # No sky (background 0) on the Roman default is another scene than the field grid's: a job, as the
+    # CLI's --background 0 is simulated, never the grid's answer over the default's sky.
+    body = {"band": "H158", "magnitude": 18.3, "tolerance": 1e-4}
+    with_sky = client.post("/api/v1/solve", json={**body, "scene": {"position": [100, 200]}})
+    assert with_sky.status_code == 200 and with_sky.json()["conditions"]["scene"]["background_e"] > 10
+    for scene in ({"position": [100, 200], "background": 0}, {"background": 0}):
+        response = client.post("/api/v1/solve", params={"wait": 0}, json={**body, "scene": scene})
+        assert response.status_code == 202, response.text
+        job = client.get(f"/api/v1/simulations/{response.json()['id']}").json()
+        assert job["request"]["solve"]["request"]["scene"]["background"] == 0.0  # the job's own request: no sky
+        client.delete(f"/api/v1/simulations/{job['id']}")
