@@ -120,8 +120,9 @@ def ramp_from(args: argparse.Namespace, default_fit: str = "ols"):
     )
 
 
-def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = True) -> None:
-    """Options shared by every command that runs the simulator (``band_sca=False``: the caller adds its own)."""
+def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = True, scene_base: str = "paper") -> None:
+    """Options shared by every command that runs the simulator (``band_sca=False``: the caller adds
+    its own; ``scene_base``: the scene its scene options change, a key of :data:`SCENE_BASES`)."""
     if band_sca:
         add_band_sca(parser)
     parser.add_argument(
@@ -163,25 +164,41 @@ def add_simulation_options(parser: argparse.ArgumentParser, band_sca: bool = Tru
         default="paper",
         help="paper: S = Q - beta Q^2 (beta > 0); galsim: S = Q + beta Q^2 (beta < 0, e.g. -6e-7)",
     )
-    add_scene_options(parser)
+    add_scene_options(parser, scene_base)
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--quiet", action="store_true", help="no progress bar (there is none unless stderr is a terminal)")
 
 
-def add_scene_options(parser: argparse.ArgumentParser) -> None:
-    """The scene effects (``nlpsf.sim.scene``): all off unless asked for; a preset or file first, then overrides."""
-    group = parser.add_argument_group("scene", "effects beyond the paper's scene (all off by default)")
+#: The scene a command's scene options change (its group's description) and where it puts the star
+#: without ``--position``, by the command's base: the Roman default's (``solve``: every field-grid
+#: node of the SCA; ``simulate``, ``slopes``: the SCA centre) or the paper's (``sweep``, ``impact``).
+_ROMAN_SCENE = (
+    "the Roman default's scene (nlpsf.request.presets: its effects on, its sky) unless --scene names another; "
+    "each option changes what it names"
+)
+SCENE_BASES = {
+    "solve": (_ROMAN_SCENE, "every field-grid node of the SCA: the answer that holds everywhere on it"),
+    "roman": (_ROMAN_SCENE, "the SCA centre"),
+    "paper": ("effects beyond the paper's scene (all off by default)", "the centre"),
+}
+
+
+def add_scene_options(parser: argparse.ArgumentParser, scene_base: str = "paper") -> None:
+    """The scene effects (``nlpsf.sim.scene``) over the command's base scene (:data:`SCENE_BASES`); a
+    preset or file first, then overrides."""
+    description, where = SCENE_BASES[scene_base]
+    group = parser.add_argument_group("scene", description)
     group.add_argument(
         "--scene",
         help="a preset (roman: the Roman default, solve's default; paper: the paper's idealised scene and final frame; "
         "galsim-roman: GalSim's Roman jitter 0.014\", diffusion 0.1 px, IPC, flat f_nu) or a JSON file",
     )
-    group.add_argument("--position", help="X,Y on the SCA [pixels, 1-4088] (default the centre)")
+    group.add_argument("--position", help=f"X,Y on the SCA [pixels, 1-4088] (default {where})")
     group.add_argument(
         "--sed", help="star SED: flat (f_nu), blackbody:TEFF, k0v (Pickles 1998 K0V spectrum), or a two-column file (nm, flux)"
     )
     group.add_argument("--sed-units", choices=("flambda", "fnu"), default="flambda", help="what a SED file's flux column is")
-    group.add_argument("--jitter", type=float, help="pointing jitter [arcsec rms per axis] (Roman: 0.014)")
+    group.add_argument("--jitter", type=float, help="pointing jitter [arcsec rms per axis] (GalSim's Roman: 0.014)")
     group.add_argument("--charge-diffusion", type=float, help="charge diffusion [native pixels rms] (GalSim's Roman: 0.1)")
     group.add_argument("--ipc", help="interpixel capacitance: roman, a nearest-neighbour alpha, a 3x3 file, or none")
     group.add_argument("--ipc-order", choices=("after", "before"), help="IPC after (default, as GalSim) or before the NL")

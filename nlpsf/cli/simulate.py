@@ -20,7 +20,7 @@ from .options import (
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    add_simulation_options(parser)
+    add_simulation_options(parser, scene_base="roman")
     parser.add_argument(
         "--magnitude", type=float, action="append", help=f"AB magnitude; repeat for several (default {defaults.MAGNITUDE})"
     )

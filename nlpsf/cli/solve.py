@@ -81,7 +81,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as romancal's linearity "
         "step applies it) or per_read_beta (the earlier model: a residual beta on every read before IPC)",
     )
-    add_scene_options(parser)
+    add_scene_options(parser, "solve")
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
     parser.add_argument(
         "--batch",
