@@ -2,7 +2,22 @@
 service in process (``make_client``, and ``client`` built with it for a module's tests)."""
 
 import importlib.util
+import os
+import sys
 from pathlib import Path
+
+# OpenBLAS picks its kernels by the CPU (AVX2's "Haswell", AVX-512's "SkylakeX", ...), and they sum a
+# dot product in another order: the answers stored in tests/data (test_stored_answers.py: the paper
+# scene's bit for bit) were computed with the Haswell kernels, and the SkylakeX ones move the paper
+# scene's answers at a field corner in the last bits (a slope by 1e-16, its uncertainty by up to
+# 2e-11 relative, on 2026-12-05). The suite reads every machine's numbers with the Haswell kernels
+# (any x86-64 CPU with AVX2 runs them): set before numpy loads OpenBLAS, or it counts for nothing.
+if "numpy" not in sys.modules:
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+else:
+    import warnings
+
+    warnings.warn("numpy was loaded before tests/conftest.py: OpenBLAS's kernels are the CPU's own", stacklevel=1)
 
 import pytest
 

@@ -103,7 +103,15 @@ def test_stored_answers_are_answered_again_alike(kind):
         found = differences(refusal_by_field(entry["answer"]), refusal_by_field(answered(entry["body"])), rtol)
         if found:
             failures.append(f"{entry['body']}: {found[:3]}")
-    assert not failures, f"{len(failures)} of {len(entries)} differ; first: {failures[:3]}"
+    assert not failures, f"{len(failures)} of {len(entries)} differ ({_blas()}); first: {failures[:3]}"
+
+
+def _blas() -> str:
+    """The BLAS kernels this process runs (tests/conftest.py pins OpenBLAS's to those the answers were stored with)."""
+    from threadpoolctl import threadpool_info
+
+    found = [f"{i.get('internal_api')} {i.get('version')} {i.get('architecture')}" for i in threadpool_info()]
+    return ", ".join(found) or "no BLAS found"
 
 
 def test_the_stored_set_holds_every_kind_and_some_refusals():
