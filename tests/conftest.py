@@ -6,22 +6,32 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
+
 # OpenBLAS picks its kernels by the CPU (AVX2's "Haswell", AVX-512's "SkylakeX", ...), and they sum a
 # dot product in another order: the answers stored in tests/data (test_stored_answers.py: the paper
 # scene's bit for bit) were computed with the Haswell kernels, and the SkylakeX ones move the paper
 # scene's answers at a field corner in the last bits (a slope by 1e-16, its uncertainty by up to
 # 2e-11 relative, on 2026-12-05). The suite reads every machine's numbers with the Haswell kernels
-# (any x86-64 CPU with AVX2 runs them): set before numpy loads OpenBLAS, or it counts for nothing.
-if "numpy" not in sys.modules:
-    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
-else:
+# where the CPU runs them (an x86-64 one with AVX2; another would stop at its first AVX2 instruction):
+# set before numpy loads OpenBLAS, or it counts for nothing.
+
+
+def _runs_avx2() -> bool:
+    try:
+        return any(line.startswith("flags") and " avx2" in line for line in Path("/proc/cpuinfo").read_text().splitlines())
+    except OSError:
+        return False
+
+
+if "numpy" in sys.modules:
     import warnings
 
     warnings.warn("numpy was loaded before tests/conftest.py: OpenBLAS's kernels are the CPU's own", stacklevel=1)
+elif _runs_avx2():
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
-import pytest
-
-from nlpsf.sim import experiment
+from nlpsf.sim import experiment  # noqa: E402  (numpy loads here: after the kernels are pinned)
 
 HAVE_GALSIM = importlib.util.find_spec("galsim") is not None
 requires_galsim = pytest.mark.skipif(not HAVE_GALSIM, reason="GalSim not installed (pip install nlpsf[reference])")
