@@ -53,7 +53,7 @@ sys.path.insert(0, str(ROOT))
 from tests.servers import free_port, start_server, wait_for  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from load_generators import run_python, run_wrk  # noqa: E402
+from load_generators import run_python, run_wrk, summary  # noqa: E402
 
 #: Solves of every unknown, band, metric and mode.
 SOLVES = [
@@ -170,7 +170,7 @@ async def _burst(host: str, port: int, connections: int, body: dict) -> tuple[li
             errors.append(1)
 
     await asyncio.gather(*(one() for _ in range(connections)))
-    return sorted(latencies), len(errors)
+    return latencies, len(errors)
 
 
 def cold_start(args, directory: Path, env: dict, body: dict, name: str = "cold") -> dict:
@@ -183,20 +183,7 @@ def cold_start(args, directory: Path, env: dict, body: dict, name: str = "cold")
         seconds = time.perf_counter() - start
     finally:
         stop(server)
-
-    def pick(q: float) -> float:
-        return 1000 * latencies[min(len(latencies) - 1, int(q * len(latencies)))] if latencies else float("nan")
-
-    return {
-        "requests": len(latencies),
-        "seconds": seconds,
-        "rps": len(latencies) / seconds,
-        "p50_ms": pick(0.5),
-        "p90_ms": pick(0.9),
-        "p99_ms": pick(0.99),
-        "max_ms": 1000 * latencies[-1] if latencies else float("nan"),
-        "errors": errors,
-    }
+    return summary(latencies, seconds, errors)
 
 
 def process_models(args, directory: Path, env: dict) -> dict[str, list[dict]]:

@@ -144,10 +144,16 @@ def run_python(url: str, connections: int, duration: float, bodies: list[dict], 
     child.start()
     latencies, seconds, errors = queue.get(timeout=duration + 60)
     child.join()
-    latencies.sort()
+    return summary(latencies, seconds, errors)
+
+
+def summary(latencies: list[float], seconds: float, errors: int) -> dict:
+    """A measurement's figures from its requests' latencies (s): req/s, quantiles and the slowest in ms
+    (NaN where no request was answered), the requests and the errors."""
+    latencies = sorted(latencies)
 
     def pick(q: float) -> float:
-        return 1000 * latencies[min(len(latencies) - 1, int(q * len(latencies)))]
+        return 1000 * latencies[min(len(latencies) - 1, int(q * len(latencies)))] if latencies else float("nan")
 
     return {
         "requests": len(latencies),
@@ -156,6 +162,6 @@ def run_python(url: str, connections: int, duration: float, bodies: list[dict], 
         "p50_ms": pick(0.50),
         "p90_ms": pick(0.90),
         "p99_ms": pick(0.99),
-        "max_ms": 1000 * latencies[-1],
+        "max_ms": 1000 * latencies[-1] if latencies else float("nan"),
         "errors": errors,
     }
