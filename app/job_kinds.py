@@ -65,22 +65,13 @@ def request_field(argument: str, request: dict[str, Any] | None = None) -> str:
 
 
 def build_scene(fields: dict[str, Any] | None, sky_of: tuple | None = None) -> scenes.SceneModel:
-    """The library's scene for a request's ``scene`` object; errors name ``scene.FIELD``.
-    ``sky_of``: (band, sca, exptime, ramp) of a simulation, whose preset's own sky over that exposure
-    (``presets.sky_base``) is then the base, so that the sky ``fill_simulation`` filled in is no
+    """The library's scene for a request's ``scene`` object (``SolveRequest``'s reading of it; errors
+    name ``scene.FIELD``). ``sky_of``: (band, sca, exptime, ramp) of a simulation, whose preset's own
+    sky over that exposure is then the base, so that the sky ``fill_simulation`` filled in is no
     change and the scene keeps its preset's name (a sky the client gave otherwise is one)."""
-    from nlpsf.request import presets as roman_default
+    from nlpsf.request.resolve import scene_from_json
 
-    data = dict(fields or {})
-    named = data.pop("preset", None)
-    try:
-        if named is not None and sky_of is not None:
-            base = roman_default.sky_base(named, *sky_of)
-        else:
-            base = roman_default.preset_base(named) if named is not None else None
-        return scenes.from_request(data, base=base)
-    except InputError as error:
-        raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
+    return scene_from_json(fields, sky_of=sky_of)
 
 
 def request_arguments(request: SolveRequest) -> dict[str, Any]:

@@ -312,8 +312,7 @@ class SolveRequest:
             )
             data["exptime"], data["ramp"] = exptime, ramp
         if isinstance(scene, Mapping) and scene:
-            fields_ = {k: v for k, v in scene.items() if k != "preset"}
-            base = None
+            sky_of = None
             if roman_default.policy(preset).sky:
                 # The caller's changes change the default's scene with its sky over this request's
                 # exposure: a background left out is that sky, one given (0 too) is the caller's.
@@ -322,9 +321,8 @@ class SolveRequest:
                 if "band" not in data:
                     raise InputError("band", "missing")
                 band = data["band"] if type(data["band"]) is str else roman.check_band(data["band"])
-                sky_sca = sca if type(sca) is int else roman.check_sca(sca)
-                base = roman_default.sky_base(preset, band, sky_sca, data.get("exptime"), data.get("ramp"))
-            data["scene"] = _scene_from_json(fields_, preset, base)
+                sky_of = (band, sca if type(sca) is int else roman.check_sca(sca), data.get("exptime"), data.get("ramp"))
+            data["scene"] = scene_from_json(scene, preset, sky_of)
         elif isinstance(scene, Mapping) or scene is None or isinstance(scene, str):
             data["scene"] = None if isinstance(scene, Mapping) else scene
         else:
@@ -354,14 +352,24 @@ def _preset_of(scene, preset: str | None) -> str:
     return roman_default.check_preset(named or preset or roman_default.NAME)
 
 
-def _scene_from_json(fields_: Mapping[str, Any], preset: str, base=None):
-    """The scene a request's JSON ``scene`` object describes: ``base`` (else the preset's scene
-    effects) with the fields it gives; errors name ``scene.FIELD``."""
+def scene_from_json(fields_: Mapping[str, Any] | None, preset: str | None = None, sky_of: tuple | None = None):
+    """The scene a request's JSON ``scene`` object describes, the one reading of it (a solve's, a
+    simulation's, an impact report's): its fields over its preset's scene effects -- ``preset``, else
+    the object's own ``preset`` key; neither, the scene model's defaults; errors name ``scene.FIELD``.
+    ``sky_of``: (band, sca, exptime, ramp), whose sky (a preset that has one: ``presets.sky_base``) is
+    in the base, so that a background left out is that sky and one given (0 too) the caller's."""
     from nlpsf.sim import scene as scenes
 
     from . import presets as roman_default
 
+    data = dict(fields_ or {})
+    named = data.pop("preset", None) if preset is None else preset
+    data.pop("preset", None)
+    if named is None:
+        base = None
+    else:
+        base = roman_default.preset_base(named) if sky_of is None else roman_default.sky_base(named, *sky_of)
     try:
-        return scenes.from_request(dict(fields_), base=roman_default.preset_base(preset) if base is None else base)
+        return scenes.from_request(data, base=base)
     except InputError as error:
         raise InputError(f"scene.{error.argument}" if error.argument != "scene" else "scene", error.reason) from None
