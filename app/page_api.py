@@ -195,6 +195,8 @@ def scene_presets() -> dict[str, Any]:
         model = roman_default.preset_base(name)
         out[name] = {
             "description": model.describe(),
+            # Whether a background left blank is the preset's sky over the exposure (else no sky).
+            "sky": roman_default.policy(name).sky,
             "fields": {
                 "sed": model.sed or "",
                 "jitter": model.jitter_arcsec or "",

@@ -2346,6 +2346,8 @@ function sceneFill(name) {
   if (!preset) return;
   const f = document.getElementById("scene-form").elements;
   for (const [field, value] of Object.entries(preset.fields)) f[field].value = value === "" ? "" : String(value);
+  // A background left blank is the preset's own sky where it has one (the Roman default's), else none.
+  f.background.placeholder = preset.sky ? "the preset's sky over the exposure" : "off";
 }
 
 function sceneError(error) {

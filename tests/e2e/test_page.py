@@ -279,9 +279,11 @@ def test_impact_in_requirement_terms(page, server):
     from nlpsf.request import presets as roman_default
     from nlpsf.sim import scene as scenes
 
+    assert page.get_attribute("#scene-background", "placeholder") == "off"  # the paper's scene: no sky
     page.select_option("#scene-preset", "roman")  # the Roman default's values, as the library holds them
     assert float(page.input_value("#scene-jitter")) == roman_default.JITTER_ARCSEC
     assert page.input_value("#scene-ipc") == "roman"
+    assert "sky" in page.get_attribute("#scene-background", "placeholder")  # left blank: its sky, not "off"
     page.select_option("#scene-preset", "galsim-roman")
     assert float(page.input_value("#scene-jitter")) == scenes.preset("galsim-roman").jitter_arcsec
     page.select_option("#scene-preset", "")
