@@ -243,6 +243,15 @@ class SolveRequest:
         values = {"precision": self.precision, "tolerance": self.target_tolerance, "magnitude": self.magnitude}
         return next(k for k in TRIPLE if values[k] is None)
 
+    def conditions_key(self) -> tuple:
+        """Every field but the relation's numbers and the shear budget, which no plan reads, and the
+        scene's name (scenes compare without it; the answer states it): requests with equal keys have
+        the same plan wherever the magnitude's place is not asked (``solver.plan(...,
+        fresh_between_limits=False)``). Raises TypeError where a field is unhashable."""
+        key = (*[getattr(self, name) for name in _CONDITION_FIELDS], getattr(self.scene, "name", None))
+        hash(key)
+        return key
+
     def with_changes(self, **changes) -> SolveRequest:
         """Another request, validated again (``dataclasses.replace``)."""
         return replace(self, **changes)
@@ -328,6 +337,13 @@ class SolveRequest:
         else:
             data["scene"] = scene
         return cls.from_mapping(data)
+
+
+#: The request's conditions (:meth:`SolveRequest.conditions_key`): a field added to the request is one
+#: unless it is named here.
+_CONDITION_FIELDS: tuple[str, ...] = tuple(
+    f.name for f in fields(SolveRequest) if f.compare and f.name not in (*TRIPLE, "shear_m", "shear_c", "size_ratio")
+)
 
 
 def _scene_at(scene, position: tuple) -> Any:

@@ -231,12 +231,19 @@ def roman_default_model(band: str, sca: int, metric: str, mode: str, scene, pupi
             if len(_ROMAN_MODELS) >= 4096:
                 _ROMAN_MODELS.clear()
             _ROMAN_MODELS[key] = built
-    return {
-        **built,
-        "included": [dict(part) for part in built["included"]],
-        "left_out": [dict(part) for part in built["left_out"]],
-        "ranges": {name: dict(shipped) for name, shipped in built["ranges"].items()},
-    }
+    return own_copy(built)
+
+
+def own_copy(info: dict) -> dict:
+    """A model part of an answer, its own dicts and lists of parts (a kept one is shared by the answers
+    that read it; its parts' rows, ``by_magnitude`` and ``ends``, stay shared and read-only)."""
+    out = dict(info)
+    for name in ("included", "left_out"):
+        if name in out:
+            out[name] = [dict(part) for part in out[name]]
+    if "ranges" in out:
+        out["ranges"] = {name: dict(shipped) for name, shipped in out["ranges"].items()}
+    return out
 
 
 #: The Roman default's model parts by what decides them (:func:`roman_default_model`).

@@ -56,7 +56,9 @@ not added), an ``accuracy`` answer's left-out set beside them as a part of its o
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from functools import partial
 
@@ -507,8 +509,10 @@ def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: b
     """Every node's value and uncertainty of the Roman default without a position, at once
     (``sca_nodes.answer_nodes``), where its field grid covers it; None: answer node by node."""
     first = request.at_position(positions[0])
-    # A node is never between the saturation limits (``validity.between_limits``): not asked.
-    the_plan = plan(first, tables_set, fresh_between_limits=False) if simulate else table_plan(first, tables_set)
+    the_plan = _first_node_plan(first, simulate) if tables_set is None else None
+    if the_plan is None:
+        # A node is never between the saturation limits (``validity.between_limits``): not asked.
+        the_plan = plan(first, tables_set, fresh_between_limits=False) if simulate else table_plan(first, tables_set)
     grid = the_plan.grid
     if grid is None or tables_set is not None or the_plan.scene.background_e >= request.full_well:
         return None
@@ -519,6 +523,33 @@ def _node_answers(request: SolveRequest, positions, tables_set=None, simulate: b
     systematic = fidelity_error(the_plan.fidelity, request.band, request.metric, request.mode, _measured_default(request))[0]
     found = sca_nodes.answer_nodes(request, the_plan, saturation, systematic)
     return None if found is None else replace(found, plan=the_plan)
+
+
+#: The plans of SCA ranges' first nodes (:func:`_first_node_plan`), least recently used dropped first.
+_FIRST_NODE_PLANS: OrderedDict[tuple, SolvePlan] = OrderedDict()
+_FIRST_NODE_PLANS_LOCK = threading.Lock()
+
+
+def _first_node_plan(first: SolveRequest, simulate: bool) -> SolvePlan | None:
+    """The plan of an SCA range's first node (no magnitude's place asked: a node is never between the
+    saturation limits), kept by the request's conditions and the shipped grid: the answers over one SCA
+    plan it once, whatever their numbers. Each gets the model part as its own copy. None where a
+    condition is unhashable (the caller plans)."""
+    try:
+        key = (first.conditions_key(), simulate, fieldgrid.shipped_grid())
+    except TypeError:
+        return None
+    with _FIRST_NODE_PLANS_LOCK:
+        kept = _FIRST_NODE_PLANS.get(key)
+        if kept is not None:
+            _FIRST_NODE_PLANS.move_to_end(key)
+    if kept is None:
+        kept = plan(first, fresh_between_limits=False) if simulate else table_plan(first)
+        with _FIRST_NODE_PLANS_LOCK:
+            _FIRST_NODE_PLANS[key] = kept
+            while len(_FIRST_NODE_PLANS) > 1024:
+                _FIRST_NODE_PLANS.popitem(last=False)
+    return replaced(kept, model=model_part.own_copy(kept.model))
 
 
 def _relabel_flag(request: SolveRequest, slopes: _Slopes) -> Flag:

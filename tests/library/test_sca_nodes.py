@@ -122,3 +122,44 @@ def test_where_saturation_binds_at_every_node_each_node_is_its_own_answer():
             assert uncertainty == own.uncertainty, (request, position)
             checked += 1
     assert checked >= 27
+
+
+def test_a_kept_first_node_plan_is_the_plan_of_every_request_with_its_conditions():
+    # The answers over one SCA plan its first node once (``solver._first_node_plan``, kept by the
+    # request's conditions): other numbers at the same conditions get the plan planned afresh; other
+    # conditions (a scene's name, its background, the SCA, beta0) get their own.
+    base = {"band": "J129", "sca": 4, "metric": "e1", "precision": 0.02}
+    kinds = [{"tolerance": 1e-4}, {"tolerance": 3e-3}, {"magnitude": 19.5}, {"magnitude": 23.25}]
+    kept = []
+    for numbers in kinds:
+        request = SolveRequest.from_json({**base, **numbers})
+        first = request.at_position(over_field.range_positions(request)[0])
+        plan = solver._first_node_plan(first, True)
+        assert plan == solver.plan(first, fresh_between_limits=False), numbers
+        kept.append(first.conditions_key())
+    assert len(set(kept)) == 1
+    others = [
+        {**base, "tolerance": 1e-4, "sca": 5},
+        {**base, "tolerance": 1e-4, "beta0": 1e-6},
+        {**base, "tolerance": 1e-4, "scene": {"background": 0}},
+    ]
+    for body in others:
+        assert SolveRequest.from_json(body).conditions_key() not in kept, body
+    named = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0)
+    from dataclasses import replace
+
+    unnamed = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0, scene=replace(named.scene, name=None))
+    assert named.conditions_key() != unnamed.conditions_key()
+
+
+def test_an_answers_model_part_is_its_own_when_its_plan_is_kept():
+    # A caller who edits one answer's model part (a dict of parts) changes no later answer's.
+    request = SolveRequest.from_json({"band": "H158", "sca": 2, "metric": "size", "precision": 0.01, "magnitude": 21.0})
+    assert request.scene.position is None  # the SCA's range: its first node's plan is kept
+    before = as_json(solver.answer(request))
+    edited = solver.answer(request)
+    for name in ("included", "left_out"):
+        for part in edited.model[name]:
+            part["name"] = "edited"
+        edited.model[name].append({"name": "added"})
+    assert differences(before, as_json(solver.answer(request)), 0.0) == []
