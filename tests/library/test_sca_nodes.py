@@ -4,6 +4,7 @@ last bit and its uncertainty to 1e-12 (the field interpolation's term is read on
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 
@@ -146,9 +147,7 @@ def test_a_kept_first_node_plan_is_the_plan_of_every_request_with_its_conditions
     for body in others:
         assert SolveRequest.from_json(body).conditions_key() not in kept, body
     named = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0)
-    from dataclasses import replace
-
-    unnamed = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0, scene=replace(named.scene, name=None))
+    unnamed = SolveRequest(band="H158", sca=7, precision=0.01, magnitude=20.0, scene=dataclasses.replace(named.scene, name=None))
     assert named.conditions_key() != unnamed.conditions_key()
 
 
