@@ -8,7 +8,6 @@ bad request meets is the same whichever entry point it came through.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from functools import lru_cache
@@ -259,7 +258,8 @@ class SolveRequest:
     def at_position(self, position) -> SolveRequest:
         """This request for the same star at another ``position`` of its SCA (pixels): its scene
         moved there, nothing else read again (the position is checked by the scene)."""
-        moved = copy.copy(self)
+        moved = object.__new__(type(self))  # copy.copy's result, without its reduce protocol (an answer
+        moved.__dict__.update(self.__dict__)  # over an SCA moves its request twice)
         try:
             scene = _scene_at(self.scene, tuple(position))
         except TypeError:  # a scene holding something unhashable: moved afresh

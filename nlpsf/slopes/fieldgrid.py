@@ -352,7 +352,8 @@ class FieldGrid:
         magnitude found once, the columns that share their knots read together; the same numbers)."""
         key, _ = self._entry(band, sca)
         m = np.asarray(magnitude, dtype=np.float64)
-        memo_keys = [(key, column, m.shape, m.tobytes()) for column in columns]
+        shape, at = m.shape, m.tobytes()
+        memo_keys = [(key, column, shape, at) for column in columns]
         with self._node_values_lock:  # the service answers from threads
             found = [self._node_values.get(memo_key) for memo_key in memo_keys]
             for memo_key, cached in zip(memo_keys, found, strict=True):

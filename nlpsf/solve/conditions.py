@@ -39,8 +39,9 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
     out["linearise_at"] = request.linearise_at
     # How a calibration error acts there: the field grid's own model where the answer reads it, else
     # what the fresh simulations ran.
-    if the_plan.grid is not None:
-        out["residual_nl"] = fieldgrid.grid_residual_model(the_plan.grid.conditions(request.band, request.sca)["settings"])
+    grid_conditions = None if the_plan.grid is None else the_plan.grid.conditions(request.band, request.sca)
+    if grid_conditions is not None:
+        out["residual_nl"] = fieldgrid.grid_residual_model(grid_conditions["settings"])
     else:
         out["residual_nl"] = request.residual_model
     if request.policy.quotes_default:
@@ -52,7 +53,7 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
     if the_plan.grid is not None:
         out["slopes_from"] = f"the Roman default's field grid ({fieldgrid.SHIPPED_NAME})"
         # The slopes are the grid's, not the paper tables': their settings are the grid's nodes'.
-        out.update(grid_settings(the_plan.grid, request.band, request.sca))
+        out.update(grid_settings(the_plan.grid, request.band, request.sca, grid_conditions))
     ramp = request.ramp
     if ramp is None:
         out["saturation_rule"] = "final frame: the brightest pixel's charge at the end of the exposure hits the full well"
@@ -72,10 +73,11 @@ def conditions(request: SolveRequest, the_plan: SolvePlan, slopes: Slopes) -> di
 _GRID_SETTINGS = ("oversampling", "stamp", "realizations", "seed", "weight_cut_rho2", "pupil_scale")
 
 
-def grid_settings(grid, band: str, sca: int) -> dict:
+def grid_settings(grid, band: str, sca: int, grid_conditions: dict | None = None) -> dict:
     """The conditions of an answer read from a field grid: its nodes' settings in place of the
-    paper tables' (the pupil-scale rule, centroids, stamp...) and the exposure and beta0 they hold."""
-    settings = grid.conditions(band, sca)["settings"]
+    paper tables' (the pupil-scale rule, centroids, stamp...) and the exposure and beta0 they hold.
+    ``grid_conditions``: ``grid.conditions(band, sca)`` where the caller has read them already."""
+    settings = (grid_conditions or grid.conditions(band, sca))["settings"]
     out = {key: settings[key] for key in _GRID_SETTINGS if key in settings}
     out["table_conditions"] = {"exptime_s": settings["exptime_s"], "beta0": settings["beta0"]}
     return out

@@ -422,7 +422,8 @@ def roman_effects_at(info: dict, magnitudes, scales) -> np.ndarray:
         values[~scaled] = here[:, None]
         read = np.abs(np.where(scaled[:, None], values * np.asarray(scales, dtype=np.float64)[None, :], values))
     read[np.isnan(read)] = 0.0
-    read = np.broadcast_to(read, (scaled.size, count))
+    if read.shape != (scaled.size, count):  # the values measured at the point alone: one column for every node
+        read = np.broadcast_to(read, (scaled.size, count))
     standard, left_out = read[standard_rows], read[left_out_rows]
     root = np.sqrt(np.add.reduce(standard * standard, axis=0)) if standard.size else np.zeros(count)
     return root + (np.add.reduce(left_out, axis=0) if left_out.size else np.zeros(count))
@@ -479,8 +480,8 @@ def _roman_model_at(info: dict, magnitude: float | None, scale: float) -> dict:
         values[part["name"]] = value
         kinds[part["name"]] = part.get("kind", roman_parts.KINDS.get(part["name"], "choice"))
         left.append({**part, "impact": value if not part.get("measured_here") else part["impact"]})
-    relative = roman_parts.combine(values, kinds)
     standard, shifts = roman_parts.split(values, kinds)
+    relative = standard + shifts  # roman_parts.combine's sum, its two pieces found once
     out = {**info, "left_out": left, "stated_against": "slope", "effects_relative": relative, "pupil_scale_relative": 0.0}
     out.update(relative_uncertainty=relative, combination=roman_parts.COMBINATION, optical_model_included=True)
     out.update(standard_relative=standard, shifts_relative=shifts)

@@ -60,7 +60,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, replace
-from functools import partial
+from functools import lru_cache, partial
 
 from nlpsf import defaults
 from nlpsf.checks import InputError
@@ -319,12 +319,19 @@ def plan_at_node(base: SolvePlan, request: SolveRequest) -> SolvePlan:
         raise ValueError("plan_at_node moves a field-grid plan from one node of an SCA to another")
     x, y = request.scene.position
     notes = tuple(
-        make(FlagCode.DEFAULT_FROM_GRID, **{**note.values, "x": x, "y": y})
+        _flag_of(FlagCode.DEFAULT_FROM_GRID, tuple({**note.values, "x": x, "y": y}.items()))
         if getattr(note, "code", None) == FlagCode.DEFAULT_FROM_GRID
         else note
         for note in base.notes
     )
     return replaced(base, scene=request.scene, notes=notes)
+
+
+@lru_cache(maxsize=4096)
+def _flag_of(code: FlagCode, values: tuple) -> Flag:
+    """The flag of ``code`` quoting ``values`` ((name, value) pairs), made once: an SCA's nodes are
+    few and its answers many, and a plan's flags are shared between answers already (the kept plans)."""
+    return make(code, **dict(values))
 
 
 def _measured_default(request: SolveRequest) -> str:
@@ -365,9 +372,6 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         )
     grid, position = the_plan.grid, None if the_plan.scene is None else the_plan.scene.position
     ramp = request.ramp
-    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
-    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
-    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
     if grid is not None and position is not None:
         # The Roman default's own star (its peak through the default's optics and detector, with its
         # sky), recorded at every node by the grid's build: not the paper table's sharper star.
@@ -376,6 +380,10 @@ def _limits(request: SolveRequest, the_plan: SolvePlan, slopes: _Slopes) -> _Lim
         if final is not None:
             source = f"the Roman default's own star: its field grid's nodes ({fieldgrid.SHIPPED_NAME}), interpolated"
             return _Limits(saturation, final, source)
+    # A ramp's star is usable until its brightest pixel keeps fewer resultants than a slope needs: exact
+    # under the ramp's rules, at the raw beta0 (saturation is flagged before the NL is corrected).
+    # (Not asked where the grid answers: its nodes recorded the ramp's limit itself.)
+    shift = 0.0 if ramp is None else ramp.saturation_shift_mag(request.exptime, request.full_well, request.beta0, background)
     if _own_star(request, the_plan):
         # The star that is simulated (its optics, SED, blurs and sky), from its own prepared peak.
         final_frame, peak = slopes.own_final_frame_saturation()

@@ -123,7 +123,9 @@ class Ramp:
         resultant gives no slope): the charge there must stay under the full well. Exact for the
         "charge" rule; for "signal" the limit of a linear detector (the NL lowers the signal, so a
         star with beta > 0 keeps its resultants slightly longer)."""
-        return float(self.table.last_read_fractions(exptime_s)[min(self.min_usable, self.table.n_resultants) - 1])
+        # ``table.last_read_fractions(exptime_s)[k]`` of the one resultant k, in the same arithmetic.
+        resultant = self.table.resultants[min(self.min_usable, self.table.n_resultants) - 1]
+        return float(resultant[-1]) * self.table.frame_time_s / exptime_s
 
     def limit_charge(self, exptime_s: float, full_well_e: float, beta: float = 0.0, background_e: float = 0.0) -> float:
         """The star's final-frame charge [e-] in a pixel (background ``background_e`` on top) above which
