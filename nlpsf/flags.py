@@ -210,8 +210,8 @@ CATALOGUE: dict[FlagCode, FlagSpec] = {
         "Another pupil-scale rule than the tables' is simulated with the linear response.",
     ),
     FlagCode.BETA_Q_RULE_BROKEN: FlagSpec(
-        "{effects} {verb} a flux dependence of its own: slopes are simulated at this exposure and beta0, "
-        "never rescaled from the tables (the beta Q rule does not hold)",
+        "{effects} {verb} a flux dependence of its own: slopes are simulated at this exposure and beta0 (afresh, "
+        "or at the field grid's nodes), never rescaled from the tables (the beta Q rule does not hold)",
         ("effects", "verb"),
         "A scene effect depends on the flux by itself: slopes are not rescaled between exposures.",
     ),
