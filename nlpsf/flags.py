@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import math
 import string
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
+from types import MappingProxyType
 
 
 class FlagCode(StrEnum):
@@ -371,7 +372,8 @@ class Flag(str):
     """A flag: its message (the string itself), its ``code`` and the ``values`` the message quotes."""
 
     code: FlagCode
-    values: dict
+    #: Read-only: a plan's flags are shared by the answers made from it (kept plans, a node's flag).
+    values: Mapping[str, object]
 
     def __new__(cls, code: FlagCode | str, **values) -> Flag:
         code = code if type(code) is FlagCode else FlagCode(code)  # the enum's look-up only for a string
@@ -383,11 +385,11 @@ class Flag(str):
         text = spec.template.format(**values) if finite else _WORDS.vformat(spec.template, (), values)
         self = super().__new__(cls, text)
         self.code = code
-        self.values = values
+        self.values = MappingProxyType(values)
         return self
 
     def __reduce__(self):  # pickles (jobs, dask) as code + values
-        return (_rebuild, (self.code.value, self.values))
+        return (_rebuild, (self.code.value, dict(self.values)))
 
     def to_dict(self) -> dict:
         return {"code": self.code.value, "message": str(self), "values": dict(self.values)}

@@ -84,3 +84,19 @@ def test_tests_assert_codes_not_english():
         for text in _quoted_text(path):
             quoted = [p for p in prose if p in text]
             assert not quoted, (path.name, quoted)
+
+
+def test_an_answers_flags_cannot_change_another_answers():
+    """A plan's flags are shared by the answers made from it (the SCA range keeps its first node's
+    plan, a node's field-grid flag is made once): their values are read-only, so editing one
+    answer's flag cannot reach the next answer's."""
+    from nlpsf import solve
+
+    first = solve("H158", magnitude=18.3, tolerance=1e-4)
+    for flag in first.flags:
+        if isinstance(flag, Flag):
+            with pytest.raises(TypeError):
+                flag.values["x"] = -1.0  # type: ignore[index]
+    again = solve("H158", magnitude=18.3, tolerance=1e-4)
+    assert [f.to_dict() for f in again.flags] == [f.to_dict() for f in first.flags]
+    assert pickle.loads(pickle.dumps(first.flags)) == first.flags
