@@ -210,7 +210,20 @@ FILE_PRESET = "paper"
 
 def sky_base(preset: str, band: str, sca: int, exptime: float | None = None, ramp=None):
     """A preset's scene without a position, with its sky over the exposure where it has one
-    (:attr:`Policy.sky`): the base the options a user gives change."""
+    (:attr:`Policy.sky`): the base the options a user gives change. Kept by what decides it (a
+    frozen scene: every JSON request at a position builds on it)."""
+    try:
+        return _kept_sky_base(preset, band, sca, exptime, ramp)
+    except TypeError:  # something unhashable (a bad value the request refuses later): built afresh
+        return _sky_base(preset, band, sca, exptime, ramp)
+
+
+@lru_cache(maxsize=1024)
+def _kept_sky_base(preset: str, band: str, sca: int, exptime: float | None, ramp):
+    return _sky_base(preset, band, sca, exptime, ramp)
+
+
+def _sky_base(preset: str, band: str, sca: int, exptime: float | None, ramp):
     if not policy(preset).sky:
         return preset_base(preset)
     filled = fill(preset, band, sca, exptime, ramp, None, None)

@@ -355,7 +355,7 @@ def _scene_at(scene, position: tuple) -> Any:
 
 @lru_cache(maxsize=4096)
 def _named_scene_at(scene, name: str | None, position: tuple) -> Any:
-    return replace(scene, position=position)
+    return scene.at(position) if isinstance(scene, _scene_type()) else replace(scene, position=position)
 
 
 def _preset_of(scene, preset: str | None) -> str:

@@ -41,6 +41,15 @@ def _tuple_of_floats(values, name: str) -> tuple[float, ...]:
     return out
 
 
+def _checked_position(position) -> tuple[float, float]:
+    pos = _tuple_of_floats(position, "position")
+    if len(pos) != 2:
+        raise InputError("position", f"give two pixel coordinates X,Y, got {position!r}")
+    for v in pos:
+        check_number(v, "position", 1.0, float(roman.SCA_PIXELS))
+    return pos
+
+
 @dataclass(frozen=True)
 class SceneModel:
     """Which scene effects a simulation includes; all off by default (the paper's scene).
@@ -67,12 +76,7 @@ class SceneModel:
 
     def __post_init__(self) -> None:
         if self.position is not None:
-            pos = _tuple_of_floats(self.position, "position")
-            if len(pos) != 2:
-                raise InputError("position", f"give two pixel coordinates X,Y, got {self.position!r}")
-            for v in pos:
-                check_number(v, "position", 1.0, float(roman.SCA_PIXELS))
-            object.__setattr__(self, "position", pos)
+            object.__setattr__(self, "position", _checked_position(self.position))
         if self.sed is not None:
             object.__setattr__(self, "sed", _check_sed(self.sed, self.sed_table))
         if self.sed_units not in SED_UNITS:
@@ -102,6 +106,16 @@ class SceneModel:
         object.__setattr__(self, "nl_coefficients", coefficients)
         check_number(self.bfe_coefficient, "bfe", -MAX_BFE, MAX_BFE)
         check_number(self.background_e, "background", 0.0, MAX_BACKGROUND_E)
+
+    def at(self, position) -> SceneModel:
+        """This scene at ``position`` (pixels, checked; None: no position), its name kept:
+        ``replace(self, position=position)``, without checking again the fields it had checked
+        (a request's JSON position, an SCA range's nodes). What it worked out (which effects are
+        on, its description) is worked out again: the position is among them."""
+        moved = object.__new__(type(self))
+        moved.__dict__.update({key: value for key, value in self.__dict__.items() if not key.startswith("_")})
+        object.__setattr__(moved, "position", None if position is None else _checked_position(position))
+        return moved
 
     # --- which effects are on -------------------------------------------------------------
     def effects_on(self) -> dict[str, bool]:
