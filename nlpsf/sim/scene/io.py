@@ -273,7 +273,7 @@ def moved_or_changed(base: SceneModel, changes: dict) -> SceneModel:
     A field given at the value it already has (an API body's ``sed_units`` default) changes nothing."""
     if not changes:
         return base
-    if changes.keys() == {"position"}:
-        return base.at(changes["position"])  # the one field a JSON position changes, checked alone
     same = all(getattr(base, key) == value for key, value in changes.items() if key != "position")
+    if same and "position" in changes:
+        return base.at(changes["position"])  # only the position moves: it alone is checked again
     return replace(base, name=base.name if same else None, **changes)
