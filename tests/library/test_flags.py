@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from nlpsf import flags
+from nlpsf import flags, solve
 from nlpsf.flags import CATALOGUE, Flag, FlagCode
 
 
@@ -90,8 +90,6 @@ def test_an_answers_flags_cannot_change_another_answers():
     """A plan's flags are shared by the answers made from it (the SCA range keeps its first node's
     plan, a node's field-grid flag is made once): their values are read-only, so editing one
     answer's flag cannot reach the next answer's."""
-    from nlpsf import solve
-
     first = solve("H158", magnitude=18.3, tolerance=1e-4)
     for flag in first.flags:
         if isinstance(flag, Flag):

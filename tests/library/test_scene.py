@@ -3,12 +3,14 @@ chain fitted from scratch, or GalSim at the same settings."""
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from nlpsf import roman
 from nlpsf.checks import InputError
+from nlpsf.request import presets as roman_default
 from nlpsf.roman import photometry
 from nlpsf.sim import detector, experiment, moments, optics, render
 from nlpsf.sim import scene as scenes
@@ -499,3 +501,23 @@ def test_the_effect_registry_is_the_one_list_of_effects():
         assert not nominal.without(name).effects_on()[name]
         assert (name in nominal.breaks_beta_q_scaling()) == effect.breaks_beta_q
         assert nominal.plain_detector == (effect.kind == "optical")
+
+
+def test_a_scene_moved_is_the_scene_replaced_at_that_position():
+    """``SceneModel.at`` (a JSON position, an SCA range's nodes) checks only the position: the scene
+    it gives is ``dataclasses.replace``'s, name, description and effects included, and a bad
+    position is refused alike."""
+    bases = [scenes.SceneModel(), scenes.preset("galsim-roman"), roman_default.scene(None, 70.0)]
+    for base in bases:
+        base.describe()  # worked out before the move: the moved scene works it out again
+        for position in [(1.0, 1.0), (4088.0, 17.5), (2044.5, 3001.25), None]:
+            moved, replaced = base.at(position), replace(base, position=position)
+            assert moved == replaced and hash(moved) == hash(replaced) and moved.name == replaced.name
+            assert moved.describe() == replaced.describe() and moved.to_dict() == replaced.to_dict()
+            assert moved.effects_on() == replaced.effects_on()
+    for bad in ([0.5, 10], [10], ["x", 10], [float("nan"), 10], [5000, 10]):
+        with pytest.raises(InputError) as moved_error:
+            scenes.SceneModel().at(bad)
+        with pytest.raises(InputError) as replaced_error:
+            replace(scenes.SceneModel(), position=bad)
+        assert str(moved_error.value) == str(replaced_error.value)
