@@ -24,6 +24,7 @@ from nlpsf.checks import (
     check_magnitude,
     check_number,
 )
+from nlpsf.frozen import replaced
 from nlpsf.sim import levels, ramps
 
 from . import shear
@@ -258,14 +259,11 @@ class SolveRequest:
     def at_position(self, position) -> SolveRequest:
         """This request for the same star at another ``position`` of its SCA (pixels): its scene
         moved there, nothing else read again (the position is checked by the scene)."""
-        moved = object.__new__(type(self))  # copy.copy's result, without its reduce protocol (an answer
-        moved.__dict__.update(self.__dict__)  # over an SCA moves its request twice)
         try:
             scene = _scene_at(self.scene, tuple(position))
         except TypeError:  # a scene holding something unhashable: moved afresh
             scene = replace(self.scene, position=position)
-        object.__setattr__(moved, "scene", scene)
-        return moved
+        return replaced(self, scene=scene)
 
     def table_pass(self) -> SolveRequest:
         """This request on the paper's tables (no ramp, scene, other pupil rule or state): the cheap

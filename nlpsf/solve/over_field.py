@@ -10,10 +10,11 @@ from dataclasses import dataclass, replace
 from nlpsf import roman
 from nlpsf.checks import InputError
 from nlpsf.flags import FlagCode, make
+from nlpsf.frozen import replaced
 from nlpsf.serialise import json_number
 from nlpsf.slopes.providers import field_tables
 
-from .solution import Solution, replaced
+from .solution import Solution
 
 
 @dataclass(frozen=True)

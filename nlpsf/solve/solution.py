@@ -10,17 +10,6 @@ from nlpsf.flags import codes as flag_codes
 from nlpsf.serialise import json_number
 
 
-def replaced(instance, **changes):
-    """``dataclasses.replace(instance, **changes)`` of a frozen dataclass whose values are already
-    checked (no ``__post_init__``): its fields copied as they are rather than passed through
-    ``__init__`` again (a Solution has 30; an SCA range's answer is the most demanding node's with
-    its range added)."""
-    copy = object.__new__(type(instance))
-    copy.__dict__.update(instance.__dict__)
-    copy.__dict__.update(changes)
-    return copy
-
-
 @dataclass(frozen=True)
 class Uncertainty:
     """The uncertainty of a solved quantity, in its own unit, by part (None: the part is unknown

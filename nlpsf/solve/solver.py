@@ -65,6 +65,7 @@ from functools import lru_cache, partial
 from nlpsf import defaults
 from nlpsf.checks import InputError
 from nlpsf.flags import Flag, FlagCode, make
+from nlpsf.frozen import replaced
 from nlpsf.request import shear
 from nlpsf.request.resolve import SolveRequest
 from nlpsf.sim import ramps
@@ -77,7 +78,7 @@ from . import conditions as answer_conditions
 from . import model_part, quantity, sca_nodes
 from .centroids import enough_centroids
 from .over_field import grid_size, sca_range, worst_over_field
-from .solution import Solution, replaced
+from .solution import Solution
 from .validity import (
     _validity_flags,
     between_limits_note,

@@ -13,6 +13,7 @@ import numpy as np
 
 from nlpsf import roman
 from nlpsf.checks import InputError, check_integer, check_number
+from nlpsf.frozen import replaced
 from nlpsf.roman import seds
 
 from .registry import (
@@ -112,9 +113,9 @@ class SceneModel:
         ``replace(self, position=position)``, without checking again the fields it had checked
         (a request's JSON position, an SCA range's nodes). What it worked out (which effects are
         on, its description) is worked out again: the position is among them."""
-        moved = object.__new__(type(self))
-        moved.__dict__.update({key: value for key, value in self.__dict__.items() if not key.startswith("_")})
-        object.__setattr__(moved, "position", None if position is None else _checked_position(position))
+        moved = replaced(self, position=None if position is None else _checked_position(position))
+        for worked_out in [key for key in moved.__dict__ if key.startswith("_")]:
+            del moved.__dict__[worked_out]
         return moved
 
     # --- which effects are on -------------------------------------------------------------
