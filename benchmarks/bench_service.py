@@ -24,7 +24,9 @@ That server has one HTTP worker whatever ``--workers`` says: with several, the k
 hashes each measurement's new connections to the workers anew, so that 8 connections may land 4/4
 in one measurement and 8/0 in the next, and a round's ratio moved between 0.3x and 1.0x with the
 split alone (2026-12-05, wrk); one worker measures each kind's whole cost per request, the HTTP
-server's share included, alike.
+server's share included, alike. It then measures both with one connection, the latency of one
+request at a time (issue 25's p99 target on a quiet machine: with 8 closed-loop connections a
+request waits for the 7 before it).
 
 Usage: python benchmarks/bench_service.py [--workers N] [--connections 8] [--duration 10]
        [--generator wrk|python] [--job-realizations 2000] [--process-models] [--only-throughput]
@@ -335,7 +337,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--only-process-models", action="store_true", help="only that comparison")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the comparison (default 3)")
     parser.add_argument(
-        "--only-throughput", action="store_true", help="only the default mix against the paper's, idle, in --rounds rounds"
+        "--only-throughput", action="store_true", help="only the default mix against the paper's, idle, in --rounds rounds, then one request at a time"
     )
     return parser.parse_args()
 
