@@ -337,7 +337,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--only-process-models", action="store_true", help="only that comparison")
     parser.add_argument("--rounds", type=int, default=3, help="alternating rounds of the comparison (default 3)")
     parser.add_argument(
-        "--only-throughput", action="store_true", help="only the default mix against the paper's, idle, in --rounds rounds, then one request at a time"
+        "--only-throughput",
+        action="store_true",
+        help="only the default mix against the paper's, idle, in --rounds rounds, then one request at a time",
     )
     return parser.parse_args()
 
