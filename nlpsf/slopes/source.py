@@ -79,6 +79,8 @@ class Slopes:
         self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
         #: How the ramp's slopes were obtained in this request ("table", "simulation").
         self.ramp_bases: set[str] = set()
+        #: (magnitude, slope, |error|) of the field grid at this node, read with the SCA's other nodes.
+        self._read_with_others: tuple[float, float, float] | None = None
 
     @classmethod
     def for_request(cls, request: SolveRequest, the_plan) -> Slopes:
@@ -139,12 +141,24 @@ class Slopes:
             return value, error, region
         return (*self._simulated(magnitude), region)
 
+    def read_with_others(self, magnitude: float, slope: float, error: float) -> None:
+        """The field grid's (slope, |error|) at ``magnitude`` at this node (the scene's position is one
+        of the grid's nodes), as ``sca_nodes`` read it with the SCA's other nodes: :meth:`at` answers
+        that magnitude with it instead of reading the grid again (the same slope; the error to the
+        last bits). Ignored unless finite: :meth:`at` then reads the grid as ever."""
+        if self.grid is not None and math.isfinite(slope) and math.isfinite(error):
+            self._read_with_others = (magnitude, slope, error)
+
     def _from_grid(self, magnitude: float) -> tuple[float, float, int]:
         """The Roman default's slope from its field grid at the scene's position; a magnitude brighter
         than a node's grid is simulated (and noted). Fainter than the grid's faint end (m = 28 in the
         shipped file), the linear regime's flux law from there (region +1), as the paper's tables
         extrapolate: H158 SCA 18 at (1000, 3000), size, m = 30: 0.3639932 against 0.3639921 simulated."""
         faint = self.grid.magnitude_range(self.band, self.sca)[1]
+        known = self._read_with_others
+        if known is not None and magnitude == known[0]:
+            self.ramp_bases.add("grid")
+            return known[1], known[2], 1 if magnitude > faint else 0
         if magnitude > faint:
             value, error = grid_slope(self.grid, self.band, self.sca, self.scene_model.position, self.metric, self.mode, faint)
             scale = 10 ** (-0.4 * (magnitude - faint))

@@ -251,8 +251,11 @@ def _ranged_at_once(answer, request, tables_set, positions, found, progress):
         )
     # The node's crossing (a magnitude solve's) is not sought again, nor its plan made again (the first
     # node's, moved); its value is checked all the same.
-    most = answer(_at(request, positions[ranked[-1]]), tables_set, crossing=found.crossings.get(ranked[-1]), node_plan=found.plan)
-    if not _same_answer(getattr(most, solved), most.uncertainty, found, ranked[-1]):
+    # Nor its slope read again where it reads it at the magnitude the nodes were read at together.
+    k = ranked[-1]
+    hints = {"crossing": found.crossings.get(k), "node_plan": found.plan, "node_read": found.read_of(k)}
+    most = answer(_at(request, positions[k]), tables_set, **hints)
+    if not _same_answer(getattr(most, solved), most.uncertainty, found, k):
         return None
     rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
     least = (positions[ranked[0]], found.values[ranked[0]])

@@ -43,6 +43,14 @@ class NodeAnswers:
     crossings: dict[int, NodeScan] = field(default_factory=dict)
     #: The plan of the first node (``solver.plan``), which the most demanding node's answer moves there.
     plan: object | None = None
+    #: (each node's magnitude, its slope there, |error|): what node k's own answer reads at that
+    #: magnitude (``Slopes.at``), read with the others: the slope bit for bit, the error to the last
+    #: bits (a magnitude solve's field-interpolation term is read once for every node's root).
+    reads: tuple[list[float], list[float], list[float]] | None = None
+
+    def read_of(self, k: int) -> tuple[float, float, float] | None:
+        """Node k's (magnitude, slope, |error|) read with the others (None: none kept)."""
+        return None if self.reads is None else (self.reads[0][k], self.reads[1][k], self.reads[2][k])
 
 
 class _Nodes:
@@ -171,7 +179,8 @@ def _at_magnitude(request, nodes: _Nodes, model: dict, saturation: list[float], 
     if any(magnitude < m_sat - tables.BRIGHT_MARGIN_MAG for m_sat in saturation) or not nodes.held([magnitude]):
         return None  # refused (too bright) or not held: the node-by-node answer says so
     count = len(saturation)
-    slopes, errors = (np.array(v) for v in nodes.at([magnitude] * count))
+    read = nodes.at([magnitude] * count)
+    slopes, errors = (np.array(v) for v in read)
     if not (np.isfinite(slopes).all() and np.isfinite(errors).all()):
         return None
     effects = _effects(model, nodes, [magnitude] * count)
@@ -190,7 +199,8 @@ def _at_magnitude(request, nodes: _Nodes, model: dict, saturation: list[float], 
             statistical = values * c_err / c
     fidelity = None if systematic is None else values * systematic
     totals = _totals(statistical, fidelity, values * effects)
-    return NodeAnswers(request.solved_for, values.tolist(), [None if z else u for z, u in zip(zero, totals, strict=True)])
+    uncertainties = [None if z else u for z, u in zip(zero, totals, strict=True)]
+    return NodeAnswers(request.solved_for, values.tolist(), uncertainties, reads=([magnitude] * count, *read))
 
 
 def _magnitudes(request, nodes: _Nodes, model: dict, saturation: list[float], systematic) -> NodeAnswers | None:
@@ -370,4 +380,4 @@ def _magnitude_answers(request, nodes, model, saturation, systematic, m_nl, cros
         totals = _totals(statistical, fidelity, np.where(answered, effects / derivative, 0.0))
     values = [saturation[k] if binds[k] else m_nl[k] for k in range(count)]
     crossings = {k: (m_nl[k], None if binds[k] else log_derivatives[k]) for k in crossed}
-    return NodeAnswers("magnitude", values, totals, crossings)
+    return NodeAnswers("magnitude", values, totals, crossings, reads=(at_root, slopes.tolist(), errors.tolist()))

@@ -407,6 +407,7 @@ def answer(
     progress=None,
     crossing=None,
     node_plan: SolvePlan | None = None,
+    node_read: tuple[float, float, float] | None = None,
 ) -> Solution:
     """The answer to a validated request: plan, slopes, the solved quantity with its uncertainty.
     ``simulate`` False: at table cost only (:func:`table_plan`; a batch's rows). ``progress(done,
@@ -414,7 +415,8 @@ def answer(
     position). ``crossing``: a magnitude solve's scan at this node and its crossing, found with the
     SCA's other nodes (``sca_nodes``; ``magnitude_scan.NodeScan``), not read or sought again. ``node_plan``: the
     plan of the same request at another node of the SCA's field grid (:func:`plan_at_node`), moved
-    here rather than planned again."""
+    here rather than planned again. ``node_read``: (magnitude, slope, |error|) of this node's field-grid
+    slope read with the SCA's other nodes (``sca_nodes``), not read again at that magnitude."""
     start = time.perf_counter()
     if request.policy.ranges_over_sca and request.scene.position is None and request.accuracy is None:
         # The Roman default depends on the position: without one, the range over the SCA. (With an
@@ -427,6 +429,8 @@ def answer(
         the_plan = plan(request, tables_set) if simulate else table_plan(request, tables_set)
     slopes = _Slopes.for_request(request, the_plan)
     the_plan, slopes = enough_centroids(request, the_plan, slopes, _Slopes.for_request)
+    if node_read is not None:
+        slopes.read_with_others(*node_read)
     flags: list[str] = list(the_plan.notes)
     if "relabelled_from" in slopes.table.settings:
         flags.append(_relabel_flag(request, slopes))

@@ -80,6 +80,45 @@ def test_every_nodes_uncertainty_at_once_is_its_own_answers():
     assert checked >= 50
 
 
+def test_every_nodes_slope_read_with_the_others_is_its_own_answers_slope():
+    """The most demanding node's answer takes its slope from the read of every node at once
+    (``NodeAnswers.read_of``, ``Slopes.read_with_others``) instead of reading the grid again: at each
+    node, that read is the node's own answer's slope to the last bit and its error to 1e-12, wherever
+    the node's answer reads the slope at that magnitude (not where saturation binds)."""
+    checked = 0
+    for request in requests(12, seed=23):
+        positions = over_field.range_positions(request)
+        found = solver._node_answers(request, positions)
+        if found is None or found.reads is None:
+            continue  # answered node by node, or saturation binds at every node (no slope read)
+        for k, position in enumerate(positions):
+            magnitude, slope, error = found.read_of(k)
+            own = solver.answer(request.at_position(position))
+            if own.binding_limit == "saturation":
+                continue
+            read_at = own.nonlinearity_magnitude if request.solved_for == "magnitude" else request.magnitude
+            assert magnitude == read_at and slope == own.slope, (request, position)
+            assert error == pytest.approx(own.slope_uncertainty, rel=1e-12, abs=0.0), (request, position)
+            checked += 1
+    assert checked >= 100
+
+
+def test_a_slope_read_with_the_others_answers_only_its_own_magnitude():
+    from nlpsf.slopes.source import Slopes
+
+    request = SolveRequest.from_json({"band": "H158", "sca": 7, "precision": 0.01, "magnitude": 20.0})
+    node = request.at_position(over_field.range_positions(request)[3])
+    the_plan = solver.plan(node)
+    grid_read = Slopes.for_request(node, the_plan).at(20.0)
+    told = Slopes.for_request(node, the_plan)
+    told.read_with_others(20.0, 1.5, 0.25)  # not the grid's numbers: shows which is answered
+    assert told.at(20.0) == (1.5, 0.25, 0) and "grid" in told.ramp_bases
+    assert told.at(20.5) == Slopes.for_request(node, the_plan).at(20.5)  # another magnitude: the grid read
+    unknown = Slopes.for_request(node, the_plan)
+    unknown.read_with_others(20.0, float("nan"), 0.25)  # not finite: ignored, the grid read as ever
+    assert unknown.at(20.0) == grid_read
+
+
 def test_a_nodes_plan_moved_from_another_node_is_its_own_plan():
     """The most demanding node's answer moves the first node's plan there (``solver.plan_at_node``)
     instead of planning again: the same plan, field by field (notes, model part, tables, coverage)."""
