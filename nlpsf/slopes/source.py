@@ -79,6 +79,8 @@ class Slopes:
         self.ramp_factor = ramp.quadratic_factor(exptime) if ramp is not None and ramp.fit == "ols" else None
         #: How the ramp's slopes were obtained in this request ("table", "simulation").
         self.ramp_bases: set[str] = set()
+        #: :meth:`modulus_over_component` read from the field grid, by magnitude.
+        self._grid_moduli: dict[float, float | None] = {}
         #: (magnitude, slope, |error|) of the field grid at this node, read with the SCA's other nodes.
         self._read_with_others: tuple[float, float, float] | None = None
 
@@ -310,11 +312,14 @@ class Slopes:
         caller then reads the tables' ratio)."""
         if self.metric not in ("e1", "e2"):
             return 1.0
+        if self.grid is not None and magnitude in self._grid_moduli:
+            return self._grid_moduli[magnitude]  # the model part and the component flags both ask at the answer's
         pair = None
         if self.grid is not None:
             position = self.scene_model.position
             pair = [float(v) for v in self.grid.values(self.band, self.sca, position, ("e1", "e2"), self.mode, magnitude)]
             pair = pair if all(math.isfinite(v) for v in pair) else None
+        from_grid = pair is not None
         result = self._results.get(round(magnitude, 9))
         if pair is None and result is not None:
             pair = [result.slope(self.mode, defaults.METRIC_COLUMNS[m])[0] for m in ("e1", "e2")]
@@ -322,7 +327,10 @@ class Slopes:
         if pair is None:
             return None
         component = abs(pair[0] if self.metric == "e1" else pair[1])
-        return math.hypot(*pair) / component if component > 0 else None
+        ratio = math.hypot(*pair) / component if component > 0 else None
+        if from_grid:
+            self._grid_moduli[magnitude] = ratio  # the grid's numbers: the same at every call
+        return ratio
 
 
 def grid_slope(grid, band: str, sca: int, position, metric: str, mode: str, magnitude: float) -> tuple[float, float]:
