@@ -131,7 +131,8 @@ def _evaluate(group: Group, x: np.ndarray) -> np.ndarray:
     n = knots.shape[0]
     flat = x.reshape(n, n, -1)
     interval = np.minimum(np.maximum((knots[:, :, None, :] <= flat[..., None]).sum(axis=-1) - 1, 0), group.last)
-    s = flat - np.take(knots, group.node_knots + interval)
+    # ndarray.take: np.take's own call, without its wrapper's dispatch (the same elements).
+    s = flat - knots.take(group.node_knots + interval)
     coefficients = group.coefficients
-    read = np.take(coefficients, group.node_coefficients + interval, axis=coefficients.ndim - 1)
+    read = coefficients.take(group.node_coefficients + interval, axis=coefficients.ndim - 1)
     return sum_of_powers(read, s).reshape(len(group.chosen), *x.shape)
