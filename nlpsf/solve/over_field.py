@@ -201,8 +201,9 @@ def sca_range(answer, request, tables_set=None, progress=None, nodes=None, start
 
     ``progress(done, total, message)``, if given, is told as the nodes are answered. ``nodes(request,
     positions)``: every node's value and uncertainty at once (``sca_nodes``), or None; then only the
-    most demanding node is answered in full (its value checked against the one found for it), else
-    every node is. ``start``: the ``time.perf_counter()`` the answer began at (its ``elapsed_s``)."""
+    most demanding node is answered in full (from the slope read for it with the others, its value
+    checked against the one found for it), else every node is. ``start``: the ``time.perf_counter()``
+    the answer began at (its ``elapsed_s``)."""
     positions = range_positions(request)
     found = nodes(request, positions) if nodes is not None else None
     ranged = _ranged_at_once(answer, request, tables_set, positions, found, progress) if found is not None else None
@@ -250,12 +251,13 @@ def _ranged_at_once(answer, request, tables_set, positions, found, progress):
             len(positions) - 1, len(positions), f"the SCA's {len(positions)} field-grid nodes at once, the most demanding in full"
         )
     # The node's crossing (a magnitude solve's) is not sought again, nor its plan made again (the first
-    # node's, moved); its value is checked all the same.
-    # Nor its slope read again where it reads it at the magnitude the nodes were read at together.
-    k = ranked[-1]
-    hints = {"crossing": found.crossings.get(k), "node_plan": found.plan, "node_read": found.read_of(k)}
-    most = answer(_at(request, positions[k]), tables_set, **hints)
-    if not _same_answer(getattr(most, solved), most.uncertainty, found, k):
+    # node's, moved), nor its slope read again at the magnitude every node was read at together (the
+    # same slope: tests/library/test_sca_nodes.py reads each node alone). Its answer's arithmetic is
+    # checked against the value found for it all the same.
+    most_k = ranked[-1]
+    hints = {"crossing": found.crossings.get(most_k), "node_plan": found.plan, "node_read": found.read_of(most_k)}
+    most = answer(_at(request, positions[most_k]), tables_set, **hints)
+    if not _same_answer(getattr(most, solved), most.uncertainty, found, most_k):
         return None
     rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
     least = (positions[ranked[0]], found.values[ranked[0]])
