@@ -77,7 +77,10 @@ def default_bodies(count: int = 1000, seed: int = 1) -> list[dict]:
     """Solves of the Roman default (no scene option: its shipped field grid), ``count`` distinct ones
     so that a run's requests are (almost) all new: :data:`SOLVES` at the grid's conditions (the
     grid holds one exposure and beta0, so the K213 one keeps neither), the known values moved by up
-    to +-2 %, and every other one at a random position on its SCA."""
+    to +-2 %, and every other one at a random position on its SCA. Body k is :data:`SOLVES`' entry
+    k mod 8 and is at a position when k is odd, so the entries alternate: entries 0, 2, 4 and 6 are
+    never at a position (among them the W146 magnitude solve, whose answer at a position falls between
+    the saturation limits: a simulation job, not a table answer) and entries 1, 3, 5 and 7 always are."""
     import random
 
     draw = random.Random(seed)
