@@ -255,8 +255,13 @@ def _ranged_at_once(answer, request, tables_set, positions, found, progress):
     # same slope: tests/library/test_sca_nodes.py reads each node alone). Its answer's arithmetic is
     # checked against the value found for it all the same.
     most_k = ranked[-1]
-    hints = {"crossing": found.crossings.get(most_k), "node_plan": found.plan, "node_read": found.read_of(most_k)}
-    most = answer(_at(request, positions[most_k]), tables_set, **hints)
+    most = answer(
+        _at(request, positions[most_k]),
+        tables_set,
+        crossing=found.crossings.get(most_k),
+        node_plan=found.plan,
+        node_read=found.read_of(most_k),
+    )
     if not _same_answer(getattr(most, solved), most.uncertainty, found, most_k):
         return None
     rows = [_node(p, found.values[k], found.uncertainties[k], "table", solved) for k, p in enumerate(positions)]
