@@ -24,6 +24,7 @@ from fastapi.responses import PlainTextResponse, Response
 
 from nlpsf.checks import InputError
 from nlpsf.request.resolve import SolveRequest
+from nlpsf.request.rows import request_rows
 from nlpsf.slopes import tables
 from nlpsf.solve import curves as requirement_curves
 from nlpsf.solve import relation
@@ -280,19 +281,9 @@ def _with_position(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def parse_batch_csv(text: str) -> list[dict[str, Any]]:
-    lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
-    if not lines:
-        raise InputError("csv", "the CSV is empty: give a header row (e.g. band,tolerance,magnitude) and one row per request")
-    reader = csv.DictReader(io.StringIO("\n".join(lines)))
-    if not reader.fieldnames or any(not (name or "").strip() for name in reader.fieldnames):
-        raise InputError("csv", "the header row has an empty column name")
-    rows = []
-    for row in reader:
-        cells = {k.strip(): _cell(k.strip(), v or "") for k, v in row.items() if k is not None and (v or "").strip() != ""}
-        rows.append(_with_position(cells))
-    if not rows:
-        raise InputError("csv", "the CSV has a header but no requests")
-    return rows
+    """The CSV's request rows (``request_rows``: its structure checked), each cell read as the page
+    sends it (empty cells left out, numbers as numbers, a position as the row's scene's)."""
+    return [_with_position({name: _cell(name, cell) for name, cell in row.items() if cell}) for row in request_rows(text)]
 
 
 def _answers_csv(results: list[dict[str, Any]]) -> str:

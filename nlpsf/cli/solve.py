@@ -414,7 +414,6 @@ def _batch_arguments(args: argparse.Namespace, row: dict[str, str], exptime: flo
     arguments = {name: getattr(args, name) for name in BATCH_COLUMNS}
     arguments["exptime"] = exptime
     for name, cell in row.items():
-        cell = (cell or "").strip()
         if not cell:
             continue
         try:
@@ -430,6 +429,7 @@ def run_batch(args: argparse.Namespace) -> int:
     import sys
 
     from nlpsf.request.resolve import SolveRequest
+    from nlpsf.request.rows import request_rows
     from nlpsf.solve.solver import answer
 
     from ..checks import InputError, SimulationError
@@ -438,9 +438,15 @@ def run_batch(args: argparse.Namespace) -> int:
     ramp, exptime = _readout(args, preset)
     try:
         with open(args.batch, newline="", encoding="utf-8") as handle:
-            rows = list(csv.DictReader(handle))
+            text = handle.read()
     except OSError as error:
         raise InputError("batch", f"cannot read {args.batch}: {error.strerror}") from None
+    except UnicodeDecodeError as error:
+        raise InputError("batch", f"{args.batch} is not UTF-8 text (byte {error.start})") from None
+    try:
+        rows = request_rows(text)
+    except InputError as error:
+        raise InputError("batch", f"{args.batch}: {error.reason}") from None
     answers: list[dict] = []
     for index, row in enumerate(rows):
         try:

@@ -3,6 +3,8 @@ the field: the same numbers as the library, bad input named."""
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import subprocess
 import sys
@@ -232,6 +234,25 @@ def test_solve_batch_answers_each_csv_row_on_its_own(capsys, tmp_path):
     code, out, _ = run(capsys, "solve", "--batch", str(batch), "--json", "--scene", "paper")
     answers = json.loads(out)
     assert [a["ok"] for a in answers] == [True, True, False] and answers[2]["error"]["field"] == "magnitude"
+
+
+def test_solve_batch_reads_a_spreadsheets_csv_and_refuses_a_file_that_would_swap_values(capsys, tmp_path):
+    from nlpsf.solve.solver import solve
+
+    excel = tmp_path / "excel.csv"  # Excel's "CSV UTF-8": a byte-order mark, CRLF, padding columns
+    excel.write_bytes(b"\xef\xbb\xbfband,magnitude,tolerance,,\r\nH158,18.3,1e-4,,\r\n")
+    code, out, _ = run(capsys, "solve", "--batch", str(excel), "--scene", "paper")
+    row = next(csv.DictReader(io.StringIO(out)))
+    assert code == 0 and row["band"] == "H158" and row["error"] == ""
+    assert float(row["precision"]) == pytest.approx(
+        solve("H158", magnitude=18.3, tolerance=1e-4, scene="paper").precision, rel=1e-12
+    )
+    for text, named in (("band,band,magnitude,tolerance\nH158,J129,18,1e-4\n", "band more than once"),
+                        ("band,magnitude,tolerance\nH158,18,1e-4,9\n", "line 2 has 4 cells")):  # fmt: skip
+        bad = tmp_path / "bad.csv"
+        bad.write_text(text)
+        code, out, err = run(capsys, "solve", "--batch", str(bad), "--scene", "paper")
+        assert code == 2 and out == "" and "--batch" in err and named in err
 
 
 def test_every_pupil_scale_rule_reaches_the_simulation(capsys):

@@ -217,6 +217,18 @@ def test_batch_csv_reads_percents_and_reports_each_row(client):
         assert refused.status_code == 422 and refused.json()["field"] == "csv", bad
 
 
+def test_batch_csv_that_would_lose_or_swap_a_value_is_refused_naming_the_line(client):
+    # A column named twice (which band?) and a cell beyond the header (dropped, once) are refused, not answered.
+    for text, named in (("band,band,precision,magnitude\nH158,J129,0.01,19\n", "band more than once"),
+                        ("band,precision,magnitude\nH158,0.01,19\nH158,0.01,19,20\n", "line 3 has 4 cells")):  # fmt: skip
+        refused = client.post("/api/v1/page/batch", content=text, headers={"Content-Type": "text/csv"})
+        assert refused.status_code == 422 and refused.json()["field"] == "csv" and named in refused.json()["detail"]
+    padded = client.post(
+        "/api/v1/page/batch", content="band,precision,magnitude,\nH158,0.01,19,\n", headers={"Content-Type": "text/csv"}
+    )
+    assert padded.status_code == 200 and padded.json()["results"][0]["ok"]
+
+
 def test_batch_csv_echoes_a_cell_that_is_no_finite_number_as_sent(client):
     # "nan", "inf" cells (and a position holding one) are refused by their own field, and the
     # answer's echo of the rows shows what was sent: JSON has no NaN, and a null would read as a
