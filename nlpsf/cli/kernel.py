@@ -8,9 +8,11 @@ from .options import print_json
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from .solve import configure as solve_options
+    from .solve import add_star_options
 
-    solve_options(parser)  # the request the calculator takes: band, SCA, scene, position, readout, ...
+    # The star as the calculator reads it (band, SCA, scene, position, readout, ...), not what it is
+    # solved for: a kernel is not a solve, and an option it would ignore is not offered.
+    add_star_options(parser, over_field=False)
     parser.add_argument("--output", metavar="FILE.ecsv", help="write the kernel as ECSV (charge_e, one column per metric)")
 
 
@@ -25,7 +27,7 @@ def request_from(args: argparse.Namespace, magnitude_needed: bool = True):
         raise InputError("magnitude", "give the star's magnitude (--magnitude)")
     scene, preset = _scene(args)
     ramp, exptime = _readout(args, preset)
-    values = {name: getattr(args, name) for name in _REQUEST_OPTIONS}
+    values = {name: getattr(args, name) for name in _REQUEST_OPTIONS if hasattr(args, name)}
     # The triple is the residual's here: the request only resolves the star and its readout.
     values.update(precision=0.01, tolerance=None, magnitude=args.magnitude if args.magnitude is not None else 20.0)
     values.update(shear_m=None, shear_c=None)

@@ -5,22 +5,26 @@ from __future__ import annotations
 
 import argparse
 
+from .. import defaults
 from .options import print_json
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    from .kernel import configure as kernel_options
+    from .solve import add_star_options
 
-    kernel_options(parser)
+    add_star_options(parser, over_field=False)  # the star, as kernel's (which writes its kernel with --output)
     given = parser.add_argument_group("the residual (one of)")
     given.add_argument("--residual", metavar="FILE.ecsv", help="a residual curve: columns charge_e, residual_e [e-]")
     given.add_argument("--polynomial", metavar="A0,A1,...", help="r(Q) = sum_k a_k Q^k [e-], Q in e-")
     given.add_argument("--linearity", metavar="FILE.asdf", help="a romancal linearity reference file (applied); with --reference")
     given.add_argument("--reference", metavar="FILE.asdf", help="the linearity reference file it is compared with (the truth)")
     given.add_argument("--shape", help="a residual up to its scale: constant_fraction, power_law:ALPHA, quadratic, polynomial:N")
+    shaped = parser.add_argument_group("a residual shape's scale (with --shape)")
+    shaped.add_argument("--scale", type=float, help="the shape's scale (two of --scale, --tolerance, --magnitude)")
+    shaped.add_argument("--tolerance", type=float, help="the allowed PSF error: dR/R, |de1|, |de2| or |de|")
+    shaped.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2 or e (|de|)")
+    shaped.add_argument("--envelope", metavar="BRIGHT,FAINT", help="with --tolerance: eps(Q) over these magnitudes")
     parser.add_argument("--gain", type=float, default=None, help="e-/DN of the linearity files (default romanisim's 2)")
-    parser.add_argument("--scale", type=float, help="the shape's scale (two of --scale, --tolerance, --magnitude)")
-    parser.add_argument("--envelope", metavar="BRIGHT,FAINT", help="with --shape and --tolerance: eps(Q) over these magnitudes")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -21,10 +21,14 @@ def _sca(text: str):
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
+    add_star_options(parser, over_field=True)
+    parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
     parser.add_argument(
-        "--sca", type=_sca, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18); all with --over-field"
+        "--mode", choices=defaults.MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
     )
+    parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
+    parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
+    _add_budget_options(parser)
     parser.add_argument(
         "--over-field",
         action="store_true",
@@ -32,16 +36,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "nodes, read from its shipped grid; with --scene paper the centre and four corner field points, from the "
         "field-point tables; simulated with a changed scene or a simulating --fidelity",
     )
-    parser.add_argument("--metric", choices=defaults.METRICS, default="size", help="size (dR/R), e1, e2, or e (|de|)")
-    parser.add_argument(
-        "--mode", choices=defaults.MODES, default="bias", help="bias: error in the mean beta; scatter: per-pixel spread"
-    )
-    parser.add_argument("--beta0", type=float, default=defaults.BETA0, help="nominal NL coefficient [1/e-], paper convention")
-    add_exposure(parser)
-    parser.add_argument("--precision", type=float, help="delta_beta / beta0 (bias) or sigma_beta / beta0 (scatter)")
-    parser.add_argument("--tolerance", type=float, help="allowed PSF error: dR/R, |de1|, |de2| or |de|")
-    parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
-    _add_budget_options(parser)
     parser.add_argument("--fidelity", choices=LEVELS, default=None, help="how the slope is obtained (default table)")
     parser.add_argument(
         "--accuracy",
@@ -49,6 +43,33 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="relative accuracy wanted: picks the cheapest fidelity whose measured error is below it (instead of --fidelity)",
     )
+    parser.add_argument(
+        "--batch",
+        metavar="FILE.csv",
+        help="solve every row of a CSV (header: any of " + ", ".join(BATCH_COLUMNS) + "; empty cells take the options' "
+        "values); prints one CSV row per input row (or, with --json, a JSON list), each answered or failed on its own",
+    )
+
+
+def add_star_options(parser: argparse.ArgumentParser, over_field: bool) -> None:
+    """The star and how it is observed, as a solve request reads them (band, SCA, beta0, exposure and
+    readout, magnitude, photometry, pupil rule, detector state, the scene): ``solve``'s options that
+    ``kernel`` and ``residual`` share. ``over_field``: an answer over the SCA (``solve``: without
+    ``--position`` every field-grid node, ``--sca all`` with ``--over-field``), else one star (the SCA
+    centre without ``--position``)."""
+    parser.add_argument("--band", default=defaults.BAND, help=f"Roman band: {', '.join(defaults.BANDS)}")
+    if over_field:
+        parser.add_argument(
+            "--sca",
+            type=_sca,
+            default=defaults.SCA,
+            help=f"detector 1-{defaults.N_SCA} (the paper's is 18); all with --over-field",
+        )
+    else:
+        parser.add_argument("--sca", type=int, default=defaults.SCA, help=f"detector 1-{defaults.N_SCA} (the paper's is 18)")
+    parser.add_argument("--beta0", type=float, default=defaults.BETA0, help="nominal NL coefficient [1/e-], paper convention")
+    add_exposure(parser)
+    parser.add_argument("--magnitude", type=float, help="AB magnitude of the brightest PSF star")
     parser.add_argument(
         "--throughput",
         choices=defaults.THROUGHPUTS,
@@ -81,14 +102,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "linearity correction evaluated on every resultant of the measured, IPC-coupled signal, as romancal's linearity "
         "step applies it) or per_read_beta (the earlier model: a residual beta on every read before IPC)",
     )
-    add_scene_options(parser, "solve")
+    add_scene_options(parser, "solve" if over_field else "roman")
     parser.add_argument("--json", action="store_true", help="print the JSON object other tools read")
-    parser.add_argument(
-        "--batch",
-        metavar="FILE.csv",
-        help="solve every row of a CSV (header: any of " + ", ".join(BATCH_COLUMNS) + "; empty cells take the options' "
-        "values); prints one CSV row per input row (or, with --json, a JSON list), each answered or failed on its own",
-    )
 
 
 def _add_budget_options(parser: argparse.ArgumentParser) -> None:
@@ -339,6 +354,8 @@ def _scene(args: argparse.Namespace):
         for name in ("position", "sed", "jitter", "charge_diffusion", "ipc", "ipc_order", "nl_coefficients", "bfe", "background")
     )
     if not changed and (args.scene is None or named is not None):
+        if getattr(args, "save_scene", None):
+            _save_preset_scene(args, preset)
         return None, preset  # the preset's own scene (the request fills it)
     if roman_default.policy(preset).sky and (args.scene is None or named is not None):
         # Options change only what they name of the Roman default; its sky stays unless --background.
@@ -349,6 +366,19 @@ def _scene(args: argparse.Namespace):
 #: The SCA whose sky a changed Roman default is filled with under ``--sca all`` (each SCA of an
 #: over-field answer then gets its own: ``over_field.own_conditions``).
 _FILLED_FOR = 18
+
+
+def _save_preset_scene(args: argparse.Namespace, preset: str) -> None:
+    """``--save-scene`` with no effect changed: the preset's own scene, as a changed one would be
+    written (the Roman default's with its sky for this band, SCA and readout; without ``--position``
+    none, as the preset's own)."""
+    from nlpsf.request import presets as roman_default
+    from nlpsf.sim import scene as scenes
+
+    if roman_default.policy(preset).sky:
+        _default_with_changes(args)  # writes it (``scene_from``)
+    else:
+        scenes.save(roman_default.load_scene(preset), args.save_scene)
 
 
 def _default_with_changes(args: argparse.Namespace):

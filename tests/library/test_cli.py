@@ -255,6 +255,42 @@ def test_solve_batch_reads_a_spreadsheets_csv_and_refuses_a_file_that_would_swap
         assert code == 2 and out == "" and "--batch" in err and named in err
 
 
+@pytest.mark.parametrize("command", ["kernel", "residual"])
+@pytest.mark.parametrize(
+    "option", [["--over-field"], ["--batch", "rows.csv"], ["--fidelity", "linear"], ["--precision", "0.01"], ["--stars", "4"],
+               ["--mode", "scatter"], ["--accuracy", "0.01"], ["--shear-c", "1e-4"]],
+)  # fmt: skip
+def test_kernel_and_residual_refuse_the_solve_options_they_would_ignore(capsys, command, option):
+    # A kernel or a residual's effect is one star's response: an option that asks for more (an answer over
+    # the SCA, a batch, a fidelity, stars averaged) would be silently dropped, so it is not offered.
+    residual = ["--polynomial", "0,1e-4"] if command == "residual" else []
+    with pytest.raises(SystemExit) as refused:
+        cli.main([command, "--magnitude", "18", *residual, *option])
+    assert refused.value.code == 2 and option[0] in capsys.readouterr().err
+
+
+def test_residual_does_not_offer_the_kernels_output(capsys):
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["residual", "--magnitude", "18", "--polynomial", "0,1e-4", "--output", "effect.ecsv"])
+    assert refused.value.code == 2 and "--output" in capsys.readouterr().err
+
+
+def test_save_scene_without_a_change_writes_the_scene_the_answer_used(capsys, tmp_path):
+    from nlpsf.request import presets
+    from nlpsf.sim import scene as scenes
+
+    ask = ["solve", "--band", "J129", "--sca", "4", "--magnitude", "18.5", "--tolerance", "1e-3", "--json"]
+    saved = tmp_path / "default.json"
+    code, out, _ = run(capsys, *ask, "--save-scene", str(saved))
+    assert code == 0 and saved.exists()
+    # Reloaded, it is the same star as observed: the same answer (the Roman default with this SCA's sky).
+    code, again, _ = run(capsys, *ask, "--scene", str(saved))
+    assert code == 0 and json.loads(again)["precision"] == pytest.approx(json.loads(out)["precision"], rel=1e-12)
+    paper = tmp_path / "paper.json"
+    assert run(capsys, *ask, "--scene", "paper", "--save-scene", str(paper))[0] == 0
+    assert scenes.load(paper) == presets.load_scene("paper")
+
+
 def test_every_pupil_scale_rule_reaches_the_simulation(capsys):
     # The rule is the optics' (roman.pupil): the simulated size follows the pupil's scale, a larger
     # pupil a smaller PSF. SCA 18's skinny mask: official is 4.3 % larger than galsim, header 5.7 % (their pixel scales).
