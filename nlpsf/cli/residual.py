@@ -12,7 +12,7 @@ from .options import print_json
 def configure(parser: argparse.ArgumentParser) -> None:
     from .solve import add_star_options
 
-    add_star_options(parser, over_field=False)  # the star, as kernel's (which writes its kernel with --output)
+    add_star_options(parser, over_field=False)  # the star, as kernel's; kernel's --output is not residual's
     given = parser.add_argument_group("the residual (one of)")
     given.add_argument("--residual", metavar="FILE.ecsv", help="a residual curve: columns charge_e, residual_e [e-]")
     given.add_argument("--polynomial", metavar="A0,A1,...", help="r(Q) = sum_k a_k Q^k [e-], Q in e-")
